@@ -1,0 +1,1 @@
+"""The bundled device profiles (YAML); this file only makes them an installable package."""

@@ -1,0 +1,3 @@
+from rtupoll.cli import main
+
+main()

@@ -1,0 +1,97 @@
+"""One exception tree for everything rtupoll reports to a user.
+
+Every error a user can cause or meet carries its own exit code, so the CLI maps
+errors to exit codes in exactly one place (``cli.main``) and scripts can tell a
+wiring fault from a typo. The codes are documented in the README.
+"""
+
+from __future__ import annotations
+
+
+class RtupollError(Exception):
+    """Base of every error rtupoll reports as one line, never as a traceback."""
+
+    exit_code = 1
+
+
+class UsageError(RtupollError):
+    """Bad arguments: a device spec, register spec or option that makes no sense."""
+
+    exit_code = 2
+
+
+class ProfileError(RtupollError):
+    """A profile or site configuration that does not validate.
+
+    Rendered as ``file:line: field.path: message`` so an editor can jump there.
+    """
+
+    exit_code = 2
+
+    def __init__(self, message: str, *, file: str = "", line: int = 0, path: str = "") -> None:
+        self.file, self.line, self.path, self.message = file, line, path, message
+        where = f"{file}:{line}: " if file and line else (f"{file}: " if file else "")
+        super().__init__(f"{where}{path + ': ' if path else ''}{message}")
+
+
+class ConfigError(ProfileError):
+    """A site configuration (buses and devices) that does not validate."""
+
+
+class PortError(RtupollError):
+    """The port cannot be opened: missing, busy, no permission, or unreachable gateway."""
+
+    exit_code = 3
+
+
+class BusError(RtupollError):
+    """A transaction on the bus failed."""
+
+    exit_code = 4
+
+
+class DeviceTimeout(BusError):
+    """No (valid) reply within the device's timeout."""
+
+    exit_code = 4
+
+
+class FrameError(BusError):
+    """A reply arrived but was unusable: CRC error, garbage, truncated or malformed."""
+
+    exit_code = 7
+
+
+class DeviceException(BusError):
+    """The device answered with a Modbus exception response."""
+
+    exit_code = 5
+
+    def __init__(self, code: int, *, unit: int | None = None, function: int | None = None) -> None:
+        from rtupoll.rtu import exception_name
+
+        self.code, self.unit, self.function = code, unit, function
+        who = f"device {unit}" if unit is not None else "device"
+        fc = f" to function 0x{function:02X}" if function is not None else ""
+        super().__init__(f"{who} answered{fc} with exception {code:02d} {exception_name(code)}")
+
+
+class VerificationError(RtupollError):
+    """A write was sent but reading back does not show the intended result."""
+
+    exit_code = 6
+
+
+class RefusedError(RtupollError):
+    """A request refused before anything was sent, because it would be unsafe or wrong.
+
+    For example a read-only field, a value out of range, a reserved or taken address.
+    """
+
+    exit_code = 8
+
+
+class ScanIncomplete(RtupollError):
+    """``poll --once``: one or more devices failed; each is named on stderr."""
+
+    exit_code = 9
