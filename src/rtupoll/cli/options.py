@@ -20,3 +20,17 @@ profiles_option = click.option(
 def format_option(*choices: str) -> Callable[[F], F]:
     return click.option("--format", "fmt", type=click.Choice(list(choices)),
                         default=choices[0], show_default=True, help="Output format.")
+
+
+def port_options(f: F) -> F:
+    """--port, --baudrate, --parity, --stopbits: serial settings (default: the profile's)."""
+    f = click.option("--stopbits", type=click.Choice(["1", "2"]), default=None,
+                     help="Stop bits (default: the profile's).")(f)
+    f = click.option("--parity", type=click.Choice(["N", "E", "O"], case_sensitive=False),
+                     default=None, help="Parity (default: the profile's).")(f)
+    f = click.option("--baudrate", "-b", type=int, default=None,
+                     help="Baud rate (default: the profile's).")(f)
+    f = click.option("--port", "-p", required=True, envvar="RTUPOLL_PORT",
+                     help="Serial port (/dev/ttyUSB0), or tcp://HOST:PORT for an RTU-over-TCP "
+                          "gateway. Also $RTUPOLL_PORT.")(f)
+    return f
