@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import click
 
@@ -26,7 +27,7 @@ class DeviceSpec:
         return f"{self.profile}@{self.address}"
 
 
-class DeviceSpecType(click.ParamType):
+class DeviceSpecType(click.ParamType[DeviceSpec, Any]):
     name = "PROFILE@ADDRESS"
 
     def convert(self, value: object, param: click.Parameter | None,
@@ -47,7 +48,7 @@ class DeviceSpecType(click.ParamType):
         return DeviceSpec(profile, address)
 
 
-class UnitType(click.ParamType):
+class UnitType(click.ParamType[int, Any]):
     """A unit (slave) address, 0..255, decimal or hex."""
 
     name = "ADDRESS"
