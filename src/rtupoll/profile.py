@@ -315,8 +315,8 @@ def _order(m: dict[str, Node], node: Node | None, default: ByteOrder) -> ByteOrd
 def _serial(node: Node) -> Serial:
     m = node.mapping({"baudrate", "parity", "bytesize", "stopbits", "baudrates", "deassert_dtr"})
     baud = m["baudrate"].integer(300, 4_000_000) if "baudrate" in m else 9600
-    rates: tuple[int, ...] = _opt(m, "baudrates", lambda n: tuple(r.integer(300, 4_000_000) for r in n.sequence()),
-                 (baud,))
+    rates: tuple[int, ...] = _opt(
+        m, "baudrates", lambda n: tuple(r.integer(300, 4_000_000) for r in n.sequence()), (baud,))
     if baud not in rates:
         raise m["baudrate"].fail(f"{baud} is not among baudrates {list(rates)}")
     parity = m["parity"].text().upper() if "parity" in m else "N"
@@ -361,8 +361,8 @@ def _addresses(node: Node) -> Addresses:
         lo, hi = seq[0].integer(1, 255), seq[1].integer(1, 255)
         if lo > hi:
             raise m["range"].fail(f"lowest {lo} is above highest {hi}")
-    reserved: dict[int, str] = _opt(m, "reserved", lambda n: {k.integer(0, 255): v.text() for k, v in n.items()},
-                    {})
+    reserved: dict[int, str] = _opt(
+        m, "reserved", lambda n: {k.integer(0, 255): v.text() for k, v in n.items()}, {})
     any_ = _opt(m, "any", lambda n: n.integer(1, 255), None)
     default = _opt(m, "default", lambda n: n.integer(1, 255), lo)
     if not (lo <= default <= hi or default == any_):
@@ -436,7 +436,9 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         raise m["byte"].fail(f"{byte!r} is not one of: high, low")
     if "byte" in m and dtype not in (DataType.U8, DataType.I8):
         raise m["byte"].fail("only u8/i8 fields sit in one byte")
-    order = _order(m, m.get("order"), default_order)
+    # The profile's byte_order is for values wider than one register; a 16-bit value is
+    # a standard big-endian Modbus register unless the field names its own order.
+    order = _order(m, m.get("order"), default_order if words > 1 else ByteOrder.ABCD)
     scale = m["scale"].number() if "scale" in m else 1.0
     if scale == 0:
         raise m["scale"].fail("scale cannot be 0")

@@ -93,10 +93,10 @@ class Node:
         return _LOADER.construct_object(self.node, deep=True)
 
     def text(self) -> str:
-        v = self.value()
-        if not isinstance(v, str):
-            raise self.fail(f"expected text, got {v!r}")
-        return v
+        """A scalar as written: YAML 1.1 would turn enum names like ON/OFF/NO into booleans."""
+        if not isinstance(self.node, yaml.ScalarNode) or self.node.tag == "tag:yaml.org,2002:null":
+            raise self.fail(f"expected text, got {self._kind()}")
+        return str(self.node.value)
 
     def integer(self, lo: int | None = None, hi: int | None = None) -> int:
         v = self.value()

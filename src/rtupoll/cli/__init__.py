@@ -7,7 +7,6 @@ one-shot ``rtupoll read`` does not pay for the simulator or the live table.
 from __future__ import annotations
 
 import importlib
-import sys
 from typing import Any
 
 import click
@@ -42,7 +41,27 @@ Exit codes:
 """
 
 
+class ReportedError(click.ClickException):
+    """An RtupollError on its way out: one line on stderr, the error's own exit code."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+    def show(self, file: Any = None) -> None:
+        click.echo(f"rtupoll: {self.message}", err=True)
+
+
 class LazyGroup(click.Group):
+    def invoke(self, ctx: click.Context) -> Any:
+        """Every command runs through here, so this is the one place errors become exit codes."""
+        try:
+            return super().invoke(ctx)
+        except RtupollError as exc:
+            raise ReportedError(str(exc), exc.exit_code) from None
+        except KeyboardInterrupt:
+            raise ReportedError("interrupted", 130) from None
+
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
 
@@ -72,18 +91,5 @@ def cli() -> None:
 
 
 def main(argv: list[str] | None = None) -> Any:
-    """Run the CLI; every RtupollError becomes one line on stderr and its exit code."""
-    try:
-        return cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
-    except RtupollError as exc:
-        click.echo(f"rtupoll: {exc}", err=True)
-        sys.exit(exc.exit_code)
-    except click.exceptions.Abort:
-        click.echo("rtupoll: interrupted", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("rtupoll: interrupted", err=True)
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
+    """The console script."""
+    return cli.main(args=argv, prog_name="rtupoll")

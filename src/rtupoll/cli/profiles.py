@@ -92,8 +92,9 @@ def _summary(p: Profile) -> str:
         f"addressing {p.addressing.value}; max {lim.max_registers} registers per read; "
         f"functions {', '.join(f'{f:02d}' for f in sorted(lim.functions))}; "
         f"timeout {lim.timeout:g} s",
-        "set-address: " + (f"{p.set_address.field} via FC{p.set_address.function:02d}"
-                           if p.set_address.field else f"not supported ({p.set_address.unsupported})"),
+        "set-address: " + (
+            f"{p.set_address.field} via FC{p.set_address.function:02d}" if p.set_address.field
+            else f"not supported ({p.set_address.unsupported})"),
     ]
     if p.notes:
         lines.append(p.notes)
@@ -112,7 +113,7 @@ def _type(f: Field) -> str:
 def _scale(f: Field) -> str:
     parts = []
     if f.layout.scale != 1:
-        parts.append(f"×{f.layout.scale:g}")
+        parts.append(f"x{f.layout.scale:g}")
     if f.layout.offset:
         parts.append(f"{f.layout.offset:+g}")
     return " ".join(parts)
