@@ -202,3 +202,18 @@ def test_user_directory_shadows_bundled(tmp_path: Path, monkeypatch: pytest.Monk
     monkeypatch.setenv("RTUPOLL_PROFILES", str(tmp_path))
     assert load_one("co2meter-an117").model.startswith("My board")
     assert load_library().get("co2meter-an117").path == str(tmp_path / "co2meter-an117.yaml")
+
+
+def test_the_documented_example_profile_loads(tmp_path: Path) -> None:
+    doc = (Path(__file__).parents[1] / "docs" / "profiles.md").read_text()
+    example = doc.split("```yaml\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "acme-th100.yaml"
+    path.write_text(example)
+    from rtupoll.profile import load_profile
+
+    p = load_profile(path)
+    assert p.field("temperature").address == 0  # modicon 30001 -> wire 0
+    assert p.field("energy").layout.order.value == "CDAB"
+    assert p.field("slave_address").layout.byte == "high"
+    assert interpret(p.field("status"), (9,)).value == "FAULT (9)"
+    assert p.addresses.check(0xCC) is not None and p.addresses.check(5) is None
