@@ -123,9 +123,8 @@ class Field:
         return "W" in self.access
 
     @property
-    def severity(self) -> Severity | None:
-        """The severity of the field itself when it carries no enum or flags."""
-        return None
+    def range(self) -> bool:
+        return self.minimum is not None and self.maximum is not None
 
 
 @dataclass(frozen=True)

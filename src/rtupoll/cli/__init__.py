@@ -41,26 +41,17 @@ Exit codes:
 """
 
 
-class ReportedError(click.ClickException):
-    """An RtupollError on its way out: one line on stderr, the error's own exit code."""
-
-    def __init__(self, message: str, exit_code: int) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-    def show(self, file: Any = None) -> None:
-        click.echo(f"rtupoll: {self.message}", err=True)
-
-
 class LazyGroup(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         """Every command runs through here, so this is the one place errors become exit codes."""
         try:
             return super().invoke(ctx)
         except RtupollError as exc:
-            raise ReportedError(str(exc), exc.exit_code) from None
+            click.echo(f"rtupoll: {exc}", err=True)
+            raise click.exceptions.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
-            raise ReportedError("interrupted", 130) from None
+            click.echo("rtupoll: interrupted", err=True)
+            raise click.exceptions.Exit(130) from None
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)

@@ -11,7 +11,15 @@ from rich.table import Table as RichTable
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import ProfileError
-from rtupoll.profile import Field, Profile, bundled_dir, load_library, load_one, load_profile
+from rtupoll.profile import (
+    Choice,
+    Field,
+    Profile,
+    bundled_dir,
+    load_library,
+    load_one,
+    load_profile,
+)
 
 
 @click.group()
@@ -47,19 +55,29 @@ def list_(profile_dirs: tuple[Path, ...], fmt: str) -> None:
 @click.argument("profile_id")
 @profiles_option
 def show(profile_id: str, profile_dirs: tuple[Path, ...]) -> None:
-    """The register map of one profile, with wire and manual addresses."""
+    """The register map of one profile: wire and manual addresses, types, units, codes."""
     p = load_one(profile_id, profile_dirs)
     console = Console()
-    console.print(_summary(p))
-    t = RichTable(title=f"{p.id} register map")
-    for col in ("field", "table", "wire", "manual", "type", "order", "unit", "scale",
-                "access", "poll", "description"):
-        t.add_column(col, overflow="fold")
+    console.print(_summary(p), highlight=False)
+    pdu = p.addressing.value == "pdu"
+    t = RichTable(title=f"{p.id} register map", title_justify="left")
+    t.add_column("field", no_wrap=True, style="bold")
+    t.add_column("table", no_wrap=True)
+    t.add_column("address" if pdu else "wire  (manual)", no_wrap=True)
+    t.add_column("type", no_wrap=True)
+    t.add_column("unit", no_wrap=True)
+    t.add_column("access", no_wrap=True)
+    t.add_column("description", ratio=1)
     for f in p.fields:
-        t.add_row(f.name, f.table.value, f"0x{f.address:04X}", f.written, _type(f),
-                  f.layout.order.value if f.words > 1 else "", f.unit, _scale(f), f.access,
-                  f.poll.value, _describe(f))
+        address = f"0x{f.address:04X}" if pdu else f"0x{f.address:04X} ({f.written})"
+        t.add_row(f.name, f.table.value, address, _type(f), _unit(f), _access(f), _describe(f))
     console.print(t)
+    coded = [f for f in p.fields if f.enum or f.flags or f.other]
+    if coded:
+        console.print("[bold]Codes[/] (enum: code=name; flags: bit mask=name; "
+                      "[red]error[/], [yellow]warning[/], [cyan]info[/])", highlight=False)
+        for f in coded:
+            console.print(f"  [bold]{f.name}[/]: {_codes(f)}", highlight=False)
 
 
 @profiles.command("check")
@@ -81,23 +99,26 @@ def check(files: tuple[Path, ...]) -> None:
 
 def _summary(p: Profile) -> str:
     s, a, lim = p.serial, p.addresses, p.limits
+    others = [b for b in s.baudrates if b != s.baudrate]
     lines = [
-        f"[bold]{p.id}[/] — {p.vendor} {p.model} ({p.manual})",
-        f"serial {s.baudrate} {s.bytesize}{s.parity}{s.stopbits}"
-        + (f" (also {', '.join(map(str, s.baudrates))})" if len(s.baudrates) > 1 else "")
-        + (", DTR/RTS deasserted" if s.deassert_dtr else ""),
-        f"addresses {a.lo}..{a.hi}, default {a.default}"
-        + (f", any-device {a.any}" if a.any else "")
-        + "".join(f", reserved {k} ({v})" for k, v in a.reserved.items()),
-        f"addressing {p.addressing.value}; max {lim.max_registers} registers per read; "
-        f"functions {', '.join(f'{f:02d}' for f in sorted(lim.functions))}; "
-        f"timeout {lim.timeout:g} s",
-        "set-address: " + (
+        f"[bold]{p.id}[/] — {p.vendor} {p.model}",
+        f"manual      {p.manual}",
+        f"serial      {s.baudrate} {s.bytesize}{s.parity}{s.stopbits}"
+        + (f" (can be set to {', '.join(map(str, others))})" if others else "")
+        + (", DTR/RTS deasserted (DTR resets the device)" if s.deassert_dtr else ""),
+        f"addresses   {a.lo}..{a.hi}, factory {a.default}"
+        + (f", answers {a.any} (0x{a.any:02X}) as any device" if a.any else "")
+        + "".join(f", {k} (0x{k:02X}) reserved: {v}" for k, v in a.reserved.items()),
+        f"requests    {p.addressing.value} addressing, at most {lim.max_registers} registers "
+        f"per read, functions {', '.join(f'{f:02d}' for f in sorted(lim.functions))}, "
+        f"timeout {lim.timeout:g} s"
+        + (", silent on bad requests" if lim.silent_on_error else ""),
+        "set-address " + (
             f"{p.set_address.field} via FC{p.set_address.function:02d}" if p.set_address.field
-            else f"not supported ({p.set_address.unsupported})"),
+            else f"not supported: {p.set_address.unsupported}"),
     ]
     if p.notes:
-        lines.append(p.notes)
+        lines.append(f"notes       {p.notes}")
     return "\n".join(lines)
 
 
@@ -106,27 +127,45 @@ def _type(f: Field) -> str:
     if t == "string":
         return f"string({2 * f.words})"
     if t in ("u8", "i8"):
-        return f"{t} {f.layout.byte}"
-    return t
+        return f"{t} {f.layout.byte} byte"
+    return f"{t} {f.layout.order.value}" if f.words > 1 else t
 
 
-def _scale(f: Field) -> str:
-    parts = []
+def _unit(f: Field) -> str:
+    parts = [f.unit] if f.unit else []
     if f.layout.scale != 1:
-        parts.append(f"x{f.layout.scale:g}")
+        parts.append(f"raw x {f.layout.scale:g}")
     if f.layout.offset:
         parts.append(f"{f.layout.offset:+g}")
     return " ".join(parts)
 
 
+def _access(f: Field) -> str:
+    extra = {"default": "", "on_request": " on request", "never": " [red]NEVER polled[/]"}
+    return f.access + extra[f.poll.value] + (" alone" if f.alone else "")
+
+
 def _describe(f: Field) -> str:
     text = f.description
-    if f.enum:
-        text += " [" + ", ".join(f"{c}={ch.name}" for c, ch in f.enum.items()) + "]"
-    if f.flags:
-        text += " [" + ", ".join(f"0x{m:X}={ch.name}" for m, ch in f.flags.items()) + "]"
+    if f.range:
+        text += f" [{f.minimum:g}..{f.maximum:g}]"
     if f.since:
         text += f" (from variant {f.since})"
     if f.source == "public":
         text += " (public source)"
     return text.strip()
+
+
+_STYLE = {"error": "red", "warning": "yellow", "info": "cyan", "ok": ""}
+
+
+def _codes(f: Field) -> str:
+    def one(key: str, ch: Choice) -> str:
+        style = _STYLE[ch.severity.value]
+        return f"{key}=[{style}]{ch.name}[/]" if style else f"{key}={ch.name}"
+
+    items = [one(f"0x{m:X}", ch) for m, ch in f.flags.items()] if f.flags else \
+        [one(str(c), ch) for c, ch in f.enum.items()]
+    if f.other:
+        items.append(one("other", f.other))
+    return ", ".join(items)
