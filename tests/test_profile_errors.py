@@ -26,7 +26,7 @@ EXPECTED = {
                  "(0..6553.5)",
     "set-address-fc": "10: set_address.function: the device does not support function 6 "
                       "(limits.functions)",
-    "syntax": "8: YAML syntax: expected ',' or '}', but got '{'",
+    "syntax": "8: YAML syntax: did not find expected ',' or '}'",
     "too-wide": "9: fields[0].type: 4 registers are more than the device reads at once (2)",
     "unknown-key": "7: fields[0].unti: unknown key (did you mean 'unit'?)",
     "writable-input": "7: fields[0].access: input registers cannot be written",
