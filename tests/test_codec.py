@@ -87,6 +87,12 @@ def test_scale_gives_manual_units_and_inverts() -> None:
         encode(0.0005, tvoc)
 
 
+def test_integral_scale_keeps_integers() -> None:
+    baud = decode((192,), Layout(DataType.U16, scale=100))  # radar: baud rate / 100
+    assert baud == 19200 and isinstance(baud, int)
+    assert encode(19200, Layout(DataType.U16, scale=100)) == (192,)
+
+
 def test_offset_and_scale_together() -> None:
     layout = Layout(DataType.I16, scale=0.1, offset=-40)
     assert decode((650,), layout) == 25.0

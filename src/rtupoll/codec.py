@@ -142,6 +142,9 @@ def decode(words: Sequence[int], layout: Layout) -> int | float | str | bool:
     raw = decode_raw(words, layout)
     if not layout.scaled or isinstance(raw, (str, bool)):
         return raw
+    if isinstance(raw, int) and float(layout.scale).is_integer() \
+            and float(layout.offset).is_integer():
+        return raw * int(layout.scale) + int(layout.offset)  # x100 baud stays an integer
     # round away binary noise (3 * 0.1 = 0.30000000000000004) at a precision no
     # 16- or 32-bit register can carry anyway.
     return round(raw * layout.scale + layout.offset, 9)
