@@ -1,0 +1,11 @@
+"""The simulator: virtual RS-485 devices built from the same profiles the client uses.
+
+No one here has hardware, and neither do most users on their first day, so every
+command is exercised against this package: ``values`` (how fields start and move),
+``device`` (one profile's register map and quirks), ``faults`` (what goes wrong, when),
+``engine`` (request bytes -> reply bytes or silence), ``server`` (pty / RTU-over-TCP with
+wire timing), ``scenario`` (devices, pins, options and faults from YAML or the command
+line) and ``testing`` (``simulated_bus``: a bus running in a background thread).
+
+Nothing is imported here, so ``import rtupoll.sim.testing`` pays only for what it uses.
+"""

@@ -1,0 +1,164 @@
+"""The RTU slave engine: bytes from the master in, reply bytes (or silence) out.
+
+Pure of I/O and clocks, so every rule can be tested with bytes alone; ``server`` adds the
+pty/TCP transport and the wire timing.
+
+Two halves:
+
+``Deframer`` finds request frames in a byte stream the way a device's receiver does:
+a frame's length follows from its function code (and byte count), and only a frame whose
+CRC checks out is taken. Anything before the first good frame is garbage and is dropped
+byte by byte, so a stray byte or a half frame never costs the following request.
+
+``Engine`` is the bus behind the port: it counts requests, lets every device that the
+unit id reaches answer (none: silence, never exception 04 -- an absent device cannot
+answer), and applies the faults due for that request.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from rtupoll.rtu import crc_ok, exception_response
+from rtupoll.sim.device import DeviceConfig, SimDevice
+from rtupoll.sim.faults import SILENT, Fault, FaultSet, mangle
+
+# function code -> request length (bytes, CRC included) for fixed-size requests
+_FIXED = {1: 8, 2: 8, 3: 8, 4: 8, 5: 8, 6: 8, 7: 4, 8: 8, 11: 4, 12: 4, 17: 4, 22: 10,
+          24: 6, 43: 7}
+# function code -> (offset of its byte count, bytes besides the counted data)
+_COUNTED = {15: (6, 9), 16: (6, 9), 23: (10, 13)}
+MAX_BUFFER = 512  # bytes kept while looking for a frame; older ones are garbage
+WRITES = (5, 6, 15, 16)
+
+
+def _frame_at(buf: bytes, i: int) -> int | None:
+    """Length of a complete, CRC-valid request frame starting at ``buf[i]``, else None."""
+    if len(buf) - i < 4:
+        return None
+    fc = buf[i + 1]
+    if fc in _FIXED:
+        lengths: Sequence[int] = (_FIXED[fc],)
+    elif fc in _COUNTED:
+        at, extra = _COUNTED[fc]
+        if len(buf) - i <= at:
+            return None
+        lengths = (extra + buf[i + at],)
+    else:
+        lengths = range(4, 9)  # an unknown function: short candidates only
+    for n in lengths:
+        if i + n <= len(buf) and crc_ok(buf[i : i + n]):
+            return n
+    return None
+
+
+class Deframer:
+    """Accumulates received bytes and splits off request frames and garbage."""
+
+    def __init__(self) -> None:
+        self.buffer = b""
+
+    def feed(self, data: bytes) -> list[tuple[str, bytes]]:
+        """New bytes -> ``("frame", bytes)`` and ``("garbage", bytes)`` items, in order."""
+        self.buffer += data
+        out: list[tuple[str, bytes]] = []
+        while self.buffer:
+            found = next(((i, n) for i in range(len(self.buffer))
+                          if (n := _frame_at(self.buffer, i)) is not None), None)
+            if found is None:
+                break
+            i, n = found
+            if i:
+                out.append(("garbage", self.buffer[:i]))
+            out.append(("frame", self.buffer[i : i + n]))
+            self.buffer = self.buffer[i + n :]
+        if len(self.buffer) > MAX_BUFFER:
+            out.append(("garbage", self.buffer[:-MAX_BUFFER]))
+            self.buffer = self.buffer[-MAX_BUFFER:]
+        return out
+
+    def flush(self) -> bytes:
+        """The line went quiet: whatever is left can no longer become a frame."""
+        left, self.buffer = self.buffer, b""
+        return left
+
+
+@dataclass(frozen=True)
+class Transmission:
+    """One reply to put on the wire: bytes, the device's turnaround and a fault delay."""
+
+    data: bytes
+    unit: int  # the device's address when it answered
+    turnaround: float  # the profile's (limits.turnaround) or the device's own option
+    explicit: bool = False  # the turnaround was set for this device (applies without --baud)
+    delay: float = 0.0  # extra, from a slow fault: the reply arrives this much later
+    notes: tuple[str, ...] = ()
+
+
+class Engine:
+    """The devices on one simulated bus and the faults that hit them."""
+
+    def __init__(self, devices: Sequence[DeviceConfig], faults: Sequence[Fault] = (), *,
+                 seed: int = 0, tick: float | None = 1.0, start: float = 0.0) -> None:
+        self.devices = [SimDevice(c, seed=seed, tick=tick, start=start) for c in devices]
+        self.bus_faults = FaultSet([f for f in faults if f.target is None], seed, "bus")
+        self.requests = 0  # valid request frames seen on the bus
+        self.replies = 0
+        self.why_silent = ""  # why the last request got no reply, for people watching
+
+    def device(self, unit: int) -> SimDevice:
+        """The device now at ``unit`` (or first configured there), for tests and pins."""
+        for d in self.devices:
+            if d.address == unit:
+                return d
+        for d in self.devices:
+            if d.config.address == unit:
+                return d
+        have = ", ".join(d.name for d in self.devices)
+        raise KeyError(f"no simulated device at {unit} (devices: {have})")
+
+    def handle(self, frame: bytes, now: float = 0.0) -> list[Transmission]:
+        """One CRC-valid request -> what goes back on the wire (maybe nothing)."""
+        self.requests += 1
+        unit, fc = frame[0], frame[1]
+        broadcast = unit == 0
+        self.why_silent = "broadcast: no device replies" if broadcast else ""
+        if broadcast and fc not in WRITES:
+            return []
+        bus_hits = self.bus_faults.due(self.requests, self.requests, 0)
+        out: list[Transmission] = []
+        targets = [d for d in self.devices if broadcast or d.answers(unit)]
+        if not targets:
+            self.why_silent = f"no device at {unit}"
+        for d in targets:
+            d.requests += 1
+            d.catch_up(now)
+            lose = d.profile.limits.lost_after_powerup or 3
+            hits = [*d.faults.due(self.requests, d.requests, lose),
+                    *(f for f in bus_hits if f.kind != "lose-first"),
+                    *(f for f in self.bus_faults.faults if f.kind == "lose-first"
+                      and d.requests <= (int(f.arg) if f.arg is not None else lose))]
+            silent = [str(f) for f in hits if f.kind in SILENT]
+            if silent:  # dead, or still starting up: the request is not even processed
+                self.why_silent = f"{d.name}: {', '.join(silent)}"
+                continue
+            exc = next((f for f in hits if f.kind == "exception"), None)
+            at = d.address
+            if exc is not None:
+                code = int(exc.arg) if exc.arg is not None else 4
+                reply: bytes | None = exception_response(unit, fc, code)
+            else:
+                reply = d.handle(frame)
+            if reply is None or broadcast:
+                if not broadcast:
+                    self.why_silent = f"{d.name} does not answer this request"
+                continue
+            data, delay, notes = mangle(reply, hits, at, 2 * d.profile.limits.timeout)
+            if exc is not None:
+                notes.insert(0, f"exception {reply[2]}")
+            ta = d.config.turnaround
+            out.append(Transmission(data, at, d.profile.limits.turnaround if ta is None else ta,
+                                    ta is not None, delay, tuple(notes)))
+        self.replies += len(out)
+        return out

@@ -1,0 +1,241 @@
+"""Serving a simulated bus: a pseudo-terminal or RTU-over-TCP, with wire timing.
+
+A pty looks to a client exactly like a USB/RS-485 adapter: mbpoll, pymodbus or rtupoll
+open its slave path as a serial port. The simulator keeps the slave side open itself, so
+a client can close and reopen the port (as a one-shot ``rtupoll read`` does) without the
+master side seeing a hang-up. ``--tcp`` serves the same bytes over TCP, the way a serial
+gateway forwards RTU frames.
+
+Wire timing (``baudrate``): a pty delivers a request in one piece at once, so the server
+acts as if it had been on the wire: the reply goes out when a real device's would be
+complete -- request bytes at that baud, the 3.5-character silence that ends a frame, the
+device's turnaround, then the reply's own bytes. Without a baud rate replies go out at
+once (plus a turnaround explicitly configured for a device).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import os
+import struct
+import threading
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from rtupoll.errors import PortError, UsageError
+from rtupoll.rtu import FUNCTION_NAMES, Framing
+from rtupoll.sim.engine import Deframer, Engine, Transmission
+
+QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
+WIRE_LOG = 100_000  # frames kept in the wire log
+
+
+@dataclass(frozen=True)
+class WireFrame:
+    """Bytes seen on the simulated wire: ``in`` from the master, ``out`` from devices."""
+
+    time: float  # time.monotonic() (the event loop's clock)
+    direction: str  # "in" or "out" ("none": a request got no reply; only to on_wire)
+    data: bytes
+    note: str = ""  # what it is: a request summary, "garbage", or the faults applied
+
+    def __str__(self) -> str:
+        if self.direction == "none":
+            return f"   ({self.note})"
+        arrow = "->" if self.direction == "in" else "<-"
+        return f"{arrow} {self.data.hex(' ').upper()}" + (f"  ({self.note})" if self.note else "")
+
+
+def describe(frame: bytes) -> str:
+    """A request in words, for the wire log: ``unit 1 read input 0x0006 x2``."""
+    unit, fc = frame[0], frame[1]
+    what = FUNCTION_NAMES.get(fc, f"function {fc}")
+    if fc in (1, 2, 3, 4, 5, 6, 15, 16) and len(frame) >= 8:
+        address, n = struct.unpack(">HH", frame[2:6])
+        tail = f" x{n}" if fc in (1, 2, 3, 4, 15, 16) else f" = 0x{n:04X}"
+        return f"unit {unit} {what} 0x{address:04X}{tail}"
+    return f"unit {unit} {what}"
+
+
+class _Link:
+    """One connection to the master (the pty, or one TCP client) with its own receiver."""
+
+    def __init__(self, server: Server, write: Callable[[bytes], None]) -> None:
+        self.server, self.write = server, write
+        self.deframer = Deframer()
+        self.free_at = 0.0  # when the wire is free for the next reply
+        self._flush: asyncio.TimerHandle | None = None
+        self.closed = False
+
+    def received(self, data: bytes) -> None:
+        srv = self.server
+        now = srv.loop.time()
+        for kind, chunk in self.deframer.feed(data):
+            srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
+            if kind == "frame":
+                self._respond(chunk, now)
+        if self._flush:
+            self._flush.cancel()
+        self._flush = srv.loop.call_later(QUIET, self._quiet) if self.deframer.buffer else None
+
+    def _quiet(self) -> None:
+        self._flush = None
+        left = self.deframer.flush()
+        if left:
+            self.server.log(self.server.loop.time(), "in", left, "garbage")
+
+    def _respond(self, frame: bytes, now: float) -> None:
+        srv, fr = self.server, self.server.framing
+        silence = fr.silence if fr else 0.0
+        request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
+        replies = srv.engine.handle(frame, now)
+        if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
+            srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
+        for tx in replies:
+            turnaround = tx.turnaround if (fr or tx.explicit) else 0.0
+            start = request_end + silence + turnaround
+            if not tx.delay:
+                start = max(start, self.free_at)
+            end = start + (fr.wire_time(len(tx.data)) if fr else 0.0)
+            if not tx.delay:  # a late reply collides on a real bus; it does not hold it
+                self.free_at = end + silence
+            srv.later(end + tx.delay, self._send, tx)
+
+    def _send(self, tx: Transmission) -> None:
+        if self.closed:
+            return
+        srv = self.server
+        now = srv.loop.time()
+        # logged first: whoever reads the reply can already find it in the wire log
+        srv.log(now, "out", tx.data, ", ".join(tx.notes))
+        try:
+            self.write(tx.data)
+        except OSError as exc:  # nobody reading and the pty buffer full: lost, as on a wire
+            if srv.on_wire:
+                srv.on_wire(WireFrame(now, "none", b"", f"reply lost: {exc.strerror}"))
+
+    def close(self) -> None:
+        self.closed = True
+        if self._flush:
+            self._flush.cancel()
+
+
+class Server:
+    """Serves one Engine on a pty or TCP and keeps the wire log."""
+
+    def __init__(self, engine: Engine, *, framing: Framing | None = None,
+                 on_wire: Callable[[WireFrame], None] | None = None) -> None:
+        self.engine, self.framing, self.on_wire = engine, framing, on_wire
+        self.loop = asyncio.get_running_loop()
+        self.wire: collections.deque[WireFrame] = collections.deque(maxlen=WIRE_LOG)
+        self.wire_lock = threading.Lock()  # tests read the log from another thread
+        self.port = ""
+        self._pending: set[asyncio.TimerHandle] = set()
+        self._links: list[_Link] = []
+        self._fds: list[int] = []
+        self._link_path: Path | None = None
+        self._tcp: asyncio.Server | None = None
+
+    def log(self, when: float, direction: str, data: bytes, note: str = "") -> None:
+        frame = WireFrame(when, direction, data, note)
+        with self.wire_lock:
+            self.wire.append(frame)
+        if self.on_wire:
+            self.on_wire(frame)
+
+    def later(self, when: float, fn: Callable[[Transmission], None], tx: Transmission) -> None:
+        def run() -> None:
+            self._pending.discard(handle)
+            fn(tx)
+
+        handle = self.loop.call_at(when, run)
+        self._pending.add(handle)
+
+    # -- transports ---------------------------------------------------------
+    async def serve_pty(self, link: str | None = None) -> str:
+        """Open a pseudo-terminal; returns the path a client opens (or the link to it)."""
+        master, slave = os.openpty()
+        self._fds += [master, slave]
+        tty.setraw(slave)  # no echo, no line editing: bytes pass as they are
+        os.set_blocking(master, False)
+        path = os.ttyname(slave)
+        pty_link = _Link(self, lambda data: _write_all(master, data))
+        self._links.append(pty_link)
+
+        def readable() -> None:
+            try:
+                data = os.read(master, 4096)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # EIO cannot happen while we hold the slave open; be safe anyway
+            if data:
+                pty_link.received(data)
+
+        self.loop.add_reader(master, readable)
+        if link:
+            self._link_path = _make_link(Path(link), path)
+        self.port = path
+        return path
+
+    async def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
+        """Listen for RTU-over-TCP clients; returns ``tcp://HOST:PORT``."""
+        server = self
+
+        class Protocol(asyncio.Protocol):
+            def connection_made(self, transport: asyncio.BaseTransport) -> None:
+                assert isinstance(transport, asyncio.Transport)
+                self.link = _Link(server, transport.write)
+                server._links.append(self.link)
+
+            def data_received(self, data: bytes) -> None:
+                self.link.received(data)
+
+            def connection_lost(self, exc: Exception | None) -> None:
+                self.link.close()
+                server._links.remove(self.link)
+
+        try:
+            self._tcp = await self.loop.create_server(Protocol, host, port)
+        except OSError as exc:
+            raise PortError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        bound = self._tcp.sockets[0].getsockname()
+        self.port = f"tcp://{host}:{bound[1]}"
+        return self.port
+
+    async def close(self) -> None:
+        for handle in self._pending:
+            handle.cancel()
+        self._pending.clear()
+        for link in self._links:
+            link.close()
+        if self._tcp is not None:
+            self._tcp.close()
+            await self._tcp.wait_closed()
+        for fd in self._fds:
+            self.loop.remove_reader(fd)  # only the master has one; others: a no-op
+            os.close(fd)
+        self._fds.clear()
+        if self._link_path is not None and self._link_path.is_symlink():
+            self._link_path.unlink()
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    while data:
+        n = os.write(fd, data)
+        data = data[n:]
+
+
+def _make_link(link: Path, target: str) -> Path:
+    if link.is_symlink():
+        link.unlink()
+    elif link.exists():
+        raise UsageError(f"--link {link}: exists and is not a symbolic link; not replacing it")
+    try:
+        link.symlink_to(target)
+    except OSError as exc:
+        raise UsageError(f"--link {link}: {exc.strerror}") from None
+    return link

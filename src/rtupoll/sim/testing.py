@@ -1,0 +1,225 @@
+"""A simulated bus running in the background of this process.
+
+Synchronous tests, CLI subprocesses (``rtupoll read --port PTY``) and ``rtupoll poll
+--simulate`` all need a bus that runs while they do something else, so the simulator
+runs in a thread with its own event loop. Every running bus is registered here, so the
+test suite can fail a test that forgets to stop one (``tests/conftest.py``)::
+
+    with simulated_bus(["net-irnet-pro@1", "huiwen-aq@3"], faults=("3:dead",)) as sim:
+        sim.port                             # /dev/pts/N, or tcp://127.0.0.1:PORT
+        sim.set(1, "concentration", 12.5)    # pin a value
+        sim.get(1, "concentration").value    # 12.5
+        sim.wire                             # WireFrame(time, direction, data, note), ...
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import TypeVar
+
+from rtupoll.codec import Value
+from rtupoll.reading import FieldValue
+from rtupoll.rtu import Framing, Table
+from rtupoll.sim.device import SimDevice
+from rtupoll.sim.engine import Engine
+from rtupoll.sim.scenario import DEFAULT_DEVICES, BusConfig, build, parse_device
+from rtupoll.sim.server import Server, WireFrame
+
+T = TypeVar("T")
+# the devices a bus holds when none are named: (profile id, address) pairs
+SEED_DEVICES: tuple[tuple[str, int], ...] = tuple(parse_device(d) for d in DEFAULT_DEVICES)
+_RUNNING: set[SimulatedBus] = set()
+_RUNNING_LOCK = threading.Lock()
+
+
+def running() -> list[SimulatedBus]:
+    """Every simulated bus started and not yet stopped in this process."""
+    with _RUNNING_LOCK:
+        return list(_RUNNING)
+
+
+class SimulatedBus:
+    """A bus of simulated devices served on a pty (or TCP) from a background thread."""
+
+    def __init__(self, config: BusConfig, *, tcp: bool | str = False, link: str | None = None,
+                 on_wire: Callable[[WireFrame], None] | None = None) -> None:
+        self.config, self.tcp, self.link, self.on_wire = config, tcp, link, on_wire
+        self.framing = Framing(config.baudrate) if config.baudrate else None
+        self.port = ""
+        self.engine: Engine | None = None
+        self._server: Server | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    # -- life cycle ---------------------------------------------------------
+    def start(self) -> SimulatedBus:
+        if self._thread is not None:
+            raise RuntimeError("this simulated bus was already started")
+        c = self.config
+        self.engine = Engine(c.devices, c.faults, seed=c.seed, tick=c.tick, start=time.monotonic())
+        self._thread = threading.Thread(target=self._run, name=f"rtupoll-sim-{id(self):x}",
+                                        daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            self._thread.join()
+            raise self._error
+        with _RUNNING_LOCK:
+            _RUNNING.add(self)
+        return self
+
+    def stop(self) -> None:
+        """Stop serving, close the pty/socket and join the thread. Idempotent."""
+        thread, loop, stop = self._thread, self._loop, self._stop
+        if thread is not None and thread.is_alive() and loop is not None and stop is not None:
+            loop.call_soon_threadsafe(stop.set)
+            thread.join(timeout=10)
+        with _RUNNING_LOCK:
+            _RUNNING.discard(self)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def __enter__(self) -> SimulatedBus:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        loop = self._loop = asyncio.new_event_loop()
+        try:
+            loop.run_until_complete(self._main())
+        finally:
+            loop.close()
+
+    async def _main(self) -> None:
+        assert self.engine is not None
+        try:
+            server = self._server = Server(self.engine, framing=self.framing,
+                                           on_wire=self.on_wire)
+            if self.tcp:
+                host, _, port = (self.tcp if isinstance(self.tcp, str) else "").rpartition(":")
+                self.port = await server.serve_tcp(host or "127.0.0.1", int(port or 0))
+            else:
+                self.port = await server.serve_pty(self.link)
+        except BaseException as exc:
+            self._error = exc
+            if self._server is not None:
+                await self._server.close()
+            self._ready.set()
+            return
+        self._stop = asyncio.Event()
+        self._ready.set()
+        try:
+            await self._stop.wait()
+        finally:
+            await server.close()
+
+    def _call(self, fn: Callable[[], T]) -> T:
+        """Run ``fn`` on the simulator's thread (the engine is only touched there)."""
+        if self._loop is None or not self.alive or threading.current_thread() is self._thread:
+            return fn()
+        future: concurrent.futures.Future[T] = concurrent.futures.Future()
+
+        def run() -> None:
+            try:
+                future.set_result(fn())
+            except BaseException as exc:
+                future.set_exception(exc)
+
+        self._loop.call_soon_threadsafe(run)
+        return future.result(timeout=10)
+
+    # -- looking in and changing things -------------------------------------
+    def device(self, unit: int) -> SimDevice:
+        """The device now at ``unit`` (or configured there before an address change)."""
+        assert self.engine is not None, "start the bus first"
+        return self.engine.device(unit)
+
+    def set(self, unit: int, field: str, value: Value) -> None:
+        """Pin a field of the device at ``unit`` to ``value`` (it stops moving)."""
+        self._call(lambda: self.device(unit).pin(field, value))
+
+    def get(self, unit: int, field: str) -> FieldValue:
+        """What the device at ``unit`` would answer for ``field`` now."""
+        def read() -> FieldValue:
+            d = self.device(unit)
+            d.catch_up(time.monotonic())
+            return d.value(field)
+        return self._call(read)
+
+    def registers(self, unit: int, table: Table | str, address: int, count: int
+                  ) -> tuple[int, ...]:
+        """The device's register image (wire addresses), without the side effects of a read."""
+        return self._call(lambda: self.device(unit).words(Table(table), address, count))
+
+    def advance(self, ticks: int = 1) -> None:
+        """Move every unpinned value ``ticks`` steps now (instead of waiting for time)."""
+        def step() -> None:
+            for d in self.device_list():
+                d.advance(ticks)
+        self._call(step)
+
+    def device_list(self) -> list[SimDevice]:
+        assert self.engine is not None, "start the bus first"
+        return list(self.engine.devices)
+
+    def addresses(self) -> dict[str, int]:
+        """Each device (as configured, ``PROFILE@ADDRESS``) -> the address it has now."""
+        return self._call(lambda: {d.config.name: d.address for d in self.device_list()})
+
+    @property
+    def wire(self) -> tuple[WireFrame, ...]:
+        """Every frame seen on the wire so far, oldest first."""
+        if self._server is None:
+            return ()
+        with self._server.wire_lock:
+            return tuple(self._server.wire)
+
+    def clear_wire(self) -> None:
+        if self._server is not None:
+            with self._server.wire_lock:
+                self._server.wire.clear()
+
+    def wait_wire(self, count: int = 1, *, direction: str = "out", timeout: float = 2.0,
+                  after: float = 0.0) -> list[WireFrame]:
+        """Wait until ``count`` frames in ``direction`` newer than ``after`` are logged."""
+        deadline = time.monotonic() + timeout
+        while True:
+            got = [w for w in self.wire if w.direction == direction and w.time > after]
+            if len(got) >= count or time.monotonic() > deadline:
+                return got
+            time.sleep(0.002)
+
+
+def simulated_bus(devices: Sequence[str] = (), *, baudrate: int | None = None,
+                  faults: Sequence[str] = (), scenario: str | Path | None = None,
+                  tcp: bool | str = False, seed: int | None = None, sets: Sequence[str] = (),
+                  options: Sequence[str] = (), turnaround: float | None = None,
+                  tick: float | None = 1.0, profile_dirs: Iterable[Path] = (),
+                  link: str | None = None,
+                  on_wire: Callable[[WireFrame], None] | None = None) -> SimulatedBus:
+    """A simulated bus, started by ``with`` (or ``.start()``, then ``.stop()``).
+
+    ``devices``: ``PROFILE@ADDRESS`` strings (or anything whose ``str`` is one); none
+    and no scenario devices: one of each bundled profile (``scenario.DEFAULT_DEVICES``).
+    ``faults``: fault specs (``faults.parse_fault``); ``sets``/``options``:
+    ``PROFILE@ADDRESS.NAME=VALUE`` as on the command line; ``tcp``: True (a free port on
+    127.0.0.1) or ``"HOST:PORT"``; ``tick``: seconds per value step (None: frozen).
+    """
+    config = build([str(d) for d in devices], scenario=scenario, sets=sets, options=options,
+                   faults=faults, seed=seed, baudrate=baudrate, turnaround=turnaround,
+                   tick=tick, profile_dirs=profile_dirs)
+    return SimulatedBus(config, tcp=tcp, link=link, on_wire=on_wire)

@@ -1,0 +1,166 @@
+"""Plausible values for simulated fields: where they start and how they move.
+
+A simulated device should look alive to a person watching ``rtupoll poll``: measurements
+wander inside their documented range, now and then an error code or a warning flag shows
+up for a few seconds, and configuration (firmware, serial numbers, addresses) stays put.
+Nothing here names a device: every choice follows from the profile's field description
+(type, range, enum and flag severities, ``poll`` class), and every random draw comes from
+one seeded generator, so a seed replays the same story.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+
+from rtupoll.codec import DataType, Value, int_range
+from rtupoll.profile import Field, Poll, Profile, Severity
+
+EVENT_RATE = 0.03  # chance per tick that an enum leaves its normal code or a flag shows up
+EVENT_TICKS = (2, 6)  # how many ticks such an event lasts
+
+
+def value_range(field: Field, profile: Profile) -> tuple[float, float]:
+    """The span a field's value lives in: its ``range``, an identify check's, or a default."""
+    if field.minimum is not None and field.maximum is not None:
+        return field.minimum, field.maximum
+    for check in profile.identify:
+        if check.field == field.name and check.range is not None:
+            return check.range
+    t = field.layout.type
+    if t.is_float:
+        return 0.0, 100.0
+    lo, hi = int_range(t) if t.is_integer else (0, 1)
+    scale, offset = field.layout.scale, field.layout.offset
+    lo_v, hi_v = sorted((lo * scale + offset, hi * scale + offset))
+    # a default span that is clearly a value, not a full-scale or wrapped-around number
+    return max(lo_v, 0.0 if lo >= 0 else -100.0 * abs(scale)), min(hi_v, 1000.0 * abs(scale))
+
+
+def quantize(field: Field, value: float) -> int | float:
+    """Round to what the field can carry (integer types hold ``raw * scale + offset``)."""
+    t = field.layout.type
+    if not t.is_integer:
+        return value
+    scale, offset = field.layout.scale, field.layout.offset
+    raw = round((value - offset) / scale)
+    lo, hi = int_range(t)
+    raw = min(max(raw, lo), hi)
+    if scale == 1 and offset == 0:
+        return int(raw)
+    return round(raw * scale + offset, 9)
+
+
+# units whose everyday value is known: a room, not the middle of the sensor's range
+_TYPICAL = {"°C": (18.0, 26.0), "degC": (18.0, 26.0), "C": (18.0, 26.0), "K": (291.0, 299.0),
+            "%RH": (30.0, 60.0), "%": (30.0, 60.0)}
+
+
+def _typical(field: Field, lo: float, hi: float, rng: random.Random) -> float:
+    """Where a measurement starts: typical for its unit, else low in a range that starts
+    at zero (concentrations, distances), else mid-range."""
+    if field.unit in _TYPICAL:
+        return rng.uniform(*_TYPICAL[field.unit])
+    share = rng.uniform(0.05, 0.3) if lo >= 0 else rng.uniform(0.3, 0.6)
+    return lo + (hi - lo) * share
+
+
+class Motion:
+    """How one field's value evolves tick by tick. ``value`` is what the image shows."""
+
+    value: Value
+
+    def step(self, rng: random.Random) -> None:
+        """Advance one tick (a no-op for values that never change)."""
+
+    def on_read(self) -> bool:
+        """Called when a request reads the field; True if that changed the value."""
+        return False
+
+
+@dataclass
+class Static(Motion):
+    value: Value
+
+
+class Walk(Motion):
+    """A mean-reverting random walk inside ``[lo, hi]``: looks like a real measurement."""
+
+    def __init__(self, field: Field, lo: float, hi: float, rng: random.Random) -> None:
+        self.field, self.lo, self.hi = field, lo, hi
+        self.home = min(max(_typical(field, lo, hi, rng), lo), hi)
+        self.x = self.home
+        self.value = quantize(field, self.x)
+
+    def step(self, rng: random.Random) -> None:
+        span = self.hi - self.lo
+        self.x += rng.gauss(0.0, span * 0.01) + (self.home - self.x) * 0.05
+        self.x = min(max(self.x, self.lo), self.hi)
+        self.value = quantize(self.field, self.x)
+
+
+class Events(Motion):
+    """An enum or flags field: its normal code, with short-lived abnormal episodes."""
+
+    def __init__(self, normal: int, abnormal: list[int]) -> None:
+        self.normal, self.abnormal = normal, abnormal
+        self.value = normal
+        self.left = 0
+
+    def step(self, rng: random.Random) -> None:
+        if self.left > 0:
+            self.left -= 1
+            if self.left == 0:
+                self.value = self.normal
+        elif self.abnormal and rng.random() < EVENT_RATE:
+            self.value = rng.choice(self.abnormal)
+            self.left = rng.randint(*EVENT_TICKS)
+
+
+class Peak(Motion):
+    """A peak-hold register whose read resets it (``poll: never``): rises, drops on read."""
+
+    def __init__(self, field: Field, lo: float, hi: float) -> None:
+        self.field, self.lo, self.hi = field, lo, hi
+        self.value = quantize(field, lo + (hi - lo) * 0.5)
+
+    def step(self, rng: random.Random) -> None:
+        assert isinstance(self.value, (int, float))
+        sample = self.lo + (self.hi - self.lo) * rng.uniform(0.2, 0.8)
+        self.value = max(self.value, quantize(self.field, sample))
+
+    def on_read(self) -> bool:
+        before = self.value
+        self.value = quantize(self.field, self.lo)
+        return before != self.value
+
+
+def _abnormal_codes(field: Field) -> tuple[int, list[int]]:
+    normal = min((c for c, ch in field.enum.items() if ch.severity is Severity.OK), default=0)
+    others = [c for c, ch in field.enum.items() if ch.severity is not Severity.OK]
+    if not others and field.other is not None and field.other.severity is not Severity.OK:
+        top = max(field.enum, default=0)
+        others = list(range(top + 1, top + 6))  # undocumented codes the profile calls "other"
+    return normal, others
+
+
+def motion_for(field: Field, profile: Profile, rng: random.Random) -> Motion:
+    """The behaviour a field gets when nothing pins it."""
+    t = field.layout.type
+    if t is DataType.STRING:
+        return Static(f"SIM-{field.name}".upper()[: 2 * field.words])
+    if t is DataType.BOOL:
+        return Static(False)
+    if field.enum:
+        normal, others = _abnormal_codes(field)
+        return Events(normal, others) if field.poll is Poll.DEFAULT else Static(normal)
+    if field.flags:
+        bits = [m for m, ch in field.flags.items() if ch.severity is not Severity.OK] \
+            or list(field.flags)
+        return Events(0, bits) if field.poll is Poll.DEFAULT else Static(0)
+    lo, hi = value_range(field, profile)
+    if field.poll is Poll.NEVER:
+        return Peak(field, lo, hi)
+    if field.poll is Poll.DEFAULT:
+        return Walk(field, lo, hi, rng)
+    return Static(quantize(field, rng.uniform(lo, lo + (hi - lo) / 4)))

@@ -1,0 +1,117 @@
+"""Shared fixtures: simulated buses (that a test cannot leak) and a raw serial peer.
+
+``sim(*devices, **options)`` starts a simulated bus (``rtupoll.sim.testing.simulated_bus``
+arguments) and stops it after the test. Every test, whether or not it uses ``sim``, fails
+if it leaves a simulated bus running: a leaked bus keeps a thread and a pty alive and
+would answer the next test's requests.
+
+``raw_port(path)`` opens a pty path (or ``tcp://HOST:PORT``) without any Modbus library,
+so a test can send exact bytes and see exactly what came back.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import termios
+import time
+import tty
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from rtupoll.sim.testing import SimulatedBus, running, simulated_bus
+
+pytest_plugins = ("pytester",)
+
+
+@pytest.fixture
+def sim() -> Iterator[Callable[..., SimulatedBus]]:
+    """Factory: ``bus = sim("huiwen-aq@3", faults=["3:crc"])``; stopped after the test."""
+    started: list[SimulatedBus] = []
+
+    def start(*devices: str, **options: Any) -> SimulatedBus:
+        bus = simulated_bus(devices, **options).start()
+        started.append(bus)
+        return bus
+
+    yield start
+    for bus in started:
+        bus.stop()
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_simulator() -> Iterator[None]:
+    before = set(running())
+    yield
+    leaked = [bus for bus in running() if bus not in before]
+    for bus in leaked:
+        bus.stop()
+    if leaked:
+        pytest.fail(f"the test left {len(leaked)} simulated bus(es) running: "
+                    + ", ".join(bus.port for bus in leaked)
+                    + " (use the sim fixture or 'with simulated_bus(...)')")
+
+
+class RawPort:
+    """Exact bytes to and from a pty or an RTU-over-TCP socket."""
+
+    def __init__(self, path: str) -> None:
+        self.sock: socket.socket | None = None
+        if path.startswith("tcp://"):
+            host, _, port = path[6:].rpartition(":")
+            self.sock = socket.create_connection((host, int(port)), timeout=2)
+            self.fd = self.sock.fileno()
+        else:
+            self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+            tty.setraw(self.fd)
+            termios.tcflush(self.fd, termios.TCIOFLUSH)
+
+    def send(self, data: bytes) -> float:
+        """Write ``data``; returns the time it went out (time.monotonic())."""
+        t = time.monotonic()
+        os.write(self.fd, data)
+        return t
+
+    def read(self, n: int | None = None, *, timeout: float = 0.5, quiet: float = 0.05) -> bytes:
+        """Bytes until ``n`` arrived, or (n=None) the line stayed quiet, or ``timeout``."""
+        out = b""
+        deadline = time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            if (n is not None and len(out) >= n) or now >= deadline:
+                return out
+            wait = deadline - now if (n is not None or not out) else min(quiet, deadline - now)
+            ready, _, _ = select.select([self.fd], [], [], wait)
+            if not ready:
+                if n is None and out:
+                    return out
+                continue
+            out += os.read(self.fd, 4096)
+
+    def transact(self, request: bytes, n: int | None = None, *, timeout: float = 0.5) -> bytes:
+        self.send(request)
+        return self.read(n, timeout=timeout)
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+        else:
+            os.close(self.fd)
+
+
+@pytest.fixture
+def raw_port() -> Iterator[Callable[[str], RawPort]]:
+    """Factory: ``port = raw_port(bus.port)``; closed after the test."""
+    opened: list[RawPort] = []
+
+    def open_(path: str) -> RawPort:
+        port = RawPort(path)
+        opened.append(port)
+        return port
+
+    yield open_
+    for port in opened:
+        port.close()
