@@ -1,0 +1,89 @@
+"""Start-up cost of a one-shot read: ``rtupoll read --format json`` against ``mbpoll``.
+
+Both tools read the same register (the Huiwen module's CO2, input 30009, sent as
+0x7539) from the same simulated device, in the same run, N times each; the script
+prints each tool's median wall time and the ratio, and checks that both read the same
+value. mbpoll is a small C program, so the ratio is mostly the Python interpreter and
+the imports a read needs (click, PyYAML, pymodbus and asyncio): what this measures is
+whether rtupoll pays for anything more (the simulator, rich, the scheduler).
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/read_vs_mbpoll.py            # 20 runs each
+    .venv/bin/python benchmarks/read_vs_mbpoll.py --runs 50 --baud 9600
+
+Bytecode caching is switched on for the child processes (and one warm-up run made),
+because an installed package has its .pyc files; an environment with
+PYTHONDONTWRITEBYTECODE would otherwise recompile every module on every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from rtupoll.sim.testing import simulated_bus
+
+DEVICE = "huiwen-aq@1"
+FIELD, REFERENCE, VALUE = "co2", 30009, 612
+
+
+def timed(argv: list[str], env: dict[str, str]) -> tuple[float, str]:
+    start = time.perf_counter()
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=30)
+    elapsed = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"{argv[0]} failed ({proc.returncode}): {proc.stderr.strip()}")
+    return elapsed, proc.stdout
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=20, help="runs of each tool (default 20)")
+    ap.add_argument("--baud", type=int, default=None,
+                    help="simulate wire timing at this baud rate (default: none)")
+    args = ap.parse_args()
+    mbpoll = shutil.which("mbpoll")
+    if mbpoll is None:
+        raise SystemExit("mbpoll is not installed (scripts/setup --test installs it)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    rtupoll = [str(Path(sys.executable).parent / "rtupoll")]
+    if not Path(rtupoll[0]).exists():
+        rtupoll = [sys.executable, "-m", "rtupoll"]
+
+    with simulated_bus([DEVICE], sets=[f"{DEVICE}.{FIELD}={VALUE}"], baudrate=args.baud,
+                       tick=None) as sim:
+        ours = [*rtupoll, "read", "--port", sim.port, "--format", "json", DEVICE, FIELD]
+        theirs = [mbpoll, "-m", "rtu", "-b", str(args.baud or 9600), "-P", "none", "-a", "1",
+                  "-t", "3", "-r", str(REFERENCE), "-0", "-c", "1", "-1", sim.port]
+        python = [sys.executable, "-c", "pass"]
+        timed(ours, env)  # warm-up: writes the .pyc files
+        times: dict[str, list[float]] = {"rtupoll": [], "mbpoll": [], "python": []}
+        for _ in range(args.runs):  # interleaved, so drift hits both alike
+            t, out = timed(ours, env)
+            assert f'"value":{VALUE}' in out, out
+            times["rtupoll"].append(t)
+            t, out = timed(theirs, env)
+            assert re.search(rf"\[{REFERENCE}\]:\s+{VALUE}\b", out), out
+            times["mbpoll"].append(t)
+            times["python"].append(timed(python, env)[0])
+
+    med = {k: statistics.median(v) for k, v in times.items()}
+    print(f"one-shot read of {DEVICE} {FIELD} (input {REFERENCE}), {args.runs} runs each, "
+          f"wire timing {'at ' + str(args.baud) + ' baud' if args.baud else 'off'}")
+    print(f"  rtupoll read --format json  median {med['rtupoll'] * 1000:7.1f} ms")
+    print(f"  mbpoll                      median {med['mbpoll'] * 1000:7.1f} ms")
+    print(f"  python -c pass (baseline)   median {med['python'] * 1000:7.1f} ms")
+    print(f"  ratio rtupoll / mbpoll: {med['rtupoll'] / med['mbpoll']:.1f}x; rtupoll beyond "
+          f"a bare interpreter: {(med['rtupoll'] - med['python']) * 1000:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,259 @@
+"""``rtupoll set-address``: one device, a plan file, or the interactive field workflow.
+
+The logic (refusals, write, verification, "already done") is in
+``rtupoll.commission``; this module is about the three ways a person drives it and
+about reporting, because after a half-finished commissioning run the first thing a
+technician needs is what was and was not changed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from rtupoll.cli.options import format_option, port_options, profiles_option
+from rtupoll.cli.target import (
+    Target,
+    confirm,
+    load_target,
+    port_settings,
+    run_on_bus,
+    timing_options,
+)
+from rtupoll.commission import (
+    Change,
+    Commissioner,
+    Presence,
+    Result,
+    Status,
+    address_field,
+    dry_run,
+    refuse,
+    run_plan,
+)
+from rtupoll.errors import RtupollError, UsageError
+from rtupoll.profile import Profile
+from rtupoll.registers import parse_int
+
+
+class PlanFailed(RtupollError):
+    """A plan row failed: its message, and the exit code of its cause."""
+
+    def __init__(self, row: int, cause: RtupollError) -> None:
+        super().__init__(f"row {row}: {cause}")
+        self.exit_code = cause.exit_code
+
+
+@click.command("set-address")
+@click.argument("device", required=False, metavar="[DEVICE]")
+@click.argument("new", required=False, metavar="[NEW]")
+@port_options
+@timing_options
+@click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path),
+              help="Run the changes of a CSV or YAML plan, in order (see docs/commands.md).")
+@click.option("--interactive", "-i", is_flag=True,
+              help="Field workflow: connect each new sensor (at DEVICE's address), press "
+                   "Enter, and it gets the next free address from NEW on.")
+@click.option("--dry-run", is_flag=True, help="Print the frames that would be sent; send none.")
+@click.option("--yes", "-y", is_flag=True, help="Do not ask for confirmation (scripts).")
+@format_option("text", "json")
+@profiles_option
+def set_address(device: str | None, new: str | None, port: str, baudrate: int | None,
+                parity: str | None, stopbits: str | None, timeout: float | None,
+                retries: int | None, plan_file: Path | None, interactive: bool, dry_run: bool,
+                yes: bool, fmt: str, profile_dirs: tuple[Path, ...]) -> None:
+    """Give DEVICE (PROFILE@ADDRESS) the address NEW, and verify it moved.
+
+    Refused (exit 8) when NEW is reserved or outside the device's range, when
+    something already answers at NEW, or when the profile has no documented way
+    to change the address. A row already done (answering at NEW, not at the old
+    address) is reported and skipped, so plans can be re-run.
+
+    \b
+    rtupoll set-address -p /dev/ttyUSB0 huiwen-aq@1 12
+    rtupoll set-address -p /dev/ttyUSB0 --plan sensors.csv --yes
+    rtupoll set-address -p /dev/ttyUSB0 --interactive radar-level@1 10
+    """
+    def settings(profile: Profile) -> Any:
+        return port_settings(profile, port, baudrate, parity, stopbits)
+
+    def commissioner(bus: Any) -> Commissioner:
+        return Commissioner(bus, timeout=timeout, retries=retries,
+                            log=lambda m: click.echo(f"  {m}", err=True))
+
+    if plan_file is not None:
+        if device or new or interactive:
+            raise UsageError("--plan takes no DEVICE or NEW (they are in the plan's rows)")
+        from rtupoll.plans import load_plan
+
+        changes = load_plan(plan_file, profile_dirs)
+        if dry_run:
+            return _dry_run(changes)
+        _same_serial(changes, baudrate)
+        confirm(f"Change {len(changes)} address(es) per {plan_file}?", yes)
+        return _plan(changes, settings(changes[0].profile), commissioner, fmt)
+    if not device:
+        raise UsageError("give DEVICE and NEW, --plan FILE, or --interactive DEVICE [FIRST]")
+    target = load_target(device, profile_dirs)
+    assert target.profile is not None
+    if interactive:
+        if dry_run:
+            raise UsageError("--dry-run shows one change or a plan, not an interactive session")
+        first = _address(new) if new else None
+        return _interactive(target, first, settings(target.profile), commissioner)
+    if new is None:
+        raise UsageError("missing NEW: the address to give the device")
+    change = Change(target.profile, target.unit, _address(new))
+    if dry_run:
+        return _dry_run([change])
+    refuse(change)
+    confirm(f"Change the address of {target.name} to {change.new}?", yes)
+    result = run_on_bus(settings(target.profile), lambda bus: commissioner(bus).apply(change))
+    if fmt == "json":
+        _reporter(fmt)(result)
+    else:
+        click.echo(f"{change.label}: {result.detail}")
+
+
+def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Commissioner],
+          fmt: str) -> None:
+    """Run the rows, reporting each as it ends; then fail with the first failure's code."""
+    report = _reporter(fmt)
+    results = run_on_bus(settings, lambda bus: run_plan(commissioner(bus), changes, report))
+    _summary(results, fmt)
+    for row, result in enumerate(results, 1):
+        if result.error is not None:
+            raise PlanFailed(row, result.error)
+
+
+def _address(text: str) -> int:
+    try:
+        value = parse_int(text)
+    except ValueError:
+        raise UsageError(f"{text!r} is not an address (decimal or 0x..)") from None
+    if not 0 <= value <= 255:
+        raise UsageError(f"address {value} is outside 0..255")
+    return value
+
+
+def _dry_run(changes: list[Change]) -> None:
+    frames = [dry_run(change) for change in changes]  # refusals first, before any output
+    click.echo("Dry run: nothing is sent. '??' marks bytes that depend on a value read first.")
+    for change, steps in zip(changes, frames, strict=True):
+        click.echo(f"{change.label}" + (f" ({change.where})" if change.where else ""))
+        for frame, why in steps:
+            click.echo(f"  {frame:<35} {why}")
+
+
+def _same_serial(changes: list[Change], baudrate: int | None) -> None:
+    """One bus has one baud rate: the rows' profiles must agree, or --baudrate decides."""
+    if baudrate:
+        return
+    rates = {c.profile.id: c.profile.serial.baudrate for c in changes}
+    if len(set(rates.values())) > 1:
+        listed = ", ".join(f"{p} {b}" for p, b in rates.items())
+        raise UsageError(f"the plan's profiles default to different baud rates ({listed}): "
+                         "give --baudrate (one bus has one)")
+
+
+def _reporter(fmt: str) -> Callable[[Result], None]:
+    row = 0
+
+    def report(result: Result) -> None:
+        nonlocal row
+        row += 1
+        if fmt == "json":
+            click.echo(json.dumps(result.record(row), ensure_ascii=False))
+        else:
+            mark = {Status.CHANGED: "ok  ", Status.DONE: "skip", Status.FAILED: "FAIL",
+                    Status.NOT_RUN: "----"}[result.status]
+            click.echo(f"{mark} {result.change.label}: {result.detail}")
+        sys.stdout.flush()
+
+    return report
+
+
+def _summary(results: list[Result], fmt: str) -> None:
+    if fmt == "json":
+        return
+    counts = {s: sum(r.status is s for r in results) for s in Status}
+    click.echo(", ".join(f"{n} {s.value}" for s, n in counts.items() if n)
+               + f" ({len(results)} row{'s' if len(results) != 1 else ''})")
+
+
+def _interactive(target: Target, first: int | None, settings: Any,
+                 commissioner: Callable[[Any], Commissioner]) -> None:
+    """Connect a sensor, press Enter, it gets the next free address; a summary as it goes."""
+    from rtupoll.bus import Bus
+
+    profile, old = target.profile, target.unit
+    assert profile is not None
+    address_field(profile)  # refused up front when the profile has no address method
+    lo = profile.addresses.lo
+    start = first if first is not None else (lo + 1 if lo == old else lo)
+    loop = asyncio.new_event_loop()
+    bus = Bus(settings)
+    done: list[int] = []
+    failures: list[RtupollError] = []
+    click.echo(f"Commissioning {profile.id} sensors: each new one is expected at address {old}"
+               f" and gets the next free address from {start}.")
+    try:
+        loop.run_until_complete(bus.open())
+        com = commissioner(bus)
+        while True:
+            click.echo("Connect the next new sensor and press Enter (q to finish): ", nl=False)
+            line = sys.stdin.readline()
+            if not line or line.strip().lower() in ("q", "quit", "exit"):
+                click.echo("")
+                break
+            try:
+                if loop.run_until_complete(com.presence(profile, old)) is Presence.SILENT:
+                    click.echo(f"No sensor answers at {old}: check its wiring and power, then "
+                               "press Enter again.\n")
+                    continue
+                new = loop.run_until_complete(com.next_free(profile, start, {old, *done}))
+                result = loop.run_until_complete(com.apply(Change(profile, old, new)))
+            except RtupollError as exc:
+                failures.append(exc)
+                click.echo(f"FAIL {exc}")
+            else:
+                done.append(new)
+                start = new + 1
+                click.echo(f"ok   {profile.id}@{old} -> {new}: {result.detail}")
+                click.echo("     Label this sensor " + click.style(str(new), bold=True) + ".")
+            click.echo(_running(done, failures))
+            click.echo("")
+    except KeyboardInterrupt:
+        click.echo("")
+        click.echo(_running(done, failures))
+        raise
+    finally:
+        _shutdown(loop, bus)
+    if failures:
+        raise failures[-1]
+
+
+def _shutdown(loop: asyncio.AbstractEventLoop, bus: Any) -> None:
+    """Cancel what Ctrl-C interrupted (it may hold the bus), then close the port."""
+    pending = asyncio.all_tasks(loop)
+    for task in pending:
+        task.cancel()
+    if pending:
+        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+    loop.run_until_complete(bus.close())
+    loop.close()
+
+
+def _running(done: list[int], failures: list[RtupollError]) -> str:
+    text = f"So far: {len(done)} sensor{'s' if len(done) != 1 else ''} readdressed"
+    if done:
+        text += f" ({', '.join(map(str, done))})"
+    if failures:
+        text += f", {len(failures)} failed attempt{'s' if len(failures) != 1 else ''}"
+    return text + "."

@@ -1,0 +1,109 @@
+"""What ``read``, ``write`` and ``set-address`` share: the device, the port, timing, consent.
+
+Kept apart from the commands so each stays about its own job, and so the costly
+imports (pymodbus via ``rtupoll.bus``) happen only once a command really talks to a
+bus: ``--help``, ``--dry-run`` and refusals never pay for them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
+
+import click
+
+from rtupoll.errors import RefusedError, UsageError
+from rtupoll.profile import Profile, load_one
+from rtupoll.registers import parse_int
+
+if TYPE_CHECKING:
+    from rtupoll.bus import Bus, PortSettings
+
+F = TypeVar("F", bound=Callable[..., object])
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Target:
+    """One device: its profile (None for a bare unit address) and its unit address."""
+
+    profile: Profile | None
+    unit: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.profile.id}@{self.unit}" if self.profile else str(self.unit)
+
+
+def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool = False
+                ) -> Target:
+    """``PROFILE@ADDRESS``, or (``bare_ok``, raw access) just ``ADDRESS``."""
+    pid, sep, addr = text.rpartition("@")
+    if not sep and not bare_ok:
+        raise UsageError(f"{text!r} is not PROFILE@ADDRESS (e.g. huiwen-aq@1); raw registers "
+                         "of a device with no profile: --raw ADDRESS")
+    try:
+        unit = parse_int(addr)
+    except ValueError:
+        raise UsageError(f"{addr!r} in {text!r} is not an address (0-255, decimal or 0x..)"
+                         ) from None
+    if not 0 <= unit <= 255:
+        raise UsageError(f"address {unit} in {text!r} is outside 0..255")
+    if sep and not pid:
+        raise UsageError(f"{text!r} names no profile before '@'")
+    return Target(load_one(pid, profile_dirs) if pid else None, unit)
+
+
+def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
+                  stopbits: str | None) -> PortSettings:
+    """The profile's serial settings (9600 8N1 without one), each overridable."""
+    from rtupoll.bus import PortSettings
+
+    s = profile.serial if profile else None
+    return PortSettings(
+        port=port,
+        baudrate=baudrate or (s.baudrate if s else 9600),
+        parity=(parity or (s.parity if s else "N")).upper(),
+        bytesize=s.bytesize if s else 8,
+        stopbits=int(stopbits) if stopbits else (s.stopbits if s else 1),
+        deassert_dtr=s.deassert_dtr if s else False,
+    )
+
+
+def timing_options(f: F) -> F:
+    """--timeout and --retries: override the profile's per-transaction values."""
+    f = click.option("--retries", type=click.IntRange(0, 10), default=None,
+                     envvar="RTUPOLL_RETRIES",
+                     help="Retries per request (default: the profile's). Also "
+                          "$RTUPOLL_RETRIES.")(f)
+    f = click.option("--timeout", type=click.FloatRange(0.01, 30), default=None,
+                     metavar="SECONDS", envvar="RTUPOLL_TIMEOUT",
+                     help="Response timeout (default: the profile's). Also "
+                          "$RTUPOLL_TIMEOUT.")(f)
+    return f
+
+
+def confirm(question: str, yes: bool) -> None:
+    """Ask on a terminal; without one, only ``--yes`` lets a change through."""
+    if yes:
+        return
+    if not sys.stdin.isatty():
+        raise RefusedError("not on a terminal, so nobody can confirm: add --yes to change "
+                           "devices from a script")
+    if not click.confirm(question, default=False, err=True):
+        raise RefusedError("not confirmed: nothing was sent")
+
+
+def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]]) -> T:
+    """Open the port, run ``job`` with the bus, close the port (whatever happens)."""
+    from rtupoll.bus import Bus
+
+    async def main() -> T:
+        async with Bus(settings) as bus:
+            return await job(bus)
+
+    return asyncio.run(main())

@@ -1,0 +1,140 @@
+"""``rtupoll write``: set fields (or raw registers), then read them back and show them.
+
+Every check that needs no device runs before the port is even opened, and on a
+terminal the exact change is shown and confirmed; from a script, ``--yes`` is the
+confirmation. What is printed afterwards is what the device holds now.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from rtupoll.cli.options import format_option, port_options, profiles_option
+from rtupoll.cli.read import Row, emit, raw_options, specs_of
+from rtupoll.cli.target import (
+    Target,
+    confirm,
+    load_target,
+    port_settings,
+    run_on_bus,
+    timing_options,
+)
+from rtupoll.device import Timing
+from rtupoll.errors import RefusedError, UsageError
+from rtupoll.writes import (
+    RAW_FUNCTIONS,
+    RawWrite,
+    WriteOp,
+    plan_raw_write,
+    plan_write,
+    read_back,
+    timing_of,
+    verify,
+    verify_raw,
+    write_raw,
+)
+from rtupoll.writes import write as write_field
+
+
+def split_assignment(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise UsageError(f"{text!r} is not FIELD=VALUE (e.g. measurement_1_mode=FBB)")
+    return name.strip(), value
+
+
+def plan_fields(target: Target, assignments: tuple[str, ...]) -> list[WriteOp]:
+    """Check every ``FIELD=VALUE`` before anything is sent."""
+    p = target.profile
+    assert p is not None
+    ops = []
+    for text in assignments:
+        name, value = split_assignment(text)
+        if ":" in name:
+            raise UsageError(f"{name!r} looks like a register spec: add --raw to write registers")
+        field = p.field(name)
+        if p.set_address.field == field.name:
+            raise RefusedError(f"{name} is the device's own address: use 'rtupoll set-address "
+                               f"{target.name} NEW', which verifies the move")
+        ops.append(plan_write(field, value, p.limits.functions))
+    return ops
+
+
+@click.command()
+@click.argument("device", metavar="DEVICE")
+@click.argument("assignments", nargs=-1, required=True, metavar="FIELD=VALUE...")
+@port_options
+@timing_options
+@raw_options
+@click.option("--function", "function", type=click.Choice(["6", "16"]), default=None,
+              help="--raw: force FC06 or FC16 (default: FC06 for one register when the "
+                   "device has it).")
+@click.option("--yes", "-y", is_flag=True, help="Do not ask for confirmation (scripts).")
+@format_option("table", "json", "csv")
+@profiles_option
+def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | None,
+          parity: str | None, stopbits: str | None, timeout: float | None,
+          retries: int | None, raw: bool, addressing: str, type_name: str, order: str | None,
+          function: str | None, yes: bool, fmt: str, profile_dirs: tuple[Path, ...]) -> None:
+    """Write FIELD=VALUE to DEVICE (PROFILE@ADDRESS), read back and show the result.
+
+    Values are numbers (decimal or 0x hex), enum names, flag names joined with '|',
+    or text. Read-only fields and values outside a field's range are refused.
+
+    \b
+    rtupoll write -p /dev/ttyUSB0 banner-ez-array@1 measurement_1_mode=TBB
+    rtupoll write -p /dev/ttyUSB0 --raw --yes 5 holding:0x0010=1,2,3
+    """
+    target = load_target(device, profile_dirs, bare_ok=raw)
+    if not raw and target.profile is None:
+        raise UsageError("a bare address needs --raw")
+    if not raw and (addressing != "pdu" or order or type_name != "u16" or function):
+        raise UsageError("--one-based, --modicon, --type, --order and --function are for "
+                         "--raw writes")
+    timing = timing_of(target.profile, timeout, retries)
+    if raw:
+        functions = target.profile.limits.functions if target.profile else RAW_FUNCTIONS
+        if function:
+            functions = frozenset({5, int(function)})
+        raws = []
+        for text in assignments:
+            spec_text, value = split_assignment(text)
+            spec = specs_of(target, [spec_text], addressing, type_name, order)[0]
+            raws.append(plan_raw_write(spec, value, functions))
+        confirm(_question(target, [r.describe() for r in raws]), yes)
+        settings = port_settings(target.profile, port, baudrate, parity, stopbits)
+        rows = run_on_bus(settings, lambda bus: _raw(bus, target.unit, raws, timing))
+    else:
+        ops = plan_fields(target, assignments)
+        confirm(_question(target, [op.describe() for op in ops]), yes)
+        settings = port_settings(target.profile, port, baudrate, parity, stopbits)
+        rows = run_on_bus(settings, lambda bus: _fields(bus, target.unit, ops, timing))
+    emit(target, rows, fmt, False, title=f"{target.name} after writing (read back)")
+
+
+def _question(target: Target, lines: list[str]) -> str:
+    return f"Write to {target.name}:\n  " + "\n  ".join(lines) + "\nSend?"
+
+
+async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing) -> list[Row]:
+    rows: list[Row] = []
+    for op in ops:
+        sent = await write_field(bus, unit, op, timing)
+        if "R" not in op.field.access:
+            rows.append((op.field, None, "written (write-only: cannot be read back)"))
+            continue
+        now = await read_back(bus, unit, op.field, timing)
+        verify(op, sent, now)
+        rows.append((op.field, now, ""))
+    return rows
+
+
+async def _raw(bus: Any, unit: int, raws: list[RawWrite], timing: Timing) -> list[Row]:
+    rows: list[Row] = []
+    for rw in raws:
+        await write_raw(bus, unit, rw, timing)
+        rows += [(fv.field, fv, "") for fv in await verify_raw(bus, unit, rw, timing)]
+    return rows

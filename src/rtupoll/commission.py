@@ -1,0 +1,309 @@
+"""Giving a device a new address: refuse what is unsafe, write, then prove it moved.
+
+Every new sensor ships at the same address, so commissioning is a chore done twenty
+times in a row, often by script. Each change follows the same steps, and each step
+exists because skipping it has bitten someone:
+
+1. refuse before sending: no documented method (say what the manual says instead),
+   a reserved or out-of-range address, or an address something already answers at
+   (two devices at one address corrupt each other's replies);
+2. the device must answer at its current address and, when asked, prove its identity
+   (a serial number), so a script never readdresses the wrong sensor;
+3. write the address register the way the profile says (FC06, or FC16 with a
+   read-modify-write when the address is one byte of a shared register);
+4. verify: it answers at the new address and no longer at the old one. A missing or
+   malformed reply to the write itself means nothing (the Huiwen manual's FC06
+   reply is not an echo; many devices answer from the new address or not at all):
+   verification decides.
+
+A change whose device already answers at the new address (and not at the old one,
+or with a matching identity) is "already done", which makes plans safe to re-run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from rtupoll import rtu
+from rtupoll.codec import DataType
+from rtupoll.device import Timing
+from rtupoll.errors import (
+    DeviceException,
+    DeviceTimeout,
+    FrameError,
+    RefusedError,
+    RtupollError,
+    VerificationError,
+)
+from rtupoll.profile import Field, Profile
+from rtupoll.reading import field_words, interpret
+from rtupoll.rtu import Table
+from rtupoll.writes import timing_of
+
+if TYPE_CHECKING:
+    from rtupoll.bus import Bus
+
+VERIFY_ATTEMPTS = 3  # a device may take a moment to start answering at its new address
+VERIFY_PAUSE = 0.05  # seconds between attempts
+
+
+@dataclass(frozen=True)
+class Change:
+    """One address change: the device ``profile`` at ``old`` gets ``new``."""
+
+    profile: Profile
+    old: int
+    new: int
+    check: tuple[str, str] | None = None  # identity: (field, value as text) to match first
+    where: str = ""  # plan file:line, for messages
+
+    @property
+    def label(self) -> str:
+        return f"{self.profile.id}@{self.old} -> {self.new}"
+
+
+class Presence(str, enum.Enum):
+    """What answers at an address, judged by reading the profile's address register."""
+
+    SILENT = "silent"  # nothing answers
+    SAME = "same"  # a device whose address register holds this very address
+    OTHER = "other"  # something answers, but not like this profile's device would
+
+
+class Status(str, enum.Enum):
+    CHANGED = "changed"
+    DONE = "already done"
+    FAILED = "failed"
+    NOT_RUN = "not run"
+
+
+@dataclass(frozen=True)
+class Result:
+    change: Change
+    status: Status
+    detail: str
+    error: RtupollError | None = None
+
+    def record(self, row: int) -> dict[str, object]:
+        """The JSON report line of this row."""
+        c = self.change
+        return {"row": row, "profile": c.profile.id, "address": c.old, "new": c.new,
+                "status": self.status.value, "detail": self.detail,
+                "exit_code": self.error.exit_code if self.error else 0}
+
+
+def address_field(profile: Profile) -> Field:
+    """The register that holds the address, or RefusedError saying what the manual says."""
+    method = profile.set_address
+    if method.field is None:
+        raise RefusedError(f"{profile.id} cannot be readdressed from rtupoll: "
+                           f"{method.unsupported}")
+    return profile.field(method.field)
+
+
+def refuse(change: Change) -> Field:
+    """Every check that needs no bus; returns the address field."""
+    field = address_field(change.profile)
+    why = change.profile.addresses.check(change.new)
+    if why:
+        raise RefusedError(f"{change.label}: {why}")
+    if change.new == change.old:
+        raise RefusedError(f"{change.label}: the device is already at {change.old}")
+    if change.check:
+        change.profile.field(change.check[0])  # UsageError naming the fields if unknown
+    return field
+
+
+def dry_run(change: Change) -> list[tuple[str, str]]:
+    """The frames a change would send, as (hex, why); ``??`` marks bytes read first."""
+    f = refuse(change)
+    p, old, new = change.profile, change.old, change.new
+    read_old = rtu.read_request(old, f.table, f.address, f.words)
+    out = [(_hex(rtu.read_request(new, f.table, f.address, f.words)),
+            f"probe {new}: must be silent (nothing may answer there yet)"),
+           (_hex(read_old), f"read {f.name} at {old}: the device must answer")]
+    if change.check:
+        cf = p.field(change.check[0])
+        out.append((_hex(rtu.read_request(old, cf.table, cf.address, cf.words)),
+                    f"identity: {cf.name} must read {change.check[1]}"))
+    words = field_words(f, new, (0,))
+    unknown: set[int] = set()
+    if f.layout.type in (DataType.U8, DataType.I8):
+        out.append((_hex(read_old), f"read {f.name}'s register to keep its other byte"))
+        unknown = {7 if f.layout.byte == "low" else 8}  # FC16 data bytes: high at 7, low at 8
+    if p.set_address.function == 6:
+        frame = rtu.write_single_request(old, f.address, words[0])
+        unknown = {i - 3 for i in unknown}
+    else:
+        frame = rtu.write_multiple_request(old, f.address, words)
+    reply = {"echo": "an echo", "none": "no reply", "malformed": "a malformed reply",
+             "any": "any reply, or none"}[p.set_address.reply]
+    crc = {len(frame) - 2, len(frame) - 1} if unknown else set()
+    out.append((_hex(frame, unknown | crc),
+                f"write {new} to {f.name} with FC{p.set_address.function:02d} "
+                f"(expects {reply}; verification decides)"))
+    out.append((_hex(rtu.read_request(new, f.table, f.address, f.words)),
+                f"verify: {f.name} at {new} must read {new}"))
+    if old != p.addresses.any:
+        out.append((_hex(read_old), f"verify: {old} must be silent now"))
+    return out
+
+
+class Commissioner:
+    """Runs address changes on one bus, with per-profile timing (or the user's override)."""
+
+    def __init__(self, bus: Bus, *, timeout: float | None = None, retries: int | None = None,
+                 log: Callable[[str], None] | None = None) -> None:
+        self.bus, self.timeout, self.retries = bus, timeout, retries
+        self.log = log or (lambda _msg: None)
+
+    def timing(self, profile: Profile) -> Timing:
+        return timing_of(profile, self.timeout, self.retries)
+
+    async def presence(self, profile: Profile, unit: int) -> Presence:
+        f = address_field(profile)
+        t = self.timing(profile)
+        try:
+            words = await self.bus.read(unit, f.table, f.address, f.words, timeout=t.timeout,
+                                        retries=t.retries)
+        except DeviceTimeout:
+            return Presence.SILENT
+        except (FrameError, DeviceException):  # an exception reply or garbage: someone is there
+            return Presence.OTHER
+        value = interpret(f, words).value
+        return Presence.SAME if value == unit or unit == profile.addresses.any else Presence.OTHER
+
+    async def identity(self, change: Change, unit: int) -> str | None:
+        """Why the device at ``unit`` is not the one the change names (None: it is)."""
+        if not change.check:
+            return None
+        name, want = change.check
+        f = change.profile.field(name)
+        t = self.timing(change.profile)
+        words = await self.bus.read(unit, f.table, f.address, f.words, timeout=t.timeout,
+                                    retries=t.retries)
+        got = interpret(f, words)
+        if got.text == want or _same_number(got.value, want):
+            return None
+        return f"{name} reads {got.text!r}, expected {want!r}"
+
+    async def apply(self, change: Change) -> Result:
+        """Make the change, or recognise it as already done; raises on refusal or failure."""
+        field = refuse(change)
+        p, old, new = change.profile, change.old, change.new
+        at_new = await self.presence(p, new)
+        if at_new is Presence.SAME and await self.identity(change, new) is None and (
+                change.check or old == p.addresses.any
+                or await self.presence(p, old) is Presence.SILENT):
+            return Result(change, Status.DONE, f"already done: answers at {new}"
+                          + (f", {change.check[0]} matches" if change.check else "")
+                          + (f", silent at {old}" if not change.check else ""))
+        if at_new is not Presence.SILENT:
+            raise RefusedError(f"{change.label}: address {new} is taken: a device already "
+                               "answers there (pick another; 'rtupoll scan' lists the bus)")
+        at_old = await self.presence(p, old)
+        if at_old is Presence.SILENT:
+            raise DeviceTimeout(f"{change.label}: no device answers at {old} "
+                                "(check wiring, power and serial settings)")
+        if at_old is Presence.OTHER:
+            raise RefusedError(f"{change.label}: the device at {old} does not look like a "
+                               f"{p.id} ({field.name} does not read {old})")
+        wrong = await self.identity(change, old)
+        if wrong:
+            raise RefusedError(f"{change.label}: not the device this change is for: {wrong}")
+        reply = await self._write(p, field, old, new)
+        self.log(f"{change.label}: written ({reply}); verifying")
+        await self._verify(change)
+        return Result(change, Status.CHANGED,
+                      f"changed: answers at {new}"
+                      + ("" if old == p.addresses.any else f", silent at {old}")
+                      + f" (write reply: {reply})")
+
+    async def _write(self, p: Profile, f: Field, old: int, new: int) -> str:
+        t = self.timing(p)
+        current: tuple[int, ...] = (0,)
+        if f.layout.type in (DataType.U8, DataType.I8):
+            current = tuple(await self.bus.read(old, Table.HOLDING, f.address, 1,
+                                                timeout=t.timeout, retries=t.retries))
+        words = field_words(f, new, current)
+        unconfirmed = self.bus.stats.outcomes["unconfirmed"]
+        try:
+            await self.bus.write_registers(old, f.address, words, function=p.set_address.function,
+                                           timeout=t.timeout, retries=t.retries,
+                                           reply=p.set_address.reply)
+        except DeviceTimeout:
+            return "none"
+        except FrameError:
+            return "malformed"
+        # with reply "none"/"malformed"/"any" the bus tolerates a missing or odd reply
+        return "echo" if self.bus.stats.outcomes["unconfirmed"] == unconfirmed \
+            else "none or not an echo"
+
+    async def _verify(self, change: Change) -> None:
+        p, old, new = change.profile, change.old, change.new
+        at_new = Presence.SILENT
+        for attempt in range(VERIFY_ATTEMPTS):
+            if attempt:
+                await asyncio.sleep(VERIFY_PAUSE)
+            at_new = await self.presence(p, new)
+            if at_new is Presence.SAME:
+                break
+        if at_new is not Presence.SAME:
+            at_old = await self.presence(p, old)
+            if at_old is Presence.SAME:
+                raise VerificationError(f"{change.label}: the device still answers at {old}; "
+                                        "the new address did not take effect")
+            raise VerificationError(f"{change.label}: the device answers at neither {old} "
+                                    f"nor {new} (power-cycle it and check both)")
+        if old != p.addresses.any and await self.presence(p, old) is not Presence.SILENT:
+            raise VerificationError(f"{change.label}: the device answers at {new}, but "
+                                    f"something still answers at {old}")
+
+    async def next_free(self, profile: Profile, start: int, skip: set[int]) -> int:
+        """The first address from ``start`` that this device may take and nothing answers at."""
+        a = profile.addresses
+        for candidate in range(max(start, a.lo), a.hi + 1):
+            if candidate in skip or a.check(candidate):
+                continue
+            if await self.presence(profile, candidate) is Presence.SILENT:
+                return candidate
+            self.log(f"{candidate} is taken; trying the next address")
+        raise RefusedError(f"no free address left in {max(start, a.lo)}..{a.hi}")
+
+
+async def run_plan(commissioner: Commissioner, changes: list[Change],
+                   on_result: Callable[[Result], None] | None = None) -> list[Result]:
+    """Run changes in order; stop at the first failure; the rest are reported not run."""
+    results: list[Result] = []
+    failed = False
+    for change in changes:
+        if failed:
+            result = Result(change, Status.NOT_RUN, "not attempted (an earlier row failed)")
+        else:
+            try:
+                result = await commissioner.apply(change)
+            except RtupollError as exc:
+                failed = True
+                result = Result(change, Status.FAILED,
+                                str(exc).removeprefix(f"{change.label}: "), exc)
+        results.append(result)
+        if on_result:
+            on_result(result)
+    return results
+
+
+def _same_number(value: object, text: str) -> bool:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return float(text) == float(value)
+    except ValueError:
+        return False
+
+
+def _hex(frame: bytes, unknown: Collection[int] = ()) -> str:
+    return " ".join("??" if i in unknown else f"{b:02X}" for i, b in enumerate(frame))

@@ -1,0 +1,48 @@
+"""A one-shot read imports only what it uses: no simulator, scheduler or live table, and
+no rich on the machine-readable paths (measured with ``python -X importtime``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Callable
+
+import pytest
+
+from rtupoll.sim.testing import SimulatedBus
+
+UNUSED = ("rich", "rtupoll.sim", "rtupoll.scheduler", "rtupoll.live", "rtupoll.site",
+          "rtupoll.commission")
+
+
+def imported(*argv: str) -> set[str]:
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "rtupoll", *argv],
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines()
+            if line.startswith("import time:") and line.count("|") == 2}
+
+
+def loaded(modules: set[str], package: str) -> bool:
+    return any(m == package or m.startswith(package + ".") for m in modules)
+
+
+@pytest.mark.parametrize("fmt", ["json", "csv"])
+def test_json_and_csv_reads_import_nothing_they_do_not_use(
+        sim: Callable[..., SimulatedBus], fmt: str) -> None:
+    bus = sim("huiwen-aq@1", tick=None)
+    modules = imported("read", "--port", bus.port, "--format", fmt, "huiwen-aq@1", "co2")
+    assert "rtupoll.bus" in modules and "rtupoll.planner" in modules  # it did read
+    assert [p for p in UNUSED if loaded(modules, p)] == []
+
+
+def test_the_table_for_people_does_load_rich(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@1", tick=None)
+    modules = imported("read", "--port", bus.port, "huiwen-aq@1", "co2")
+    assert loaded(modules, "rich") and not loaded(modules, "rtupoll.sim")
+
+
+def test_a_dry_run_does_not_even_load_the_modbus_library() -> None:
+    modules = imported("set-address", "--port", "/dev/null", "--dry-run", "radar-level@1", "11")
+    assert "rtupoll.commission" in modules
+    assert not loaded(modules, "pymodbus") and not loaded(modules, "rtupoll.bus")
