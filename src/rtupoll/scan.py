@@ -1,0 +1,356 @@
+"""Finding devices on a bus: the sweep plan, its timing, and identification by profile.
+
+A sweep is mostly silence: of 247 addresses a handful answer, so the time of a scan
+is the number of dead addresses times the time it takes to be sure nobody answers.
+That time is derived from the wire, not guessed: the request, the longest reply the
+probe can get, the inter-frame silence, and a turnaround margin for the device and
+the adapter. Everything that answers - a reply, an exception, even a garbled frame -
+means "something is there"; only then is it worth more requests to learn what.
+
+Identification runs each profile's ``identify`` checks (a register in a range, the
+address register equal to the address, an expected exception), never "any reply".
+The order is chosen so a scan stays fast and honest:
+
+- one presence probe per address, chosen so that every ``silent_on_error`` profile
+  answers it (the others answer anything, with an exception at worst), so a dead
+  address costs exactly one timeout;
+- every answer is cached per address, so a check already answered by an earlier
+  request costs nothing, and a profile that contradicts an answer is never probed;
+- the most specific profiles (most checks) are tried first, so a one-check profile
+  (CO2Meter: one register in 0..10000) only claims a device nothing else explains.
+
+Pure apart from ``Transport`` (``bus.Bus`` satisfies it), so it is testable offline.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from contextlib import AbstractAsyncContextManager
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
+from rtupoll.profile import Check, Profile
+from rtupoll.reading import interpret
+from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
+
+LATENCY = 0.02  # USB-serial adapters deliver a reply up to a latency-timer tick late
+
+
+class Transport(Protocol):
+    async def read(self, unit: int, table: Table, address: int, count: int, *,
+                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
+
+
+Read = tuple[Table, int, int]  # table, wire address, count
+Outcome = tuple[int, ...] | DeviceException | DeviceTimeout | FrameError
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One serial setting to sweep."""
+
+    baudrate: int
+    parity: str = "N"
+
+    def __str__(self) -> str:
+        return f"{self.baudrate} 8{self.parity}1"
+
+    @property
+    def framing(self) -> Framing:
+        return Framing(self.baudrate, 8, self.parity, 1)
+
+
+@dataclass
+class Found:
+    """Something that answered at one address and setting, and what it turned out to be."""
+
+    address: int
+    setting: Setting
+    profile: Profile | None = None
+    evidence: list[str] = field(default_factory=list)  # checks passed, for the identified
+    answers: list[str] = field(default_factory=list)  # what it answered to, for the unknown
+    garbled: bool = False  # only unusable frames came back: wrong speed, or a collision
+
+    @property
+    def status(self) -> str:
+        return "identified" if self.profile else ("garbled" if self.garbled else "unknown")
+
+
+def parse_addresses(text: str) -> tuple[int, ...]:
+    """``1-20,100`` -> addresses, in the order given, without repeats."""
+    out: list[int] = []
+    for part in (p.strip() for p in text.split(",")):
+        lo, sep, hi = part.partition("-")
+        try:
+            a, b = int(lo, 0), int(hi, 0) if sep else int(lo, 0)
+        except ValueError:
+            raise UsageError(f"{part!r} is not an address or range (e.g. 1-20,100)") from None
+        if not 0 <= a <= b <= 255:
+            raise UsageError(f"{part!r}: addresses are 0..255, low to high")
+        out += [x for x in range(a, b + 1) if x not in out]
+    return tuple(out)
+
+
+def parse_list(text: str, what: str, convert: Callable[[str], object]) -> list[str]:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    for t in items:
+        try:
+            convert(t)
+        except ValueError:
+            raise UsageError(f"{t!r} is not a {what}") from None
+    return items
+
+
+def skipped(addresses: Iterable[int], profiles: Iterable[Profile]) -> dict[int, str]:
+    """Addresses a sweep must not send to unless asked, and why.
+
+    0 is broadcast (nobody answers, every device acts); an 'any device' address is
+    answered by every such device at once; a reserved one may trigger another protocol.
+    """
+    why: dict[int, str] = {}
+    wanted = set(addresses)
+    if 0 in wanted:
+        why[0] = "broadcast: every device acts on it and none answers"
+    for p in profiles:
+        if p.addresses.any in wanted and p.addresses.any is not None:
+            why.setdefault(p.addresses.any, f"every {p.id} answers it ('any device' address)")
+        for a, reason in p.addresses.reserved.items():
+            if a in wanted:
+                why.setdefault(a, f"reserved by {p.id}: {reason}")
+    return why
+
+
+def default_baudrates(profiles: Iterable[Profile]) -> list[int]:
+    """Every rate a library device runs at, the most common default first."""
+    counts: dict[int, tuple[int, int]] = {}
+    for p in profiles:
+        for rate in p.serial.baudrates or (p.serial.baudrate,):
+            d, n = counts.get(rate, (0, 0))
+            counts[rate] = (d + (rate == p.serial.baudrate), n + 1)
+    return sorted(counts, key=lambda r: (-counts[r][0], -counts[r][1], r))
+
+
+def presence_probes(profiles: Sequence[Profile]) -> list[Read]:
+    """The fewest reads such that every library device answers at least one.
+
+    Devices that are silent on errors answer only functions they support; everyone
+    else answers anything (an exception at worst). So each silent profile needs a
+    probe with a function it supports; its first identify check's read is used, so
+    the probe's answer is already evidence.
+    """
+    probes: list[Read] = []
+    silent = [p for p in profiles if p.limits.silent_on_error and p.identify]
+    for p in sorted(silent, key=lambda p: p.id):
+        if any(t.read_function in p.limits.functions for t, _, _ in probes):
+            continue
+        f = p.field(p.identify[0].field)
+        probes.append((f.table, f.address, f.words))
+    if not probes:
+        first = sorted((p for p in profiles if p.identify), key=lambda p: -len(p.identify))
+        if first:
+            f = first[0].field(first[0].identify[0].field)
+            probes.append((f.table, f.address, f.words))
+        else:
+            probes.append((Table.HOLDING, 0, 1))
+    return probes
+
+
+def probe_timeout(framing: Framing, count: int, margin: float) -> float:
+    """How long to wait for the answer to one read of ``count`` registers.
+
+    The request and the longest normal reply on the wire, the inter-frame silence the
+    device waits before answering, and the turnaround margin.
+    """
+    request, reply = read_frame_sizes(count)
+    return framing.wire_time(request + reply) + reply_wait(framing, margin)
+
+
+def reply_wait(framing: Framing, margin: float) -> float:
+    """The part of ``probe_timeout`` that is not wire time: what ``Bus.read`` is given
+    as its timeout, since the bus adds the frames' wire time itself."""
+    return framing.silence + margin
+
+
+def default_margin(profiles: Iterable[Profile]) -> float:
+    """The slowest typical turnaround in the library, plus adapter latency."""
+    return max((p.limits.turnaround for p in profiles), default=0.01) + LATENCY
+
+
+def sweep_time(settings: Sequence[Setting], addresses: int, probes: Sequence[Read],
+               margin: float) -> float:
+    """The time a sweep takes when nothing answers: the floor for these timeouts.
+
+    The silence before the next request has long passed when a timeout expires, so an
+    empty address costs its probes' timeouts and nothing else.
+    """
+    return sum(addresses * sum(probe_timeout(s.framing, n, margin) for _, _, n in probes)
+               for s in settings)
+
+
+def check_passes(check: Check, profile: Profile, unit: int, outcome: Outcome) -> str | None:
+    """Evidence text when ``outcome`` satisfies ``check``, else None."""
+    f = profile.field(check.field)
+    if isinstance(outcome, DeviceException):
+        if check.exception is not None and outcome.code == check.exception:
+            return f"{f.name}: exception {outcome.code:02d}, as the profile expects"
+        return None
+    if not isinstance(outcome, tuple) or len(outcome) != f.words:
+        return None
+    value = interpret(f, outcome).value
+    if isinstance(value, list):
+        return None
+    if check.equals_address and value != unit:
+        return None
+    if check.range is not None and (
+            isinstance(value, str) or not check.range[0] <= float(value) <= check.range[1]):
+        return None
+    if check.equals and value not in check.equals:
+        return None
+    return f"{f.name} = {value}" + (" (its own address)" if check.equals_address else "")
+
+
+def describe(read: Read, outcome: Outcome) -> str:
+    """What one read got, for an unknown device's list of answers."""
+    table, address, count = read
+    what = f"{table.value} 0x{address:04X}" + (f"+{count}" if count > 1 else "")
+    if isinstance(outcome, DeviceException):
+        name = "" if outcome.code == 2 else f" {exception_name(outcome.code).lower()}"
+        return f"{what}: exception {outcome.code:02d}{name}"
+    if isinstance(outcome, DeviceTimeout):
+        return f"{what}: no answer"
+    if isinstance(outcome, FrameError):
+        return f"{what}: garbled reply"
+    return f"{what}: " + " ".join(f"{w:04X}" for w in outcome)
+
+
+class Identifier:
+    """Asks one address the questions that tell which profile it is, caching every answer."""
+
+    def __init__(self, bus: Transport, profiles: Sequence[Profile], setting: Setting,
+                 margin: float) -> None:
+        self.bus, self.setting, self.margin = bus, setting, margin
+        self.profiles = [p for p in profiles if p.identify]
+
+    async def ask(self, cache: dict[Read, Outcome], unit: int, read: Read) -> Outcome:
+        if read not in cache:
+            table, address, count = read
+            timeout = reply_wait(self.setting.framing, self.margin)
+            try:
+                cache[read] = await self.bus.read(unit, table, address, count,
+                                                  timeout=timeout, retries=0)
+            except (DeviceException, DeviceTimeout, FrameError) as exc:
+                cache[read] = exc
+        return cache[read]
+
+    def order(self, cache: dict[Read, Outcome], unit: int) -> list[Profile]:
+        """Candidates, most specific first; those an earlier answer contradicts are dropped."""
+        ranked = []
+        for p in self.profiles:
+            passed, failed = 0, False
+            for c in p.identify:
+                f = p.field(c.field)
+                got = cache.get((f.table, f.address, f.words))
+                if got is None:
+                    continue
+                if check_passes(c, p, unit, got):
+                    passed += 1
+                else:
+                    failed = True
+                    break
+            if not failed:
+                at_speed = self.setting.baudrate in (p.serial.baudrates or (p.serial.baudrate,))
+                ranked.append((not at_speed, -len(p.identify), -passed, p.id, p))
+        return [r[-1] for r in sorted(ranked, key=lambda r: r[:4])]
+
+    async def identify(self, unit: int, cache: dict[Read, Outcome]) -> tuple[Profile | None,
+                                                                               list[str]]:
+        for p in self.order(cache, unit):
+            evidence = []
+            for c in p.identify:
+                f = p.field(c.field)
+                got = await self.ask(cache, unit, (f.table, f.address, f.words))
+                why = check_passes(c, p, unit, got)
+                if why is None:
+                    break
+                evidence.append(why)
+            else:
+                quirk = await self.quirks(p, unit, cache)
+                if quirk is not None:
+                    return p, [*evidence, quirk] if quirk else evidence
+        return None, []
+
+    async def quirks(self, p: Profile, unit: int, cache: dict[Read, Outcome]) -> str | None:
+        """Evidence beyond the identify checks ("" for none), or None when the device
+        contradicts ``p``.
+
+        A device that answers a function the profile does not support is not that
+        device. A ``silent_on_error`` profile (typically with a single loose check, e.g.
+        one register in 0..10000) is asked one unsupported read, which it must ignore:
+        a device that answers it is something else.
+        """
+        for (table, _, _), got in cache.items():
+            if isinstance(got, tuple) and table.read_function not in p.limits.functions:
+                return None
+        if not p.limits.silent_on_error:
+            return ""
+        odd = next((t for t in (Table.COIL, Table.DISCRETE, Table.HOLDING, Table.INPUT)
+                    if t.read_function not in p.limits.functions), None)
+        if odd is None:
+            return ""
+        got = await self.ask(cache, unit, (odd, 0, 1))
+        if not isinstance(got, DeviceTimeout):
+            return None
+        return f"ignores function {odd.read_function:02d}, as {p.id} does"
+
+
+async def probe_address(bus: Transport, identifier: Identifier, probes: Sequence[Read],
+                        unit: int) -> Found | None:
+    """Is anything at ``unit``? If so, what is it? One timeout per probe when nothing is."""
+    cache: dict[Read, Outcome] = {}
+    for read in probes:
+        await identifier.ask(cache, unit, read)
+    if all(isinstance(o, DeviceTimeout) for o in cache.values()):
+        return None
+    found = Found(unit, identifier.setting)
+    if all(isinstance(o, (DeviceTimeout, FrameError)) for o in cache.values()):
+        found.garbled = True
+        found.answers = [describe(r, o) for r, o in cache.items()]
+        return found
+    found.profile, found.evidence = await identifier.identify(unit, cache)
+    if found.profile is None:
+        found.answers = [describe(r, o) for r, o in cache.items()
+                         if not isinstance(o, DeviceTimeout)]
+    return found
+
+
+async def sweep(open_bus: Callable[[Setting], AbstractAsyncContextManager[Transport]],
+                settings: Sequence[Setting], addresses: Sequence[int],
+                profiles: Sequence[Profile], *, margin: float, probes: Sequence[Read],
+                found: list[Found], progress: Callable[[Setting, int], None] = lambda s, a: None,
+                first: bool = False) -> None:
+    """Probe every address at every setting, appending to ``found`` as it goes.
+
+    ``found`` belongs to the caller, so an interrupted sweep still has its results.
+    ``first`` stops after the first setting at which anything was identified.
+    """
+    for setting in settings:
+        async with open_bus(setting) as bus:
+            identifier = Identifier(bus, profiles, setting, margin)
+            for unit in addresses:
+                result = await probe_address(bus, identifier, probes, unit)
+                if result is not None:
+                    found.append(result)
+                progress(setting, unit)
+        if first and any(f.setting == setting and f.profile for f in found):
+            return
+
+
+def merged(found: Sequence[Found]) -> list[Found]:
+    """Drop garbled answers at an address that answered properly at another setting.
+
+    At the wrong speed a device often answers noise; that is not a second device.
+    """
+    good = {f.address for f in found if not f.garbled}
+    return sorted((f for f in found if not f.garbled or f.address not in good),
+                  key=lambda f: (f.address, f.setting.baudrate, f.setting.parity))

@@ -1,0 +1,192 @@
+"""The sweep plan and identification, against the simulator's device engine without a port.
+
+``EngineBus`` hands each request to the simulator's engine (the same devices the pty
+server serves) and keeps a virtual clock that charges the full timeout for silence,
+so identification and the cost of empty addresses are checked exactly and fast.
+The same scans over a real pty and pymodbus are in test_scan_sim.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import pytest
+
+from rtupoll import rtu
+from rtupoll.cli.scan import site_yaml
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
+from rtupoll.profile import Profile, load_library, load_profile
+from rtupoll.rtu import Framing, Table
+from rtupoll.scan import (
+    Found,
+    Setting,
+    default_baudrates,
+    merged,
+    parse_addresses,
+    presence_probes,
+    probe_timeout,
+    skipped,
+    sweep,
+)
+from rtupoll.sim.device import DeviceConfig
+from rtupoll.sim.engine import Engine
+from rtupoll.site import load_site
+
+LIB = sorted(load_library().profiles.values(), key=lambda p: p.id)
+BY_ID = {p.id: p for p in LIB}
+FIXTURES = Path(__file__).parent / "fixtures"
+MARGIN = 0.04
+
+
+class EngineBus:
+    """A Transport over the simulator's engine; answers only at the engine's own speed."""
+
+    def __init__(self, engine: Engine, setting: Setting, speed: Setting, clock: list[float]
+                 ) -> None:
+        self.engine, self.setting, self.speed, self.clock = engine, setting, speed, clock
+        self.sent: list[bytes] = []
+
+    async def read(self, unit: int, table: Table, address: int, count: int, *,
+                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+        request = rtu.read_request(unit, table, address, count)
+        self.sent.append(request)
+        framing = self.setting.framing
+        wire = framing.wire_time(sum(rtu.read_frame_sizes(count)))
+        replies = self.engine.handle(request) if self.setting == self.speed else []
+        if not replies:
+            self.clock[0] += wire + timeout
+            raise DeviceTimeout(f"no reply from {unit}")
+        self.clock[0] += wire
+        if len(replies) > 1:
+            raise FrameError("two replies collided")
+        data = replies[0].data
+        if data[1] & 0x80:
+            raise DeviceException(data[2], unit=unit, function=data[1] & 0x7F)
+        return struct.unpack(f">{data[2] // 2}H", data[3:-2])
+
+
+def engine(*specs: tuple[Profile, int]) -> Engine:
+    return Engine([DeviceConfig(p, a) for p, a in specs], tick=None)
+
+
+def run_sweep(eng: Engine, addresses: Sequence[int], settings: Sequence[Setting],
+              speed: Setting, profiles: Sequence[Profile] = LIB
+              ) -> tuple[list[Found], float, list[EngineBus]]:
+    clock = [0.0]
+    buses: list[EngineBus] = []
+
+    @asynccontextmanager
+    async def open_bus(s: Setting) -> AsyncIterator[EngineBus]:
+        buses.append(EngineBus(eng, s, speed, clock))
+        yield buses[-1]
+
+    found: list[Found] = []
+    asyncio.run(sweep(open_bus, settings, addresses, profiles, margin=MARGIN,
+                      probes=presence_probes(profiles), found=found))
+    return merged(found), clock[0], buses
+
+
+SEEDS = [(BY_ID["net-irnet-pro"], 3), (BY_ID["radar-level"], 7), (BY_ID["huiwen-aq"], 12),
+         (BY_ID["co2meter-an117"], 20), (BY_ID["banner-ez-array"], 31)]
+
+
+def test_five_seed_devices_at_mixed_addresses_are_each_identified() -> None:
+    found, _, _ = run_sweep(engine(*SEEDS), range(1, 40), [Setting(9600)], Setting(9600))
+    assert [(f.address, f.profile.id if f.profile else None) for f in found] == \
+        [(a, p.id) for p, a in SEEDS]
+    irnet = found[0]
+    assert any(e.startswith("data_structure") for e in irnet.evidence)
+    huiwen = found[2]
+    assert "slave_address = 12 (its own address)" in huiwen.evidence
+
+
+def test_devices_are_found_at_their_speed_not_the_first_tried() -> None:
+    speed = Setting(19200)
+    found, _, _ = run_sweep(engine(*SEEDS[:2]), range(1, 10),
+                            [Setting(9600), Setting(19200), Setting(38400)], speed)
+    assert [(f.address, f.setting) for f in found] == [(3, speed), (7, speed)]
+
+
+def test_a_device_with_no_profile_in_the_library_is_unknown_with_its_answers() -> None:
+    stranger = load_profile(FIXTURES / "scan" / "acme-meter.yaml")
+    found, _, _ = run_sweep(engine((stranger, 5)), range(1, 8), [Setting(9600)], Setting(9600))
+    (f,) = found
+    assert f.status == "unknown" and f.profile is None
+    assert f.answers and all("input 0x0001" in a or ":" in a for a in f.answers)
+
+
+def test_the_same_device_is_identified_once_its_profile_is_in_the_library() -> None:
+    stranger = load_profile(FIXTURES / "scan" / "acme-meter.yaml")
+    found, _, _ = run_sweep(engine((stranger, 5)), [5], [Setting(9600)], Setting(9600),
+                            [*LIB, stranger])
+    assert found[0].profile is stranger
+
+
+def test_an_empty_range_costs_one_derived_timeout_per_address() -> None:
+    found, elapsed, buses = run_sweep(engine(), range(1, 101), [Setting(9600)], Setting(9600))
+    assert found == []
+    assert len(buses[0].sent) == 100  # one probe per address, nothing else
+    framing = Framing(9600)
+    per = probe_timeout(framing, 1, MARGIN)
+    assert elapsed == pytest.approx(100 * per)
+
+
+def test_identifying_a_silent_device_stays_within_a_few_requests() -> None:
+    _, _, buses = run_sweep(engine((BY_ID["co2meter-an117"], 9)), [9], [Setting(115200)],
+                            Setting(115200))
+    assert len(buses[0].sent) <= 1 + sum(len(p.identify) for p in LIB)
+
+
+def test_the_presence_probe_is_one_read_a_silent_device_answers() -> None:
+    probes = presence_probes(LIB)
+    assert probes == [(Table.INPUT, 1, 1)]  # the CO2Meter's own CO2 register
+    assert 4 in BY_ID["co2meter-an117"].limits.functions
+
+
+def test_probe_timeout_is_wire_time_silence_and_margin() -> None:
+    framing = Framing(9600)  # 10 bits per character: 1.0417 ms
+    expected = (8 + 7) * 10 / 9600 + 3.5 * 10 / 9600 + MARGIN
+    assert probe_timeout(framing, 1, MARGIN) == pytest.approx(expected)
+    assert probe_timeout(Framing(115200), 1, MARGIN) == pytest.approx(
+        15 * 10 / 115200 + 0.00175 + MARGIN)
+
+
+def test_broadcast_any_and_reserved_addresses_are_skipped_and_say_why() -> None:
+    why = skipped(range(0, 256), LIB)
+    assert set(why) == {0, 0xFE, 0xCC}
+    assert "co2meter-an117" in why[0xFE]
+
+
+def test_address_lists_and_their_errors() -> None:
+    assert parse_addresses("1-3,100,2") == (1, 2, 3, 100)
+    with pytest.raises(UsageError):
+        parse_addresses("5-300")
+    with pytest.raises(UsageError):
+        parse_addresses("x")
+
+
+def test_default_baud_rates_put_the_common_defaults_first() -> None:
+    rates = default_baudrates(LIB)
+    assert rates[0] == 9600 and set(rates) >= {4800, 9600, 19200, 38400, 115200}
+
+
+def test_written_site_file_loads_and_leaves_out_what_cannot_share_the_bus(
+        tmp_path: Path) -> None:
+    s = Setting(9600)
+    found = [Found(3, s, BY_ID["net-irnet-pro"]), Found(12, s, BY_ID["huiwen-aq"]),
+             Found(20, s, BY_ID["co2meter-an117"]),  # only runs at 115200
+             Found(40, s, None, answers=["input 0x0001: exception 02 ILLEGAL DATA ADDRESS"])]
+    text, notes = site_yaml("/dev/ttyUSB0", found, [])
+    assert text is not None
+    path = tmp_path / "site.yaml"
+    path.write_text(text)
+    site = load_site(path)
+    assert [(d.profile.id, d.address) for _, d in site.devices()] == \
+        [("net-irnet-pro", 3), ("huiwen-aq", 12)]
+    assert site.buses[0].baudrate == 9600
+    assert any("co2meter-an117" in n and "115200" in n for n in notes)
+    assert any("unknown device at 40" in n for n in notes)
