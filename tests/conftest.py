@@ -58,7 +58,7 @@ def _no_leaked_simulator() -> Iterator[None]:
 class RawPort:
     """Exact bytes to and from a pty or an RTU-over-TCP socket."""
 
-    def __init__(self, path: str) -> None:
+    def __init__(self, path: str, baudrate: int | None = None) -> None:
         self.sock: socket.socket | None = None
         if path.startswith("tcp://"):
             host, _, port = path[6:].rpartition(":")
@@ -67,6 +67,10 @@ class RawPort:
         else:
             self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
             tty.setraw(self.fd)
+            if baudrate:  # a simulator with wire timing answers only at its own baud
+                attrs = termios.tcgetattr(self.fd)
+                attrs[4] = attrs[5] = getattr(termios, f"B{baudrate}")
+                termios.tcsetattr(self.fd, termios.TCSANOW, attrs)
             termios.tcflush(self.fd, termios.TCIOFLUSH)
 
     def send(self, data: bytes) -> float:
@@ -103,12 +107,12 @@ class RawPort:
 
 
 @pytest.fixture
-def raw_port() -> Iterator[Callable[[str], RawPort]]:
-    """Factory: ``port = raw_port(bus.port)``; closed after the test."""
+def raw_port() -> Iterator[Callable[..., RawPort]]:
+    """Factory: ``port = raw_port(bus.port[, baudrate])``; closed after the test."""
     opened: list[RawPort] = []
 
-    def open_(path: str) -> RawPort:
-        port = RawPort(path)
+    def open_(path: str, baudrate: int | None = None) -> RawPort:
+        port = RawPort(path, baudrate)
         opened.append(port)
         return port
 

@@ -1,8 +1,7 @@
 """``rtupoll scan`` over a real pty, real pymodbus (through bus.py) and the simulator.
 
-The simulator answers at whatever speed the client opens the pty with (a pty has no
-baud rate), so finding a device "at the right speed" is covered by test_scan_plan.py's
-engine bus; here the speed only sets the simulator's wire timing.
+With wire timing (``baudrate=``) the simulator answers only when the client opened the
+pty at that speed, so a sweep over several baud rates finds each bus at its own.
 """
 
 from __future__ import annotations
@@ -51,6 +50,15 @@ def test_five_seed_devices_on_one_bus_are_found_and_identified(sim: Sim) -> None
         (12, "huiwen-aq", "identified"), (20, "co2meter-an117", "identified"),
         (31, "banner-ez-array", "identified")]
     assert all(f["baudrate"] == 115200 and f["evidence"] for f in found)
+
+
+def test_found_at_the_simulators_baud_not_the_first_tried(sim: Sim) -> None:
+    bus = sim("huiwen-aq@3", "radar-level@4", baudrate=19200)
+    code, found, _ = scan_json("--port", bus.port, "--addresses", "2-5",
+                               "--baudrate", "9600,19200,38400")
+    assert code == 0
+    assert {(f["address"], f["baudrate"], f["profile"]) for f in found} == {
+        (3, 19200, "huiwen-aq"), (4, 19200, "radar-level")}
 
 
 def test_a_device_with_no_profile_is_listed_as_unknown_then_identified_with_it(sim: Sim

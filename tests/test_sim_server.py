@@ -18,7 +18,7 @@ from rtupoll.rtu import Framing, Table
 from rtupoll.sim.testing import SimulatedBus, running, simulated_bus
 
 Sim = Callable[..., SimulatedBus]
-Raw = Callable[[str], RawPort]
+Raw = Callable[..., RawPort]
 READ = rtu.read_request(1, Table.INPUT, 0x0006, 2)
 
 
@@ -97,7 +97,7 @@ def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(pytester: pytest.
 def test_wire_timing_takes_the_real_time_of_both_frames(sim: Sim, raw_port: Raw, baud: int,
                                                         turnaround: float | None) -> None:
     bus = sim("net-irnet-pro@1", baudrate=baud, turnaround=turnaround, tick=None)
-    port = raw_port(bus.port)
+    port = raw_port(bus.port, baud)
     fr = Framing(baud)
     ta = 0.02 if turnaround is None else turnaround  # the profile's limits.turnaround
     expected = fr.wire_time(8) + fr.silence + ta + fr.wire_time(9)

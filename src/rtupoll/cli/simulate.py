@@ -114,8 +114,12 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
 def _banner(bus: SimulatedBus, link: str | None) -> None:
     c = bus.config
     devices = bus.device_list()
-    what = "RTU over TCP, like a serial gateway" if bus.port.startswith("tcp:") \
-        else "a serial port: open it at any baud rate"
+    if bus.port.startswith("tcp:"):
+        what = "RTU over TCP, like a serial gateway"
+    elif c.baudrate:
+        what = f"a serial port: open it at {c.baudrate} baud"
+    else:
+        what = "a serial port: open it at any baud rate"
     click.echo(f"Simulating {len(devices)} device{'s' if len(devices) != 1 else ''} on "
                + click.style(bus.port, bold=True) + (f", linked as {link}" if link else "")
                + f" ({what})")

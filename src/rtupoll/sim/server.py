@@ -19,6 +19,7 @@ import asyncio
 import collections
 import os
 import struct
+import termios
 import threading
 import tty
 from collections.abc import Callable
@@ -172,14 +173,35 @@ class Server:
                 return
             except OSError:
                 return  # EIO cannot happen while we hold the slave open; be safe anyway
-            if data:
-                pty_link.received(data)
+            if not data:
+                return
+            mismatch = self._line_mismatch(slave)
+            if mismatch:  # a real device sees framing errors at the wrong speed: silence
+                self.log(self.loop.time(), "in", data, f"garbage: {mismatch}")
+                return
+            pty_link.received(data)
 
         self.loop.add_reader(master, readable)
         if link:
             self._link_path = _make_link(Path(link), path)
         self.port = path
         return path
+
+    def _line_mismatch(self, fd: int) -> str | None:
+        """With wire timing, why the client's line settings would garble this bus, if they do.
+
+        A pty carries bytes at any speed, but pyserial still sets the speed it was asked
+        for on the tty; comparing it lets 'rtupoll scan' find a device at its own baud rate
+        and nowhere else, as on a real wire. (Linux ptys drop the parity flags, so a
+        parity mismatch cannot be modelled this way.)
+        """
+        if not self.framing:
+            return None
+        ospeed = termios.tcgetattr(fd)[5]
+        want = self.framing.baudrate
+        if ospeed != getattr(termios, f"B{want}", ospeed):
+            return f"sent at another baud rate than the bus's {want}"
+        return None
 
     async def serve_tcp(self, host: str = "127.0.0.1", port: int = 0) -> str:
         """Listen for RTU-over-TCP clients; returns ``tcp://HOST:PORT``."""
