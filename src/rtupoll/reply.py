@@ -1,0 +1,103 @@
+"""Which bytes answer a request: RTU reply matching and diagnosis, pure.
+
+RTU frames carry no length field and no transaction id, so a master that reads a
+byte stream has to know what it is waiting for. Here that knowledge comes from the
+request's own bytes (``expect_for``): the reply must come from the same unit, carry
+the same function (or its exception, function | 0x80), and either the byte count a
+read of that many registers/bits produces or, for a write, the exact echo of the
+address and value/quantity. ``find_reply`` finds such a frame, with a valid CRC,
+anywhere in what arrived -- after stray bytes (0x00/0xFF from RS-485 direction
+switching), after another unit's reply, after garbage -- so nothing before it can
+make the master drop or misread it. ``diagnose`` says, for an attempt that got no
+answer, whether what did arrive was a broken reply (``FrameError``: CRC error,
+truncated, mismatched, garbage) or nothing that matters (silence, line noise, other
+units' whole frames: a timeout).
+
+``rtupoll.bus`` uses these on every receive; the simulator and tests may use them to
+reason about a wire capture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rtupoll.rtu import crc_ok
+
+
+@dataclass(frozen=True)
+class Expect:
+    """The answer one request allows: a normal reply or the function's exception reply."""
+
+    unit: int
+    function: int
+    prefix: bytes  # a normal reply starts with these: unit, function, byte count / echo
+    length: int  # of a normal reply, CRC included
+    request: int  # length of the request itself
+
+
+def expect_for(request: bytes) -> Expect | None:
+    """What must answer ``request`` (an RTU frame); None for a broadcast."""
+    unit, fn = request[0], request[1]
+    if unit == 0:
+        return None
+    if fn in (1, 2, 3, 4):
+        count = int.from_bytes(request[4:6], "big")
+        n = (count + 7) // 8 if fn <= 2 else 2 * count
+        return Expect(unit, fn, bytes((unit, fn, n)), 5 + n, len(request))
+    return Expect(unit, fn, request[:6], 8, len(request))  # 5/6/15/16 echo address and value
+
+
+def find_reply(buf: bytes, exp: Expect) -> bytes | None:
+    """The first CRC-valid frame in ``buf`` that answers ``exp``, wherever it starts."""
+    heads = ((exp.prefix, exp.length), (bytes((exp.unit, exp.function | 0x80)), 5))
+    i = buf.find(exp.prefix[:1])
+    while 0 <= i <= len(buf) - 5:
+        for head, size in heads:
+            frame = buf[i : i + size]
+            if len(frame) == size and frame.startswith(head) and crc_ok(frame):
+                return frame
+        i = buf.find(exp.prefix[:1], i + 1)
+    return None
+
+
+def diagnose(buf: bytes, exp: Expect | None) -> str | None:
+    """Why the bytes of an unanswered attempt are a garbled reply (``FrameError``), or
+    None when they are silence, line noise (0x00/0xFF) or other units' whole frames."""
+    if exp is None or not buf or find_reply(buf, exp):  # (the answer, just at the deadline)
+        return None
+    junk, i = bytearray(), 0
+    while i < len(buf):
+        size = _frame_size(buf, i)
+        if size and i + size <= len(buf) and crc_ok(buf[i : i + size]):
+            frame = buf[i : i + size]
+            if frame[0] == exp.unit and frame[1] & 0x7F == exp.function:
+                return (f"reply does not match the request (expected {exp.length} bytes "
+                        f"starting {exp.prefix.hex(' ')}): {_hex(frame)}")
+            i += size  # a whole frame from another unit: not ours, and not garbage
+            continue
+        junk.append(buf[i])
+        i += 1
+    for fn in (exp.function, exp.function | 0x80):
+        at = junk.find(bytes((exp.unit, fn)))
+        if at >= 0:
+            rest = bytes(junk[at:])
+            size = _frame_size(rest, 0) or exp.length
+            if len(rest) < size:
+                return f"truncated reply ({len(rest)} of {size} bytes): {_hex(rest)}"
+            return f"CRC error in reply: {_hex(rest[:size])}"
+    return f"garbled reply: {_hex(bytes(junk))}" if len(junk.strip(b"\x00\xff")) >= 3 else None
+
+
+def _frame_size(buf: bytes, i: int) -> int | None:
+    if i + 2 > len(buf):
+        return None
+    fn = buf[i + 1]
+    if fn & 0x80:
+        return 5
+    if fn in (1, 2, 3, 4):
+        return 5 + buf[i + 2] if i + 2 < len(buf) else None
+    return 8 if fn in (5, 6, 15, 16) else None
+
+
+def _hex(data: bytes) -> str:
+    return data[:24].hex(" ") + (" ..." if len(data) > 24 else "")

@@ -1,0 +1,170 @@
+"""Serial ports: opening them without resetting the device, and saying why they won't open.
+
+DTR. Linux raises DTR and RTS when a tty is opened, and some boards (CO2Meter's
+AN117 family) are held in reset while DTR is asserted. pymodbus opens the port
+itself (``serial.serial_for_url`` in its serial transport) and has no option for the
+modem lines, so the one hook that leaves pymodbus untouched is pyserial's public
+URL-handler extension: ``nodtr:///dev/ttyUSB0`` makes ``serial_for_url`` build the
+``Serial`` class below, which clears DTR and RTS *before* ``open()``; pyserial then
+writes that state right after the open system call, before a byte is exchanged.
+(The kernel's raise-on-open itself cannot be prevented from user space; what this
+removes is the seconds-long assertion that holds such a board in reset.)
+
+Naming. pyserial finds a scheme ``X`` by importing ``<package>.protocol_X`` for
+each package in ``serial.protocol_handler_packages``. Rather than ship a package
+with a ``protocol_nodtr`` module, this module registers itself in ``sys.modules``
+under ``rtupoll.serialport.protocol_nodtr`` and appends ``rtupoll.serialport`` to
+that list (``register()``, idempotent, called on import). ``serial_class_for_url``
+strips the scheme, so the port pyserial opens is the plain device path.
+
+Errors. A port that will not open is the commonest field problem, and "could not
+open port" helps nobody. ``open_error`` and ``gateway_error`` turn the OS error
+into what to do: missing (unplugged?), busy (another program holds it: pyserial's
+exclusive lock), permission denied (which group to join), not a serial port,
+gateway refused / unreachable / not answering.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import glob
+import os
+import socket
+import sys
+from typing import Any
+
+import serial
+
+from rtupoll.errors import UsageError
+
+SCHEME = "nodtr"
+_PREFIX = f"{SCHEME}://"
+
+
+class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
+    """A pyserial port that opens with DTR and RTS deasserted."""
+
+    def open(self) -> None:
+        # Setting the lines on a closed port only records the state; open() applies it
+        # immediately after the open system call (serialposix: _update_dtr_state).
+        self.dtr = False
+        self.rts = False
+        super().open()
+
+
+def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
+    """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial)."""
+    if not url.lower().startswith(_PREFIX):
+        raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
+    return url[len(_PREFIX):], Serial
+
+
+def register() -> None:
+    """Make ``nodtr://`` known to ``serial.serial_for_url`` (idempotent)."""
+    sys.modules.setdefault(f"{__name__}.protocol_{SCHEME}", sys.modules[__name__])
+    if __name__ not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append(__name__)
+
+
+def port_url(port: str, *, deassert_dtr: bool) -> str:
+    """The URL to give pyserial: ``nodtr://`` for a device path when DTR must stay low.
+
+    Other URLs (``socket://``, ``rfc2217://``) have no modem lines and pass unchanged.
+    """
+    if deassert_dtr and "://" not in port:
+        return _PREFIX + port
+    return port
+
+
+def gateway(port: str) -> tuple[str, int] | None:
+    """(host, port) of an RTU-over-TCP gateway ``tcp://HOST:PORT``; None for anything else."""
+    if not port.lower().startswith("tcp://"):
+        return None
+    host, _, number = port[6:].rstrip("/").rpartition(":")
+    if not host or not number.isdigit() or not 0 < int(number) < 65536:
+        raise UsageError(f"{port!r}: expected tcp://HOST:PORT")
+    return host.strip("[]"), int(number)
+
+
+def device_path(port: str) -> str:
+    """The filesystem path behind a port or ``nodtr://`` URL."""
+    return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
+
+
+def open_error(port: str, exc: BaseException) -> str:
+    """One line saying why ``port`` did not open, and what to do about it."""
+    path = device_path(port)
+    code = getattr(exc, "errno", None)
+    text = str(exc)
+    if code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY) or "exclusively lock" in text:
+        return (f"{path} is busy: another program has it open (close it, or stop the "
+                f"service using it: 'fuser {path}' shows which)")
+    if code in (errno.EACCES, errno.EPERM):
+        group = _group_of(path)
+        join = f"; add yourself to the '{group}' group and log in again" if group else ""
+        return f"permission denied opening {path}{join}"
+    if code in (errno.ENOENT, errno.ENXIO, errno.ENODEV) or (
+            code is None and not os.path.exists(path) and "://" not in path):
+        seen = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
+        hint = f" (serial ports present: {', '.join(seen)})" if seen else \
+            " (is the adapter plugged in?)"
+        return f"{path} does not exist{hint}"
+    if code in (errno.ENOTTY, errno.EINVAL):
+        return f"{path} is not a serial port"
+    if isinstance(exc, ValueError):
+        return f"{path}: {text}"
+    return f"cannot open {path}: {text or type(exc).__name__}"
+
+
+def gateway_error(host: str, port: int, exc: BaseException, timeout: float) -> str:
+    """One line saying why an RTU-over-TCP gateway did not accept a connection."""
+    where = f"gateway {host}:{port}"
+    if isinstance(exc, ConnectionRefusedError):
+        return f"{where} refused the connection (wrong port, or the gateway allows one client)"
+    if isinstance(exc, socket.gaierror):
+        return f"{where}: cannot resolve {host!r}"
+    if isinstance(exc, (TimeoutError, asyncio.TimeoutError)):
+        return f"{where} did not answer within {timeout:g} s (unreachable or filtered)"
+    code = getattr(exc, "errno", None)
+    if code in (errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN):
+        return f"{where} is unreachable ({os.strerror(code)})"
+    return f"cannot connect to {where}: {exc or type(exc).__name__}"
+
+
+def diagnose_serial(url: str, **settings: Any) -> str | None:
+    """Try to open ``url`` the way pymodbus does; why it fails, or None if it opens.
+
+    Used only after a failed open, to name the reason (pymodbus swallows it).
+    """
+    try:
+        port = serial.serial_for_url(url, exclusive=True, **settings)
+    except (OSError, ValueError) as exc:
+        return open_error(url, exc)
+    port.close()
+    return None
+
+
+async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
+    """Try a plain TCP connection; why it fails, or None if it connects."""
+    try:
+        _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+    except (OSError, asyncio.TimeoutError) as exc:
+        return gateway_error(host, port, exc, timeout)
+    writer.close()
+    with contextlib.suppress(OSError):
+        await writer.wait_closed()
+    return None
+
+
+def _group_of(path: str) -> str:
+    try:
+        import grp  # POSIX only
+
+        return grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (ImportError, OSError, KeyError):
+        return ""
+
+
+register()
