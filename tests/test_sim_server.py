@@ -159,3 +159,19 @@ def test_values_move_with_time(sim: Sim) -> None:
     bus.get(3, "co2")  # values catch up when looked at
     assert bus.device(3).ticks >= 4
     assert bus.registers(3, "input", 30006, 8) != before
+
+
+def test_stopping_a_tcp_bus_hangs_up_on_its_clients() -> None:
+    import socket
+
+    from rtupoll.sim.testing import simulated_bus
+
+    with simulated_bus(["huiwen-aq@3"], tcp=True, tick=None) as bus:
+        host, _, port = bus.port[len("tcp://"):].rpartition(":")
+        client = socket.create_connection((host, int(port)), timeout=2)
+        client.sendall(rtu.read_request(3, Table.HOLDING, 40001, 1))
+        assert len(client.recv(64)) == 7
+    try:
+        assert client.recv(64) == b""  # end-of-file: the "gateway" went away
+    finally:
+        client.close()

@@ -64,8 +64,9 @@ def describe(frame: bytes) -> str:
 class _Link:
     """One connection to the master (the pty, or one TCP client) with its own receiver."""
 
-    def __init__(self, server: Server, write: Callable[[bytes], None]) -> None:
-        self.server, self.write = server, write
+    def __init__(self, server: Server, write: Callable[[bytes], None],
+                 hang_up: Callable[[], None] | None = None) -> None:
+        self.server, self.write, self.hang_up = server, write, hang_up
         self.deframer = Deframer()
         self.free_at = 0.0  # when the wire is free for the next reply
         self._flush: asyncio.TimerHandle | None = None
@@ -122,6 +123,8 @@ class _Link:
         self.closed = True
         if self._flush:
             self._flush.cancel()
+        if self.hang_up:  # a TCP client sees end-of-file, as when a gateway goes away
+            self.hang_up()
 
 
 class Server:
@@ -210,7 +213,7 @@ class Server:
         class Protocol(asyncio.Protocol):
             def connection_made(self, transport: asyncio.BaseTransport) -> None:
                 assert isinstance(transport, asyncio.Transport)
-                self.link = _Link(server, transport.write)
+                self.link = _Link(server, transport.write, transport.close)
                 server._links.append(self.link)
 
             def data_received(self, data: bytes) -> None:
@@ -218,7 +221,8 @@ class Server:
 
             def connection_lost(self, exc: Exception | None) -> None:
                 self.link.close()
-                server._links.remove(self.link)
+                if self.link in server._links:
+                    server._links.remove(self.link)
 
         try:
             self._tcp = await self.loop.create_server(Protocol, host, port)
@@ -232,7 +236,7 @@ class Server:
         for handle in self._pending:
             handle.cancel()
         self._pending.clear()
-        for link in self._links:
+        for link in list(self._links):
             link.close()
         if self._tcp is not None:
             self._tcp.close()
