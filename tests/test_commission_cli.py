@@ -16,8 +16,6 @@ from pathlib import Path
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
-from rtupoll.profile import load_one
-from rtupoll.sim.device import DeviceConfig, SimDevice
 from rtupoll.sim.testing import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -118,9 +116,7 @@ class Terminal:
 
 def connect_new_sensor(bus: SimulatedBus, device: str) -> None:
     """Wire one more factory-fresh sensor onto the simulated bus."""
-    pid, _, address = device.partition("@")
-    assert bus.engine is not None
-    bus.engine.devices.append(SimDevice(DeviceConfig(load_one(pid), int(address)), tick=None))
+    bus.connect(device)
 
 
 def test_interactive_gives_each_new_sensor_the_next_free_address(sim: Sim) -> None:

@@ -26,9 +26,9 @@ from typing import TypeVar
 from rtupoll.codec import Value
 from rtupoll.reading import FieldValue
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.device import SimDevice
+from rtupoll.sim.device import DeviceConfig, SimDevice
 from rtupoll.sim.engine import Engine
-from rtupoll.sim.scenario import DEFAULT_DEVICES, BusConfig, build, parse_device
+from rtupoll.sim.scenario import DEFAULT_DEVICES, BusConfig, build, parse_device, profile
 from rtupoll.sim.server import Server, WireFrame
 
 T = TypeVar("T")
@@ -171,6 +171,20 @@ class SimulatedBus:
             for d in self.device_list():
                 d.advance(ticks)
         self._call(step)
+
+    def connect(self, device: str, profile_dirs: Iterable[Path] = ()) -> SimDevice:
+        """Wire one more device (``PROFILE@ADDRESS``) onto the running bus, as a technician
+        plugs in a factory-fresh sensor during commissioning."""
+        pid, address = parse_device(device)
+        config = DeviceConfig(profile(pid, profile_dirs), address)
+
+        def add() -> SimDevice:
+            assert self.engine is not None, "start the bus first"
+            new = SimDevice(config, seed=self.config.seed, tick=self.config.tick,
+                            start=time.monotonic())
+            self.engine.devices.append(new)
+            return new
+        return self._call(add)
 
     def device_list(self) -> list[SimDevice]:
         assert self.engine is not None, "start the bus first"
