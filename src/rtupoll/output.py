@@ -49,10 +49,11 @@ def to_json(rec: Mapping[str, Any]) -> str:
 class CsvWriter:
     """CSV with a fixed header; lists (raw words, flags) are joined with spaces/'|'."""
 
-    def __init__(self, out: TextIO, keys: tuple[str, ...]) -> None:
+    def __init__(self, out: TextIO, keys: tuple[str, ...], *, header: bool = True) -> None:
+        """``header=False``: the output already has one (appending to a CSV file)."""
         self.out, self.keys = out, keys
         self._writer = csv.DictWriter(out, fieldnames=list(keys), extrasaction="ignore")
-        self._header = False
+        self._header = not header
 
     def write(self, rec: Mapping[str, Any]) -> None:
         if not self._header:

@@ -1,0 +1,139 @@
+"""CPU per transaction, and the poller's share of a CPU, on a saturated 115200-baud bus.
+
+The three seed devices that can run at 115200 baud (radar, Huiwen, CO2Meter) are
+polled as fast as the bus allows (interval 0) against the simulator in its own
+process with wire timing (turnaround 0, so the bus is as busy as it can be). Three
+measurements, each over the same number of seconds:
+
+- core: the scheduler, bus and pymodbus in this process (readings decoded, not
+  written), CPU from ``os.times`` over the polling only; next to it the same reads
+  as a bare ``Bus.read`` loop, which is the scheduler's own cost by difference;
+- command: ``rtupoll poll --format json`` as a user runs it, stdout to /dev/null,
+  CPU of the child process (start-up included) from ``resource.getrusage``.
+
+Run: .venv/bin/python benchmarks/poll_cpu.py [--baud 115200] [--seconds 15]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from poll_common import cpu_seconds, seed_site, simulator
+
+from rtupoll.pollstats import Reading
+from rtupoll.scheduler import DevicePoller, Scheduler
+
+DEVICES = ("radar-level@2", "huiwen-aq@3", "co2meter-an117@4")
+
+
+async def core(port: str, baud: int, seconds: float) -> tuple[float, float, int, float]:
+    """(cpu seconds, wall seconds, transactions, bus utilisation)."""
+    scheduler = Scheduler(seed_site(port, baud, DEVICES))
+    stop = asyncio.Event()
+
+    def sink(dev: DevicePoller, readings: list[Reading]) -> None:
+        pass
+
+    await scheduler.open()
+    try:
+        await scheduler.scan_once(sink)  # warm-up
+        bus = scheduler.buses[0]
+        tx0, cpu0, wall0 = bus.load.transactions, cpu_seconds(), time.monotonic()
+        task = asyncio.create_task(scheduler.run(sink, stop))
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(asyncio.shield(task), seconds)
+        stop.set()
+        await task
+        cpu, wall = cpu_seconds() - cpu0, time.monotonic() - wall0
+        busy = bus.load.utilisation(time.monotonic())
+        return cpu, wall, bus.load.transactions - tx0, busy
+    finally:
+        await scheduler.close()
+
+
+async def bare(port: str, baud: int, seconds: float) -> tuple[float, float, int]:
+    """The same plan's reads straight through ``Bus.read``, no scheduler: (cpu, wall, tx)."""
+    scheduler = Scheduler(seed_site(port, baud, DEVICES))
+    await scheduler.open()
+    try:
+        bus = scheduler.buses[0].transport
+        reads = [(d.config, b) for d in scheduler.pollers() for b in d.blocks]
+        cpu0, wall0, tx = cpu_seconds(), time.monotonic(), 0
+        while time.monotonic() - wall0 < seconds:
+            for dev, b in reads:
+                await bus.read(dev.address, b.table, b.address, b.count,
+                               timeout=dev.response_timeout)
+                tx += 1
+        return cpu_seconds() - cpu0, time.monotonic() - wall0, tx
+    finally:
+        await scheduler.close()
+
+
+def command(port: str, baud: int, seconds: float) -> tuple[float, float, int]:
+    """(cpu seconds, wall seconds, transactions) of the real command, JSON to a file."""
+    site = seed_site(port, baud, DEVICES)
+    blocks = {d.config.name: len(d.blocks) for d in Scheduler(site, open_bus=_no_bus).pollers()}
+    fields = {d.name: len(d.fields) for _, d in site.devices()}
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "readings.jsonl"
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        start = time.monotonic()
+        with out.open("w") as fh:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "rtupoll", "poll", "--port", port, "--baudrate",
+                 str(baud), "--interval", "0", "--format", "json", *DEVICES],
+                stdout=fh, stderr=subprocess.PIPE)
+            time.sleep(seconds)
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=10)
+            if proc.returncode:
+                raise SystemExit(f"rtupoll poll failed: {err.decode().strip()}")
+        wall = time.monotonic() - start
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        records = [json.loads(line) for line in out.read_text().splitlines()]
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    per_device: dict[str, int] = {}
+    for r in records:
+        per_device[r["device"]] = per_device.get(r["device"], 0) + 1
+    transactions = sum(n // fields[d] * blocks[d] for d, n in per_device.items())
+    return cpu, wall, transactions
+
+
+def _no_bus(config: object) -> object:
+    return None
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--baud", type=int, default=115200)
+    ap.add_argument("--seconds", type=float, default=15.0)
+    args = ap.parse_args()
+    with simulator(args.baud, DEVICES) as port:
+        cpu, wall, tx, busy = asyncio.run(core(port, args.baud, args.seconds))
+        print(f"{args.baud:>6} baud, core (scheduler + bus + pymodbus), {wall:.1f} s: "
+              f"{tx} transactions ({tx / wall:.0f}/s, bus busy {busy:.0%}); "
+              f"{1e6 * cpu / tx:.0f} µs CPU per transaction; {cpu / wall:.0%} of one CPU")
+    with simulator(args.baud, DEVICES) as port:
+        cpu, wall, tx = asyncio.run(bare(port, args.baud, args.seconds))
+        print(f"             bare Bus.read loop over the same blocks, {wall:.1f} s: {tx} "
+              f"transactions; {1e6 * cpu / tx:.0f} µs CPU per transaction; "
+              f"{cpu / wall:.0%} of one CPU")
+    with simulator(args.baud, DEVICES) as port:
+        cpu, wall, tx = command(port, args.baud, args.seconds)
+        print(f"             command 'rtupoll poll --format json', {wall:.1f} s with start-up: "
+              f"{tx} transactions; {1e6 * cpu / tx:.0f} µs CPU per transaction; "
+              f"{cpu / wall:.0%} of one CPU")
+
+
+if __name__ == "__main__":
+    main()

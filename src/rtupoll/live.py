@@ -1,0 +1,281 @@
+"""The poll display: decoded readings coloured by severity, and the health of every bus.
+
+Rendering only: it reads the scheduler's state and builds rich renderables, so the
+same code draws the live table, the ``--once`` table and the tests' StringIO
+output. Two layouts: one row per field (device, field, value, unit, status, age)
+when the terminal is tall enough, else one wrapped line of ``field value unit``
+per device, so the footer (each bus's load, each device's health) never falls off
+the bottom of a small terminal. A spinner, a scan counter, ages and a brief
+highlight on every changed value show a newcomer at once that the numbers are live.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+
+from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
+from rich.table import Table
+from rich.text import Text
+
+from rtupoll.pollstats import DeviceStats, Reading, State
+from rtupoll.profile import Field, Severity
+from rtupoll.scheduler import BusPoller, DevicePoller
+
+SEVERITY_STYLE = {Severity.OK: "green", Severity.INFO: "cyan", Severity.WARNING: "yellow",
+                  Severity.ERROR: "bold red"}
+VALUE_STYLE = {Severity.OK: "bold", Severity.INFO: "bold cyan", Severity.WARNING: "bold yellow",
+               Severity.ERROR: "bold red"}
+STATE_STYLE = {State.STARTING: "dim", State.ONLINE: "green", State.RETRYING: "yellow",
+               State.OFFLINE: "bold red"}
+SPINNER = "⠋⠙⠹⠸⠼⠴⠦⠧⠇⠏"
+CHANGED_FOR = 0.8  # seconds a changed value stays highlighted
+SHORT = {"timeout": "timeout", "garbled": "garbled", "exception": "exception",
+         "skipped": "not read", "port": "port lost"}
+
+
+class PollView:
+    """Draws the readings and health of some buses; remembers values to show changes."""
+
+    def __init__(self, buses: Sequence[BusPoller], *, title: str = "", live: bool = True,
+                 clock: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time) -> None:
+        self.buses, self.title, self.live = buses, title, live
+        self._clock, self._wall = clock, wall
+        self._started = clock()
+        self._seen: dict[tuple[str, str], tuple[str, float]] = {}  # -> (text, changed at)
+
+    @property
+    def devices(self) -> list[DevicePoller]:
+        return [d for b in self.buses for d in b.devices]
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        height = options.height or console.height
+        yield self.render(compact=self.live and self.full_height() > height)
+
+    def render(self, *, compact: bool = False) -> RenderableType:
+        parts: list[RenderableType] = [self.header()] if self.title else []
+        parts.append(self.compact_table() if compact else self.readings_table())
+        if not compact:
+            parts.append(Text(""))
+        parts.append(self.health_table())
+        return Group(*parts)
+
+    def full_height(self) -> int:
+        """Lines the one-row-per-field layout needs (header, rows, separators, footer)."""
+        devices = self.devices
+        rows = sum(max(1, len(d.config.fields)) for d in devices)
+        return 1 + 2 + rows + len(devices) - 1 + 1 + 2 * len(self.buses) + len(devices)
+
+    # -- header -----------------------------------------------------------------
+    def header(self) -> Text:
+        devices = self.devices
+        online = sum(d.stats.state is State.ONLINE for d in devices)
+        scans = sum(d.stats.cycles for d in devices)
+        head = Text()
+        if self.live:
+            spin = SPINNER[int((self._clock() - self._started) * 8) % len(SPINNER)]
+            head.append(f"{spin} ", style="bold cyan")
+        head.append(self.title, style="bold")
+        head.append(f" · {online}/{len(devices)} online",
+                    style="green" if online == len(devices) else "yellow")
+        head.append(f" · {scans} scans")
+        if self.live:
+            head.append(f" · {self._clock() - self._started:.0f} s · Ctrl-C stops", style="dim")
+        return head
+
+    # -- one row per field ----------------------------------------------------------
+    def readings_table(self) -> Table:
+        t = Table(show_edge=False, pad_edge=False, header_style="bold")
+        t.add_column("device", no_wrap=True)
+        t.add_column("field", no_wrap=True)
+        t.add_column("value", justify="right", overflow="fold", max_width=40)
+        t.add_column("unit", no_wrap=True)
+        t.add_column("status", overflow="fold", max_width=30)
+        if self.live:
+            t.add_column("age", justify="right", no_wrap=True)
+        now = self._wall()
+        for dev in self.devices:
+            cfg, st = dev.config, dev.stats
+            for i, f in enumerate(cfg.fields):
+                r = st.latest.get(f.name)
+                value, status = self._value(cfg.name, f, r, st), _status(r, st)
+                row: list[RenderableType] = [self._device_label(dev, i), f.name, value, f.unit,
+                                             status]
+                if self.live:
+                    good = st.last_good.get(f.name)
+                    row.append(Text(_age(now - good.time) if good else "never",
+                                    style="dim" if r is not None and r.ok else "yellow"))
+                t.add_row(*row, end_section=i == len(cfg.fields) - 1)
+        return t
+
+    def _device_label(self, dev: DevicePoller, line: int) -> Text:
+        cfg, st = dev.config, dev.stats
+        lines = [Text(cfg.name, style="bold " + STATE_STYLE[st.state])]
+        if cfg.name != cfg.spec:
+            lines.append(Text(cfg.spec, style="dim"))
+        if self.live and st.state in (State.RETRYING, State.OFFLINE):
+            lines.append(Text(self._next_try(dev), style="yellow"))
+        return lines[line] if line < len(lines) else Text("")
+
+    def _next_try(self, dev: DevicePoller) -> str:
+        wait = dev.next_due - self._clock()
+        return f"{dev.stats.state.value}, next try in {wait:.0f} s" if wait >= 1 else \
+            f"{dev.stats.state.value}, trying"
+
+    # -- one wrapped line per device --------------------------------------------------
+    def compact_table(self) -> Table:
+        t = Table(show_edge=False, pad_edge=False, header_style="bold", show_lines=False,
+                  box=None, padding=(0, 1, 0, 0))
+        width = max(len(d.config.name) for d in self.devices) + 1
+        t.add_column("device", no_wrap=True, min_width=width)
+        t.add_column("readings", ratio=1)
+        for dev in self.devices:
+            cfg, st = dev.config, dev.stats
+            label = Text(cfg.name, style="bold " + STATE_STYLE[st.state])
+            label.append(f"\n{st.state.value}", style=STATE_STYLE[st.state])
+            latest = [st.latest.get(f.name) for f in cfg.fields]
+            if latest and all(r is not None and not r.ok for r in latest):
+                # nothing read: one line saying why, not a row of dashes
+                why = next((r for r in latest if r is not None and r.status != "skipped"),
+                           latest[0])
+                assert why is not None
+                text = Text(f"{SHORT.get(why.status, why.status)}: {why.error}", style="red")
+                text.append(f" ({len(latest)} fields not read)", style="dim red")
+                if st.state in (State.RETRYING, State.OFFLINE):
+                    text.append(f"\n{self._next_try(dev)}", style="yellow")
+                t.add_row(label, text)
+                continue
+            chips = []
+            for f in cfg.fields:
+                r = st.latest.get(f.name)
+                chip = Text(f.name + " ", style="dim")
+                chip.append_text(self._value(cfg.name, f, r, st))
+                if f.unit and r is not None and r.ok:
+                    chip.append(" " + f.unit, style="dim")
+                if r is not None and not r.ok:
+                    chip.append(f" {_why(r)}", style="red")
+                chips.append(chip)
+            t.add_row(label, _Chips(chips))
+        return t
+
+    # -- cells ----------------------------------------------------------------------
+    def _value(self, device: str, f: Field, r: Reading | None, st: DeviceStats) -> Text:
+        if r is None:
+            return Text("…", style="dim")
+        if r.value is None:
+            return Text("—", style="dim red")
+        fv = r.value
+        text = fv.text
+        key, now = (device, f.name), self._clock()
+        before = self._seen.get(key)
+        changed_at = now if before is not None and before[0] != text else (
+            before[1] if before else -CHANGED_FOR)
+        self._seen[key] = (text, changed_at)
+        style = VALUE_STYLE[fv.severity]
+        if self.live and now - changed_at < CHANGED_FOR:
+            style += " reverse"
+        return Text(text, style=style)
+
+    # -- footer -----------------------------------------------------------------------
+    def health_table(self) -> Group:
+        now, wall = self._clock(), self._wall()
+        parts: list[RenderableType] = []
+        for bus in self.buses:
+            b = bus.config
+            load = bus.load.utilisation(now)
+            line = Text("bus ", style="bold")
+            line.append(b.name, style="bold")
+            if b.name != b.port:
+                line.append(f" ({b.port})", style="dim")
+            if not b.port.startswith("tcp://"):
+                line.append(f" · {b.serial_text}")
+            line.append(f" · busy {load:.0%}", style="bold yellow" if load > 0.9 else "")
+            line.append(f" · {bus.load.rate(now):.0f} transactions/s")
+            if bus.port_error:
+                line.append(f" · {bus.port_error}", style="bold red")
+            parts.append(line)
+            t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
+                      padding=(0, 1, 0, 0))
+            for col in ("  device", "state", "ok", "timeout", "garbled", "except", "p50",
+                        "p95", "last ok"):
+                t.add_column(col, justify="left" if col in ("  device", "state") else "right",
+                             no_wrap=True)
+            for dev in bus.devices:
+                st = dev.stats
+                t.add_row(
+                    Text("  " + dev.config.name),
+                    Text(st.state.value, style=STATE_STYLE[st.state]),
+                    str(st.ok), _count(st.timeouts), _count(st.garbled),
+                    _count(st.exception_count, _codes(st.exceptions.items())),
+                    _ms(st.p50()), _ms(st.p95()),
+                    _age(wall - st.last_good_time) if st.last_good_time else "never",
+                )
+            parts.append(t)
+        return Group(*parts)
+
+
+class _Chips:
+    """``field value unit`` chips packed into lines, never broken inside a chip."""
+
+    def __init__(self, chips: Sequence[Text]) -> None:
+        self.chips = chips
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        width = options.max_width
+        line, out = Text(), []
+        for chip in self.chips:
+            if line.cell_len and line.cell_len + 2 + chip.cell_len > width:
+                out.append(line)
+                line = Text()
+            if line.cell_len:
+                line.append("  ")
+            line.append_text(chip)
+        out.append(line)
+        yield Text("\n").join(out)
+
+    def __rich_measure__(self, console: Console, options: ConsoleOptions) -> object:
+        from rich.measure import Measurement
+
+        widest = max((c.cell_len for c in self.chips), default=1)
+        return Measurement(min(widest, options.max_width), options.max_width)
+
+
+def _status(r: Reading | None, st: DeviceStats) -> Text:
+    if r is None:
+        return Text(st.state.value, style="dim")
+    if r.value is None:
+        return Text(_why(r), style="dim red" if r.status == "skipped" else "red")
+    fv = r.value
+    label = fv.severity.value
+    if fv.field.enum and fv.code is not None and fv.code not in fv.field.enum \
+            and fv.field.other is None:
+        label = "unknown code"
+    return Text(label, style=SEVERITY_STYLE[fv.severity])
+
+
+def _why(r: Reading) -> str:
+    """A failed reading's status in a few words: 'timeout', 'exception 02', ..."""
+    if r.status == "exception" and "exception " in r.error:
+        return "exception " + r.error.split("exception ", 1)[1].split()[0]
+    return SHORT.get(r.status, r.status)
+
+
+def _codes(items: Iterable[tuple[int, int]]) -> str:
+    return " ".join(f"{n}×{code:02d}" for code, n in sorted(items))  # noqa: RUF001
+
+
+def _count(n: int, detail: str = "") -> Text:
+    return Text(detail or str(n), style="red" if n else "dim")
+
+
+def _ms(seconds: float | None) -> str:
+    return "—" if seconds is None else f"{seconds * 1000:.0f} ms"
+
+
+def _age(seconds: float) -> str:
+    if seconds < 60:
+        return f"{max(0.0, seconds):.1f} s"
+    if seconds < 3600:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

@@ -1,0 +1,159 @@
+"""What polling has seen: readings, per-device health and per-bus load.
+
+Kept apart from the scheduler so the live table, the JSON/CSV sinks and the
+``--once`` summary read one model, and so the numbers can be tested without a bus.
+A failed reading carries no value (never a stale one); the last good value of
+each field is kept separately, with its time, for the display.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import Counter, deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any
+
+from rtupoll.output import failed_record, record
+from rtupoll.profile import Field
+from rtupoll.reading import FieldValue
+from rtupoll.site import DeviceConfig
+
+LATENCY_WINDOW = 1000  # transactions kept for the percentiles
+LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured
+
+
+class State(str, enum.Enum):
+    STARTING = "starting"  # not read yet
+    ONLINE = "online"  # the last cycle got a valid reply
+    RETRYING = "retrying"  # a few cycles in a row got none; retried with backoff
+    OFFLINE = "offline"  # many cycles got none; probed now and then
+
+
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One field's outcome in one cycle: a value, or why there is none."""
+
+    time: float  # wall clock, seconds since the epoch
+    device: DeviceConfig
+    field: Field
+    value: FieldValue | None
+    status: str = "ok"  # ok | timeout | garbled | exception | skipped | port
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.value is not None
+
+    def record(self) -> dict[str, Any]:
+        """The ``output.POLL_KEYS`` record for JSON and CSV."""
+        d = self.device
+        if self.value is not None:
+            rec = record(d.name, d.profile.id, d.address, self.value)
+            rec.update(status="ok", error="")
+        else:
+            rec = failed_record(d.name, d.profile.id, d.address, self.field.name,
+                                self.field.unit, self.status, self.error)
+        rec["time"] = iso_time(self.time)
+        return rec
+
+
+def iso_time(t: float) -> str:
+    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
+    stamp = datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")
+    return stamp.replace("+00:00", "Z")
+
+
+def percentile(values: Iterable[float], q: float) -> float | None:
+    """Nearest-rank percentile (q in 0..100); None without data."""
+    data = sorted(values)
+    if not data:
+        return None
+    rank = max(1, math.ceil(q / 100 * len(data)))
+    return data[rank - 1]
+
+
+@dataclass
+class DeviceStats:
+    """Health of one device since polling started."""
+
+    fields: Sequence[Field]
+    requests: int = 0
+    ok: int = 0
+    timeouts: int = 0
+    garbled: int = 0  # CRC errors, garbage, truncated or malformed replies
+    exceptions: Counter[int] = field(default_factory=Counter)
+    latencies: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    state: State = State.STARTING
+    failures: int = 0  # cycles in a row with no valid reply
+    cycles: int = 0
+    last_error: str = ""
+    latest: dict[str, Reading] = field(default_factory=dict)  # field -> this cycle's outcome
+    last_good: dict[str, Reading] = field(default_factory=dict)  # field -> last value read
+    last_good_time: float | None = None
+
+    def record(self, readings: Sequence[Reading], answered: bool) -> None:
+        self.cycles += 1
+        self.failures = 0 if answered else self.failures + 1
+        for r in readings:
+            self.latest[r.field.name] = r
+            if r.ok:
+                self.last_good[r.field.name] = r
+                self.last_good_time = r.time
+        errors = [r.error for r in readings if not r.ok and r.status != "skipped"]
+        self.last_error = errors[0] if errors else ""
+
+    @property
+    def exception_count(self) -> int:
+        return sum(self.exceptions.values())
+
+    def p50(self) -> float | None:
+        return percentile(self.latencies, 50)
+
+    def p95(self) -> float | None:
+        return percentile(self.latencies, 95)
+
+
+class BusLoad:
+    """Transactions and the share of time the bus was busy, over a sliding window."""
+
+    def __init__(self, started: float) -> None:
+        self.started = started
+        self.transactions = 0
+        self.busy = 0.0  # seconds, since the start
+        self._failed_by: object = None  # the last transaction timed out or was garbled
+        self._recent: deque[tuple[float, float]] = deque()  # (end time, duration)
+
+    def add(self, end: float, duration: float, *, failed_by: object = None) -> object:
+        """Count one transaction (``failed_by``: who it failed for, if it timed out or was
+        garbled); returns who the transaction before it failed for, if it did.
+
+        After a timeout or a garbled reply the bus waits for a quiet line before the
+        next request, so the next transaction's time says nothing about its own device:
+        it is the failing device's cost.
+        """
+        after_failure, self._failed_by = self._failed_by, failed_by
+        self.transactions += 1
+        self.busy += duration
+        self._recent.append((end, duration))
+        while self._recent and self._recent[0][0] < end - LOAD_WINDOW:
+            self._recent.popleft()
+        return after_failure
+
+    def utilisation(self, now: float) -> float:
+        """Busy share of the last ``LOAD_WINDOW`` seconds (or since the start), 0..1."""
+        span = min(LOAD_WINDOW, now - self.started)
+        if span <= 0:
+            return 0.0
+        busy = sum(d for end, d in self._recent if end >= now - LOAD_WINDOW)
+        return min(1.0, busy / span)
+
+    def rate(self, now: float) -> float:
+        """Transactions per second over the window."""
+        span = min(LOAD_WINDOW, now - self.started)
+        n = sum(1 for end, _ in self._recent if end >= now - LOAD_WINDOW)
+        return n / span if span > 0 else 0.0

@@ -1,0 +1,74 @@
+"""The live display, rendered into a StringIO console after real scans of a simulated bus."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+from collections.abc import Callable
+
+from rich.console import Console
+
+from rtupoll.live import PollView
+from rtupoll.scheduler import Scheduler
+from rtupoll.sim.testing import SimulatedBus
+from rtupoll.site import from_specs
+
+SEEDS = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-an117@4",
+         "banner-ez-array@5"]
+
+
+def scanned(bus: SimulatedBus, scans: int = 1) -> Scheduler:
+    specs = [(s.split("@")[0], int(s.split("@")[1])) for s in SEEDS]
+    site = from_specs(bus.port, specs, baudrate=115200, timeout=0.1, check_serial=False)
+    scheduler = Scheduler(site)
+
+    async def run() -> None:
+        await scheduler.open()
+        try:
+            for _ in range(scans):
+                await scheduler.scan_once(lambda d, r: None)
+        finally:
+            await scheduler.close()
+
+    asyncio.run(run())
+    return scheduler
+
+
+def show(view: PollView, width: int, height: int) -> list[str]:
+    out = io.StringIO()
+    Console(file=out, width=width, height=height, color_system=None).print(view)
+    return out.getvalue().splitlines()
+
+
+def test_a_small_terminal_gets_one_line_per_device_and_the_footer_still_shows(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim(*SEEDS, faults=["3:dead"])
+    bus.set(2, "air_gap_cm", 321)
+    view = PollView(scanned(bus).buses, title="simulated bus")
+    lines = show(view, 80, 24)
+    assert len(lines) <= 24 and all(len(line) <= 80 for line in lines)
+    assert lines[0].split(" · ")[1:3] == ["4/5 online", "5 scans"]
+    radar = next(line for line in lines if line.startswith("radar-level@2"))
+    assert "air_gap_cm 321 cm" in radar
+    # the dead device: one line saying why, not fifteen dashes
+    dead = next(i for i, line in enumerate(lines) if line.startswith("huiwen-aq@3"))
+    assert "timeout: no reply from unit 3" in lines[dead]
+    assert "(15 fields not read)" in " ".join(lines[dead:dead + 3])
+    # the footer: the bus, then each device's health
+    footer = lines.index(next(line for line in lines if line.startswith("bus ")))
+    assert lines[footer].endswith("transactions/s") and "115200 8N1" in lines[footer]
+    health = {line.split()[0]: line.split()[1:] for line in lines[footer + 2:]}
+    assert health["huiwen-aq@3"][:4] == ["retrying", "0", "1", "0"]
+    assert health["radar-level@2"][:5] == ["online", "5", "0", "0", "0"]
+
+
+def test_a_tall_terminal_gets_one_row_per_field_with_status_and_age(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim(*SEEDS)
+    bus.set(3, "co2_level", "MODERATE")
+    lines = show(PollView(scanned(bus, scans=2).buses, title="simulated bus"), 100, 60)
+    row = next(line for line in lines if " co2_level " in line)
+    cells = [c.strip() for c in row.split("│")]
+    assert cells[1:] == ["co2_level", "MODERATE", "", "warning", cells[-1]]
+    assert cells[-1].endswith(" s")  # the age of the reading
+    assert lines[0].split(" · ")[2] == "10 scans"

@@ -1,0 +1,249 @@
+"""The scheduler's decisions, in virtual time: backoff, probing, resuming, fairness.
+
+A fake transport stands in for the bus and advances a fake clock by what each
+transaction would cost, so these tests show *what* the scheduler does (which block,
+which retries, which device next) without waiting. ``test_poll*.py`` drive the real
+bus and simulator end to end.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import pytest
+
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
+from rtupoll.pollstats import BusLoad, Reading, State, percentile
+from rtupoll.rtu import Table
+from rtupoll.scheduler import Backoff, BusPoller, DevicePoller
+from rtupoll.site import BusConfig, DeviceConfig, from_specs
+
+OK_COST, TIMEOUT_COST = 0.02, 0.5
+
+
+@dataclass
+class Clock:
+    now: float = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+# (block address, call number) -> ok | slow (answers, but takes 0.8 s) | timeout | crc | exc02
+Behaviour = Callable[[int, int], str]
+
+
+@dataclass
+class FakeBus:
+    """Answers by a behaviour per unit; records (unit, address, retries) of every call."""
+
+    clock: Clock
+    behaviour: dict[int, Behaviour] = field(default_factory=dict)
+    calls: list[tuple[int, int, int]] = field(default_factory=list)
+
+    async def open(self) -> None: ...
+    async def close(self) -> None: ...
+
+    async def read(self, unit: int, table: Table, address: int, count: int, *,
+                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+        self.calls.append((unit, address, retries))
+        what = self.behaviour.get(unit, lambda a, n: "ok")(address, len(self.calls))
+        if what == "timeout":
+            self.clock.now += timeout * (1 + retries)
+            raise DeviceTimeout(f"no response from device {unit}")
+        self.clock.now += OK_COST if what != "slow" else 0.8
+        if what == "crc":
+            raise FrameError("CRC error")
+        if what.startswith("exc"):
+            raise DeviceException(int(what[3:]), unit=unit, function=table.read_function)
+        return tuple(range(count))
+
+
+def radar(address: int = 2, interval: float = 1.0) -> DeviceConfig:
+    """The radar sensor: five fields, each read alone, so five blocks a cycle."""
+    return from_specs("/dev/null", [("radar-level", address)], interval=interval).buses[0] \
+        .devices[0]
+
+
+def poller(dev: DeviceConfig, clock: Clock) -> DevicePoller:
+    return DevicePoller(dev, BusLoad(clock()), clock=clock, wall=clock)
+
+
+def addresses(bus: FakeBus) -> list[int]:
+    return [a for _, a, _ in bus.calls]
+
+
+def run(coro: object) -> list[Reading]:
+    return asyncio.run(coro)  # type: ignore[arg-type]
+
+
+async def virtual_time(bp: BusPoller, clock: Clock, seconds: float) -> None:
+    """The bus loop without sleeping: jump the clock to the next device due."""
+    end = clock.now + seconds
+    while clock.now < end:
+        dev = bp.next_device()
+        clock.now = max(clock.now, dev.next_due)
+        await bp.run_one(dev, lambda d, rs: None)
+
+
+def test_backoff_doubles_from_the_interval_up_to_the_cap_within_the_jitter() -> None:
+    b = Backoff(base=1.0, factor=2.0, cap=60.0, jitter=0.2)
+    middle = [b.delay(n, 0.5, lambda: 0.5) for n in range(1, 9)]
+    assert middle == [1, 2, 4, 8, 16, 32, 60, 60]
+    assert b.delay(1, 5.0, lambda: 0.5) == 5.0  # never sooner than the device's own interval
+    assert b.delay(3, 1.0, lambda: 0.0) == pytest.approx(4 * 0.8)
+    assert b.delay(3, 1.0, lambda: 1.0) == pytest.approx(4 * 1.2)
+
+
+def test_a_healthy_cycle_reads_every_block_once_with_the_profiles_retries() -> None:
+    clock = Clock()
+    bus, dev = FakeBus(clock), poller(radar(), clock)
+    readings = run(dev.cycle(bus))
+    assert addresses(bus) == [0, 1, 2, 3, 0x10]
+    assert {r for _, _, r in bus.calls} == {dev.config.retry_count}
+    assert [r.status for r in readings] == ["ok"] * 5
+    assert [r.field.name for r in readings] == [f.name for f in dev.config.fields]
+    assert dev.stats.ok == dev.stats.requests == 5 and dev.stats.failures == 0
+
+
+def test_after_a_timeout_the_next_cycle_resumes_at_the_block_that_failed() -> None:
+    clock = Clock()
+    bus, dev = FakeBus(clock, {2: lambda a, n: "timeout" if n == 3 else "ok"}), \
+        poller(radar(), clock)
+    first = run(dev.cycle(bus))
+    # the device had answered in this cycle, so one timeout does not end it
+    assert [r.status for r in first] == ["ok", "ok", "timeout", "ok", "ok"]
+    assert first[2].value is None and "no response" in first[2].error
+    bus.calls.clear()
+    run(dev.cycle(bus))
+    assert addresses(bus) == [2, 3, 0x10, 0, 1]
+
+
+def test_a_device_that_stops_answering_is_probed_cheaply_and_backed_off() -> None:
+    clock = Clock()
+    bus = FakeBus(clock, {2: lambda a, n: "timeout"})
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=(radar(),)), bus,
+                   backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
+    dev = bp.devices[0]
+    sink: list[list[Reading]] = []
+    states, gaps = [], []
+    for _ in range(6):
+        clock.now = max(clock.now, dev.next_due)
+        before = clock.now
+        asyncio.run(bp.run_one(dev, lambda d, rs: sink.append(rs)))
+        states.append(dev.stats.state)
+        gaps.append(round(dev.next_due - before, 2))
+    # one block per attempt: the first with the profile's retries, then probes without
+    assert [r for _, _, r in bus.calls] == [1, 0, 0, 0, 0, 0]
+    assert addresses(bus) == [0] * 6
+    assert states == [State.RETRYING, State.RETRYING, State.OFFLINE, State.OFFLINE,
+                      State.OFFLINE, State.OFFLINE]
+    assert gaps == [0.6 + 1.0, 0.3 + 2.0, 0.3 + 4.0, 0.3 + 8.0, 0.3 + 16.0, 0.3 + 32.0]
+    # every field is reported, none with a value: the block tried timed out, the rest skipped
+    assert [r.status for r in sink[-1]] == ["timeout", "skipped", "skipped", "skipped",
+                                            "skipped"]
+    assert all(r.value is None for rs in sink for r in rs)
+
+
+def test_a_device_that_comes_back_is_online_again_at_its_own_rate() -> None:
+    clock = Clock()
+    dead = {"yes": True}
+    bus = FakeBus(clock, {2: lambda a, n: "timeout" if dead["yes"] else "ok"})
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=(radar(),)), bus,
+                   backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
+    dev = bp.devices[0]
+    for _ in range(4):
+        clock.now = max(clock.now, dev.next_due)
+        asyncio.run(bp.run_one(dev, lambda d, rs: None))
+    assert dev.stats.state is State.OFFLINE
+    dead["yes"] = False
+    bus.calls.clear()
+    clock.now = dev.next_due
+    start = clock.now
+    asyncio.run(bp.run_one(dev, lambda d, rs: None))
+    # the probe (no retries) answered, so the rest of the cycle ran with normal retries
+    assert bus.calls == [(2, 0, 0), (2, 1, 1), (2, 2, 1), (2, 3, 1), (2, 0x10, 1)]
+    assert dev.stats.state is State.ONLINE and dev.stats.failures == 0
+    assert dev.next_due == start + dev.config.interval
+
+
+def test_an_exception_reply_is_counted_by_code_and_the_rest_of_the_device_is_read() -> None:
+    clock = Clock()
+    bus = FakeBus(clock, {2: lambda a, n: "exc02" if a == 1 else "ok"})
+    dev = poller(radar(), clock)
+    readings = run(dev.cycle(bus))
+    assert [r.status for r in readings] == ["ok", "exception", "ok", "ok", "ok"]
+    assert "exception 02 ILLEGAL DATA ADDRESS" in readings[1].error
+    assert dev.stats.exceptions == {2: 1} and dev.stats.failures == 0
+
+
+def test_garbled_replies_are_counted_and_do_not_end_the_cycle() -> None:
+    clock = Clock()
+    bus = FakeBus(clock, {2: lambda a, n: "crc" if a in (0, 2) else "ok"})
+    dev = poller(radar(), clock)
+    readings = run(dev.cycle(bus))
+    assert [r.status for r in readings] == ["garbled", "ok", "garbled", "ok", "ok"]
+    assert dev.stats.garbled == 2 and dev.resume == 0
+
+
+def test_a_dead_device_does_not_starve_the_live_ones() -> None:
+    """Devices polled as fast as possible for 5 virtual minutes: with one of five dead,
+    the other four get nearly the scans they get on a bus of their own."""
+
+    def scans(present: Sequence[int], dead: Sequence[int] = ()) -> dict[int, int]:
+        clock = Clock()
+        devs = tuple(radar(a, interval=0) for a in present)
+        bus = FakeBus(clock, {a: (lambda a_, n: "timeout") for a in dead})
+        bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), bus,
+                       backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
+        asyncio.run(virtual_time(bp, clock, 300))
+        return {d.config.address: d.stats.cycles for d in bp.devices}
+
+    live = (1, 2, 4, 5)
+    alone, with_dead = scans(live), scans((1, 2, 3, 4, 5), dead=(3,))
+    assert sum(with_dead[a] for a in live) / sum(alone.values()) > 0.97
+    assert with_dead[3] <= 10  # backed off to one probe a minute
+    # the four live devices share the bus evenly
+    assert max(with_dead[a] for a in live) - min(with_dead[a] for a in live) <= 1
+
+
+def test_a_slow_device_that_still_answers_gets_a_fair_share_of_time_not_of_turns() -> None:
+    clock = Clock()
+    devs = tuple(radar(a, interval=0) for a in (1, 2, 3))
+    bus = FakeBus(clock, {2: lambda a, n: "slow"})
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), bus,
+                   backoff=Backoff(), clock=clock, wall=clock)
+    asyncio.run(virtual_time(bp, clock, 120))
+    cycles = {d.config.address: d.stats.cycles for d in bp.devices}
+    assert cycles[2] > 0 and bp.devices[1].stats.state is State.ONLINE
+    assert abs(cycles[1] - cycles[3]) <= 1  # the healthy ones take turns
+    # a healthy cycle takes 0.1 s, the slow one 4 s: each device had about a third of the time
+    seconds = {1: cycles[1] * 0.1, 2: cycles[2] * 4.0, 3: cycles[3] * 0.1}
+    assert max(seconds.values()) < 1.5 * min(seconds.values()), seconds
+
+
+def test_due_devices_take_turns_and_slow_ones_wait_for_their_interval() -> None:
+    clock = Clock()
+    devs = (radar(1, interval=0), radar(2, interval=0), radar(3, interval=10))
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), FakeBus(clock),
+                   backoff=Backoff(), clock=clock, wall=clock)
+    order = []
+    for _ in range(7):
+        dev = bp.next_device()
+        clock.now = max(clock.now, dev.next_due)
+        asyncio.run(bp.run_one(dev, lambda d, rs: None))
+        order.append(dev.config.address)
+    assert order == [1, 2, 3, 1, 2, 1, 2]
+
+
+def test_latency_percentiles_and_bus_utilisation() -> None:
+    assert percentile([], 50) is None
+    assert percentile([0.01 * i for i in range(1, 101)], 50) == pytest.approx(0.50)
+    assert percentile([0.01 * i for i in range(1, 101)], 95) == pytest.approx(0.95)
+    load = BusLoad(started=0.0)
+    for i in range(10):
+        load.add(end=i + 1.0, duration=0.25)
+    assert load.utilisation(10.0) == pytest.approx(0.25)
+    assert load.rate(10.0) == pytest.approx(1.0)
