@@ -143,13 +143,15 @@ def test_values_move_within_their_range_and_a_seed_replays_them(sim: Sim) -> Non
 
 def test_error_codes_and_flags_show_up_now_and_then(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", tick=None, seed=3)
-    errors, warnings = set(), set()
-    for _ in range(300):
+    errors: list[object] = []
+    warnings: list[tuple[str, ...]] = []
+    for _ in range(2000):
         bus.advance()
-        errors.add(bus.get(1, "error").value)
-        warnings.add(tuple(bus.get(1, "warning").value))  # type: ignore[arg-type]
-    assert "NO_ERROR" in errors and len(errors) > 1
-    assert () in warnings and len(warnings) > 1
+        errors.append(bus.get(1, "error").value)
+        warnings.append(tuple(bus.get(1, "warning").value))  # type: ignore[arg-type]
+    assert len(set(errors)) > 1 and len(set(warnings)) > 1  # they do show up ...
+    assert errors.count("NO_ERROR") > 0.9 * len(errors)  # ... now and then, not always
+    assert warnings.count(()) > 0.9 * len(warnings)
 
 
 def test_values_move_with_time(sim: Sim) -> None:

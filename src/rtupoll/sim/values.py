@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from rtupoll.codec import DataType, Value, int_range
 from rtupoll.profile import Field, Poll, Profile, Severity
 
-EVENT_RATE = 0.03  # chance per tick that an enum leaves its normal code or a flag shows up
+# chance per tick that an enum leaves its normal code or a flag shows up: with a dozen
+# coded fields on a bus, an episode every twenty seconds or so, not a wall of alarms
+EVENT_RATE = 0.005
 EVENT_TICKS = (2, 6)  # how many ticks such an event lasts
 
 
