@@ -21,6 +21,7 @@ import os
 import struct
 import termios
 import threading
+import time
 import tty
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ from rtupoll.sim.engine import Deframer, Engine, Transmission
 
 QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 WIRE_LOG = 100_000  # frames kept in the wire log
+TIMER_SLACK = 0.0015  # asyncio timers fire up to 1 ms late; the rest is slept exactly
 
 
 @dataclass(frozen=True)
@@ -151,11 +153,19 @@ class Server:
             self.on_wire(frame)
 
     def later(self, when: float, fn: Callable[[Transmission], None], tx: Transmission) -> None:
+        """Run ``fn(tx)`` at ``when``, to well under a millisecond.
+
+        asyncio rounds its selector timeouts up to whole milliseconds, which at 115200
+        baud is a third of a transaction; so wake a little early and sleep the rest.
+        """
         def run() -> None:
             self._pending.discard(handle)
+            rest = when - self.loop.time()
+            if rest > 0:
+                time.sleep(rest)
             fn(tx)
 
-        handle = self.loop.call_at(when, run)
+        handle = self.loop.call_at(when - TIMER_SLACK, run)
         self._pending.add(handle)
 
     # -- transports ---------------------------------------------------------
