@@ -204,3 +204,22 @@ def test_usage_mistakes_are_exit_2() -> None:
     for args, message in cases.items():
         result = poll(*args)
         assert (result.exit_code, result.stderr.strip()) == (2, message), args
+
+
+def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
+        sim: Callable[..., SimulatedBus]) -> None:
+    # an IRNET-PRO on data structure 0 has no calibration gas level (exception 02 there)
+    bus = sim("net-irnet-pro@1", "net-irnet-pro@2", options=["net-irnet-pro@1.variant=0"])
+    bus.set(2, "calibration_gas_level", 50.0)
+    result = poll("--port", bus.port, "--once", "--format", "json", "--fields",
+                  "concentration,calibration_gas_level", "net-irnet-pro@1", "net-irnet-pro@2")
+    assert result.exit_code == 0, result.stderr
+    by = {(r["address"], r["field"]): r for r in records(result)}
+    old = by[1, "calibration_gas_level"]
+    assert (old["status"], old["value"], old["error"]) == ("absent", None,
+                                                           "not in data structure 0")
+    assert by[1, "concentration"]["status"] == "ok"
+    assert by[2, "calibration_gas_level"]["value"] == 50.0
+    # the probe read input 0x0400 once per device; no request touched 0x0200 on unit 1
+    asked = [f.data for f in bus.wire if f.direction == "in"]
+    assert not any(a[0] == 1 and a[1] == 3 and a[2:4] == b"\x02\x00" for a in asked)

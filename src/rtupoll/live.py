@@ -31,7 +31,7 @@ STATE_STYLE = {State.STARTING: "dim", State.ONLINE: "green", State.RETRYING: "ye
 SPINNER = "⠋⠙⠹⠸⠼⠴⠦⠧⠇⠏"
 CHANGED_FOR = 0.8  # seconds a changed value stays highlighted
 SHORT = {"timeout": "timeout", "garbled": "garbled", "exception": "exception",
-         "skipped": "not read", "port": "port lost"}
+         "skipped": "not read", "port": "port lost", "absent": "not present"}
 
 
 class PollView:
@@ -245,7 +245,8 @@ def _status(r: Reading | None, st: DeviceStats) -> Text:
     if r is None:
         return Text(st.state.value, style="dim")
     if r.value is None:
-        return Text(_why(r), style="dim red" if r.status == "skipped" else "red")
+        style = {"skipped": "dim red", "absent": "dim"}.get(r.status, "red")
+        return Text(_why(r), style=style)
     fv = r.value
     label = fv.severity.value
     if fv.field.enum and fv.code is not None and fv.code not in fv.field.enum \

@@ -42,7 +42,7 @@ class Reading:
     device: DeviceConfig
     field: Field
     value: FieldValue | None
-    status: str = "ok"  # ok | timeout | garbled | exception | skipped | port
+    status: str = "ok"  # ok | timeout | garbled | exception | skipped | port | absent
     error: str = ""
 
     @property
@@ -104,7 +104,7 @@ class DeviceStats:
             if r.ok:
                 self.last_good[r.field.name] = r
                 self.last_good_time = r.time
-        errors = [r.error for r in readings if not r.ok and r.status != "skipped"]
+        errors = [r.error for r in readings if not r.ok and r.status not in ("skipped", "absent")]
         self.last_error = errors[0] if errors else ""
 
     @property

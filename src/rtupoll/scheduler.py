@@ -33,9 +33,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from rtupoll.device import probe_variant
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RtupollError
 from rtupoll.planner import Block, decode_block, plan
 from rtupoll.pollstats import BusLoad, DeviceStats, Reading, State
+from rtupoll.profile import Field
 from rtupoll.reading import FieldValue
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 from rtupoll.site import BusConfig, DeviceConfig, Site
@@ -82,6 +84,12 @@ class DevicePoller:
                  clock: Clock = time.monotonic, wall: Clock = time.time) -> None:
         self.config = config
         self.blocks: tuple[Block, ...] = plan(config.fields, config.profile)
+        # fields only some generations of the map have (IRNET data structure 1): ask the
+        # device which it is before reading them, and report the others as absent
+        self.variant_unknown = config.profile.variant is not None and any(
+            f.since for f in config.fields)
+        self.absent: tuple[Field, ...] = ()
+        self.absent_why = ""
         self.stats = DeviceStats(config.fields)
         self.load = bus
         self.next_due = 0.0
@@ -105,6 +113,8 @@ class DevicePoller:
         After a failed cycle the first block is a probe (no immediate retries): a
         device that is gone then costs one timeout, not ``1 + retries`` of them.
         """
+        if self.variant_unknown:
+            await self._probe_variant(transport)
         cfg, st, n = self.config, self.stats, len(self.blocks)
         probing = st.failures > 0
         answered, timeouts = False, 0
@@ -138,9 +148,28 @@ class DevicePoller:
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
         self.resume = 0 if first_failed is None else first_failed
+        for f in self.absent:
+            out[f.name] = Reading(self._wall(), cfg, f, None, "absent", self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
         st.record(readings, answered)
         return readings
+
+    async def _probe_variant(self, transport: Transport) -> None:
+        """Learn the device's variant once; until it answers, plan for the newest map."""
+        cfg = self.config
+        try:
+            variant = await probe_variant(transport, cfg.profile, cfg.address,
+                                          timeout=cfg.response_timeout, retries=cfg.retry_count)
+        except (DeviceTimeout, FrameError, DeviceException):
+            return  # the cycle's own reads will say what is wrong
+        self.variant_unknown = False
+        if variant is None:
+            return
+        self.blocks = plan(cfg.fields, cfg.profile, variant=variant)
+        self.absent = tuple(f for f in cfg.fields if f.since > variant)
+        assert cfg.profile.variant is not None
+        self.absent_why = f"not in {cfg.profile.variant.name} {variant}"
+        self.resume = 0
 
     async def _transact(self, transport: Transport, block: Block, retries: int
                         ) -> tuple[str, str, list[FieldValue]]:

@@ -299,7 +299,7 @@ def _report_failures(site: Site, readings: Sequence[Reading]) -> None:
     failed: dict[str, Reading] = {}
     counts: dict[str, int] = {}
     for r in readings:
-        if not r.ok:
+        if not r.ok and r.status != "absent":  # a field its variant lacks is no failure
             counts[r.device.name] = counts.get(r.device.name, 0) + 1
             if r.device.name not in failed or failed[r.device.name].status == "skipped":
                 failed[r.device.name] = r
