@@ -26,6 +26,7 @@ from pathlib import Path
 from rtupoll.commission import Change, refuse
 from rtupoll.errors import ConfigError, RefusedError, RtupollError
 from rtupoll.profile import Profile, load_one
+from rtupoll.rtu import parse_unit
 
 COLUMNS = {"profile": "profile", "address": "address", "old": "address", "current": "address",
            "new": "new", "new_address": "new", "check": "check", "identity": "check"}
@@ -106,15 +107,10 @@ def _yaml_rows(path: Path) -> list[tuple[int, dict[str, str]]]:
 
 
 def _address(text: str, what: str) -> int:
-    from rtupoll.registers import parse_int
-
     try:
-        value = parse_int(text)
-    except ValueError:
-        raise ConfigError(f"{what} {text!r} is not an address (decimal or 0x..)") from None
-    if not 0 <= value <= 255:
-        raise ConfigError(f"{what} {value} is outside 0..255")
-    return value
+        return parse_unit(text)
+    except ValueError as exc:
+        raise ConfigError(f"{what}: {exc}") from None
 
 
 def _check(text: str) -> tuple[str, str] | None:

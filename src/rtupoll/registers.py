@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from rtupoll.codec import ByteOrder, DataType, Layout
 from rtupoll.errors import UsageError
 from rtupoll.profile import Addressing, Field
-from rtupoll.rtu import Table
+from rtupoll.rtu import Table, parse_int
 
 TABLE_ALIASES: dict[str, Table] = {
     "coil": Table.COIL, "coils": Table.COIL, "co": Table.COIL,
@@ -172,11 +172,3 @@ def parse_values(text: str, spec: RegisterSpec) -> list[str]:
 
 def words_of(values: Sequence[tuple[int, ...]]) -> tuple[int, ...]:
     return tuple(w for v in values for w in v)
-
-
-def parse_int(text: str) -> int:
-    """Decimal, 0x hex or a trailing h, as ``cli.params.parse_int`` (core must not import cli)."""
-    t = text.strip().lower()
-    if t.endswith("h") and len(t) > 1:
-        return int(t[:-1], 16)
-    return int(t, 0)

@@ -39,7 +39,7 @@ from rtupoll.commission import (
 )
 from rtupoll.errors import RtupollError, UsageError
 from rtupoll.profile import Profile
-from rtupoll.registers import parse_int
+from rtupoll.rtu import parse_unit
 
 
 class PlanFailed(RtupollError):
@@ -134,12 +134,9 @@ def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Co
 
 def _address(text: str) -> int:
     try:
-        value = parse_int(text)
-    except ValueError:
-        raise UsageError(f"{text!r} is not an address (decimal or 0x..)") from None
-    if not 0 <= value <= 255:
-        raise UsageError(f"address {value} is outside 0..255")
-    return value
+        return parse_unit(text)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _dry_run(changes: list[Change]) -> None:

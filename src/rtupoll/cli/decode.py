@@ -15,10 +15,10 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, profiles_option
-from rtupoll.cli.params import parse_int
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.frames import Carried, Frame, carried, decode_stream, parse_hex
 from rtupoll.profile import Profile, load_one
+from rtupoll.rtu import parse_int
 
 EPILOG = """\b
 Examples:

@@ -7,13 +7,7 @@ from typing import Any
 
 import click
 
-
-def parse_int(text: str) -> int:
-    """Decimal, 0x hex or a trailing h (``0xFE``, ``254``, ``FEh``)."""
-    t = text.strip().lower()
-    if t.endswith("h") and len(t) > 1:
-        return int(t[:-1], 16)
-    return int(t, 0)
+from rtupoll.rtu import parse_unit
 
 
 @dataclass(frozen=True)
@@ -39,13 +33,9 @@ class DeviceSpecType(click.ParamType[DeviceSpec, Any]):
         if not sep or not profile:
             self.fail(f"{text!r} is not PROFILE@ADDRESS (e.g. net-irnet-pro@1)", param, ctx)
         try:
-            address = parse_int(addr)
-        except ValueError:
-            self.fail(f"{addr!r} in {text!r} is not an address (0-255, decimal or 0x..)",
-                      param, ctx)
-        if not 0 <= address <= 255:
-            self.fail(f"address {address} in {text!r} is outside 0..255", param, ctx)
-        return DeviceSpec(profile, address)
+            return DeviceSpec(profile, parse_unit(addr))
+        except ValueError as exc:
+            self.fail(f"{exc} in {text!r}", param, ctx)
 
 
 class UnitType(click.ParamType[int, Any]):
@@ -58,12 +48,9 @@ class UnitType(click.ParamType[int, Any]):
         if isinstance(value, int):
             return value
         try:
-            address = parse_int(str(value))
-        except ValueError:
-            self.fail(f"{value!r} is not an address (0-255, decimal or 0x..)", param, ctx)
-        if not 0 <= address <= 255:
-            self.fail(f"address {address} is outside 0..255", param, ctx)
-        return address
+            return parse_unit(str(value))
+        except ValueError as exc:
+            self.fail(str(exc), param, ctx)
 
 
 DEVICE = DeviceSpecType()

@@ -18,7 +18,7 @@ import click
 
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.profile import Profile, load_one
-from rtupoll.registers import parse_int
+from rtupoll.rtu import parse_unit
 
 if TYPE_CHECKING:
     from rtupoll.bus import Bus, PortSettings
@@ -47,12 +47,9 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
         raise UsageError(f"{text!r} is not PROFILE@ADDRESS (e.g. huiwen-aq@1); raw registers "
                          "of a device with no profile: --raw ADDRESS")
     try:
-        unit = parse_int(addr)
-    except ValueError:
-        raise UsageError(f"{addr!r} in {text!r} is not an address (0-255, decimal or 0x..)"
-                         ) from None
-    if not 0 <= unit <= 255:
-        raise UsageError(f"address {unit} in {text!r} is outside 0..255")
+        unit = parse_unit(addr)
+    except ValueError as exc:
+        raise UsageError(f"{exc} in {text!r}") from None
     if sep and not pid:
         raise UsageError(f"{text!r} names no profile before '@'")
     return Target(load_one(pid, profile_dirs) if pid else None, unit)
