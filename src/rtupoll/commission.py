@@ -23,8 +23,9 @@ or with a matching identity) is "already done", which makes plans safe to re-run
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import enum
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -60,6 +61,8 @@ class Change:
     new: int
     check: tuple[str, str] | None = None  # identity: (field, value as text) to match first
     where: str = ""  # plan file:line, for messages
+    # addresses other device models keep for themselves on a shared bus -> why
+    avoid: Mapping[int, str] = dataclasses.field(default_factory=dict)
 
     @property
     def label(self) -> str:
@@ -105,17 +108,34 @@ def address_field(profile: Profile) -> Field:
     return profile.field(method.field)
 
 
+def shared_reserved(profiles: Iterable[Profile]) -> dict[int, str]:
+    """Addresses a device model keeps for itself on any bus it is on: its reserved ones
+    (CO2Meter boards: 0xCC) and its 'any device' one (0xFE). Another device given one of
+    them breaks those boards the day they share its bus."""
+    out: dict[int, str] = {}
+    for p in profiles:
+        for address, why in p.addresses.reserved.items():
+            out.setdefault(address, f"reserved by {p.id} devices ({why})")
+        if p.addresses.any is not None:
+            out.setdefault(p.addresses.any, f"the address every {p.id} device answers")
+    return out
+
+
 def refuse(change: Change) -> Field:
     """Every check that needs no bus; returns the address field."""
-    field = address_field(change.profile)
+    address = address_field(change.profile)
     why = change.profile.addresses.check(change.new)
     if why:
         raise RefusedError(f"{change.label}: {why}")
+    if change.new in change.avoid:
+        raise RefusedError(f"{change.label}: {change.new} (0x{change.new:02X}) is "
+                           f"{change.avoid[change.new]}; --allow-reserved if no such device "
+                           "is on this bus")
     if change.new == change.old:
         raise RefusedError(f"{change.label}: the device is already at {change.old}")
     if change.check:
         change.profile.field(change.check[0])  # UsageError naming the fields if unknown
-    return field
+    return address
 
 
 def dry_run(change: Change) -> list[tuple[str, str]]:

@@ -20,7 +20,7 @@ YAML (a list, or a mapping with ``changes:``)::
 from __future__ import annotations
 
 import csv
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from rtupoll.commission import Change, refuse
@@ -32,7 +32,8 @@ COLUMNS = {"profile": "profile", "address": "address", "old": "address", "curren
            "new": "new", "new_address": "new", "check": "check", "identity": "check"}
 
 
-def load_plan(path: Path, profile_dirs: Iterable[Path] = ()) -> list[Change]:
+def load_plan(path: Path, profile_dirs: Iterable[Path] = (),
+              avoid: Mapping[int, str] | None = None) -> list[Change]:
     """Read and check a plan; every row is refused or accepted before anything is sent."""
     cache: dict[str, Profile] = {}
     dirs = tuple(profile_dirs)
@@ -48,7 +49,8 @@ def load_plan(path: Path, profile_dirs: Iterable[Path] = ()) -> list[Change]:
         where = f"{path}:{line}"
         try:
             change = Change(profile(row["profile"]), _address(row["address"], "address"),
-                            _address(row["new"], "new"), _check(row.get("check", "")), where)
+                            _address(row["new"], "new"), _check(row.get("check", "")), where,
+                            avoid or {})
             refuse(change)
         except RefusedError as exc:  # refused stays refused (exit 8), with the row's place
             raise RefusedError(f"{where}: {exc}") from None

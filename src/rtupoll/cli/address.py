@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,9 +36,10 @@ from rtupoll.commission import (
     dry_run,
     refuse,
     run_plan,
+    shared_reserved,
 )
 from rtupoll.errors import RtupollError, UsageError
-from rtupoll.profile import Profile
+from rtupoll.profile import Profile, load_library
 from rtupoll.rtu import parse_unit
 
 
@@ -62,12 +63,16 @@ class PlanFailed(RtupollError):
                    "Enter, and it gets the next free address from NEW on.")
 @click.option("--dry-run", is_flag=True, help="Print the frames that would be sent; send none.")
 @click.option("--yes", "-y", is_flag=True, help="Do not ask for confirmation (scripts).")
+@click.option("--allow-reserved", is_flag=True,
+              help="Allow addresses other device models reserve on a shared bus (0xCC, 0xFE "
+                   "for CO2Meter boards) when none of them is on this bus.")
 @format_option("text", "json")
 @profiles_option
 def set_address(device: str | None, new: str | None, port: str, baudrate: int | None,
                 parity: str | None, stopbits: str | None, timeout: float | None,
                 retries: int | None, plan_file: Path | None, interactive: bool, dry_run: bool,
-                yes: bool, fmt: str, profile_dirs: tuple[Path, ...]) -> None:
+                yes: bool, allow_reserved: bool, fmt: str, profile_dirs: tuple[Path, ...]
+                ) -> None:
     """Give DEVICE (PROFILE@ADDRESS) the address NEW, and verify it moved.
 
     Refused (exit 8) when NEW is reserved or outside the device's range, when
@@ -80,6 +85,8 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
     rtupoll set-address -p /dev/ttyUSB0 --plan sensors.csv --yes
     rtupoll set-address -p /dev/ttyUSB0 --interactive radar-level@1 10
     """
+    avoid = {} if allow_reserved else shared_reserved(load_library(profile_dirs).profiles.values())
+
     def settings(profile: Profile) -> Any:
         return port_settings(profile, port, baudrate, parity, stopbits)
 
@@ -92,7 +99,7 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
             raise UsageError("--plan takes no DEVICE or NEW (they are in the plan's rows)")
         from rtupoll.plans import load_plan
 
-        changes = load_plan(plan_file, profile_dirs)
+        changes = load_plan(plan_file, profile_dirs, avoid)
         if dry_run:
             return _dry_run(changes)
         _same_serial(changes, baudrate)
@@ -106,10 +113,10 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
         if dry_run:
             raise UsageError("--dry-run shows one change or a plan, not an interactive session")
         first = _address(new) if new else None
-        return _interactive(target, first, settings(target.profile), commissioner)
+        return _interactive(target, first, settings(target.profile), commissioner, avoid)
     if new is None:
         raise UsageError("missing NEW: the address to give the device")
-    change = Change(target.profile, target.unit, _address(new))
+    change = Change(target.profile, target.unit, _address(new), avoid=avoid)
     if dry_run:
         return _dry_run([change])
     refuse(change)
@@ -185,7 +192,8 @@ def _summary(results: list[Result], fmt: str) -> None:
 
 
 def _interactive(target: Target, first: int | None, settings: Any,
-                 commissioner: Callable[[Any], Commissioner]) -> None:
+                 commissioner: Callable[[Any], Commissioner], avoid: Mapping[int, str]
+                 ) -> None:
     """Connect a sensor, press Enter, it gets the next free address; a summary as it goes."""
     from rtupoll.bus import Bus
 
@@ -214,8 +222,10 @@ def _interactive(target: Target, first: int | None, settings: Any,
                     click.echo(f"No sensor answers at {old}: check its wiring and power, then "
                                "press Enter again.\n")
                     continue
-                new = loop.run_until_complete(com.next_free(profile, start, {old, *done}))
-                result = loop.run_until_complete(com.apply(Change(profile, old, new)))
+                skip = {old, *done, *avoid}
+                new = loop.run_until_complete(com.next_free(profile, start, skip))
+                result = loop.run_until_complete(com.apply(Change(profile, old, new,
+                                                                  avoid=avoid)))
             except RtupollError as exc:
                 failures.append(exc)
                 click.echo(f"FAIL {exc}")
