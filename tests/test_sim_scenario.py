@@ -136,3 +136,18 @@ def test_the_scenario_in_the_docs_builds(tmp_path: Path) -> None:
     assert [d.name for d in c.devices] == ["net-irnet-pro@1", "huiwen-aq@3"]
     assert (c.seed, c.baudrate, c.tick) == (7, 9600, 0.5)
     assert [str(f) for f in c.devices[0].faults] == ["1:dead@50-"]
+
+
+def test_the_readme_scenario_loads_and_does_what_it_says(tmp_path: Path) -> None:
+    from rtupoll.sim.testing import simulated_bus
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    text = readme.split("```yaml\nseed: 7", 1)[1].split("```", 1)[0]
+    path = tmp_path / "bus.yaml"
+    path.write_text("seed: 7" + text)
+    with simulated_bus(scenario=path) as sim:
+        assert sim.addresses() == {"net-irnet-pro@1": 1, "huiwen-aq@3": 3}
+        assert sim.get(1, "concentration").value == 12.5
+        assert sim.get(1, "warning").value == ["WARMUP_WARNING"]
+        assert sim.device(1).variant == 0
+        assert sim.framing is not None and sim.framing.baudrate == 9600
