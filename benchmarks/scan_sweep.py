@@ -21,7 +21,7 @@ import asyncio
 import time
 
 from rtupoll.bus import Bus, PortSettings
-from rtupoll.profile import load_library
+from rtupoll.library import load_library
 from rtupoll.rtu import Framing, transaction_wire_time
 from rtupoll.scan import (
     Found,

@@ -8,8 +8,8 @@ import pytest
 
 from rtupoll.commission import Change, dry_run, refuse
 from rtupoll.errors import ConfigError, RefusedError
+from rtupoll.library import load_one
 from rtupoll.plans import load_plan
-from rtupoll.profile import load_one
 
 FIXTURES = Path(__file__).parent / "fixtures" / "commission"
 

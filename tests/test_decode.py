@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from rtupoll.cli import cli
 from rtupoll.frames import carried, decode_stream, parse_hex, split
-from rtupoll.profile import load_one
+from rtupoll.library import load_one
 
 
 def frames(text: str, **kw: int):  # type: ignore[no-untyped-def]

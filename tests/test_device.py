@@ -16,8 +16,9 @@ import pytest
 from rtupoll.bus import Bus, PortSettings
 from rtupoll.device import probe_variant, read_block, read_fields, timing
 from rtupoll.errors import DeviceException, DeviceTimeout
+from rtupoll.library import load_one
 from rtupoll.planner import plan
-from rtupoll.profile import Profile, load_one
+from rtupoll.profile import Profile
 from rtupoll.rtu import Table
 from rtupoll.sim.testing import SimulatedBus
 

@@ -19,8 +19,9 @@ from hypothesis import strategies as st
 
 from rtupoll.codec import DataType, Layout
 from rtupoll.errors import FrameError, RefusedError
+from rtupoll.library import load_one
 from rtupoll.planner import Block, decode_block, for_variant, plan, read_limit
-from rtupoll.profile import Addressing, Field, Limits, Poll, Profile, load_one
+from rtupoll.profile import Addressing, Field, Limits, Poll, Profile
 from rtupoll.reading import field_words
 from rtupoll.rtu import Table
 

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from rtupoll import rtu
-from rtupoll.profile import Addressing, Poll, Profile, load_library, load_one
+from rtupoll.library import load_library, load_one
+from rtupoll.profile import Addressing, Poll, Profile
 from rtupoll.reading import field_words, interpret
 from rtupoll.rtu import Table
 
@@ -209,7 +210,7 @@ def test_the_documented_example_profile_loads(tmp_path: Path) -> None:
     example = doc.split("```yaml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "acme-th100.yaml"
     path.write_text(example)
-    from rtupoll.profile import load_profile
+    from rtupoll.library import load_profile
 
     p = load_profile(path)
     assert p.field("temperature").address == 0  # modicon 30001 -> wire 0

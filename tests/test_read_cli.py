@@ -13,8 +13,8 @@ import pytest
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
+from rtupoll.library import load_one
 from rtupoll.output import READ_KEYS
-from rtupoll.profile import load_one
 from rtupoll.sim.testing import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]

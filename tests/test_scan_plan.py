@@ -19,7 +19,8 @@ import pytest
 from rtupoll import rtu
 from rtupoll.cli.scan import site_yaml
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
-from rtupoll.profile import Profile, load_library, load_profile
+from rtupoll.library import load_library, load_profile
+from rtupoll.profile import Profile
 from rtupoll.rtu import Framing, Table
 from rtupoll.scan import (
     Found,

@@ -22,7 +22,7 @@ from click.testing import CliRunner
 
 from rtupoll.bus import Bus, PortSettings
 from rtupoll.cli import cli
-from rtupoll.profile import load_library
+from rtupoll.library import load_library
 from rtupoll.rtu import Framing
 from rtupoll.scan import Found, Setting, presence_probes, probe_timeout, sweep
 from rtupoll.sim.testing import SimulatedBus

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.profile import load_one
+from rtupoll.library import load_one
 from rtupoll.registers import parse_spec
 from rtupoll.writes import RAW_FUNCTIONS, parse_value, plan_raw_write, plan_write
 

@@ -25,7 +25,8 @@ from pathlib import Path
 
 from rtupoll.commission import Change, refuse
 from rtupoll.errors import ConfigError, RefusedError, RtupollError
-from rtupoll.profile import Profile, load_one
+from rtupoll.library import load_one
+from rtupoll.profile import Profile
 from rtupoll.rtu import parse_unit
 
 COLUMNS = {"profile": "profile", "address": "address", "old": "address", "current": "address",

@@ -20,8 +20,9 @@ from pathlib import Path
 from typing import TypeVar
 
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
+from rtupoll.library import load_one
 from rtupoll.planner import plan
-from rtupoll.profile import Field, Poll, Profile, load_one
+from rtupoll.profile import Field, Poll, Profile
 from rtupoll.rtu import Framing
 from rtupoll.yamlsrc import Node, load
 

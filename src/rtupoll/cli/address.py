@@ -39,7 +39,8 @@ from rtupoll.commission import (
     shared_reserved,
 )
 from rtupoll.errors import RtupollError, UsageError
-from rtupoll.profile import Profile, load_library
+from rtupoll.library import load_library
+from rtupoll.profile import Profile
 from rtupoll.rtu import parse_unit
 
 

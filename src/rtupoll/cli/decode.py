@@ -17,7 +17,8 @@ import click
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.frames import Carried, Frame, carried, decode_stream, parse_hex
-from rtupoll.profile import Profile, load_one
+from rtupoll.library import load_one
+from rtupoll.profile import Profile
 from rtupoll.rtu import parse_int
 
 EPILOG = """\b

@@ -11,15 +11,8 @@ from rich.table import Table as RichTable
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import ProfileError
-from rtupoll.profile import (
-    Choice,
-    Field,
-    Profile,
-    bundled_dir,
-    load_library,
-    load_one,
-    load_profile,
-)
+from rtupoll.library import bundled_dir, load_library, load_one, load_profile
+from rtupoll.profile import Choice, Field, Profile
 
 
 @click.group()

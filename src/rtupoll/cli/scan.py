@@ -18,7 +18,8 @@ import click
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import DeviceTimeout, UsageError
-from rtupoll.profile import Profile, load_library
+from rtupoll.library import load_library
+from rtupoll.profile import Profile
 from rtupoll.registers import parse_spec
 from rtupoll.scan import (
     Found,

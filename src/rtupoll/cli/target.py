@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING, TypeVar
 import click
 
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.profile import Profile, load_one
+from rtupoll.library import load_one
+from rtupoll.profile import Profile
 from rtupoll.rtu import parse_unit
 
 if TYPE_CHECKING:

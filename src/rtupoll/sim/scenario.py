@@ -31,7 +31,8 @@ from typing import Any
 
 from rtupoll.codec import Value
 from rtupoll.errors import ConfigError, RtupollError, UsageError
-from rtupoll.profile import Field, Profile, load_one
+from rtupoll.library import load_one
+from rtupoll.profile import Field, Profile
 from rtupoll.reading import field_words
 from rtupoll.sim.device import WRITE_REPLIES, DeviceConfig
 from rtupoll.sim.faults import Fault, parse_fault
