@@ -295,6 +295,29 @@ def test_late_reply_is_never_taken_for_the_next_answer(peer: Responder) -> None:
     assert sent_second - late_reply >= 0.09  # the line was quiet for the drain period
 
 
+def test_a_line_that_is_never_quiet_does_not_hold_the_bus_for_ever(peer: Responder) -> None:
+    """After a timeout the bus waits for a quiet line, but noise every 30 ms (a device in
+    auto-output mode, a bad transceiver) must not make the next request wait for ever."""
+    stop = threading.Event()
+
+    def chatter() -> None:
+        while not stop.wait(0.03):
+            os.write(peer._fds[0], b"\x00")
+    noise = threading.Thread(target=chatter, daemon=True)
+    noise.start()
+
+    async def go() -> tuple[int, ...]:
+        async with fast(peer.path) as bus:
+            with pytest.raises(DeviceTimeout):
+                await bus.read(9, Table.HOLDING, 0, 1, timeout=0.1)  # nobody at 9
+            return await asyncio.wait_for(bus.read(1, Table.HOLDING, 7, 1, timeout=0.1), 5)
+    try:
+        assert run(go()) == values(7, 1)
+    finally:
+        stop.set()
+        noise.join()
+
+
 def test_control_without_drain_the_late_reply_is_misattributed(peer: Responder) -> None:
     """The hazard the drain removes (design.md): drain=0 behaves like pymodbus."""
     peer.scripts = _late_first(0.15)

@@ -66,6 +66,7 @@ from rtupoll.rtu import FUNCTION_NAMES, Framing, Table
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
 _TICK = 0.001  # the event loop's timer resolution (epoll waits in whole milliseconds)
+_DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
 _BACKSTOP = 60.0  # pymodbus's own timeout; the bus's per-attempt deadline is always shorter
 _READERS = {Table.COIL: "read_coils", Table.DISCRETE: "read_discrete_inputs",
             Table.INPUT: "read_input_registers", Table.HOLDING: "read_holding_registers"}
@@ -354,8 +355,11 @@ class Bus:
         while True:
             ready = max(self._rx_at, self._tx_end) + self.framing.silence
             if drain and self._drain_for:
-                ready = max(ready, self._rx_at + self._drain_for,
-                            self._timeout_at + self._drain_for)
+                quiet = max(self._rx_at, self._timeout_at) + self._drain_for
+                # a line that is never quiet (a chattering device, another master) must not
+                # hold the bus for ever: after a few drain periods go ahead anyway; the
+                # reply filter still drops whatever is not this request's answer
+                ready = max(ready, min(quiet, self._timeout_at + _DRAIN_LIMIT * self._drain_for))
             delay = ready - time.monotonic()
             if delay <= 0:
                 break
