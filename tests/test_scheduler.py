@@ -147,6 +147,25 @@ def test_a_device_that_stops_answering_is_probed_cheaply_and_backed_off() -> Non
     assert all(r.value is None for rs in sink for r in rs)
 
 
+def test_a_dead_device_with_variant_fields_costs_one_probe_per_attempt_too() -> None:
+    """Fields only some variants have make the first read a variant probe (IRNET input
+    0x0400); for a dead device that probe is the whole attempt, without retries."""
+    clock = Clock()
+    bus = FakeBus(clock, {1: lambda a, n: "timeout"})
+    irnet = from_specs("/dev/null", [("net-irnet-pro", 1)],
+                       fields=["concentration", "uart_speed"]).buses[0].devices[0]
+    bp = BusPoller(BusConfig("b", "/dev/null", 4800, devices=(irnet,)), bus,
+                   backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
+    dev = bp.devices[0]
+    sink: list[list[Reading]] = []
+    for _ in range(4):
+        clock.now = max(clock.now, dev.next_due)
+        asyncio.run(bp.run_one(dev, lambda d, rs: sink.append(rs)))
+    assert bus.calls == [(1, 0x0400, 1), (1, 0x0400, 0), (1, 0x0400, 0), (1, 0x0400, 0)]
+    assert [r.status for r in sink[-1]] == ["timeout", "timeout"]
+    assert dev.stats.timeouts == 4 and dev.stats.state is State.OFFLINE
+
+
 def test_a_device_that_comes_back_is_online_again_at_its_own_rate() -> None:
     clock = Clock()
     dead = {"yes": True}

@@ -29,19 +29,19 @@ import contextlib
 import math
 import random
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypeVar
 
-from rtupoll.device import probe_variant
+from rtupoll.device import probe_variant, read_block
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RtupollError
-from rtupoll.planner import Block, decode_block, plan
+from rtupoll.planner import Block, plan
 from rtupoll.pollstats import BusLoad, DeviceStats, Reading, State
 from rtupoll.profile import Field
-from rtupoll.reading import FieldValue
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 from rtupoll.site import BusConfig, DeviceConfig, Site
 
+T = TypeVar("T")
 Clock = Callable[[], float]
 PORT_RETRY_CAP = 10.0  # seconds between attempts to reopen a port that went away
 USAGE_MEMORY = 30.0  # seconds over which bus use counts when sharing the bus
@@ -113,14 +113,20 @@ class DevicePoller:
         After a failed cycle the first block is a probe (no immediate retries): a
         device that is gone then costs one timeout, not ``1 + retries`` of them.
         """
-        if self.variant_unknown:
-            await self._probe_variant(transport)
-        cfg, st, n = self.config, self.stats, len(self.blocks)
+        cfg, st = self.config, self.stats
         probing = st.failures > 0
         answered, timeouts = False, 0
         stopped: str | None = None
         first_failed: int | None = None
         out: dict[str, Reading] = {}
+        if self.variant_unknown:
+            silent = await self._probe_variant(transport, 0 if probing else cfg.retry_count)
+            if silent:  # gone: one timeout, as for a first block that gets no reply
+                wall = self._wall()
+                readings = [Reading(wall, cfg, f, None, "timeout", silent) for f in cfg.fields]
+                st.record(readings, answered=False)
+                return readings
+        n = len(self.blocks)
         for k in range(n):
             idx = (self.resume + k) % n
             block = self.blocks[idx]
@@ -129,11 +135,12 @@ class DevicePoller:
                     out[f.name] = Reading(self._wall(), cfg, f, None, "skipped", stopped)
                 continue
             retries = 0 if probing and not answered else cfg.retry_count
-            status, error, values = await self._transact(transport, block, retries)
+            status, error, values = await self._transact(read_block(
+                transport, cfg.address, block, timeout=cfg.response_timeout, retries=retries))
             if status == "ok":
                 answered = True
                 wall = self._wall()
-                for fv in values:
+                for fv in values or ():
                     out[fv.field.name] = Reading(wall, cfg, fv.field, fv, "ok")
                 continue
             if status == "exception":
@@ -154,33 +161,31 @@ class DevicePoller:
         st.record(readings, answered)
         return readings
 
-    async def _probe_variant(self, transport: Transport) -> None:
-        """Learn the device's variant once; until it answers, plan for the newest map."""
+    async def _probe_variant(self, transport: Transport, retries: int) -> str:
+        """Learn the device's variant once (until it answers, plan for the newest map);
+        returns the error when the device did not answer at all."""
         cfg = self.config
-        try:
-            variant = await probe_variant(transport, cfg.profile, cfg.address,
-                                          timeout=cfg.response_timeout, retries=cfg.retry_count)
-        except (DeviceTimeout, FrameError, DeviceException):
-            return  # the cycle's own reads will say what is wrong
+        status, error, variant = await self._transact(probe_variant(
+            transport, cfg.profile, cfg.address, timeout=cfg.response_timeout, retries=retries))
+        if status != "ok":
+            return error if status == "timeout" else ""  # else: the reads say what is wrong
         self.variant_unknown = False
         if variant is None:
-            return
+            return ""
         self.blocks = plan(cfg.fields, cfg.profile, variant=variant)
         self.absent = tuple(f for f in cfg.fields if f.since > variant)
         assert cfg.profile.variant is not None
         self.absent_why = f"not in {cfg.profile.variant.name} {variant}"
         self.resume = 0
+        return ""
 
-    async def _transact(self, transport: Transport, block: Block, retries: int
-                        ) -> tuple[str, str, list[FieldValue]]:
-        """One read, timed and counted: (status, error, decoded fields)."""
+    async def _transact(self, read: Awaitable[T]) -> tuple[str, str, T | None]:
+        """One read (not yet awaited), timed and counted: (status, error, what it read)."""
         cfg, st = self.config, self.stats
         start = self._clock()
-        status, error, values = "ok", "", []
+        status, error, values = "ok", "", None
         try:
-            words = await transport.read(cfg.address, block.table, block.address, block.count,
-                                         timeout=cfg.response_timeout, retries=retries)
-            values = decode_block(block, words)
+            values = await read
         except DeviceTimeout as exc:
             status, error = "timeout", str(exc) or f"no response from {cfg.spec}"
             st.timeouts += 1
