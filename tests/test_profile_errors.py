@@ -28,6 +28,8 @@ EXPECTED = {
                       "(limits.functions)",
     "syntax": "8: YAML syntax: did not find expected ',' or '}'",
     "too-wide": "9: fields[0].type: 4 registers are more than the device reads at once (2)",
+    "values-fit": "13: fields[0].values[2]: 9000000 does not fit the field: 90000 is outside "
+                  "u16 (0..65535)",
     "unknown-key": "7: fields[0].unti: unknown key (did you mean 'unit'?)",
     "writable-input": "7: fields[0].access: input registers cannot be written",
     "wrong-type": "10: fields[0].type: 'float32' is not one of: u16, i16, u32, i32, u64, i64, "

@@ -180,3 +180,19 @@ def test_on_a_terminal_the_change_is_shown_and_only_yes_sends_it(sim: Sim) -> No
     code, screen = on_terminal(argv, "y")
     assert code == 0 and '"value":19200' in screen
     assert functions(bus) == [6, 3]
+
+
+def test_a_baud_rate_the_device_cannot_run_at_is_refused_before_sending(
+        sim: Callable[..., SimulatedBus]) -> None:
+    # the read-back would match and the radar would be unreachable after a power cycle
+    bus = sim("radar-level@1", tick=None)
+    bad = CliRunner().invoke(cli, ["write", "-p", bus.port, "--yes", "radar-level@1",
+                                   "baud_rate=600"])
+    assert bad.exit_code == 8
+    assert bad.stderr == ("rtupoll: baud_rate: 600 is not one of the values it takes: 9600, "
+                          "19200, 38400, 57600, 115200\n")
+    assert not [f for f in bus.wire if f.direction == "in" and f.data[1] == 6]  # nothing sent
+    good = CliRunner().invoke(cli, ["write", "-p", bus.port, "--yes", "--format", "json",
+                                    "radar-level@1", "baud_rate=19200"])
+    assert good.exit_code == 0, good.stderr
+    assert bus.registers(1, "holding", 0x03F6, 1) == (192,)

@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import TypeVar
 
-from rtupoll.codec import ByteOrder, DataType, Layout, int_range
+from rtupoll.codec import ByteOrder, DataType, EncodeError, Layout, encode, int_range
 from rtupoll.errors import UsageError
 from rtupoll.profile import (
     AddressChange,
@@ -43,7 +43,7 @@ _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing",
              "set_address", "variant"}
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
-               "range", "poll", "alone", "since", "source"}
+               "range", "values", "poll", "alone", "since", "source"}
 
 
 def load_profile(path: Path) -> Profile:
@@ -269,6 +269,13 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
             if lo < vlo - 1e-9 or hi > vhi + 1e-9:
                 raise m["range"].fail(f"[{lo:g}, {hi:g}] does not fit {dtype.value} "
                                       f"with this scale and offset ({vlo:g}..{vhi:g})")
+    values: list[float] = []
+    for n in m["values"].sequence() if "values" in m else []:
+        values.append(n.number())
+        try:
+            encode(values[-1], layout)
+        except EncodeError as exc:
+            raise n.fail(f"{n.value()} does not fit the field: {exc}") from None
     access = m["access"].text().upper() if "access" in m else "R"
     if access not in ("R", "RW", "W"):
         raise m["access"].fail(f"{access!r} is not one of: R, RW, W")
@@ -283,6 +290,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         unit=m["unit"].text() if "unit" in m else "",
         description=m["description"].text() if "description" in m else "",
         access=access, enum=enum_map, other=other, flags=flags, minimum=lo, maximum=hi,
+        values=tuple(values),
         poll=m["poll"].choice(Poll, [p.value for p in Poll]) if "poll" in m else Poll.DEFAULT,
         alone=m["alone"].flag() if "alone" in m else False,
         since=m["since"].integer(0, 255) if "since" in m else 0,

@@ -95,6 +95,7 @@ class Field:
     flags: Mapping[int, Choice] = dataclasses.field(default_factory=dict)  # bit mask -> flag
     minimum: float | None = None  # the documented range of the value
     maximum: float | None = None
+    values: tuple[float, ...] = ()  # the only values it takes (e.g. supported baud rates)
     poll: Poll = Poll.DEFAULT
     alone: bool = False  # must be read in a request of its own
     since: int = 0  # first variant (e.g. IRNET data structure) that has it

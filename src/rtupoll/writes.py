@@ -132,6 +132,10 @@ def plan_write(field: Field, text: str, functions: frozenset[int]) -> WriteOp:
         words = field_words(field, value)
     except EncodeError as exc:
         raise RefusedError(f"{field.name}: {exc}") from None
+    if field.values and value not in field.values:
+        takes = ", ".join(_show(int(v) if v.is_integer() else v) for v in field.values)
+        raise RefusedError(f"{field.name}: {_show(value)} is not one of the values it takes: "
+                           f"{takes}")
     return WriteOp(field, value, words, choose_function(field, len(words), functions))
 
 
