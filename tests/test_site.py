@@ -64,7 +64,7 @@ BROKEN = {
                       "line 5",
     "same-port": "7: buses[1].port: port /dev/ttyUSB0 is already used by bus 'north' (line 2); "
                  "put all its devices on one bus",
-    "bad-gateway": "2: buses[0].port: 'tcp://10.0.0.5' is not tcp://HOST:PORT",
+    "bad-gateway": "2: buses[0].port: 'tcp://10.0.0.5': expected tcp://HOST:PORT",
     "negative-interval": "6: buses[0].devices[0].interval: -1 s is outside 0..86400 s "
                          "(0: as fast as the bus allows)",
     "out-of-range": "5: buses[0].devices[0].address: 241 is outside this device's range 1..240",
@@ -147,3 +147,11 @@ def test_the_simulator_serves_any_device_at_any_speed() -> None:
     assert site.buses[0].serial_text == "9600 8N1"
     with pytest.raises(UsageError, match="cannot run at 9600 baud"):
         from_specs("/dev/pts/9", [("net-irnet-pro", 1), ("co2meter-an117", 2)], baudrate=9600)
+
+
+def test_a_gateway_url_is_read_as_the_bus_reads_it() -> None:
+    from rtupoll.site import from_specs
+
+    # the scheme is case-insensitive for the bus, so it must be for the site checks too
+    with pytest.raises(UsageError, match=r"'TCP://gw': expected tcp://HOST:PORT"):
+        from_specs("TCP://gw", [("huiwen-aq", 1)])

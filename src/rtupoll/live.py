@@ -21,6 +21,7 @@ from rich.text import Text
 from rtupoll.pollstats import DeviceStats, Reading, State
 from rtupoll.profile import Field, Severity
 from rtupoll.scheduler import BusPoller, DevicePoller
+from rtupoll.serialport import gateway
 
 SEVERITY_STYLE = {Severity.OK: "green", Severity.INFO: "cyan", Severity.WARNING: "yellow",
                   Severity.ERROR: "bold red"}
@@ -188,7 +189,7 @@ class PollView:
             line.append(b.name, style="bold")
             if b.name != b.port:
                 line.append(f" ({b.port})", style="dim")
-            if not b.port.startswith("tcp://"):
+            if gateway(b.port) is None:
                 line.append(f" · {b.serial_text}")
             line.append(f" · busy {load:.0%}", style="bold yellow" if load > 0.9 else "")
             line.append(f" · {bus.load.rate(now):.0f} transactions/s")

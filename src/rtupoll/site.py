@@ -24,6 +24,7 @@ from rtupoll.library import load_one
 from rtupoll.planner import plan
 from rtupoll.profile import Field, Poll, Profile
 from rtupoll.rtu import Framing
+from rtupoll.serialport import gateway
 from rtupoll.yamlsrc import Node, load
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
@@ -178,12 +179,12 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
 
 def _port(node: Node) -> str:
     port = node.text().strip()
-    if port.startswith("tcp://"):
-        host, sep, num = port[6:].rpartition(":")
-        if not sep or not host or not num.isdigit() or not 0 < int(num) < 65536:
-            raise node.fail(f"{port!r} is not tcp://HOST:PORT")
-    elif not port:
+    if not port:
         raise node.fail("the port is empty")
+    try:
+        gateway(port)  # the bus's own reading of tcp://HOST:PORT
+    except UsageError as exc:
+        raise node.fail(str(exc)) from None
     return port
 
 
@@ -353,10 +354,7 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
                              f"(its fields: {', '.join(p.names())})")
         _plannable(p, have, UsageError)
         chosen.append(have)
-    if port.startswith("tcp://"):
-        host, sep, num = port[6:].rpartition(":")
-        if not sep or not host or not num.isdigit():
-            raise UsageError(f"--port {port!r} is not tcp://HOST:PORT")
+    gateway(port)  # refuses a malformed tcp://HOST:PORT
 
     bus = BusConfig(
         name=port, port=port,
