@@ -233,10 +233,12 @@ class Bus:
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
                               function: int = 16, timeout: float, retries: int = 0,
-                              reply: str = "echo") -> None:
-        """Function 6 (one value) or 16. With ``reply`` other than "echo" a missing or
-        malformed reply is not an error and the write is not repeated: the caller
-        verifies by reading back. An exception reply is always an error."""
+                              reply: str = "echo") -> bool:
+        """Function 6 (one value) or 16; True when the device confirmed it with an echo.
+
+        With ``reply`` other than "echo" a missing or malformed reply is not an error and
+        the write is not repeated (False): the caller verifies by reading back. An
+        exception reply is always an error."""
         _check_unit(unit, broadcast=True)
         if reply not in _REPLY_MODES:
             raise UsageError(f"reply {reply!r} is not one of: {', '.join(_REPLY_MODES)}")
@@ -253,9 +255,11 @@ class Bus:
             return self._client.write_registers(  # type: ignore[no-any-return]
                 address, vals, device_id=unit, no_response_expected=unit == 0)
 
-        await self._transact(call, unit, function, timeout, retries if reply == "echo" else 0,
-                             frames=(8 if function == 6 else 9 + 2 * len(vals)) + 8,
-                             tolerate=reply != "echo")
+        echoed = await self._transact(call, unit, function, timeout,
+                                      retries if reply == "echo" else 0,
+                                      frames=(8 if function == 6 else 9 + 2 * len(vals)) + 8,
+                                      tolerate=reply != "echo")
+        return echoed is not None
 
     async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
                          retries: int = 0) -> None:

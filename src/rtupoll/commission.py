@@ -42,8 +42,7 @@ from rtupoll.errors import (
 )
 from rtupoll.profile import Field, Profile
 from rtupoll.reading import field_words, interpret
-from rtupoll.rtu import Table
-from rtupoll.writes import timing_of
+from rtupoll.writes import WriteOp, timing_of, write
 
 if TYPE_CHECKING:
     from rtupoll.bus import Bus
@@ -244,24 +243,15 @@ class Commissioner:
                       + f" (write reply: {reply})")
 
     async def _write(self, p: Profile, f: Field, old: int, new: int) -> str:
-        t = self.timing(p)
-        current: tuple[int, ...] = (0,)
-        if f.layout.type in (DataType.U8, DataType.I8):
-            current = tuple(await self.bus.read(old, Table.HOLDING, f.address, 1,
-                                                timeout=t.timeout, retries=t.retries))
-        words = field_words(f, new, current)
-        unconfirmed = self.bus.stats.outcomes["unconfirmed"]
+        """Write the new address (read-modify-write for a shared register); what came back."""
+        op = WriteOp(f, new, field_words(f, new, (0,)), p.set_address.function)
         try:
-            await self.bus.write_registers(old, f.address, words, function=p.set_address.function,
-                                           timeout=t.timeout, retries=t.retries,
-                                           reply=p.set_address.reply)
+            _, echoed = await write(self.bus, old, op, self.timing(p), reply=p.set_address.reply)
         except DeviceTimeout:
             return "none"
         except FrameError:
             return "malformed"
-        # with reply "none"/"malformed"/"any" the bus tolerates a missing or odd reply
-        return "echo" if self.bus.stats.outcomes["unconfirmed"] == unconfirmed \
-            else "none or not an echo"
+        return "echo" if echoed else "none or not an echo"
 
     async def _verify(self, change: Change) -> None:
         p, old, new = change.profile, change.old, change.new

@@ -152,21 +152,23 @@ def check_range(field: Field, value: Value) -> None:
 
 
 async def write(bus: Bus, unit: int, op: WriteOp, timing: Timing, *, reply: str = "echo"
-                ) -> tuple[int, ...]:
-    """Send one write (read-modify-write for a shared register); return the words sent."""
+                ) -> tuple[tuple[int, ...], bool]:
+    """Send one write (read-modify-write for a shared register); return the words sent
+    and whether the device confirmed them with an echo (see ``Bus.write_registers``)."""
     f = op.field
     if f.table is Table.COIL:
         await bus.write_coil(unit, f.address, bool(op.value), timeout=timing.timeout,
                              retries=timing.retries)
-        return op.words
+        return op.words, True
     words = op.words
     if op.shared:
         current = await bus.read(unit, Table.HOLDING, f.address, 1, timeout=timing.timeout,
                                  retries=timing.retries)
         words = field_words(f, op.value, current)
-    await bus.write_registers(unit, f.address, words, function=op.function,
-                              timeout=timing.timeout, retries=timing.retries, reply=reply)
-    return words
+    echoed = await bus.write_registers(unit, f.address, words, function=op.function,
+                                       timeout=timing.timeout, retries=timing.retries,
+                                       reply=reply)
+    return words, echoed
 
 
 async def read_back(bus: Bus, unit: int, field: Field, timing: Timing) -> FieldValue:

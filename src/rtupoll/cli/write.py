@@ -122,7 +122,7 @@ def _question(target: Target, lines: list[str]) -> str:
 async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing) -> list[Row]:
     rows: list[Row] = []
     for op in ops:
-        sent = await write_field(bus, unit, op, timing)
+        sent, _ = await write_field(bus, unit, op, timing)  # an echo is checked by the bus
         if "R" not in op.field.access:
             rows.append((op.field, None, "written (write-only: cannot be read back)"))
             continue
