@@ -7,6 +7,7 @@ one-shot ``rtupoll read`` does not pay for the simulator or the live table.
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import Any
 
 import click
@@ -56,6 +57,17 @@ class LazyGroup(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
 
+    def resolve_command(self, ctx: click.Context, args: list[str]
+                        ) -> tuple[str | None, click.Command | None, list[str]]:
+        name = args[0] if args else ""
+        if name and not name.startswith("-") and name not in COMMANDS:
+            import difflib
+
+            hint = difflib.get_close_matches(name, COMMANDS, n=1)
+            raise click.UsageError(f"no command {name!r}"
+                                   + (f" (did you mean {hint[0]!r}?)" if hint else ""), ctx)
+        return super().resolve_command(ctx, args)
+
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name not in COMMANDS:
             return None
@@ -82,5 +94,20 @@ def cli() -> None:
 
 
 def main(argv: list[str] | None = None) -> Any:
-    """The console script."""
-    return cli.main(args=argv, prog_name="rtupoll")
+    """The console script: usage mistakes are one line too, like every other error."""
+    try:
+        code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
+    except click.exceptions.NoArgsIsHelpError as exc:  # plain 'rtupoll': the help
+        click.echo(exc.ctx.get_help() if exc.ctx else str(exc))
+        sys.exit(0)
+    except click.exceptions.UsageError as exc:
+        where = exc.ctx.command_path if exc.ctx else "rtupoll"
+        click.echo(f"rtupoll: {exc.format_message()} (see '{where} --help')", err=True)
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo("rtupoll: interrupted", err=True)
+        sys.exit(130)
+    sys.exit(code if isinstance(code, int) else 0)

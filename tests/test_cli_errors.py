@@ -1,0 +1,39 @@
+"""Usage mistakes through the real console script: one line each, exit 2, no traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
+    return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
+                          text=True, timeout=60, env=env)
+
+
+@pytest.mark.parametrize(("args", "line"), [
+    (["read", "huiwen-aq@3"],
+     "rtupoll: Missing option '--port' / '-p'. (see 'rtupoll read --help')"),
+    (["reed"], "rtupoll: no command 'reed' (did you mean 'read'?) (see 'rtupoll --help')"),
+    (["poll", "--simulate", "--bogus"],
+     "rtupoll: No such option '--bogus'. Did you mean '--baud'? (see 'rtupoll poll --help')"),
+    (["read", "-p", "/dev/null", "huiwen-aq@300"],
+     "rtupoll: address 300 is outside 0..255 in 'huiwen-aq@300'"),
+])
+def test_usage_mistakes_are_one_line_and_exit_2(args: list[str], line: str) -> None:
+    proc = rtupoll(*args)
+    assert proc.returncode == 2
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.strip() == line
+    assert "Traceback" not in proc.stderr
+
+
+def test_plain_rtupoll_prints_the_help() -> None:
+    proc = rtupoll()
+    assert proc.returncode == 0
+    assert proc.stdout.startswith("Usage: rtupoll [OPTIONS] COMMAND [ARGS]...")
+    assert "Exit codes:" in proc.stdout
