@@ -216,8 +216,8 @@ def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
     assert result.exit_code == 0, result.stderr
     by = {(r["address"], r["field"]): r for r in records(result)}
     old = by[1, "calibration_gas_level"]
-    assert (old["status"], old["value"], old["error"]) == ("absent", None,
-                                                           "not in data structure 0")
+    assert (old["status"], old["value"], old["error"], old["severity"]) == (
+        "absent", None, "not in data structure 0", "info")
     assert by[1, "concentration"]["status"] == "ok"
     assert by[2, "calibration_gas_level"]["value"] == 50.0
     # the probe read input 0x0400 once per device; no request touched 0x0200 on unit 1

@@ -194,7 +194,7 @@ def test_on_a_newer_data_structure_the_same_field_is_read(sim: Sim) -> None:
 
 def test_unknown_field_or_profile_is_exit_2_with_a_hint() -> None:
     result = run("read", "-p", "/dev/null", "huiwen-aq@1", "co3")
-    assert result.exit_code == 2 and "has no field 'co3'" in result.stderr
+    assert result.exit_code == 2 and "has no field 'co3' (did you mean 'co2'?)" in result.stderr
     result = run("read", "-p", "/dev/null", "huiwen@1")
     assert result.exit_code == 2 and "did you mean 'huiwen-aq'" in result.stderr
     result = run("read", "-p", "/dev/null", "huiwen-aq@1", "input:3")

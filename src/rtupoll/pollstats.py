@@ -58,6 +58,8 @@ class Reading:
         else:
             rec = failed_record(d.name, d.profile.id, d.address, self.field.name,
                                 self.field.unit, self.status, self.error)
+            if self.status == "absent":  # the device's variant lacks it: no failure
+                rec["severity"] = "info"
         rec["time"] = iso_time(self.time)
         return rec
 

@@ -216,7 +216,12 @@ class Profile:
         for f in self.fields:
             if f.name == name:
                 return f
-        raise UsageError(f"{self.id} has no field {name!r} (fields: {', '.join(self.names())})")
+        import difflib
+
+        hint = difflib.get_close_matches(name, self.names(), n=3)
+        raise UsageError(f"{self.id} has no field {name!r}"
+                         + (f" (did you mean {' or '.join(map(repr, hint))}?)" if hint else "")
+                         + f"; 'rtupoll profiles show {self.id}' lists them")
 
     def names(self) -> list[str]:
         return [f.name for f in self.fields]
