@@ -125,12 +125,10 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               interval=DEFAULT_INTERVAL if interval is None else interval,
                               fields=_split(fields), timeout=timeout, retries=retries,
                               profile_dirs=profile_dirs, check_serial=False)
-            if not (baud or baudrate):  # say what the footer's load figures assume
-                name = "simulated, no wire timing"
-                site = dataclasses.replace(site, buses=tuple(
-                    dataclasses.replace(b, name=name) for b in site.buses))
+            site = dataclasses.replace(site, buses=tuple(
+                dataclasses.replace(b, name="simulated") for b in site.buses))
             title = "simulated bus" + (f", {baud or baudrate} baud" if baud or baudrate
-                                       else "")
+                                       else ", untimed")
             _run(site, once=once, fmt=fmt, output=output, title=title)
         if fmt == "table" and not once and not faults:
             click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
