@@ -191,3 +191,14 @@ def test_written_site_file_loads_and_leaves_out_what_cannot_share_the_bus(
     assert site.buses[0].baudrate == 9600
     assert any("co2meter-an117" in n and "115200" in n for n in notes)
     assert any("unknown device at 40" in n for n in notes)
+
+
+def test_the_site_file_takes_the_setting_most_found_devices_can_run_at() -> None:
+    # a bus that answered at every speed tried (a forgiving adapter, or the untimed
+    # simulator): 4800 comes first, but only the IRNET runs there; four run at 9600
+    found = [Found(a, Setting(rate), BY_ID[pid]) for rate in (4800, 9600)
+             for pid, a in (("net-irnet-pro", 1), ("radar-level", 2), ("huiwen-aq", 3),
+                            ("banner-ez-array", 5))]
+    text, _ = site_yaml("/dev/ttyUSB0", found, [])
+    assert text is not None and "baudrate: 9600" in text
+    assert text.count("profile:") == 4

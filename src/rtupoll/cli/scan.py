@@ -227,15 +227,19 @@ def site_yaml(port: str, results: Sequence[Found], dirs: Sequence[Path],
     """The site file for the identified devices, and notes on what was left out and why.
 
     One port is one bus at one speed, so the setting with the most identified devices
-    is written; devices found at other settings, or whose profile cannot run at this
-    one, become comments (a site file that does not load helps nobody).
+    that can run at it is written; devices found at other settings, or whose profile
+    cannot run at this one, become comments (a site file that does not load helps
+    nobody).
     """
     ids = [f for f in results if f.profile is not None]
     if not ids:
         return None, []
     counts: dict[Setting, int] = {}
     for f in ids:
-        counts[f.setting] = counts.get(f.setting, 0) + 1
+        assert f.profile is not None
+        runs = f.setting.baudrate in f.profile.serial.baudrates \
+            and f.setting.parity == f.profile.serial.parity
+        counts[f.setting] = counts.get(f.setting, 0) + (1 if runs else 0)
     best = max(counts, key=lambda s: counts[s])
     keep: list[Found] = []
     left: list[str] = []
