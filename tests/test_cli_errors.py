@@ -37,3 +37,9 @@ def test_plain_rtupoll_prints_the_help() -> None:
     assert proc.returncode == 0
     assert proc.stdout.startswith("Usage: rtupoll [OPTIONS] COMMAND [ARGS]...")
     assert "Exit codes:" in proc.stdout
+
+
+def test_a_file_that_is_not_a_serial_port_says_so() -> None:
+    proc = rtupoll("read", "-p", "/dev/null", "huiwen-aq@1", "co2")
+    assert proc.returncode == 3
+    assert proc.stderr == "rtupoll: /dev/null is not a serial port\n"

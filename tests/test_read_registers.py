@@ -87,3 +87,9 @@ def test_reads_are_split_at_the_device_limit_without_splitting_a_value() -> None
 def test_a_run_past_the_last_register_is_refused() -> None:
     with pytest.raises(UsageError, match="past the last"):
         parse_spec("holding:0xFFFF:2")
+
+
+def test_a_mistyped_table_is_named_with_a_suggestion() -> None:
+    with pytest.raises(UsageError, match=r"'inptu:30006': unknown table 'inptu' \(did you mean "
+                                         r"'input'\?\); tables: coil, discrete, input, holding"):
+        parse_spec("inptu:30006")

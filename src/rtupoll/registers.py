@@ -92,6 +92,14 @@ def parse_spec(text: str, *, addressing: Addressing = Addressing.PDU, type_name:
     table: Table | None = None
     if parts and parts[0].lower() in TABLE_ALIASES:
         table = TABLE_ALIASES[parts.pop(0).lower()]
+    elif parts and parts[0][:1].isalpha() and not parts[0].lower().startswith("0x") \
+            and not parts[0].lower().endswith("h"):
+        import difflib
+
+        hint = difflib.get_close_matches(parts[0].lower(), list(TABLE_ALIASES), n=1)
+        raise UsageError(f"{text!r}: unknown table {parts[0]!r}"
+                         + (f" (did you mean {hint[0]!r}?)" if hint else "")
+                         + f"; tables: {', '.join(t.value for t in Table)}")
     if not 1 <= len(parts) <= 2 or not all(parts):
         raise UsageError(f"{text!r} is not a register spec: {SYNTAX}")
     try:

@@ -111,7 +111,8 @@ def open_error(port: str, exc: BaseException) -> str:
         hint = f" (serial ports present: {', '.join(seen)})" if seen else \
             " (is the adapter plugged in?)"
         return f"{path} does not exist{hint}"
-    if code in (errno.ENOTTY, errno.EINVAL):
+    if code in (errno.ENOTTY, errno.EINVAL) or f"({errno.ENOTTY}, " in text:
+        # pyserial reports a failed termios call as "Could not configure port: (25, ...)"
         return f"{path} is not a serial port"
     if isinstance(exc, ValueError):
         return f"{path}: {text}"
