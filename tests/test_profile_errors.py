@@ -79,3 +79,17 @@ def test_bad_user_profile_directory_fails_listing_with_its_error(tmp_path: Path)
     assert result.exit_code == 2
     assert result.stderr == f"rtupoll: {tmp_path}/mine.yaml:7: fields[0].unti: unknown key " \
                             "(did you mean 'unit'?)\n"
+
+
+@pytest.mark.parametrize("columns", ["80", "140"])
+def test_show_prints_wire_and_manual_addresses_flags_and_codes(columns: str) -> None:
+    result = CliRunner().invoke(cli, ["profiles", "show", "banner-ez-array"],
+                                env={"COLUMNS": columns})
+    assert result.exit_code == 0
+    out = result.stdout
+    words = " ".join(out.split())  # descriptions may wrap
+    assert "hr 40001 = 0x9C41" in out and "ir 30521 = 0x7739" in out  # never cut
+    assert "[NEVER polled]" in words and "[on request]" in words
+    assert "set-address slave_address via FC16" in out
+    assert "measurement_1_mode: 0=DISABLED, 1=FBB" in words
+    assert max(len(line) for line in out.splitlines()) <= int(columns)

@@ -6,8 +6,10 @@ import json
 from pathlib import Path
 
 import click
+from rich import box
 from rich.console import Console
 from rich.table import Table as RichTable
+from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import ProfileError
@@ -48,22 +50,37 @@ def list_(profile_dirs: tuple[Path, ...], fmt: str) -> None:
 @click.argument("profile_id")
 @profiles_option
 def show(profile_id: str, profile_dirs: tuple[Path, ...]) -> None:
-    """The register map of one profile: wire and manual addresses, types, units, codes."""
+    """The register map of one profile: wire and manual addresses, types, units, codes.
+
+    Tables are abbreviated as for 'read --raw': co coil, di discrete input, ir input
+    register, hr holding register.
+    """
     p = load_one(profile_id, profile_dirs)
     console = Console()
     console.print(_summary(p), highlight=False)
-    pdu = p.addressing.value == "pdu"
-    t = RichTable(title=f"{p.id} register map", title_justify="left")
-    t.add_column("field", no_wrap=True, style="bold")
-    t.add_column("table", no_wrap=True)
-    t.add_column("address" if pdu else "wire  (manual)", no_wrap=True)
+    narrow = console.width < 110  # descriptions under the names, so addresses stay whole
+    t = RichTable(title=f"{p.id} register map", title_justify="left", box=box.SIMPLE_HEAD,
+                  pad_edge=False)
+    t.add_column("field" + ("  (description)" if narrow else ""), no_wrap=not narrow,
+                 style="bold", ratio=1 if narrow else None)
+    t.add_column("where" if p.addressing.value == "pdu" else "where  (= on the wire)",
+                 no_wrap=True)
     t.add_column("type", no_wrap=True)
     t.add_column("unit", no_wrap=True)
-    t.add_column("access", no_wrap=True)
-    t.add_column("description", ratio=1)
+    t.add_column("R/W", no_wrap=True)
+    if not narrow:
+        t.add_column("description", ratio=1)
     for f in p.fields:
-        address = f"0x{f.address:04X}" if pdu else f"0x{f.address:04X} ({f.written})"
-        t.add_row(f.name, f.table.value, address, _type(f), _unit(f), _access(f), _describe(f))
+        where = f"{_TABLE[f.table.value]} {f.written}"
+        if f.written != f"0x{f.address:04X}":
+            where += f" = 0x{f.address:04X}"
+        cells = [where, _type(f), _unit(f), f.access]
+        desc = _describe(f)
+        if narrow:
+            t.add_row(Text(f.name, style="bold") + (Text("\n" + desc, style="dim not bold")
+                                                     if desc else Text()), *cells)
+        else:
+            t.add_row(f.name, *cells, Text(desc))
     console.print(t)
     coded = [f for f in p.fields if f.enum or f.flags or f.other]
     if coded:
@@ -71,6 +88,9 @@ def show(profile_id: str, profile_dirs: tuple[Path, ...]) -> None:
                       "[red]error[/], [yellow]warning[/], [cyan]info[/])", highlight=False)
         for f in coded:
             console.print(f"  [bold]{f.name}[/]: {_codes(f)}", highlight=False)
+
+
+_TABLE = {"coil": "co", "discrete": "di", "input": "ir", "holding": "hr"}
 
 
 @profiles.command("check")
@@ -120,7 +140,7 @@ def _type(f: Field) -> str:
     if t == "string":
         return f"string({2 * f.words})"
     if t in ("u8", "i8"):
-        return f"{t} {f.layout.byte} byte"
+        return f"{t} {f.layout.byte}"
     return f"{t} {f.layout.order.value}" if f.words > 1 else t
 
 
@@ -133,20 +153,13 @@ def _unit(f: Field) -> str:
     return " ".join(parts)
 
 
-def _access(f: Field) -> str:
-    extra = {"default": "", "on_request": " on request", "never": " [red]NEVER polled[/]"}
-    return f.access + extra[f.poll.value] + (" alone" if f.alone else "")
-
-
 def _describe(f: Field) -> str:
-    text = f.description
-    if f.range:
-        text += f" [{f.minimum:g}..{f.maximum:g}]"
-    if f.since:
-        text += f" (from variant {f.since})"
-    if f.source == "public":
-        text += " (public source)"
-    return text.strip()
+    tags = {"default": [], "on_request": ["on request"], "never": ["NEVER polled"]}[f.poll.value]
+    tags += ["read alone"] if f.alone else []
+    tags += [f"{f.minimum:g}..{f.maximum:g}"] if f.range else []
+    tags += [f"variant {f.since}+"] if f.since else []
+    tags += ["public source"] if f.source == "public" else []
+    return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()
 
 
 _STYLE = {"error": "red", "warning": "yellow", "info": "cyan", "ok": ""}
