@@ -35,12 +35,16 @@ def list_(profile_dirs: tuple[Path, ...], fmt: str) -> None:
                                    "manual": p.manual, "path": p.path,
                                    "bundled": Path(p.path).parent == bundled_dir()}))
         return
-    t = RichTable(title="Device profiles")
-    for col in ("id", "vendor", "model", "serial", "fields", "source"):
-        t.add_column(col)
+    t = RichTable(title="Device profiles", box=box.SIMPLE_HEAD, pad_edge=False)
+    t.add_column("id", no_wrap=True, style="bold")
+    t.add_column("device", ratio=1)
+    t.add_column("serial", no_wrap=True)
+    t.add_column("fields", justify="right")
+    t.add_column("from", no_wrap=True)
     for p in rows:
         s = p.serial
-        t.add_row(p.id, p.vendor, p.model, f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}",
+        t.add_row(p.id, f"{p.vendor}: {p.model}",
+                  f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}",
                   str(len(p.fields)),
                   "bundled" if Path(p.path).parent == bundled_dir() else p.path)
     Console().print(t)
