@@ -67,7 +67,7 @@ def test_json_report_says_what_was_and_was_not_changed(sim: Sim) -> None:
                  "--plan", str(PLAN))
     rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(r["row"], r["status"], r["exit_code"]) for r in rows] == [
-        (1, "changed", 0), (2, "failed", 8), (3, "not run", 0)]
+        (1, "changed", 0), (2, "failed", 8), (3, "not run", None)]
     assert result.exit_code == 8
 
 

@@ -95,7 +95,8 @@ class Result:
         c = self.change
         return {"row": row, "profile": c.profile.id, "address": c.old, "new": c.new,
                 "status": self.status.value, "detail": self.detail,
-                "exit_code": self.error.exit_code if self.error else 0}
+                "exit_code": self.error.exit_code if self.error
+                else None if self.status is Status.NOT_RUN else 0}
 
 
 def address_field(profile: Profile) -> Field:
