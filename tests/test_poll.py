@@ -223,3 +223,27 @@ def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
     # the probe read input 0x0400 once per device; no request touched 0x0200 on unit 1
     asked = [f.data for f in bus.wire if f.direction == "in"]
     assert not any(a[0] == 1 and a[1] == 3 and a[2:4] == b"\x02\x00" for a in asked)
+
+
+def test_a_device_whose_every_asked_field_is_absent_stays_online(
+        sim: Callable[..., SimulatedBus]) -> None:
+    import asyncio
+
+    from rtupoll.scheduler import Scheduler
+    from rtupoll.site import from_specs
+
+    bus = sim("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"])
+    site = from_specs(bus.port, [("net-irnet-pro", 1)], fields=["uart_speed"], interval=0)
+
+    async def three_scans() -> tuple[str, int, int]:
+        scheduler = Scheduler(site)
+        await scheduler.open()
+        try:
+            for _ in range(3):
+                await scheduler.scan_once(lambda d, rs: None)
+            st = scheduler.pollers()[0].stats
+            return st.state.value, st.failures, st.requests
+        finally:
+            await scheduler.close()
+    # one probe learns data structure 0; nothing else is ever sent, and it is no failure
+    assert asyncio.run(three_scans()) == ("online", 0, 1)

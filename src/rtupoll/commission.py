@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 from rtupoll import rtu
 from rtupoll.codec import DataType
 from rtupoll.device import Timing
+from rtupoll.device import timing as device_timing
 from rtupoll.errors import (
     DeviceException,
     DeviceTimeout,
@@ -42,7 +43,7 @@ from rtupoll.errors import (
 )
 from rtupoll.profile import Field, Profile
 from rtupoll.reading import field_words, interpret
-from rtupoll.writes import WriteOp, timing_of, write
+from rtupoll.writes import WriteOp, write
 
 if TYPE_CHECKING:
     from rtupoll.bus import Bus
@@ -182,7 +183,7 @@ class Commissioner:
         self.log = log or (lambda _msg: None)
 
     def timing(self, profile: Profile) -> Timing:
-        return timing_of(profile, self.timeout, self.retries)
+        return device_timing(profile, self.timeout, self.retries)
 
     async def presence(self, profile: Profile, unit: int) -> Presence:
         f = address_field(profile)

@@ -15,7 +15,7 @@ from typing import Protocol
 
 from rtupoll.errors import DeviceException, FrameError
 from rtupoll.planner import Block, decode_block, plan
-from rtupoll.profile import Field, Profile
+from rtupoll.profile import Field, Limits, Profile
 from rtupoll.reading import FieldValue
 from rtupoll.rtu import Table
 
@@ -35,11 +35,13 @@ class Timing:
     retries: int
 
 
-def timing(profile: Profile, timeout: float | None = None, retries: int | None = None
+def timing(profile: Profile | None, timeout: float | None = None, retries: int | None = None
            ) -> Timing:
-    """The caller's overrides, else the profile's ``limits.timeout`` / ``limits.retries``."""
-    return Timing(profile.limits.timeout if timeout is None else timeout,
-                  profile.limits.retries if retries is None else retries)
+    """The caller's overrides, else the profile's ``limits.timeout`` / ``limits.retries``
+    (with no profile, the defaults a profile gets when it says nothing)."""
+    limits = profile.limits if profile is not None else Limits()
+    return Timing(limits.timeout if timeout is None else timeout,
+                  limits.retries if retries is None else retries)
 
 
 async def read_block(bus: Reader, unit: int, block: Block, *, timeout: float,

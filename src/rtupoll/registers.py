@@ -96,9 +96,9 @@ def parse_spec(text: str, *, addressing: Addressing = Addressing.PDU, type_name:
             and not parts[0].lower().endswith("h"):
         import difflib
 
-        hint = difflib.get_close_matches(parts[0].lower(), list(TABLE_ALIASES), n=1)
+        close = difflib.get_close_matches(parts[0].lower(), list(TABLE_ALIASES), n=1)
         raise UsageError(f"{text!r}: unknown table {parts[0]!r}"
-                         + (f" (did you mean {hint[0]!r}?)" if hint else "")
+                         + (f" (did you mean {close[0]!r}?)" if close else "")
                          + f"; tables: {', '.join(t.value for t in Table)}")
     if not 1 <= len(parts) <= 2 or not all(parts):
         raise UsageError(f"{text!r} is not a register spec: {SYNTAX}")

@@ -96,7 +96,8 @@ class DevicePoller:
         self.resume = 0  # index of the block the next cycle starts at
         self.last_run = -1  # sequence number of the last cycle, for round-robin ties
         self._clock, self._wall = clock, wall
-        self.nominal = nominal_cycle(self.blocks, config, framing or Framing(9600))
+        self.framing = framing or Framing(9600)
+        self.nominal = nominal_cycle(self.blocks, config, self.framing)
         self._used, self._used_at = 0.0, clock()  # in nominal cycles, decaying
 
     def used(self, now: float) -> float:
@@ -126,7 +127,9 @@ class DevicePoller:
                 readings = [Reading(wall, cfg, f, None, "timeout", silent) for f in cfg.fields]
                 st.record(readings, answered=False)
                 return readings
+            answered = not self.variant_unknown  # the probe had its answer
         n = len(self.blocks)
+        answered = answered or n == 0  # every field asked for is absent: nothing can fail
         for k in range(n):
             idx = (self.resume + k) % n
             block = self.blocks[idx]
@@ -173,6 +176,7 @@ class DevicePoller:
         if variant is None:
             return ""
         self.blocks = plan(cfg.fields, cfg.profile, variant=variant)
+        self.nominal = nominal_cycle(self.blocks, cfg, self.framing)
         self.absent = tuple(f for f in cfg.fields if f.since > variant)
         assert cfg.profile.variant is not None
         self.absent_why = f"not in {cfg.profile.variant.name} {variant}"

@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING
 
 from rtupoll import rtu
 from rtupoll.codec import DataType, EncodeError, Value, decode, words_to_hex
-from rtupoll.device import Timing, timing
+from rtupoll.device import Timing
 from rtupoll.errors import RefusedError, UsageError, VerificationError
-from rtupoll.profile import Field, Profile
+from rtupoll.profile import Field
 from rtupoll.reading import FieldValue, field_words, interpret
 from rtupoll.registers import RegisterSpec, parse_values, words_of
 from rtupoll.rtu import Table
@@ -32,14 +32,6 @@ if TYPE_CHECKING:
     from rtupoll.bus import Bus
 
 RAW_FUNCTIONS = frozenset({5, 6, 15, 16})  # a device with no profile: assume the usual set
-
-
-def timing_of(profile: Profile | None, timeout: float | None = None,
-              retries: int | None = None) -> Timing:
-    """The user's overrides, else the profile's limits (0.5 s, 1 retry with no profile)."""
-    if profile is not None:
-        return timing(profile, timeout, retries)
-    return Timing(0.5 if timeout is None else timeout, 1 if retries is None else retries)
 
 
 @dataclass(frozen=True)
@@ -244,15 +236,7 @@ def plan_raw_write(spec: RegisterSpec, text: str, functions: frozenset[int]) -> 
         words = words_of([field_words(f, v) for f, v in zip(spec.fields(), values, strict=True)])
     except EncodeError as exc:
         raise RefusedError(f"{spec.label(0)}: {exc}") from None
-    if spec.table is Table.COIL:
-        if 5 not in functions:
-            raise RefusedError("the device does not implement FC05 (write coil)")
-        return RawWrite(spec, values, words, 5)
-    if len(words) == 1 and 6 in functions:
-        return RawWrite(spec, values, words, 6)
-    if 16 in functions:
-        return RawWrite(spec, values, words, 16)
-    raise RefusedError(f"the device implements no write for {len(words)} registers")
+    return RawWrite(spec, values, words, choose_function(spec.fields()[0], len(words), functions))
 
 
 async def write_raw(bus: Bus, unit: int, rw: RawWrite, timing: Timing) -> None:

@@ -18,12 +18,12 @@ from rtupoll.cli.options import format_option, port_options, profiles_option
 from rtupoll.cli.target import Target, load_target, port_settings, run_on_bus, timing_options
 from rtupoll.codec import ByteOrder, words_to_hex
 from rtupoll.device import Timing
+from rtupoll.device import timing as device_timing
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.output import READ_KEYS, record
 from rtupoll.profile import Addressing, Field, Poll, Profile
 from rtupoll.reading import FieldValue, interpret
 from rtupoll.registers import RegisterSpec, parse_spec, split_reads
-from rtupoll.writes import timing_of
 
 F = TypeVar("F", bound=Callable[..., object])
 TYPES = ["u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64", "string"]
@@ -113,7 +113,7 @@ def read(device: str, items: tuple[str, ...], port: str, baudrate: int | None,
         raise UsageError("a bare address needs --raw")
     if not raw and (addressing != "pdu" or order or type_name != "u16"):
         raise UsageError("--one-based, --modicon, --type and --order are for --raw reads")
-    timing = timing_of(target.profile, timeout, retries)
+    timing = device_timing(target.profile, timeout, retries)
     if raw:
         specs = specs_of(target, items, addressing, type_name, order)
         max_regs = target.profile.limits.max_registers if target.profile else 125

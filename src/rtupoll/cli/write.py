@@ -23,6 +23,7 @@ from rtupoll.cli.target import (
     timing_options,
 )
 from rtupoll.device import Timing
+from rtupoll.device import timing as device_timing
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.writes import (
     RAW_FUNCTIONS,
@@ -31,7 +32,6 @@ from rtupoll.writes import (
     plan_raw_write,
     plan_write,
     read_back,
-    timing_of,
     verify,
     verify_raw,
     write_raw,
@@ -94,7 +94,7 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
     if not raw and (addressing != "pdu" or order or type_name != "u16" or function):
         raise UsageError("--one-based, --modicon, --type, --order and --function are for "
                          "--raw writes")
-    timing = timing_of(target.profile, timeout, retries)
+    timing = device_timing(target.profile, timeout, retries)
     if raw:
         functions = target.profile.limits.functions if target.profile else RAW_FUNCTIONS
         if function:
