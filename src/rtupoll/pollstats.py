@@ -83,7 +83,6 @@ def percentile(values: Iterable[float], q: float) -> float | None:
 class DeviceStats:
     """Health of one device since polling started."""
 
-    fields: Sequence[Field]
     requests: int = 0
     ok: int = 0
     timeouts: int = 0
@@ -126,7 +125,6 @@ class BusLoad:
     def __init__(self, started: float) -> None:
         self.started = started
         self.transactions = 0
-        self.busy = 0.0  # seconds, since the start
         self._failed_by: object = None  # the last transaction timed out or was garbled
         self._recent: deque[tuple[float, float]] = deque()  # (end time, duration)
 
@@ -140,7 +138,6 @@ class BusLoad:
         """
         after_failure, self._failed_by = self._failed_by, failed_by
         self.transactions += 1
-        self.busy += duration
         self._recent.append((end, duration))
         while self._recent and self._recent[0][0] < end - LOAD_WINDOW:
             self._recent.popleft()

@@ -90,7 +90,7 @@ class DevicePoller:
             f.since for f in config.fields)
         self.absent: tuple[Field, ...] = ()
         self.absent_why = ""
-        self.stats = DeviceStats(config.fields)
+        self.stats = DeviceStats()
         self.load = bus
         self.next_due = 0.0
         self.resume = 0  # index of the block the next cycle starts at
