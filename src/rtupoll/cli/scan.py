@@ -174,21 +174,27 @@ def _report(results: Sequence[Found], fmt: str) -> None:
         for f in results:
             click.echo(json.dumps(record(f), ensure_ascii=False))
         return
+    from rich import box
     from rich.console import Console
     from rich.table import Table as RichTable
+    from rich.text import Text
 
     addresses = len({f.address for f in results})
     t = RichTable(title=f"{addresses} address(es) answered" + (
-        f", {len(results)} answers at several settings" if len(results) > addresses else ""))
-    for col in ("address", "serial", "profile", "device", "evidence / answers"):
-        t.add_column(col, overflow="fold")
+        f", {len(results)} answers at several settings" if len(results) > addresses else ""),
+        title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
+    t.add_column("address", justify="right", no_wrap=True)
+    t.add_column("serial", no_wrap=True)
+    t.add_column("profile  (device)", ratio=2)
+    t.add_column("evidence / answers", ratio=3)
     for f in results:
         p = f.profile
-        t.add_row(str(f.address), str(f.setting),
-                  p.id if p else f"[yellow]{f.status}[/]",
-                  f"{p.vendor} {p.model}" if p else
-                  ("wrong speed, or two devices answering?" if f.garbled else "no profile matches"),
-                  "\n".join(f.evidence if p else f.answers))
+        what = Text(p.id, style="bold") + Text(f"\n{p.vendor} {p.model}", style="dim") if p \
+            else Text(f.status, style="yellow") + Text(
+                "\nwrong speed, or two devices answering?" if f.garbled
+                else "\nno profile matches", style="dim")
+        t.add_row(str(f.address), str(f.setting), what,
+                  Text("\n".join(f.evidence if p else f.answers)))
     Console().print(t)
 
 
