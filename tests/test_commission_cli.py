@@ -113,6 +113,14 @@ class Terminal:
         os.close(self.fd)
         return code
 
+    def __enter__(self) -> Terminal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:  # a failed expectation: do not leave it running
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+
 
 def connect_new_sensor(bus: SimulatedBus, device: str) -> None:
     """Wire one more factory-fresh sensor onto the simulated bus."""
@@ -121,9 +129,8 @@ def connect_new_sensor(bus: SimulatedBus, device: str) -> None:
 
 def test_interactive_gives_each_new_sensor_the_next_free_address(sim: Sim) -> None:
     bus = sim("radar-level@1", "huiwen-aq@10", tick=None)  # 10 is taken already
-    term = Terminal([sys.executable, "-m", "rtupoll", "set-address", "-p", bus.port, *FAST,
-                     "--interactive", "radar-level@1", "10"])
-    try:
+    with Terminal([sys.executable, "-m", "rtupoll", "set-address", "-p", bus.port, *FAST,
+                      "--interactive", "radar-level@1", "10"]) as term:
         term.expect("gets the next free address from 10.")
         term.expect("press Enter")
         term.type("\n")
@@ -143,17 +150,13 @@ def test_interactive_gives_each_new_sensor_the_next_free_address(sim: Sim) -> No
         term.expect("press Enter")
         term.type("q\n")
         assert term.close() == 0
-    finally:
-        if term.proc.poll() is None:
-            term.proc.kill()
     assert sorted(d.address for d in bus.device_list()) == [10, 11, 12]
 
 
 def test_interrupting_the_interactive_session_prints_the_summary(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    term = Terminal([sys.executable, "-m", "rtupoll", "set-address", "-p", bus.port, *FAST,
-                     "--interactive", "radar-level@1"])
-    try:
+    with Terminal([sys.executable, "-m", "rtupoll", "set-address", "-p", bus.port, *FAST,
+                      "--interactive", "radar-level@1"]) as term:
         term.expect("gets the next free address from 2.")
         term.expect("press Enter")
         term.type("\n")
@@ -163,6 +166,3 @@ def test_interrupting_the_interactive_session_prints_the_summary(sim: Sim) -> No
         term.expect("So far: 1 sensor readdressed (2).")
         term.expect("rtupoll: interrupted")
         assert term.close() == 130
-    finally:
-        if term.proc.poll() is None:
-            term.proc.kill()

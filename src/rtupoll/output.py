@@ -8,7 +8,6 @@ why in ``status`` and ``error``: it never carries a stale value.
 from __future__ import annotations
 
 import csv
-import io
 import json
 from collections.abc import Mapping
 from typing import Any, TextIO
@@ -70,9 +69,3 @@ def _cell(v: Any) -> str:
         return " ".join(str(x) for x in v) if all(isinstance(x, int) for x in v) \
             else "|".join(str(x) for x in v)
     return str(v)
-
-
-def csv_line(rec: Mapping[str, Any], keys: tuple[str, ...]) -> str:
-    buf = io.StringIO()
-    CsvWriter(buf, keys).write(rec)
-    return buf.getvalue().splitlines()[1]

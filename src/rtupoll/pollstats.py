@@ -92,7 +92,6 @@ class DeviceStats:
     state: State = State.STARTING
     failures: int = 0  # cycles in a row with no valid reply
     cycles: int = 0
-    last_error: str = ""
     latest: dict[str, Reading] = field(default_factory=dict)  # field -> this cycle's outcome
     last_good: dict[str, Reading] = field(default_factory=dict)  # field -> last value read
     last_good_time: float | None = None
@@ -105,8 +104,6 @@ class DeviceStats:
             if r.ok:
                 self.last_good[r.field.name] = r
                 self.last_good_time = r.time
-        errors = [r.error for r in readings if not r.ok and r.status not in ("skipped", "absent")]
-        self.last_error = errors[0] if errors else ""
 
     @property
     def exception_count(self) -> int:

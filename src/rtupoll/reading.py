@@ -10,7 +10,16 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.codec import DataType, Value, active_flags, decode, encode, enum_code, flags_mask
+from rtupoll.codec import (
+    DataType,
+    Value,
+    active_flags,
+    decode,
+    encode,
+    enum_code,
+    enum_name,
+    flags_mask,
+)
 from rtupoll.profile import Field, Severity
 
 
@@ -39,7 +48,7 @@ def interpret(field: Field, words: Sequence[int]) -> FieldValue:
             if field.other:
                 other = field.other
                 return FieldValue(field, f"{other.name} ({value})", raw, value, other.severity)
-            return FieldValue(field, f"unknown ({value})", raw, value, Severity.WARNING)
+            return FieldValue(field, enum_name(value, {}), raw, value, Severity.WARNING)
         return FieldValue(field, choice.name, raw, value, choice.severity)
     if field.flags and isinstance(value, int):
         names = active_flags(value, {m: c.name for m, c in field.flags.items()})

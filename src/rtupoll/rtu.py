@@ -59,10 +59,6 @@ FUNCTION_NAMES: dict[int, str] = {
     16: "write multiple registers",
 }
 
-BROADCAST = 0
-MAX_UNIT = 247  # highest ordinary address; 248..255 are reserved but used (e.g. 0xFE)
-
-
 def parse_int(text: str) -> int:
     """Decimal, 0x hex or a trailing h (``254``, ``0xFE``, ``FEh``), as manuals write them."""
     t = text.strip().lower()

@@ -269,7 +269,6 @@ class BusPoller:
             readings = [Reading(self._wall(), dev.config, f, None, "port", str(exc))
                         for f in dev.config.fields]
             dev.stats.latest.update({r.field.name: r for r in readings})
-            dev.stats.last_error = str(exc)
             pause = min(PORT_RETRY_CAP, 0.5 * 2 ** min(self._port_failures, 10))
             for d in self.devices:
                 d.next_due = max(d.next_due, self._clock() + pause)

@@ -167,10 +167,9 @@ def _split(fields: str | None) -> list[str]:
 def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequence[str]
                ) -> Iterator[tuple[str, list[tuple[str, int]]]]:
     """Start the simulator in-process; yield its port and the devices it serves."""
-    from rtupoll.sim.scenario import DEFAULT_DEVICES
-    from rtupoll.sim.testing import simulated_bus
+    from rtupoll.sim.testing import SEED_DEVICES, simulated_bus
 
-    specs = [(d.profile, d.address) for d in devices] or [_pair(s) for s in DEFAULT_DEVICES]
+    specs = [(d.profile, d.address) for d in devices] or list(SEED_DEVICES)
     with simulated_bus([f"{p}@{a}" for p, a in specs], baudrate=baudrate,
                        faults=tuple(faults)) as sim:
         yield sim.port, specs
@@ -309,8 +308,3 @@ def _report_failures(site: Site, readings: Sequence[Reading]) -> None:
     if failed:
         total = sum(len(b.devices) for b in site.buses)
         raise ScanIncomplete(f"{len(failed)} of {total} devices failed")
-
-
-def _pair(spec: str) -> tuple[str, int]:
-    pid, _, addr = spec.rpartition("@")
-    return pid, int(addr, 0)

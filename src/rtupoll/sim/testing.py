@@ -202,11 +202,6 @@ class SimulatedBus:
         with self._server.wire_lock:
             return tuple(self._server.wire)
 
-    def clear_wire(self) -> None:
-        if self._server is not None:
-            with self._server.wire_lock:
-                self._server.wire.clear()
-
     def wait_wire(self, count: int = 1, *, direction: str = "out", timeout: float = 2.0,
                   after: float = 0.0) -> list[WireFrame]:
         """Wait until ``count`` frames in ``direction`` newer than ``after`` are logged."""
