@@ -2,8 +2,8 @@
 
 The simulator runs as ``rtupoll simulate --baud N`` in a separate process, so the
 poller's figures (time, CPU) are its own and the two do not share a GIL. The
-poller under test is the real one: ``rtupoll.scheduler.Scheduler`` over
-``rtupoll.bus.Bus`` (pymodbus) on the simulator's pty.
+poller under test is the real one: ``rtupoll.jobs.scheduler.Scheduler`` over
+``rtupoll.io.bus.Bus`` (pymodbus) on the simulator's pty.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from rtupoll.planner import plan
+from rtupoll.config.site import DeviceConfig, Site, from_specs
+from rtupoll.model.planner import plan
 from rtupoll.rtu import Framing, read_frame_sizes, transaction_wire_time
-from rtupoll.site import DeviceConfig, Site, from_specs
 
 SEEDS = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-an117@4",
          "banner-ez-array@5")

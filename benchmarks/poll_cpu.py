@@ -30,8 +30,8 @@ from pathlib import Path
 
 from poll_common import cpu_seconds, seed_site, simulator
 
-from rtupoll.pollstats import Reading
-from rtupoll.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
 
 DEVICES = ("radar-level@2", "huiwen-aq@3", "co2meter-an117@4")
 

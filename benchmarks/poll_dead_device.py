@@ -17,8 +17,8 @@ import contextlib
 
 from poll_common import seed_site, simulator
 
-from rtupoll.pollstats import Reading
-from rtupoll.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
 
 DEAD = 3
 

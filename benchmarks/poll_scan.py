@@ -28,9 +28,9 @@ import tty
 
 from poll_common import seed_site, simulator, wire_limit
 
-from rtupoll.pollstats import Reading
+from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, read_frame_sizes, read_request, transaction_wire_time
-from rtupoll.scheduler import DevicePoller, Scheduler
 
 
 async def scans(port: str, baud: int, count: int) -> tuple[list[float], int, Scheduler]:

@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from rtupoll.sim.testing import simulated_bus
+from rtupoll.sim.runner import simulated_bus
 
 DEVICE = "huiwen-aq@1"
 FIELD, REFERENCE, VALUE = "co2", 30009, 612

@@ -2,7 +2,7 @@
 
 A sweep is dominated by empty addresses, each costing one derived timeout (request
 and reply wire time, the inter-frame silence, the turnaround margin) plus the silence
-before the next request. This runs the real sweep (``rtupoll.scan.sweep`` through
+before the next request. This runs the real sweep (``rtupoll.jobs.scan.sweep`` through
 ``bus.Bus`` and pymodbus) against the simulator on a pty, at a simulated wire speed,
 with the five seed devices on the bus, and prints the measured time next to:
 
@@ -20,10 +20,9 @@ import argparse
 import asyncio
 import time
 
-from rtupoll.bus import Bus, PortSettings
-from rtupoll.library import load_library
-from rtupoll.rtu import Framing, transaction_wire_time
-from rtupoll.scan import (
+from rtupoll.config.library import load_library
+from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.jobs.scan import (
     Found,
     Setting,
     default_margin,
@@ -33,7 +32,8 @@ from rtupoll.scan import (
     skipped,
     sweep,
 )
-from rtupoll.sim.testing import simulated_bus
+from rtupoll.rtu import Framing, transaction_wire_time
+from rtupoll.sim.runner import simulated_bus
 
 SEEDS = ["net-irnet-pro@3", "radar-level@7", "huiwen-aq@12", "co2meter-an117@20",
          "banner-ez-array@31"]

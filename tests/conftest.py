@@ -1,6 +1,6 @@
 """Shared fixtures: simulated buses (that a test cannot leak) and a raw serial peer.
 
-``sim(*devices, **options)`` starts a simulated bus (``rtupoll.sim.testing.simulated_bus``
+``sim(*devices, **options)`` starts a simulated bus (``rtupoll.sim.runner.simulated_bus``
 arguments) and stops it after the test. Every test, whether or not it uses ``sim``, fails
 if it leaves a simulated bus running: a leaked bus keeps a thread and a pty alive and
 would answer the next test's requests.
@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from rtupoll.sim.testing import SimulatedBus, running, simulated_bus
+from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 pytest_plugins = ("pytester",)
 

@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 FAST = ("--timeout", "0.1", "--retries", "0")  # each silent address probed costs this

@@ -25,9 +25,8 @@ from typing import Any, TypeVar
 
 import pytest
 
-from rtupoll.bus import Bus, PortSettings
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RefusedError
-from rtupoll.reply import diagnose, expect_for, find_reply
+from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import (
     Table,
     exception_response,
@@ -36,6 +35,7 @@ from rtupoll.rtu import (
     with_crc,
     write_single_request,
 )
+from rtupoll.rtu.match import diagnose, expect_for, find_reply
 
 T = TypeVar("T")
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
@@ -541,7 +541,7 @@ def test_find_reply_and_diagnose() -> None:
 
 
 def test_errno_messages() -> None:
-    from rtupoll.serialport import gateway_error, open_error
+    from rtupoll.io.serialport import gateway_error, open_error
     assert "busy" in open_error("/dev/ttyUSB0", OSError(errno.EAGAIN, "Could not lock"))
     assert "permission denied" in open_error("/dev/ttyUSB0", OSError(errno.EACCES, "x"))
     assert "does not exist" in open_error("nodtr:///dev/ttyUSB9", OSError(errno.ENOENT, "x"))

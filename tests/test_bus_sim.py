@@ -19,11 +19,11 @@ from typing import Any, TypeVar
 import pytest
 import serial
 
-from rtupoll import serialport
-from rtupoll.bus import Bus, PortSettings
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, UsageError
+from rtupoll.io import serialport
+from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 T = TypeVar("T")
 Sim = Callable[..., SimulatedBus]

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rtupoll.codec import (
+from rtupoll.model.codec import (
     ByteOrder,
     DataType,
     EncodeError,

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from rtupoll.commission import Change, dry_run, refuse
+from rtupoll.config.address_plan import load_plan
+from rtupoll.config.library import load_one
 from rtupoll.errors import ConfigError, RefusedError
-from rtupoll.library import load_one
-from rtupoll.plans import load_plan
+from rtupoll.jobs.commission import Change, dry_run, refuse
 
 FIXTURES = Path(__file__).parent / "fixtures" / "commission"
 

@@ -11,7 +11,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 README = Path(__file__).parents[1] / "README.md"
 

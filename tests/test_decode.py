@@ -10,8 +10,8 @@ import pytest
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
-from rtupoll.frames import carried, decode_stream, parse_hex, split
-from rtupoll.library import load_one
+from rtupoll.config.library import load_one
+from rtupoll.rtu.capture import carried, decode_stream, parse_hex, split
 
 
 def frames(text: str, **kw: int):  # type: ignore[no-untyped-def]

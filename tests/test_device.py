@@ -13,14 +13,14 @@ from typing import Any, TypeVar
 
 import pytest
 
-from rtupoll.bus import Bus, PortSettings
-from rtupoll.device import probe_variant, read_block, read_fields, timing
+from rtupoll.config.library import load_one
 from rtupoll.errors import DeviceException, DeviceTimeout
-from rtupoll.library import load_one
-from rtupoll.planner import plan
-from rtupoll.profile import Profile
+from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.jobs.device import probe_variant, read_block, read_fields, timing
+from rtupoll.model.planner import plan
+from rtupoll.model.profile import Profile
 from rtupoll.rtu import Table
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 T = TypeVar("T")
 Sim = Callable[..., SimulatedBus]

@@ -8,7 +8,7 @@ import struct
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
-from rtupoll.guess import interpretations, parse_words
+from rtupoll.model.guess import interpretations, parse_words
 
 
 def f32_words(value: float, order: str) -> list[int]:

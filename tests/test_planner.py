@@ -17,12 +17,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rtupoll.codec import DataType, Layout
+from rtupoll.config.library import load_one
 from rtupoll.errors import FrameError, RefusedError
-from rtupoll.library import load_one
-from rtupoll.planner import Block, decode_block, for_variant, plan, read_limit
-from rtupoll.profile import Addressing, Field, Limits, Poll, Profile
-from rtupoll.reading import field_words
+from rtupoll.model.codec import DataType, Layout
+from rtupoll.model.interpret import field_words
+from rtupoll.model.planner import Block, decode_block, for_variant, plan, read_limit
+from rtupoll.model.profile import Addressing, Field, Limits, Poll, Profile
 from rtupoll.rtu import Table
 
 IN, HOLD = Table.INPUT, Table.HOLDING

@@ -18,8 +18,8 @@ import serial
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
-from rtupoll.output import POLL_KEYS
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
+from rtupoll.ui.records import POLL_KEYS
 
 
 def poll(*args: str) -> Result:
@@ -229,8 +229,8 @@ def test_a_device_whose_every_asked_field_is_absent_stays_online(
         sim: Callable[..., SimulatedBus]) -> None:
     import asyncio
 
-    from rtupoll.scheduler import Scheduler
-    from rtupoll.site import from_specs
+    from rtupoll.config.site import from_specs
+    from rtupoll.jobs.scheduler import Scheduler
 
     bus = sim("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"])
     site = from_specs(bus.port, [("net-irnet-pro", 1)], fields=["uart_speed"], interval=0)

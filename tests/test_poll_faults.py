@@ -24,7 +24,7 @@ from typing import Any
 
 import pytest
 
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 UNITS = (1, 2, 3)
 TIMEOUT = 0.25  # seconds; the profile's 0.5 s would only make the tests slower

@@ -8,10 +8,10 @@ from collections.abc import Callable
 
 from rich.console import Console
 
-from rtupoll.live import PollView
-from rtupoll.scheduler import Scheduler
-from rtupoll.sim.testing import SimulatedBus
-from rtupoll.site import from_specs
+from rtupoll.config.site import from_specs
+from rtupoll.jobs.scheduler import Scheduler
+from rtupoll.sim.runner import SimulatedBus
+from rtupoll.ui.live import PollView
 
 SEEDS = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-an117@4",
          "banner-ez-array@5"]

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from rtupoll import rtu
-from rtupoll.library import load_library, load_one
-from rtupoll.profile import Addressing, Poll, Profile
-from rtupoll.reading import field_words, interpret
+from rtupoll.config.library import load_library, load_one
+from rtupoll.model.interpret import field_words, interpret
+from rtupoll.model.profile import Addressing, Poll, Profile
 from rtupoll.rtu import Table
 
 SEEDS = ("net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117", "banner-ez-array")
@@ -210,7 +210,7 @@ def test_the_documented_example_profile_loads(tmp_path: Path) -> None:
     example = doc.split("```yaml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "acme-th100.yaml"
     path.write_text(example)
-    from rtupoll.library import load_profile
+    from rtupoll.config.library import load_profile
 
     p = load_profile(path)
     assert p.field("temperature").address == 0  # modicon 30001 -> wire 0

@@ -13,9 +13,9 @@ import pytest
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
-from rtupoll.library import load_one
-from rtupoll.output import READ_KEYS
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.config.library import load_one
+from rtupoll.sim.runner import SimulatedBus
+from rtupoll.ui.records import READ_KEYS
 
 Sim = Callable[..., SimulatedBus]
 

@@ -9,10 +9,10 @@ from collections.abc import Callable
 
 import pytest
 
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
-UNUSED = ("rich", "rtupoll.sim", "rtupoll.scheduler", "rtupoll.live", "rtupoll.site",
-          "rtupoll.commission")
+UNUSED = ("rich", "rtupoll.sim", "rtupoll.jobs.scheduler", "rtupoll.ui.live", "rtupoll.config.site",
+          "rtupoll.jobs.commission")
 
 
 def imported(*argv: str) -> set[str]:
@@ -32,7 +32,7 @@ def test_json_and_csv_reads_import_nothing_they_do_not_use(
         sim: Callable[..., SimulatedBus], fmt: str) -> None:
     bus = sim("huiwen-aq@1", tick=None)
     modules = imported("read", "--port", bus.port, "--format", fmt, "huiwen-aq@1", "co2")
-    assert "rtupoll.bus" in modules and "rtupoll.planner" in modules  # it did read
+    assert "rtupoll.io.bus" in modules and "rtupoll.model.planner" in modules  # it did read
     assert [p for p in UNUSED if loaded(modules, p)] == []
 
 
@@ -44,5 +44,5 @@ def test_the_table_for_people_does_load_rich(sim: Callable[..., SimulatedBus]) -
 
 def test_a_dry_run_does_not_even_load_the_modbus_library() -> None:
     modules = imported("set-address", "--port", "/dev/null", "--dry-run", "radar-level@1", "11")
-    assert "rtupoll.commission" in modules
-    assert not loaded(modules, "pymodbus") and not loaded(modules, "rtupoll.bus")
+    assert "rtupoll.jobs.commission" in modules
+    assert not loaded(modules, "pymodbus") and not loaded(modules, "rtupoll.io.bus")

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.codec import ByteOrder, DataType
 from rtupoll.errors import UsageError
-from rtupoll.profile import Addressing
-from rtupoll.reading import interpret
-from rtupoll.registers import parse_spec, split_reads
+from rtupoll.model.codec import ByteOrder, DataType
+from rtupoll.model.interpret import interpret
+from rtupoll.model.profile import Addressing
+from rtupoll.model.raw import parse_spec, split_reads
 from rtupoll.rtu import Table
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.rtu import Framing, parse_int, parse_unit, transaction_wire_time
+from rtupoll.config.numbers import parse_int, parse_unit
+from rtupoll.rtu import Framing, transaction_wire_time
 
 
 @pytest.mark.parametrize(("text", "value"), [("254", 254), ("0xFE", 254), ("FEh", 254),

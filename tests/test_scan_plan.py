@@ -18,11 +18,10 @@ import pytest
 
 from rtupoll import rtu
 from rtupoll.cli.scan import site_yaml
+from rtupoll.config.library import load_library, load_profile
+from rtupoll.config.site import load_site
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
-from rtupoll.library import load_library, load_profile
-from rtupoll.profile import Profile
-from rtupoll.rtu import Framing, Table
-from rtupoll.scan import (
+from rtupoll.jobs.scan import (
     Found,
     Setting,
     default_baudrates,
@@ -33,9 +32,10 @@ from rtupoll.scan import (
     skipped,
     sweep,
 )
+from rtupoll.model.profile import Profile
+from rtupoll.rtu import Framing, Table
 from rtupoll.sim.device import DeviceConfig
 from rtupoll.sim.engine import Engine
-from rtupoll.site import load_site
 
 LIB = sorted(load_library().profiles.values(), key=lambda p: p.id)
 BY_ID = {p.id: p for p in LIB}

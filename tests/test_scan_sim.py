@@ -20,13 +20,13 @@ from typing import Any
 
 from click.testing import CliRunner
 
-from rtupoll.bus import Bus, PortSettings
 from rtupoll.cli import cli
-from rtupoll.library import load_library
+from rtupoll.config.library import load_library
+from rtupoll.config.site import load_site
+from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.jobs.scan import Found, Setting, presence_probes, probe_timeout, sweep
 from rtupoll.rtu import Framing
-from rtupoll.scan import Found, Setting, presence_probes, probe_timeout, sweep
-from rtupoll.sim.testing import SimulatedBus
-from rtupoll.site import load_site
+from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 FIXTURES = Path(__file__).parent / "fixtures" / "scan"

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 
 import pytest
 
+from rtupoll.config.site import BusConfig, DeviceConfig, from_specs
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
-from rtupoll.pollstats import BusLoad, Reading, State, percentile
+from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
+from rtupoll.jobs.stats import BusLoad, Reading, State, percentile
 from rtupoll.rtu import Table
-from rtupoll.scheduler import Backoff, BusPoller, DevicePoller
-from rtupoll.site import BusConfig, DeviceConfig, from_specs
 
 OK_COST, TIMEOUT_COST = 0.02, 0.5
 

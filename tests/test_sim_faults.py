@@ -15,7 +15,7 @@ from conftest import RawPort
 from rtupoll import rtu
 from rtupoll.rtu import Table
 from rtupoll.sim.faults import FaultSpecError, parse_fault
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 Raw = Callable[[str], RawPort]

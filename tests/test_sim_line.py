@@ -9,7 +9,7 @@ import serial
 
 from rtupoll import rtu
 from rtupoll.rtu import Table
-from rtupoll.sim.testing import simulated_bus
+from rtupoll.sim.runner import simulated_bus
 
 REQUEST = rtu.read_request(3, Table.INPUT, 30006, 1)
 

@@ -17,11 +17,11 @@ import pytest
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, ModbusSerialClient, ModbusTcpClient
 
-from rtupoll.profile import Field, Poll
-from rtupoll.reading import field_words
+from rtupoll.model.interpret import field_words
+from rtupoll.model.profile import Field, Poll
 from rtupoll.rtu import Table
+from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import DEFAULT_DEVICES, parse_device, profile
-from rtupoll.sim.testing import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 

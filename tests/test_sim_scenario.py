@@ -139,7 +139,7 @@ def test_the_scenario_in_the_docs_builds(tmp_path: Path) -> None:
 
 
 def test_the_readme_scenario_loads_and_does_what_it_says(tmp_path: Path) -> None:
-    from rtupoll.sim.testing import simulated_bus
+    from rtupoll.sim.runner import simulated_bus
 
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     text = readme.split("```yaml\nseed: 7", 1)[1].split("```", 1)[0]

@@ -15,7 +15,7 @@ from conftest import RawPort
 
 from rtupoll import rtu
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.testing import SimulatedBus, running, simulated_bus
+from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 Sim = Callable[..., SimulatedBus]
 Raw = Callable[..., RawPort]
@@ -65,7 +65,7 @@ def test_stop_releases_the_thread_the_pty_and_the_descriptors() -> None:
 def test_starting_five_devices_is_cheap() -> None:
     code = textwrap.dedent("""
         import time
-        from rtupoll.sim.testing import simulated_bus
+        from rtupoll.sim.runner import simulated_bus
         t = time.perf_counter()
         with simulated_bus() as bus:  # profiles not yet loaded in this process
             started = time.perf_counter() - t
@@ -81,7 +81,7 @@ def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(pytester: pytest.
                                                                ) -> None:
     pytester.makeconftest((Path(__file__).parent / "conftest.py").read_text())
     pytester.makepyfile(textwrap.dedent("""
-        from rtupoll.sim.testing import simulated_bus
+        from rtupoll.sim.runner import simulated_bus
 
         def test_leaks():
             simulated_bus(["huiwen-aq@3"]).start()
@@ -166,7 +166,7 @@ def test_values_move_with_time(sim: Sim) -> None:
 def test_stopping_a_tcp_bus_hangs_up_on_its_clients() -> None:
     import socket
 
-    from rtupoll.sim.testing import simulated_bus
+    from rtupoll.sim.runner import simulated_bus
 
     with simulated_bus(["huiwen-aq@3"], tcp=True, tick=None) as bus:
         host, _, port = bus.port[len("tcp://"):].rpartition(":")

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from rtupoll.config.site import from_specs, load_site
 from rtupoll.errors import ConfigError, RtupollError, UsageError
-from rtupoll.site import from_specs, load_site
 
 SITE = Path(__file__).parent / "fixtures" / "site"
 
@@ -150,7 +150,7 @@ def test_the_simulator_serves_any_device_at_any_speed() -> None:
 
 
 def test_a_gateway_url_is_read_as_the_bus_reads_it() -> None:
-    from rtupoll.site import from_specs
+    from rtupoll.config.site import from_specs
 
     # the scheme is case-insensitive for the bus, so it must be for the site checks too
     with pytest.raises(UsageError, match=r"'TCP://gw': expected tcp://HOST:PORT"):

@@ -15,7 +15,7 @@ from typing import Any
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
-from rtupoll.sim.testing import SimulatedBus
+from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 FAST = ("--timeout", "0.3", "--retries", "0")  # the simulator answers at once here

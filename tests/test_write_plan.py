@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from rtupoll.config.library import load_one
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.library import load_one
-from rtupoll.registers import parse_spec
-from rtupoll.writes import RAW_FUNCTIONS, parse_value, plan_raw_write, plan_write
+from rtupoll.jobs.writes import RAW_FUNCTIONS, parse_value, plan_raw_write, plan_write
+from rtupoll.model.raw import parse_spec
 
 BANNER = load_one("banner-ez-array")
 HUIWEN = load_one("huiwen-aq")

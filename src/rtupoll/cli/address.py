@@ -1,7 +1,7 @@
 """``rtupoll set-address``: one device, a plan file, or the interactive field workflow.
 
 The logic (refusals, write, verification, "already done") is in
-``rtupoll.commission``; this module is about the three ways a person drives it and
+``rtupoll.jobs.commission``; this module is about the three ways a person drives it and
 about reporting, because after a half-finished commissioning run the first thing a
 technician needs is what was and was not changed.
 """
@@ -26,7 +26,10 @@ from rtupoll.cli.target import (
     run_on_bus,
     timing_options,
 )
-from rtupoll.commission import (
+from rtupoll.config.library import load_library
+from rtupoll.config.numbers import parse_unit
+from rtupoll.errors import RtupollError, UsageError
+from rtupoll.jobs.commission import (
     Change,
     Commissioner,
     Presence,
@@ -38,10 +41,7 @@ from rtupoll.commission import (
     run_plan,
     shared_reserved,
 )
-from rtupoll.errors import RtupollError, UsageError
-from rtupoll.library import load_library
-from rtupoll.profile import Profile
-from rtupoll.rtu import parse_unit
+from rtupoll.model.profile import Profile
 
 
 class PlanFailed(RtupollError):
@@ -98,7 +98,7 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
     if plan_file is not None:
         if device or new or interactive:
             raise UsageError("--plan takes no DEVICE or NEW (they are in the plan's rows)")
-        from rtupoll.plans import load_plan
+        from rtupoll.config.address_plan import load_plan
 
         changes = load_plan(plan_file, profile_dirs, avoid)
         if dry_run:
@@ -196,7 +196,7 @@ def _interactive(target: Target, first: int | None, settings: Any,
                  commissioner: Callable[[Any], Commissioner], avoid: Mapping[int, str]
                  ) -> None:
     """Connect a sensor, press Enter, it gets the next free address; a summary as it goes."""
-    from rtupoll.bus import Bus
+    from rtupoll.io.bus import Bus
 
     profile, old = target.profile, target.unit
     assert profile is not None

@@ -15,11 +15,11 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, profiles_option
+from rtupoll.config.library import load_one
+from rtupoll.config.numbers import parse_int
 from rtupoll.errors import FrameError, UsageError
-from rtupoll.frames import Carried, Frame, carried, decode_stream, parse_hex
-from rtupoll.library import load_one
-from rtupoll.profile import Profile
-from rtupoll.rtu import parse_int
+from rtupoll.model.profile import Profile
+from rtupoll.rtu.capture import Carried, Frame, carried, decode_stream, parse_hex
 
 EPILOG = """\b
 Examples:

@@ -16,8 +16,8 @@ import click
 from rtupoll.cli.options import format_option
 from rtupoll.cli.params import UNIT
 from rtupoll.errors import DeviceException, UsageError
-from rtupoll.guess import Guess, interpretations, parse_words
-from rtupoll.registers import SYNTAX, parse_spec
+from rtupoll.model.guess import Guess, interpretations, parse_words
+from rtupoll.model.raw import SYNTAX, parse_spec
 from rtupoll.rtu import Table
 
 DEFAULT_COUNT = 4  # registers when COUNT is omitted: room for an f64 at START
@@ -100,7 +100,7 @@ def _spec(text: str) -> tuple[Table, int, int]:
 async def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int,
                 count: int, timeout: float) -> tuple[int, tuple[int, ...]]:
     """The registers around START: one more on each side when the device allows it."""
-    from rtupoll.bus import Bus, PortSettings
+    from rtupoll.io.bus import Bus, PortSettings
 
     port, baudrate, parity, stopbits = serial
     # DTR deasserted: some boards (CO2Meter) are held in reset while it is asserted

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from rtupoll.rtu import parse_unit
+from rtupoll.config.numbers import parse_unit
 
 
 @dataclass(frozen=True)

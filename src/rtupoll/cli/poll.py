@@ -1,7 +1,7 @@
 """``rtupoll poll``: watch devices on one or more buses, live, or stream their readings.
 
 The command only wires things together: the site (``--config`` or ad-hoc
-devices), the scheduler, the display (``rtupoll.live``) and the record writer.
+devices), the scheduler, the display (``rtupoll.ui.live``) and the record writer.
 Signals only set an event that the event loop reads, so a stop never lands in
 the middle of a write: every line on stdout or in ``--output`` is whole.
 """
@@ -23,17 +23,17 @@ import click
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.cli.params import DEVICE, DeviceSpec
+from rtupoll.config.site import DEFAULT_INTERVAL, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
-from rtupoll.output import POLL_KEYS, CsvWriter, to_json
-from rtupoll.site import DEFAULT_INTERVAL, Site, from_specs, load_site
+from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
 
 if TYPE_CHECKING:
     from rich.console import Console
     from rich.live import Live
 
-    from rtupoll.live import PollView
-    from rtupoll.pollstats import Reading
-    from rtupoll.scheduler import DevicePoller, Scheduler
+    from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+    from rtupoll.jobs.stats import Reading
+    from rtupoll.ui.live import PollView
 
 REFRESH = 0.25  # seconds between redraws of the live table
 SIM_BAUDRATE = 115200  # framing assumed on a simulated bus without wire timing
@@ -167,7 +167,7 @@ def _split(fields: str | None) -> list[str]:
 def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequence[str]
                ) -> Iterator[tuple[str, list[tuple[str, int]]]]:
     """Start the simulator in-process; yield its port and the devices it serves."""
-    from rtupoll.sim.testing import SEED_DEVICES, simulated_bus
+    from rtupoll.sim.runner import SEED_DEVICES, simulated_bus
 
     specs = [(d.profile, d.address) for d in devices] or list(SEED_DEVICES)
     with simulated_bus([f"{p}@{a}" for p, a in specs], baudrate=baudrate,
@@ -178,8 +178,8 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
 def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str) -> None:
     from rich.console import Console
 
-    from rtupoll.live import PollView
-    from rtupoll.scheduler import Scheduler
+    from rtupoll.jobs.scheduler import Scheduler
+    from rtupoll.ui.live import PollView
 
     scheduler = Scheduler(site)
     console = Console(stderr=fmt != "table" and output is None)

@@ -12,9 +12,9 @@ from rich.table import Table as RichTable
 from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
+from rtupoll.config.library import bundled_dir, load_library, load_one, load_profile
 from rtupoll.errors import ProfileError
-from rtupoll.library import bundled_dir, load_library, load_one, load_profile
-from rtupoll.profile import Choice, Field, Profile
+from rtupoll.model.profile import Choice, Field, Profile
 
 
 @click.group()

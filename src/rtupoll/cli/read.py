@@ -16,14 +16,14 @@ import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
 from rtupoll.cli.target import Target, load_target, port_settings, run_on_bus, timing_options
-from rtupoll.codec import ByteOrder, words_to_hex
-from rtupoll.device import Timing
-from rtupoll.device import timing as device_timing
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.output import READ_KEYS, record
-from rtupoll.profile import Addressing, Field, Poll, Profile
-from rtupoll.reading import FieldValue, interpret
-from rtupoll.registers import RegisterSpec, parse_spec, split_reads
+from rtupoll.jobs.device import Timing
+from rtupoll.jobs.device import timing as device_timing
+from rtupoll.model.codec import ByteOrder, words_to_hex
+from rtupoll.model.interpret import FieldValue, interpret
+from rtupoll.model.profile import Addressing, Field, Poll, Profile
+from rtupoll.model.raw import RegisterSpec, parse_spec, split_reads
+from rtupoll.ui.records import READ_KEYS, record
 
 F = TypeVar("F", bound=Callable[..., object])
 TYPES = ["u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64", "string"]
@@ -131,7 +131,7 @@ def read(device: str, items: tuple[str, ...], port: str, baudrate: int | None,
 async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timing
                      ) -> list[Row]:
     """Read through the planner; fields the device's variant lacks are reported, not read."""
-    from rtupoll.device import probe_variant, read_fields
+    from rtupoll.jobs.device import probe_variant, read_fields
 
     profile = target.profile
     assert profile is not None
@@ -179,12 +179,12 @@ def records(target: Target, rows: list[Row]) -> list[dict[str, Any]]:
 
 def emit(target: Target, rows: list[Row], fmt: str, hex_: bool, title: str = "") -> None:
     if fmt == "json":
-        from rtupoll.output import to_json
+        from rtupoll.ui.records import to_json
 
         for rec in records(target, rows):
             sys.stdout.write(to_json(rec) + "\n")
     elif fmt == "csv":
-        from rtupoll.output import CsvWriter
+        from rtupoll.ui.records import CsvWriter
 
         writer = CsvWriter(sys.stdout, READ_KEYS)
         for rec in records(target, rows):

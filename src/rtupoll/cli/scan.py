@@ -1,6 +1,6 @@
 """``rtupoll scan``: find and identify the devices on a bus, and write a site file for them.
 
-The sweep logic lives in ``rtupoll.scan``; this module parses the options, opens the
+The sweep logic lives in ``rtupoll.jobs.scan``; this module parses the options, opens the
 port once per serial setting, shows progress on a terminal, and prints what was found,
 also when interrupted (Ctrl-C shows the results so far, then exits 130).
 """
@@ -17,11 +17,9 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, profiles_option
+from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
-from rtupoll.library import load_library
-from rtupoll.profile import Profile
-from rtupoll.registers import parse_spec
-from rtupoll.scan import (
+from rtupoll.jobs.scan import (
     Found,
     Read,
     Setting,
@@ -36,6 +34,8 @@ from rtupoll.scan import (
     sweep,
     sweep_time,
 )
+from rtupoll.model.profile import Profile
+from rtupoll.model.raw import parse_spec
 
 EPILOG = """\b
 Examples:
@@ -127,7 +127,7 @@ def scan(port: str, addresses: str, baudrates: str | None, parities: str, includ
 async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
                library: Sequence[Profile], probes: Sequence[Read], margin: float,
                found: list[Found], first: bool) -> None:
-    from rtupoll.bus import Bus, PortSettings
+    from rtupoll.io.bus import Bus, PortSettings
 
     def open_bus(s: Setting) -> Bus:
         # DTR/RTS deasserted: a CO2Meter board is held in reset while DTR is asserted.

@@ -21,7 +21,7 @@ from rtupoll.errors import UsageError
 from rtupoll.rtu import Table
 
 if TYPE_CHECKING:
-    from rtupoll.sim.testing import SimulatedBus
+    from rtupoll.sim.runner import SimulatedBus
 
 FAULT_HELP = (
     "Inject a fault (repeatable): [ADDRESS:]KIND[=ARG][@WHEN]. KIND: dead, slow[=SECONDS], "
@@ -68,8 +68,8 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
     each bundled profile is served. Clients open the printed pty path as a serial port
     (any baud rate), or connect to --tcp.
     """
+    from rtupoll.sim.runner import simulated_bus
     from rtupoll.sim.server import WireFrame
-    from rtupoll.sim.testing import simulated_bus
 
     if link and tcp:
         raise UsageError("--link names a pty; it cannot be used with --tcp")

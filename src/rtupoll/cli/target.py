@@ -1,7 +1,7 @@
 """What ``read``, ``write`` and ``set-address`` share: the device, the port, timing, consent.
 
 Kept apart from the commands so each stays about its own job, and so the costly
-imports (pymodbus via ``rtupoll.bus``) happen only once a command really talks to a
+imports (pymodbus via ``rtupoll.io.bus``) happen only once a command really talks to a
 bus: ``--help``, ``--dry-run`` and refusals never pay for them.
 """
 
@@ -16,13 +16,13 @@ from typing import TYPE_CHECKING, TypeVar
 
 import click
 
+from rtupoll.config.library import load_one
+from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.library import load_one
-from rtupoll.profile import Profile
-from rtupoll.rtu import parse_unit
+from rtupoll.model.profile import Profile
 
 if TYPE_CHECKING:
-    from rtupoll.bus import Bus, PortSettings
+    from rtupoll.io.bus import Bus, PortSettings
 
 F = TypeVar("F", bound=Callable[..., object])
 T = TypeVar("T")
@@ -59,7 +59,7 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
 def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
                   stopbits: str | None) -> PortSettings:
     """The profile's serial settings (9600 8N1 without one), each overridable."""
-    from rtupoll.bus import PortSettings
+    from rtupoll.io.bus import PortSettings
 
     s = profile.serial if profile else None
     return PortSettings(
@@ -98,7 +98,7 @@ def confirm(question: str, yes: bool) -> None:
 
 def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]]) -> T:
     """Open the port, run ``job`` with the bus, close the port (whatever happens)."""
-    from rtupoll.bus import Bus
+    from rtupoll.io.bus import Bus
 
     async def main() -> T:
         async with Bus(settings) as bus:

@@ -22,10 +22,10 @@ from rtupoll.cli.target import (
     run_on_bus,
     timing_options,
 )
-from rtupoll.device import Timing
-from rtupoll.device import timing as device_timing
 from rtupoll.errors import RefusedError, UsageError
-from rtupoll.writes import (
+from rtupoll.jobs.device import Timing
+from rtupoll.jobs.device import timing as device_timing
+from rtupoll.jobs.writes import (
     RAW_FUNCTIONS,
     RawWrite,
     WriteOp,
@@ -36,7 +36,7 @@ from rtupoll.writes import (
     verify_raw,
     write_raw,
 )
-from rtupoll.writes import write as write_field
+from rtupoll.jobs.writes import write as write_field
 
 
 def split_assignment(text: str) -> tuple[str, str]:

@@ -7,5 +7,5 @@ command is exercised against this package: ``values`` (how fields start and move
 wire timing), ``scenario`` (devices, pins, options and faults from YAML or the command
 line) and ``testing`` (``simulated_bus``: a bus running in a background thread).
 
-Nothing is imported here, so ``import rtupoll.sim.testing`` pays only for what it uses.
+Nothing is imported here, so ``import rtupoll.sim.runner`` pays only for what it uses.
 """

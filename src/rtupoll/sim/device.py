@@ -37,10 +37,10 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from rtupoll.codec import Value, decode
 from rtupoll.errors import UsageError
-from rtupoll.profile import Field, Profile
-from rtupoll.reading import FieldValue, field_words, interpret
+from rtupoll.model.codec import Value, decode
+from rtupoll.model.interpret import FieldValue, field_words, interpret
+from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu import Table, exception_response, read_response, with_crc
 from rtupoll.sim.faults import Fault, FaultSet
 from rtupoll.sim.values import Motion, Static, motion_for

@@ -29,14 +29,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rtupoll.codec import Value
+from rtupoll.config.library import load_one
+from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RtupollError, UsageError
-from rtupoll.library import load_one
-from rtupoll.profile import Field, Profile
-from rtupoll.reading import field_words
+from rtupoll.model.codec import Value
+from rtupoll.model.interpret import field_words
+from rtupoll.model.profile import Field, Profile
 from rtupoll.sim.device import WRITE_REPLIES, DeviceConfig
 from rtupoll.sim.faults import Fault, parse_fault
-from rtupoll.yamlsrc import Node, load
 
 # One of each bundled profile at distinct addresses; co2meter-an117 also answers 0xFE.
 DEFAULT_DEVICES = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-an117@4",

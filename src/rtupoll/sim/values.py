@@ -13,8 +13,8 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass
 
-from rtupoll.codec import DataType, Value, int_range
-from rtupoll.profile import Field, Poll, Profile, Severity
+from rtupoll.model.codec import DataType, Value, int_range
+from rtupoll.model.profile import Field, Poll, Profile, Severity
 
 # chance per tick that an enum leaves its normal code or a flag shows up: with a dozen
 # coded fields on a bus, an episode every twenty seconds or so, not a wall of alarms

@@ -33,13 +33,13 @@ from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from rtupoll.device import probe_variant, read_block
+from rtupoll.config.site import BusConfig, DeviceConfig, Site
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RtupollError
-from rtupoll.planner import Block, plan
-from rtupoll.pollstats import BusLoad, DeviceStats, Reading, State
-from rtupoll.profile import Field
+from rtupoll.jobs.device import probe_variant, read_block
+from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State
+from rtupoll.model.planner import Block, plan
+from rtupoll.model.profile import Field
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
-from rtupoll.site import BusConfig, DeviceConfig, Site
 
 T = TypeVar("T")
 Clock = Callable[[], float]
@@ -49,7 +49,7 @@ Sink = Callable[["DevicePoller", list[Reading]], None]
 
 
 class Transport(Protocol):
-    """What the scheduler needs of a bus (``rtupoll.bus.Bus`` is one)."""
+    """What the scheduler needs of a bus (``rtupoll.io.bus.Bus`` is one)."""
 
     async def open(self) -> None: ...
     async def close(self) -> None: ...
@@ -308,8 +308,8 @@ OpenBus = Callable[[BusConfig], Transport]
 
 
 def open_real_bus(config: BusConfig) -> Transport:
-    """A ``rtupoll.bus.Bus`` for the configured port (imported here: pymodbus is slow)."""
-    from rtupoll.bus import Bus, PortSettings
+    """A ``rtupoll.io.bus.Bus`` for the configured port (imported here: pymodbus is slow)."""
+    from rtupoll.io.bus import Bus, PortSettings
 
     return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
                             bytesize=config.bytesize, stopbits=config.stopbits,

@@ -12,7 +12,7 @@ import json
 from collections.abc import Mapping
 from typing import Any, TextIO
 
-from rtupoll.reading import FieldValue
+from rtupoll.model.interpret import FieldValue
 
 READ_KEYS = ("device", "profile", "address", "field", "value", "unit", "raw", "severity", "text")
 POLL_KEYS = ("time", *READ_KEYS, "status", "error")

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
-from rtupoll.profile import Check, Profile
-from rtupoll.reading import interpret
+from rtupoll.model.interpret import interpret
+from rtupoll.model.profile import Check, Profile
 from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
 
 LATENCY = 0.02  # USB-serial adapters deliver a reply up to a latency-timer tick late

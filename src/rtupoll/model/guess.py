@@ -22,8 +22,8 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.codec import ByteOrder, DataType, Layout, decode_raw
 from rtupoll.errors import UsageError
+from rtupoll.model.codec import ByteOrder, DataType, Layout, decode_raw
 
 ORDERS = tuple(ByteOrder)
 NUMERIC = (DataType.U32, DataType.I32, DataType.F32, DataType.F64)

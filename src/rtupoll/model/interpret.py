@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.codec import (
+from rtupoll.model.codec import (
     DataType,
     Value,
     active_flags,
@@ -20,7 +20,7 @@ from rtupoll.codec import (
     enum_name,
     flags_mask,
 )
-from rtupoll.profile import Field, Severity
+from rtupoll.model.profile import Field, Severity
 
 
 @dataclass(frozen=True)

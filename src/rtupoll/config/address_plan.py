@@ -23,11 +23,11 @@ import csv
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from rtupoll.commission import Change, refuse
+from rtupoll.config.library import load_one
+from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import ConfigError, RefusedError, RtupollError
-from rtupoll.library import load_one
-from rtupoll.profile import Profile
-from rtupoll.rtu import parse_unit
+from rtupoll.jobs.commission import Change, refuse
+from rtupoll.model.profile import Profile
 
 COLUMNS = {"profile": "profile", "address": "address", "old": "address", "current": "address",
            "new": "new", "new_address": "new", "check": "check", "identity": "check"}
@@ -98,7 +98,7 @@ def _csv_rows(path: Path) -> list[tuple[int, dict[str, str]]]:
 
 
 def _yaml_rows(path: Path) -> list[tuple[int, dict[str, str]]]:
-    from rtupoll.yamlsrc import load
+    from rtupoll.config.yamlsrc import load
 
     root = load(path, ConfigError)
     node = root.mapping({"changes"}, {"changes"})["changes"] if root.is_mapping else root

@@ -23,8 +23,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import TypeVar
 
-from rtupoll.codec import Value
-from rtupoll.reading import FieldValue
+from rtupoll.model.codec import Value
+from rtupoll.model.interpret import FieldValue
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.device import DeviceConfig, SimDevice
 from rtupoll.sim.engine import Engine

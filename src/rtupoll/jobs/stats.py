@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
 
-from rtupoll.output import failed_record, record
-from rtupoll.profile import Field
-from rtupoll.reading import FieldValue
-from rtupoll.site import DeviceConfig
+from rtupoll.config.site import DeviceConfig
+from rtupoll.model.interpret import FieldValue
+from rtupoll.model.profile import Field
+from rtupoll.ui.records import failed_record, record
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured

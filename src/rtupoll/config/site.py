@@ -19,13 +19,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
+from rtupoll.config.library import load_one
+from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
-from rtupoll.library import load_one
-from rtupoll.planner import plan
-from rtupoll.profile import Field, Poll, Profile
+from rtupoll.io.serialport import gateway
+from rtupoll.model.planner import plan
+from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.rtu import Framing
-from rtupoll.serialport import gateway
-from rtupoll.yamlsrc import Node, load
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
 

@@ -13,7 +13,7 @@ answer, whether what did arrive was a broken reply (``FrameError``: CRC error,
 truncated, mismatched, garbage) or nothing that matters (silence, line noise, other
 units' whole frames: a timeout).
 
-``rtupoll.bus`` uses these on every receive; the simulator and tests may use them to
+``rtupoll.io.bus`` uses these on every receive; the simulator and tests may use them to
 reason about a wire capture.
 """
 

@@ -30,9 +30,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from rtupoll import rtu
-from rtupoll.codec import DataType
-from rtupoll.device import Timing
-from rtupoll.device import timing as device_timing
 from rtupoll.errors import (
     DeviceException,
     DeviceTimeout,
@@ -41,12 +38,15 @@ from rtupoll.errors import (
     RtupollError,
     VerificationError,
 )
-from rtupoll.profile import Field, Profile
-from rtupoll.reading import field_words, interpret
-from rtupoll.writes import WriteOp, write
+from rtupoll.jobs.device import Timing
+from rtupoll.jobs.device import timing as device_timing
+from rtupoll.jobs.writes import WriteOp, write
+from rtupoll.model.codec import DataType
+from rtupoll.model.interpret import field_words, interpret
+from rtupoll.model.profile import Field, Profile
 
 if TYPE_CHECKING:
-    from rtupoll.bus import Bus
+    from rtupoll.io.bus import Bus
 
 VERIFY_ATTEMPTS = 3  # a device may take a moment to start answering at its new address
 VERIFY_PAUSE = 0.05  # seconds between attempts

@@ -13,7 +13,7 @@ removes is the seconds-long assertion that holds such a board in reset.)
 Naming. pyserial finds a scheme ``X`` by importing ``<package>.protocol_X`` for
 each package in ``serial.protocol_handler_packages``. Rather than ship a package
 with a ``protocol_nodtr`` module, this module registers itself in ``sys.modules``
-under ``rtupoll.serialport.protocol_nodtr`` and appends ``rtupoll.serialport`` to
+under ``rtupoll.io.serialport.protocol_nodtr`` and appends ``rtupoll.io.serialport`` to
 that list (``register()``, idempotent, called on import). ``serial_class_for_url``
 strips the scheme, so the port pyserial opens is the plain device path.
 

@@ -18,10 +18,10 @@ from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderR
 from rich.table import Table
 from rich.text import Text
 
-from rtupoll.pollstats import DeviceStats, Reading, State
-from rtupoll.profile import Field, Severity
-from rtupoll.scheduler import BusPoller, DevicePoller
-from rtupoll.serialport import gateway
+from rtupoll.io.serialport import gateway
+from rtupoll.jobs.scheduler import BusPoller, DevicePoller
+from rtupoll.jobs.stats import DeviceStats, Reading, State
+from rtupoll.model.profile import Field, Severity
 
 SEVERITY_STYLE = {Severity.OK: "green", Severity.INFO: "cyan", Severity.WARNING: "yellow",
                   Severity.ERROR: "bold red"}

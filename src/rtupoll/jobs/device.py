@@ -14,16 +14,16 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from rtupoll.errors import DeviceException, FrameError
-from rtupoll.planner import Block, decode_block, plan
-from rtupoll.profile import Field, Limits, Profile
-from rtupoll.reading import FieldValue
+from rtupoll.model.interpret import FieldValue
+from rtupoll.model.planner import Block, decode_block, plan
+from rtupoll.model.profile import Field, Limits, Profile
 from rtupoll.rtu import Table
 
 __all__ = ["Reader", "Timing", "probe_variant", "read_block", "read_fields", "timing"]
 
 
 class Reader(Protocol):
-    """What device I/O needs of a bus (``rtupoll.bus.Bus`` is one)."""
+    """What device I/O needs of a bus (``rtupoll.io.bus.Bus`` is one)."""
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]: ...

@@ -7,7 +7,7 @@ a Modicon 3xxxx/4xxxx reference. Which one is never guessed: the wire address is
 default and the other two need an explicit flag, because guessing wrong reads the
 neighbouring register and looks plausible.
 
-Each value of a spec becomes a synthetic :class:`~rtupoll.profile.Field`, so raw
+Each value of a spec becomes a synthetic :class:`~rtupoll.model.profile.Field`, so raw
 reads go through the same ``reading.interpret`` and ``output.record`` as named
 fields and print the same JSON/CSV.
 """
@@ -17,10 +17,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.codec import ByteOrder, DataType, Layout
+from rtupoll.config.numbers import parse_int
 from rtupoll.errors import UsageError
-from rtupoll.profile import Addressing, Field
-from rtupoll.rtu import Table, parse_int
+from rtupoll.model.codec import ByteOrder, DataType, Layout
+from rtupoll.model.profile import Addressing, Field
+from rtupoll.rtu import Table
 
 TABLE_ALIASES: dict[str, Table] = {
     "coil": Table.COIL, "coils": Table.COIL, "co": Table.COIL,

@@ -1,7 +1,7 @@
 """Device profiles: the model of one vendor's register map and quirks.
 
 A profile is one YAML file (format: docs/profiles.md), read and validated by
-``rtupoll.library`` into these frozen dataclasses. Everything vendor-specific lives
+``rtupoll.config.library`` into these frozen dataclasses. Everything vendor-specific lives
 in the YAML; no code here names a device.
 """
 
@@ -12,8 +12,8 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from rtupoll.codec import ByteOrder, Layout
 from rtupoll.errors import UsageError
+from rtupoll.model.codec import ByteOrder, Layout
 from rtupoll.rtu import Table
 
 

@@ -22,15 +22,15 @@ pymodbus is a good transport, but on a shared RTU line it needs help (design.md)
   wrong-id reply comes with it. Rather than replace the framer, received bytes are
   filtered through pymodbus's public ``trace_packet`` hook (which may rewrite the
   stream): the request's own bytes, seen on the way out, say what the answer must
-  start with (``rtupoll.reply``), and the filter hands pymodbus only the first
+  start with (``rtupoll.rtu.match``), and the filter hands pymodbus only the first
   CRC-valid frame that answers it, or nothing yet. Noise, foreign and late frames
   never reach the framer. An attempt that ends unanswered is ``diagnose``d: a bad
   CRC, truncated, mismatched or garbled reply is a ``FrameError``; silence, line
   noise or other units' frames a ``DeviceTimeout``.
-- **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.serialport``).
+- **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.io.serialport``).
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
-  permission, refused, unreachable -- named by ``rtupoll.serialport``).
+  permission, refused, unreachable -- named by ``rtupoll.io.serialport``).
 
 pymodbus exceptions never escape; its ``pymodbus`` logger is silenced on import
 unless the application set a level on it (``pymodbus_logging`` turns it on).
@@ -50,7 +50,6 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.framer import FramerType
 
-from rtupoll import serialport
 from rtupoll.errors import (
     BusError,
     DeviceException,
@@ -60,8 +59,9 @@ from rtupoll.errors import (
     RefusedError,
     UsageError,
 )
-from rtupoll.reply import Expect, diagnose, expect_for, find_reply
+from rtupoll.io import serialport
 from rtupoll.rtu import FUNCTION_NAMES, Framing, Table
+from rtupoll.rtu.match import Expect, diagnose, expect_for, find_reply
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 

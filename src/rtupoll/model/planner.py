@@ -29,8 +29,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from rtupoll.errors import FrameError, RefusedError
-from rtupoll.profile import Field, Poll, Profile
-from rtupoll.reading import FieldValue, interpret
+from rtupoll.model.interpret import FieldValue, interpret
+from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.rtu import Table
 
 MAX_BITS = 2000  # the Modbus limit for one coil/discrete-input read

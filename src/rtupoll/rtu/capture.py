@@ -17,10 +17,10 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 
-from rtupoll.codec import Value
 from rtupoll.errors import UsageError
-from rtupoll.profile import Profile
-from rtupoll.reading import interpret
+from rtupoll.model.codec import Value
+from rtupoll.model.interpret import interpret
+from rtupoll.model.profile import Profile
 from rtupoll.rtu import FUNCTION_NAMES, Table, crc16, exception_name, with_crc
 
 READS = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}

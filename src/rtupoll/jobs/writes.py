@@ -20,16 +20,16 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from rtupoll import rtu
-from rtupoll.codec import DataType, EncodeError, Value, decode, words_to_hex
-from rtupoll.device import Timing
 from rtupoll.errors import RefusedError, UsageError, VerificationError
-from rtupoll.profile import Field
-from rtupoll.reading import FieldValue, field_words, interpret
-from rtupoll.registers import RegisterSpec, parse_values, words_of
+from rtupoll.jobs.device import Timing
+from rtupoll.model.codec import DataType, EncodeError, Value, decode, words_to_hex
+from rtupoll.model.interpret import FieldValue, field_words, interpret
+from rtupoll.model.profile import Field
+from rtupoll.model.raw import RegisterSpec, parse_values, words_of
 from rtupoll.rtu import Table
 
 if TYPE_CHECKING:
-    from rtupoll.bus import Bus
+    from rtupoll.io.bus import Bus
 
 RAW_FUNCTIONS = frozenset({5, 6, 15, 16})  # a device with no profile: assume the usual set
 

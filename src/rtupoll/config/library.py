@@ -14,9 +14,10 @@ from importlib import resources
 from pathlib import Path
 from typing import TypeVar
 
-from rtupoll.codec import ByteOrder, DataType, EncodeError, Layout, encode, int_range
+from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import UsageError
-from rtupoll.profile import (
+from rtupoll.model.codec import ByteOrder, DataType, EncodeError, Layout, encode, int_range
+from rtupoll.model.profile import (
     AddressChange,
     Addresses,
     Addressing,
@@ -31,7 +32,6 @@ from rtupoll.profile import (
     Variant,
 )
 from rtupoll.rtu import Table
-from rtupoll.yamlsrc import Node, load
 
 T = TypeVar("T")
 PROFILES_ENV = "RTUPOLL_PROFILES"  # extra profile directories, os.pathsep-separated

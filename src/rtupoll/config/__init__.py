@@ -1,0 +1,1 @@
+"""What the user wrote: YAML with line marks, the profile library, site files, address plans."""

@@ -1,0 +1,1 @@
+"""What a device is: profiles, the codec, block planning, and the meaning of raw words."""

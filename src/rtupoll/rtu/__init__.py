@@ -1,0 +1,37 @@
+"""Modbus RTU as bytes and rules, sans-IO: no serial port, no asyncio, no clock of its own.
+
+In the spirit of h11: everything here is a pure function of the bytes and times it
+is given, so every rule is tested in virtual time and reused by the bus (a thin I/O
+adapter), the simulator's engine, ``decode`` and the sniffer.
+
+- ``functions``: the function table (request and reply lengths per function code,
+  names, exception names), frame builders;
+- ``crc``: the CRC-16;
+- ``timing``: character timing and the 3.5-character silence;
+- ``match``: which bytes answer a request, and why an unanswered attempt failed;
+- ``line``: the master's line discipline (when a frame may go, drains, late replies);
+- ``capture``: captured byte streams split into frames and decoded.
+"""
+
+from rtupoll.rtu.crc import crc16, crc_ok, with_crc
+from rtupoll.rtu.functions import (
+    EXCEPTION_NAMES,
+    FUNCTION_NAMES,
+    Table,
+    exception_name,
+    exception_response,
+    read_frame_sizes,
+    read_request,
+    read_response,
+    write_coil_request,
+    write_multiple_request,
+    write_single_request,
+)
+from rtupoll.rtu.timing import Framing, transaction_wire_time
+
+__all__ = [
+    "EXCEPTION_NAMES", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
+    "exception_name", "exception_response", "read_frame_sizes", "read_request",
+    "read_response", "transaction_wire_time", "with_crc", "write_coil_request",
+    "write_multiple_request", "write_single_request",
+]

@@ -1,0 +1,1 @@
+"""What a person or a script sees: the live table and the output records."""
