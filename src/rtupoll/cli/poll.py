@@ -15,7 +15,7 @@ import io
 import os
 import signal
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from rich.live import Live
 
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+    from rtupoll.jobs.services import Service
     from rtupoll.jobs.stats import Reading
     from rtupoll.ui.live import PollView
 
@@ -113,6 +114,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
     DEVICE is PROFILE@ADDRESS. Stop with Ctrl-C (or SIGTERM): the current line is
     finished, nothing is left half-written, and the exit status is 0.
     """
+    services: list[Service] = []  # run beside the scheduler (rtupoll.jobs.services)
     if output is not None and fmt == "table":
         raise UsageError("--output writes json or csv: add --format json or --format csv")
     if (baud or faults) and not simulate:
@@ -129,7 +131,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                 dataclasses.replace(b, name="simulated") for b in site.buses))
             title = "simulated bus" + (f", {baud or baudrate} baud" if baud or baudrate
                                        else ", untimed")
-            _run(site, once=once, fmt=fmt, output=output, title=title)
+            _run(site, once=once, fmt=fmt, output=output, title=title, services=services)
         if fmt == "table" and not once and not faults:
             click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
                        "--baud 9600.\nYour own devices: rtupoll poll -p /dev/ttyUSB0 "
@@ -156,7 +158,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                           fields=_split(fields), timeout=timeout, retries=retries,
                           profile_dirs=profile_dirs)
     _run(site, once=once, fmt=fmt, output=output,
-         title=config.name if config else str(port))
+         title=config.name if config else str(port), services=services)
 
 
 def _split(fields: str | None) -> list[str]:
@@ -175,7 +177,8 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
         yield sim.port, specs
 
 
-def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str) -> None:
+def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
+         services: Sequence[Service] = ()) -> None:
     from rich.console import Console
 
     from rtupoll.jobs.scheduler import Scheduler
@@ -187,12 +190,13 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str) -
     with _sink(fmt, output) as writer:
         view = PollView(scheduler.buses, title=title, live=not once)
         if once:
-            readings = asyncio.run(_once(scheduler, writer))
+            readings = asyncio.run(_once(scheduler, writer, services))
             if show_table:
                 console.print(view.render())
             _report_failures(site, readings)
         else:
-            asyncio.run(_forever(scheduler, writer, view if show_table else None, console))
+            asyncio.run(_forever(scheduler, writer, view if show_table else None, console,
+                                 services))
 
 
 @contextlib.contextmanager
@@ -215,16 +219,34 @@ def _sink(fmt: str, output: Path | None) -> Iterator[RecordWriter | None]:
         raise UsageError(f"cannot write {output}: {exc.strerror}") from None
 
 
-async def _once(scheduler: Scheduler, writer: RecordWriter | None) -> list[Reading]:
+@contextlib.asynccontextmanager
+async def _started(scheduler: Scheduler, services: Sequence[Service]) -> AsyncIterator[None]:
+    """The ports open and the services running; both closed again however it ends."""
+    await scheduler.open()
+    running: list[Service] = []
+    try:
+        for s in services:
+            await s.start(scheduler)
+            running.append(s)
+        yield
+    finally:
+        for s in reversed(running):
+            await s.stop()
+        await scheduler.close()
+
+
+async def _once(scheduler: Scheduler, writer: RecordWriter | None,
+                services: Sequence[Service]) -> list[Reading]:
     """One cycle of every device; records in site order once all are in."""
     got: dict[str, list[Reading]] = {}
 
     def sink(dev: DevicePoller, readings: list[Reading]) -> None:
         got[dev.config.name] = readings
+        for s in services:
+            s.on_readings(dev, readings)
 
     stop = _stop_event()
-    await scheduler.open()
-    try:
+    async with _started(scheduler, services):
         scan = asyncio.create_task(scheduler.scan_once(sink))
         stopper = asyncio.create_task(stop.wait())
         await asyncio.wait([scan, stopper], return_when=asyncio.FIRST_COMPLETED)
@@ -234,8 +256,6 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None) -> list[Readi
             await asyncio.gather(scan, return_exceptions=True)
             raise KeyboardInterrupt
         scan.result()
-    finally:
-        await scheduler.close()
     readings = [r for d in scheduler.pollers() for r in got.get(d.config.name, [])]
     if writer is not None:
         writer.write(readings)
@@ -243,12 +263,14 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None) -> list[Readi
 
 
 async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: PollView | None,
-                   console: Console) -> None:
+                   console: Console, services: Sequence[Service]) -> None:
     from rich.live import Live
 
     stop = _stop_event()
 
     def sink(dev: DevicePoller, readings: list[Reading]) -> None:
+        for s in services:
+            s.on_readings(dev, readings)
         if writer is None:
             return
         try:
@@ -257,8 +279,7 @@ async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: Poll
             stop.set()
             raise
 
-    await scheduler.open()
-    try:
+    async with _started(scheduler, services):
         if view is None:
             await scheduler.run(sink, stop)
             return
@@ -270,8 +291,6 @@ async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: Poll
             finally:
                 painter.cancel()
                 live.refresh()
-    finally:
-        await scheduler.close()
 
 
 async def _paint(live: Live, stop: asyncio.Event) -> None:
