@@ -1,32 +1,23 @@
-"""One RS-485 bus: a pymodbus client per port, and the bus discipline pymodbus leaves to us.
+"""One RS-485 bus: a pymodbus client per port, driven by the sans-IO line discipline.
 
-The only module that imports pymodbus (it renames things between minor releases).
-pymodbus is a good transport, but on a shared RTU line it needs help (design.md):
+The only module that imports pymodbus (it renames things between minor releases),
+and a thin one: pymodbus carries the bytes and builds and parses the PDUs; every rule
+of the shared line -- the 3.5-character silence, the drain after a timeout, which
+received bytes answer which request (resynchronisation past noise, foreign and late
+frames), garbled replies known at once -- is ``rtupoll.rtu.line.Line``'s, fed here with
+what went out, what came in, and ``time.monotonic()``.
 
-- **One transaction in flight**: the bus's own lock spans silence, request, reply
-  and retries, so devices polled from several tasks never interleave on the wire.
-- **Silence**: each request waits 3.5 character times (``Framing.silence``) after the
-  last byte received and after the previous request left the wire (pymodbus alone
-  sends ~0.6 ms after a reply). asyncio times in whole milliseconds, so the last
-  fraction of a millisecond is slept with ``time.sleep`` (at most 1 ms, no CPU).
+- **One transaction in flight**: the bus's lock spans silence, request, reply and
+  retries, so devices polled from several tasks never interleave on the wire.
+- **Silence**: each request waits until ``Line.ready_at``; asyncio times in whole
+  milliseconds, so the last fraction of a millisecond is slept with ``time.sleep``
+  (at most 1 ms, no CPU).
 - **Timeout and retries per transaction**: pymodbus runs with retries=0 and a long
-  backstop; the bus bounds each attempt (``asyncio.timeout``, plus the frames' wire
-  time so slow baud rates do not eat the device's time) and retries itself.
-- **Drain**: RTU has no transaction id, so a late reply looks exactly like the answer
-  to the next request. After a timeout, the next *different* request waits until the
-  line has been quiet for the drain period (default: the timeout that expired), and
-  bytes arriving while no reply is awaited never reach pymodbus. A retry of the same
-  request needs no drain: a late answer to attempt 1 is a right answer to attempt 2.
-- **Resynchronisation**: pymodbus's RTU framer drops its whole buffer on one stray
-  byte (0x00/0xFF as RS-485 transceivers switch) and loses the right reply when a
-  wrong-id reply comes with it. Rather than replace the framer, received bytes are
-  filtered through pymodbus's public ``trace_packet`` hook (which may rewrite the
-  stream): the request's own bytes, seen on the way out, say what the answer must
-  start with (``rtupoll.rtu.match``), and the filter hands pymodbus only the first
-  CRC-valid frame that answers it, or nothing yet. Noise, foreign and late frames
-  never reach the framer. An attempt that ends unanswered is ``diagnose``d: a bad
-  CRC, truncated, mismatched or garbled reply is a ``FrameError``; silence, line
-  noise or other units' frames a ``DeviceTimeout``.
+  backstop; the bus bounds each attempt (the timeout plus the frames' wire time, so
+  slow baud rates do not eat the device's time) and retries itself.
+- **Receive filter**: received bytes pass through pymodbus's public ``trace_packet``
+  hook, which may rewrite the stream: the line discipline sees every byte, and
+  pymodbus is handed only the frame the line identified as the answer, or nothing.
 - **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.io.serialport``).
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
@@ -39,7 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import sys
 import time
 from collections import Counter
 from collections.abc import Awaitable, Callable, Sequence
@@ -49,6 +39,7 @@ from typing import Any
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.framer import FramerType
+from pymodbus.pdu import DecodePDU
 
 from rtupoll.errors import (
     BusError,
@@ -61,12 +52,20 @@ from rtupoll.errors import (
 )
 from rtupoll.io import serialport
 from rtupoll.rtu import FUNCTION_NAMES, Framing, Table
-from rtupoll.rtu.match import Expect, diagnose, expect_for, find_reply
+from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.functions import (
+    answer_length,
+    read_request,
+    write_coil_request,
+    write_multiple_request,
+    write_single_request,
+)
+from rtupoll.rtu.line import Answer, Garbled, Line
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
 _TICK = 0.001  # the event loop's timer resolution (epoll waits in whole milliseconds)
-_DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
+_HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout; the bus's per-attempt deadline is always shorter
 _READERS = {Table.COIL: "read_coils", Table.DISCRETE: "read_discrete_inputs",
             Table.INPUT: "read_input_registers", Table.HOLDING: "read_holding_registers"}
@@ -113,7 +112,7 @@ class BusStats:
     busy: float = 0.0  # seconds the bus was held: silences, requests, replies, timeouts, drains
     wire: float = 0.0  # seconds of frames on the wire at the baud rate (the physical floor)
     outcomes: Counter[str] = field(default_factory=Counter)  # see OUTCOMES
-    unsolicited: int = 0  # bursts of bytes that answered nothing (noise, late or foreign replies)
+    hazard_waits: int = 0  # polls spent waiting out a possible late reply (see rtu.line)
 
     def utilisation(self, elapsed: float) -> float:
         return min(1.0, self.busy / elapsed) if elapsed > 0 else 0.0
@@ -134,16 +133,23 @@ class Bus:
         self.stats = BusStats()
         self._gateway = settings.gateway
         self._url = serialport.port_url(settings.port, deassert_dtr=settings.deassert_dtr)
-        self._drain, self._connect_timeout = drain, connect_timeout
+        self._connect_timeout = connect_timeout
         self._broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
         self._client: Any = None
-        self._expect: Expect | None = None  # the reply awaited right now
-        self._sent: Expect | None = None  # the reply the current attempt asked for
-        self._rx = b""  # bytes received during the current attempt
-        self._rx_at = self._tx_end = self._timeout_at = 0.0
-        self._drain_for = 0.0  # >0: the line must be quiet this long before the next request
-        self._idle_rx = False
+        self.line = Line(self.framing, drain=drain)
+        self._seen = b""  # what pymodbus last showed the receive hook (it resends its buffer)
+        self._answer = b""  # the frame to hand pymodbus, once the line identified it
+        self._garbled: asyncio.Future[str] | None = None  # set when the line knows at once
+
+    @property
+    def unsolicited(self) -> int:
+        """Frames and bursts of bytes that answered nothing this bus asked."""
+        return int(self.line.counts.unsolicited)
+
+    def late(self, unit: int) -> int:
+        """Late replies from ``unit``: answers to requests that had timed out."""
+        return int(self.line.counts.late[unit])
 
     # -- opening and closing -------------------------------------------------
 
@@ -198,7 +204,7 @@ class Bus:
         except Exception:  # pymodbus, pyserial (ValueError: unknown URL)
             ok = False
         if ok and self.connected:
-            self._rx_at = time.monotonic()  # a fresh port: count the silence from now
+            self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
         self._client.close()
         self._client = None
@@ -223,8 +229,7 @@ class Bus:
         method = _READERS[table]
         pdu = await self._transact(
             lambda: getattr(self._client, method)(address, count=count, device_id=unit),
-            unit, table.read_function, timeout, retries,
-            frames=8 + 5 + (2 * count if table.is_register else (count + 7) // 8))
+            read_request(unit, table, address, count), timeout, retries)
         values = tuple(int(v) for v in pdu.registers) if table.is_register else \
             tuple(int(b) for b in pdu.bits[:count])
         if len(values) != count:
@@ -255,9 +260,9 @@ class Bus:
             return self._client.write_registers(  # type: ignore[no-any-return]
                 address, vals, device_id=unit, no_response_expected=unit == 0)
 
-        echoed = await self._transact(call, unit, function, timeout,
-                                      retries if reply == "echo" else 0,
-                                      frames=(8 if function == 6 else 9 + 2 * len(vals)) + 8,
+        request = write_single_request(unit, address, vals[0]) if function == 6 else \
+            write_multiple_request(unit, address, vals)
+        echoed = await self._transact(call, request, timeout, retries if reply == "echo" else 0,
                                       tolerate=reply != "echo")
         return echoed is not None
 
@@ -269,18 +274,49 @@ class Bus:
         await self._transact(
             lambda: self._client.write_coil(address, bool(on), device_id=unit,
                                             no_response_expected=unit == 0),
-            unit, 5, timeout, retries, frames=16)
+            write_coil_request(unit, address, on), timeout, retries)
+
+    async def transact(self, unit: int, pdu: bytes, *, timeout: float,
+                       retries: int = 0) -> bytes:
+        """Any request PDU (function code and data) to ``unit``; the reply PDU, which is
+        an exception PDU (function | 0x80, code) when the device answered with one.
+        For a gateway passing other masters' requests through; a broadcast returns b""."""
+        _check_unit(unit, broadcast=True)
+        try:
+            request = DecodePDU(True).decode(pdu)
+        except Exception:  # pymodbus's decoder raises several kinds on bad input
+            request = None
+        if request is None:
+            raise RefusedError(f"function 0x{pdu[:1].hex()} with {len(pdu) - 1} data bytes "
+                               "is not a request this bus can send")
+        request.dev_id = unit
+        frame = with_crc(bytes((unit,)) + pdu)
+        try:
+            reply = await self._transact(
+                lambda: self._client.execute(unit == 0, request), frame, timeout, retries)
+        except DeviceException as exc:
+            return bytes((pdu[0] | 0x80, exc.code))
+        return b"" if reply is None else bytes((reply.function_code,)) + reply.encode()
 
     # -- one transaction -----------------------------------------------------
 
-    async def _transact(self, call: Callable[[], Awaitable[Any]], unit: int, function: int,
-                        timeout: float, retries: int, *, frames: int,
-                        tolerate: bool = False) -> Any:
-        """One transaction under the lock; ``frames``: request + normal reply bytes, whose
-        wire time is added to ``timeout`` (the device's own time to answer)."""
+    async def _transact(self, call: Callable[[], Awaitable[Any]], request: bytes,
+                        timeout: float, retries: int, *, tolerate: bool = False) -> Any:
+        """One transaction (``request``: the frame pymodbus will send) under the lock,
+        once no earlier request's late reply could be mistaken for its answer. The
+        request's and its reply's wire time is added to ``timeout`` (the device's own
+        time to answer)."""
         if not 0 < timeout <= 60 or retries < 0:
             raise UsageError(f"timeout {timeout} s / retries {retries} make no sense")
-        async with self._lock:
+        unit, function = request[0], request[1]
+        frames = len(request) + (answer_length(request) or 0)
+        while True:
+            await self._hazard_clear(request)
+            await self._lock.acquire()
+            if self.line.hazard_until(request, time.monotonic()) <= time.monotonic():
+                break
+            self._lock.release()  # another task's request made one: wait again
+        try:
             started = time.monotonic()
             outcome = "ok"
             try:
@@ -302,6 +338,19 @@ class Bus:
                 self.stats.transactions += 1
                 self.stats.outcomes[outcome] += 1
                 self.stats.busy += time.monotonic() - started
+        finally:
+            self._lock.release()
+
+    async def _hazard_clear(self, request: bytes) -> None:
+        """Wait (without holding the bus) until no earlier request's late reply could be
+        taken for ``request``'s answer; an arriving answer ends the wait early."""
+        while True:
+            now = time.monotonic()
+            until = self.line.hazard_until(request, now)
+            if until <= now:
+                return
+            self.stats.hazard_waits += 1
+            await asyncio.sleep(min(until - now, _HAZARD_POLL))
 
     async def _attempts(self, call: Callable[[], Awaitable[Any]], unit: int, function: int,
                         timeout: float, retries: int, limit: float) -> Any:
@@ -313,27 +362,30 @@ class Bus:
             if attempt:
                 self.stats.retries += 1
             self.stats.attempts += 1
+            tries = f" ({attempt + 1} tries)" if attempt else ""
             try:
                 pdu = await self._attempt(call, limit)
+            except _Garbled as exc:
+                failure = FrameError(f"unit {unit}, {what}: {exc}{tries}")
+                continue
             except (asyncio.TimeoutError, ModbusIOException):
-                self._drain_for = self._drain if self._drain is not None else timeout
-                self._timeout_at = time.monotonic()
+                rx = bytes(self.line.attempt.rx) if self.line.attempt else b""
+                why = self.line.expire(time.monotonic(), timeout)
                 if not self.connected:
                     raise PortError(f"{self.settings.port} went away during the "
                                     f"transaction") from None
-                tries = f" ({attempt + 1} tries)" if attempt else ""
-                why = diagnose(self._rx, self._sent)
                 failure = FrameError(f"unit {unit}, {what}: {why}{tries}") if why else \
                     DeviceTimeout(f"no reply from unit {unit} to {what} within {timeout:g} s"
-                                  f"{tries}" + (f" (ignored: {self._rx[:16].hex(' ')})"
-                                                if self._rx else ""))
+                                  f"{tries}" + (f" (ignored: {rx[:16].hex(' ')})" if rx else ""))
                 continue
             except ConnectionException:
+                self.line.abandon()
                 raise PortError(f"{self.settings.port} is not open") from None
             except Exception as exc:  # anything pymodbus raises: never let it escape
+                self.line.abandon()
                 raise FrameError(f"unit {unit}, {what}: {type(exc).__name__}: {exc}") from None
             if pdu is None:  # broadcast: nobody answers
-                self._tx_end += self._broadcast_turnaround
+                self.line.after_broadcast(self._broadcast_turnaround)
                 return None
             if pdu.isError():
                 raise DeviceException(int(pdu.exception_code), unit=unit, function=function)
@@ -341,64 +393,73 @@ class Bus:
         raise failure
 
     async def _attempt(self, call: Callable[[], Awaitable[Any]], limit: float) -> Any:
-        self._rx, self._sent = b"", None
+        """One request and its answer; ``_Garbled`` as soon as the line knows the reply
+        is garbled, ``asyncio.TimeoutError`` after ``limit`` seconds."""
+        self._answer, self._seen = b"", b""
+        self._garbled = asyncio.get_running_loop().create_future()
         try:
-            pending = call()  # may raise at once (not connected): then nothing was sent
-            if sys.version_info >= (3, 11):
-                async with asyncio.timeout(limit):
-                    return await pending
-            return await asyncio.wait_for(pending, limit)
+            pending = asyncio.ensure_future(call())  # raises at once if not connected
+            done, _ = await asyncio.wait((pending, self._garbled), timeout=limit,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if pending in done:
+                return pending.result()
+            pending.cancel()
+            await asyncio.gather(pending, return_exceptions=True)
+            if self._garbled in done:
+                raise _Garbled(self._garbled.result())
+            raise asyncio.TimeoutError
         finally:
-            self._expect = None
-            if self._sent:
-                self.stats.wire += self.framing.wire_time(
-                    self._sent.request + (self._sent.length if self._rx else 0))
+            self._garbled = None
 
     async def _quiet_line(self, *, drain: bool) -> None:
-        """Wait for the inter-frame silence, and after a timeout for a quiet line."""
+        """Wait until the line discipline lets the next frame go."""
         while True:
-            ready = max(self._rx_at, self._tx_end) + self.framing.silence
-            if drain and self._drain_for:
-                quiet = max(self._rx_at, self._timeout_at) + self._drain_for
-                # a line that is never quiet (a chattering device, another master) must not
-                # hold the bus for ever: after a few drain periods go ahead anyway; the
-                # reply filter still drops whatever is not this request's answer
-                ready = max(ready, min(quiet, self._timeout_at + _DRAIN_LIMIT * self._drain_for))
-            delay = ready - time.monotonic()
+            delay = self.line.ready_at(drain=drain) - time.monotonic()
             if delay <= 0:
                 break
             if delay > _TICK:  # whole ticks: asyncio rounds its timeouts up to the millisecond
                 await asyncio.sleep(delay // _TICK * _TICK)
             else:  # the last fraction of a tick, which asyncio would overshoot by up to 1 ms
                 time.sleep(delay)
-        if drain:
-            self._drain_for = 0.0
-        if self._idle_rx:
-            self.stats.unsolicited += 1
-            self._idle_rx = False
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
-        """pymodbus's packet hook: timestamps both ways, and the receive-side filter.
+        """pymodbus's packet hook: what goes out and what comes in, through the line.
 
-        pymodbus passes everything received since its last send (it keeps what the
-        framer did not use), so the filter sees the whole attempt each time.
+        pymodbus passes everything received since its last send (it keeps what its
+        framer did not use), so only what is new since the last call is fed on.
         """
         now = time.monotonic()
         if sending:
-            self._tx_end = now + self.framing.wire_time(len(data))
-            self._expect = self._sent = expect_for(data)
+            self.line.send(data, now)
+            self.stats.wire += self.framing.wire_time(len(data))
+            self._seen = b""
             return data
-        self._rx_at = now
-        exp = self._expect
-        if exp is None:  # nobody asked: noise, a late reply; pymodbus drops it at the next send
-            self._idle_rx = True
-            return b""
-        self._rx = data
-        frame = find_reply(data, exp)
-        if frame is None:
-            return b""
-        self._expect = None
-        return frame
+        new = _new_bytes(self._seen, data)
+        self._seen = data
+        event = self.line.receive(new, now)
+        if isinstance(event, Answer):
+            self._answer = event.frame
+            self.stats.wire += self.framing.wire_time(len(event.frame))
+            return self._answer
+        if isinstance(event, Garbled) and self._garbled is not None \
+                and not self._garbled.done():
+            self._garbled.set_result(event.why)
+        return b""
+
+
+class _Garbled(Exception):
+    """The line saw a complete reply with a bad CRC: retry now, not after the timeout."""
+
+
+def _new_bytes(seen: bytes, data: bytes) -> bytes:
+    """What ``data`` (pymodbus's receive buffer) holds beyond ``seen`` (the last one),
+    allowing for a cut from its front."""
+    if data.startswith(seen):
+        return data[len(seen):]
+    for k in range(1, len(seen) + 1):
+        if data.startswith(seen[k:]):
+            return data[len(seen) - k:]
+    return data
 
 
 def _check_unit(unit: int, *, broadcast: bool) -> None:

@@ -17,6 +17,7 @@ from rtupoll.rtu.crc import crc16, crc_ok, with_crc
 from rtupoll.rtu.functions import (
     EXCEPTION_NAMES,
     FUNCTION_NAMES,
+    FUNCTIONS,
     Table,
     exception_name,
     exception_response,
@@ -30,7 +31,7 @@ from rtupoll.rtu.functions import (
 from rtupoll.rtu.timing import Framing, transaction_wire_time
 
 __all__ = [
-    "EXCEPTION_NAMES", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
+    "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
     "exception_name", "exception_response", "read_frame_sizes", "read_request",
     "read_response", "transaction_wire_time", "with_crc", "write_coil_request",
     "write_multiple_request", "write_single_request",

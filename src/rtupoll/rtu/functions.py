@@ -1,8 +1,11 @@
-"""Modbus RTU on the wire: tables, CRC, frames, exception names and timing.
+"""The Modbus RTU function table: names, frame lengths per function code, frame builders.
 
-Pure functions only. The bus module sends frames through pymodbus; the simulator,
-``rtupoll decode`` and ``--dry-run`` build and parse them here, so there is one
-definition of what a frame is.
+The one place that knows how long a frame is. A frame is ``unit, function, data, CRC``;
+its length follows from the function code and, for some, a byte count inside the frame
+(``Length``). Requests and normal replies of one function differ, so each function
+has one ``Length`` for each; an exception reply (function | 0x80) is always 5 bytes.
+The bus (to know the answer it awaits), the simulator's receiver, ``decode`` and the
+sniffer all take their lengths from ``FUNCTIONS``.
 """
 
 from __future__ import annotations
@@ -10,8 +13,12 @@ from __future__ import annotations
 import enum
 import struct
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from rtupoll.rtu.crc import with_crc
+
+MAX_FRAME = 256  # the RTU maximum, address to CRC
+EXCEPTION_LENGTH = 5  # unit, function | 0x80, code, CRC
 
 
 class Table(str, enum.Enum):
@@ -49,16 +56,88 @@ EXCEPTION_NAMES: dict[int, str] = {
     11: "GATEWAY TARGET DEVICE FAILED TO RESPOND",
 }
 
-FUNCTION_NAMES: dict[int, str] = {
-    1: "read coils",
-    2: "read discrete inputs",
-    3: "read holding registers",
-    4: "read input registers",
-    5: "write single coil",
-    6: "write single register",
-    15: "write multiple coils",
-    16: "write multiple registers",
-}
+
+
+@dataclass(frozen=True)
+class Length:
+    """How long a frame is: ``fixed`` bytes, or a byte count at ``count_at`` plus
+    ``count_at + 1`` header bytes and the CRC. ``known`` is False where the standard
+    leaves the length to the data (a function rtupoll only passes through)."""
+
+    fixed: int = 0
+    count_at: int = 0
+
+    def of(self, head: bytes) -> int | None:
+        """The frame's length from its first bytes; None until the count byte is in."""
+        if self.fixed:
+            return self.fixed
+        if self.count_at and len(head) > self.count_at:
+            return self.count_at + 1 + head[self.count_at] + 2
+        return None
+
+
+@dataclass(frozen=True)
+class Function:
+    code: int
+    name: str
+    request: Length
+    reply: Length
+
+
+_FIXED8 = Length(8)
+FUNCTIONS: dict[int, Function] = {f.code: f for f in (
+    Function(1, "read coils", _FIXED8, Length(count_at=2)),
+    Function(2, "read discrete inputs", _FIXED8, Length(count_at=2)),
+    Function(3, "read holding registers", _FIXED8, Length(count_at=2)),
+    Function(4, "read input registers", _FIXED8, Length(count_at=2)),
+    Function(5, "write single coil", _FIXED8, _FIXED8),
+    Function(6, "write single register", _FIXED8, _FIXED8),
+    Function(7, "read exception status", Length(4), Length(5)),
+    Function(8, "diagnostics", _FIXED8, _FIXED8),
+    Function(11, "get comm event counter", Length(4), _FIXED8),
+    Function(12, "get comm event log", Length(4), Length(count_at=2)),
+    Function(15, "write multiple coils", Length(count_at=6), _FIXED8),
+    Function(16, "write multiple registers", Length(count_at=6), _FIXED8),
+    Function(17, "report server id", Length(4), Length(count_at=2)),
+    Function(22, "mask write register", Length(10), Length(10)),
+    Function(23, "read/write multiple registers", Length(count_at=10), Length(count_at=2)),
+    Function(24, "read FIFO queue", Length(6), Length()),
+    Function(43, "encapsulated interface", Length(7), Length()),
+)}
+FUNCTION_NAMES: dict[int, str] = {f.code: f.name for f in FUNCTIONS.values()}
+READ_FUNCTIONS = (1, 2, 3, 4)
+WRITE_FUNCTIONS = (5, 6, 15, 16)
+
+
+def request_length(head: bytes) -> int | None:
+    """Length of the request that starts with ``head``; None if not known (yet)."""
+    if len(head) < 2 or head[1] not in FUNCTIONS:
+        return None
+    return FUNCTIONS[head[1]].request.of(head)
+
+
+def reply_length(head: bytes) -> int | None:
+    """Length of the reply (normal or exception) that starts with ``head``."""
+    if len(head) < 2:
+        return None
+    if head[1] & 0x80:
+        return EXCEPTION_LENGTH
+    fn = FUNCTIONS.get(head[1])
+    return fn.reply.of(head) if fn else None
+
+
+def answer_length(request: bytes) -> int | None:
+    """Length of the normal reply to ``request`` (a complete request frame)."""
+    fc = request[1]
+    if fc in READ_FUNCTIONS:
+        return 5 + data_bytes(fc, int.from_bytes(request[4:6], "big"))
+    fn = FUNCTIONS.get(fc)
+    return fn.reply.fixed or None if fn else None
+
+
+def data_bytes(function: int, count: int) -> int:
+    """Data bytes a read of ``count`` registers (3, 4) or bits (1, 2) returns."""
+    return (count + 7) // 8 if function in (1, 2) else 2 * count
 
 def exception_name(code: int) -> str:
     return EXCEPTION_NAMES.get(code, "UNKNOWN EXCEPTION")
@@ -92,5 +171,15 @@ def exception_response(unit: int, function: int, code: int) -> bytes:
 
 def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
     """Request and normal response sizes (bytes, CRC included) of one read."""
-    data = (count + 7) // 8 if coils else 2 * count
-    return 8, 5 + data
+    return 8, 5 + data_bytes(1 if coils else 3, count)
+
+
+def write_frame_sizes(function: int, count: int) -> tuple[int, int]:
+    """Request and normal (echo) reply sizes of a write of ``count`` registers or coils."""
+    if function in (5, 6):
+        return 8, 8
+    return 9 + data_bytes(1 if function == 15 else 3, count), 8
+
+
+# where a write request's data begins: FC06 value at 4, FC16 values after the byte count
+WRITE_DATA_AT = {5: 4, 6: 4, 15: 7, 16: 7}

@@ -21,7 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rtupoll.rtu import crc_ok
+from rtupoll.rtu.crc import crc_ok
+from rtupoll.rtu.functions import EXCEPTION_LENGTH, READ_FUNCTIONS, answer_length, reply_length
 
 
 @dataclass(frozen=True)
@@ -40,16 +41,15 @@ def expect_for(request: bytes) -> Expect | None:
     unit, fn = request[0], request[1]
     if unit == 0:
         return None
-    if fn in (1, 2, 3, 4):
-        count = int.from_bytes(request[4:6], "big")
-        n = (count + 7) // 8 if fn <= 2 else 2 * count
-        return Expect(unit, fn, bytes((unit, fn, n)), 5 + n, len(request))
-    return Expect(unit, fn, request[:6], 8, len(request))  # 5/6/15/16 echo address and value
+    length = answer_length(request) or EXCEPTION_LENGTH
+    if fn in READ_FUNCTIONS:
+        return Expect(unit, fn, bytes((unit, fn, length - 5)), length, len(request))
+    return Expect(unit, fn, request[:6], length, len(request))  # 5/6/15/16 echo address and value
 
 
 def find_reply(buf: bytes, exp: Expect) -> bytes | None:
     """The first CRC-valid frame in ``buf`` that answers ``exp``, wherever it starts."""
-    heads = ((exp.prefix, exp.length), (bytes((exp.unit, exp.function | 0x80)), 5))
+    heads = ((exp.prefix, exp.length), (bytes((exp.unit, exp.function | 0x80)), EXCEPTION_LENGTH))
     i = buf.find(exp.prefix[:1])
     while 0 <= i <= len(buf) - 5:
         for head, size in heads:
@@ -67,7 +67,7 @@ def diagnose(buf: bytes, exp: Expect | None) -> str | None:
         return None
     junk, i = bytearray(), 0
     while i < len(buf):
-        size = _frame_size(buf, i)
+        size = reply_length(buf[i : i + 3])
         if size and i + size <= len(buf) and crc_ok(buf[i : i + size]):
             frame = buf[i : i + size]
             if frame[0] == exp.unit and frame[1] & 0x7F == exp.function:
@@ -81,22 +81,11 @@ def diagnose(buf: bytes, exp: Expect | None) -> str | None:
         at = junk.find(bytes((exp.unit, fn)))
         if at >= 0:
             rest = bytes(junk[at:])
-            size = _frame_size(rest, 0) or exp.length
+            size = reply_length(rest[:3]) or exp.length
             if len(rest) < size:
                 return f"truncated reply ({len(rest)} of {size} bytes): {_hex(rest)}"
             return f"CRC error in reply: {_hex(rest[:size])}"
     return f"garbled reply: {_hex(bytes(junk))}" if len(junk.strip(b"\x00\xff")) >= 3 else None
-
-
-def _frame_size(buf: bytes, i: int) -> int | None:
-    if i + 2 > len(buf):
-        return None
-    fn = buf[i + 1]
-    if fn & 0x80:
-        return 5
-    if fn in (1, 2, 3, 4):
-        return 5 + buf[i + 2] if i + 2 < len(buf) else None
-    return 8 if fn in (5, 6, 15, 16) else None
 
 
 def _hex(data: bytes) -> str:

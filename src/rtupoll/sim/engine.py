@@ -21,30 +21,22 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from rtupoll.rtu import crc_ok, exception_response
+from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS, request_length
 from rtupoll.sim.device import DeviceConfig, SimDevice
 from rtupoll.sim.faults import SILENT, Fault, FaultSet, mangle
 
-# function code -> request length (bytes, CRC included) for fixed-size requests
-_FIXED = {1: 8, 2: 8, 3: 8, 4: 8, 5: 8, 6: 8, 7: 4, 8: 8, 11: 4, 12: 4, 17: 4, 22: 10,
-          24: 6, 43: 7}
-# function code -> (offset of its byte count, bytes besides the counted data)
-_COUNTED = {15: (6, 9), 16: (6, 9), 23: (10, 13)}
 MAX_BUFFER = 512  # bytes kept while looking for a frame; older ones are garbage
-WRITES = (5, 6, 15, 16)
 
 
 def _frame_at(buf: bytes, i: int) -> int | None:
     """Length of a complete, CRC-valid request frame starting at ``buf[i]``, else None."""
     if len(buf) - i < 4:
         return None
-    fc = buf[i + 1]
-    if fc in _FIXED:
-        lengths: Sequence[int] = (_FIXED[fc],)
-    elif fc in _COUNTED:
-        at, extra = _COUNTED[fc]
-        if len(buf) - i <= at:
+    if buf[i + 1] in FUNCTIONS:
+        n = request_length(buf[i : i + 11])
+        if n is None:  # its byte count has not arrived yet
             return None
-        lengths = (extra + buf[i + at],)
+        lengths: Sequence[int] = (n,)
     else:
         lengths = range(4, 9)  # an unknown function: short candidates only
     for n in lengths:
@@ -124,7 +116,7 @@ class Engine:
         unit, fc = frame[0], frame[1]
         broadcast = unit == 0
         self.why_silent = "broadcast: no device replies" if broadcast else ""
-        if broadcast and fc not in WRITES:
+        if broadcast and fc not in WRITE_FUNCTIONS:
             return []
         bus_hits = self.bus_faults.due(self.requests, self.requests, 0)
         out: list[Transmission] = []

@@ -1,0 +1,306 @@
+"""The master's line discipline for one RS-485 line: sans-IO, in the spirit of h11.
+
+Fed what was sent, what was received and the time (``now``, any monotonic clock, real
+or virtual), it says when the next frame may go, which received bytes answer the
+request in flight, and how an unanswered attempt is classified. It does no I/O and
+reads no clock, so every rule is tested in virtual time; ``rtupoll.io.bus`` is the thin
+adapter that feeds it from a port.
+
+**Silence.** A frame may go 3.5 character times (``Framing.silence``) after the last
+byte received and after the previous frame left the wire. After a timeout the line
+must also have been quiet for the drain period (by default the timeout that expired),
+but never longer than ``drain_limit`` drain periods: a line that never goes quiet
+must not hold the master for ever.
+
+**Which reply answers which request.** RTU has no transaction id: a read reply carries
+only the unit, the function and a byte count, so a late reply to one request looks
+exactly like the answer to the next request of the same shape. A timer alone cannot
+settle that; the line keeps account instead. Every request sent to a unit joins that
+unit's *outstanding* queue and leaves it only when a frame is identified as its answer
+(or after ``horizon`` seconds). A frame from a unit answers one of the unit's
+outstanding requests that it fits (devices and gateways do not always answer in
+order). Hence:
+
+- a frame is taken as the answer only when every outstanding request it fits is the
+  request in flight or an identical one (same unit, function, addresses): a late
+  answer to an earlier attempt of the same read is a right answer;
+- a frame that fits a *different* outstanding request may be that request's late
+  reply: it is counted as late (per unit) and never taken for the answer in flight;
+  the attempt goes on waiting for its own answer;
+- a frame that begins before the request in flight was sent cannot answer it (the
+  request's own wire time is not counted: simulators and gateways answer sooner);
+- frames of other units, noise and stray bytes are skipped; the answer is found
+  wherever it starts in what arrived (resynchronisation).
+
+So that the line never has to guess, a request is not sent while an earlier,
+*different* request to the same unit and function may still be answered
+(``hazard_until``): a request that timed out may be answered up to ``LATE_FACTOR``
+timeouts late (or ``SETTLE_FACTOR`` times the longest reply time seen from that unit,
+if longer; at most ``horizon``); a request whose answer was taken from an identical
+earlier request's late reply may still be answered within ``SETTLE_FACTOR`` reply
+times. Its answer arriving ends the wait at once. The bus waits for this outside
+its lock, so other devices keep the line busy meanwhile. Should a frame still fit
+an older different request (a device that dropped it and answers a later one), it
+is counted late and the attempt times out: never a wrong value, at worst a retry.
+What this cannot guarantee: a reply later than the late window of its request, a
+device that answers out of order or twice, and frames from a second master.
+
+**Garbled replies** are known at once: a complete frame from the unit, with the
+request's function, whose CRC is wrong ends the attempt (``Garbled``) without
+waiting for the timeout. An attempt that ends unanswered is classified by
+``rtupoll.rtu.match.diagnose``: truncated, mismatched or garbled (``FrameError``) or
+plain silence (``DeviceTimeout``).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+from rtupoll.rtu.crc import crc_ok
+from rtupoll.rtu.functions import EXCEPTION_LENGTH, MAX_FRAME, reply_length
+from rtupoll.rtu.match import Expect, diagnose, expect_for
+from rtupoll.rtu.timing import Framing
+
+HORIZON = 60.0  # seconds after which no late reply is expected, whatever the evidence
+LATE_FACTOR = 12  # a request that timed out may still be answered this many timeouts late
+SETTLE_FACTOR = 3  # an answered-looking request may still be answered this many latencies late
+DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
+
+
+@dataclass
+class Outstanding:
+    """A request whose answer has not been identified yet."""
+
+    request: bytes
+    expect: Expect
+    sent: float  # when its first byte went out
+    expires: float  # after this no answer to it is expected any more
+
+
+@dataclass(frozen=True)
+class Answer:
+    frame: bytes
+
+
+@dataclass(frozen=True)
+class Garbled:
+    why: str
+
+
+@dataclass
+class Attempt:
+    """The request in flight and what has arrived for it."""
+
+    request: bytes
+    expect: Expect
+    entry: Outstanding
+    rx: bytearray = field(default_factory=bytearray)  # every byte received during it
+
+
+@dataclass
+class LineCounts:
+    late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
+    unsolicited: int = 0  # frames and bursts that answered nothing we asked
+    dropped: int = 0  # outstanding requests given up (horizon passed)
+
+
+def _fits(frame: bytes, exp: Expect) -> bool:
+    if frame[1] == exp.function | 0x80:
+        return len(frame) == EXCEPTION_LENGTH
+    return len(frame) == exp.length and frame.startswith(exp.prefix)
+
+
+class Line:
+    """One line, one master. See the module docstring for the rules."""
+
+    def __init__(self, framing: Framing, *, drain: float | None = None,
+                 horizon: float = HORIZON, drain_limit: int = DRAIN_LIMIT) -> None:
+        self.framing = framing
+        self.counts = LineCounts()
+        self._drain, self._horizon, self._drain_limit = drain, horizon, drain_limit
+        self.last_rx = self.tx_end = self.timeout_at = float("-inf")
+        self.drain_for = 0.0  # >0: the line must be quiet this long before the next request
+        self.attempt: Attempt | None = None
+        self._outstanding: dict[int, deque[Outstanding]] = {}
+        self._latency: dict[int, float] = {}  # per unit: the longest reply time seen lately
+        self._buf = bytearray()  # received bytes not yet explained
+        self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
+        self._idle_burst = False
+
+    # -- when the next frame may go ------------------------------------------
+
+    def ready_at(self, *, drain: bool = True) -> float:
+        """The earliest time the next request may start (``drain``: honour a drain)."""
+        ready = max(self.last_rx, self.tx_end) + self.framing.silence
+        if drain and self.drain_for:
+            quiet = max(self.last_rx, self.timeout_at) + self.drain_for
+            ready = max(ready, min(quiet, self.timeout_at + self._drain_limit * self.drain_for))
+        return ready
+
+    def opened(self, now: float) -> None:
+        """A fresh port: count the silence from now."""
+        self.last_rx = max(self.last_rx, now)
+
+    # -- sending ---------------------------------------------------------------
+
+    def send(self, request: bytes, now: float) -> None:
+        """``request`` starts on the wire at ``now``; its answer is awaited (not a broadcast)."""
+        self.tx_end = now + self.framing.wire_time(len(request))
+        self.drain_for = 0.0
+        if self._idle_burst:
+            self.counts.unsolicited += 1
+            self._idle_burst = False
+        self._buf.clear()
+        self._marks.clear()
+        self._forget(now)
+        exp = expect_for(request)
+        if exp is None:  # a broadcast: nobody answers
+            self.attempt = None
+            return
+        entry = Outstanding(request, exp, now, now + self._settle(exp.unit))
+        self._outstanding.setdefault(exp.unit, deque()).append(entry)
+        self.attempt = Attempt(request, exp, entry)
+
+    def after_broadcast(self, turnaround: float) -> None:
+        """Give the devices time to act on a broadcast before the next request."""
+        self.tx_end += turnaround
+
+    # -- receiving ---------------------------------------------------------------
+
+    def receive(self, data: bytes, now: float) -> Answer | Garbled | None:
+        """Bytes arrived at ``now``: the answer to the request in flight, a garbled
+        reply that ends the attempt, or None (keep waiting)."""
+        if not data:
+            return None
+        self.last_rx = now
+        self._marks.append((len(self._buf), now))
+        self._buf += data
+        att = self.attempt
+        if att is None:
+            self._idle_burst = True
+        else:
+            att.rx += data
+        while True:
+            found = self._next_frame()
+            if found is None:
+                break
+            start, frame = found
+            began = max(t for off, t in self._marks if off <= start)
+            self._consume(start + len(frame))
+            if self._explain(frame, began) and att is not None:
+                self.attempt = None
+                return Answer(frame)
+        if len(self._buf) > 2 * MAX_FRAME:
+            self._consume(len(self._buf) - MAX_FRAME)
+        if att is not None:
+            why = self._garbled(att)
+            if why:
+                self.attempt = None
+                return Garbled(why)
+        return None
+
+    def _consume(self, n: int) -> None:
+        """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
+        del self._buf[:n]
+        keep = [(off - n, t) for off, t in self._marks if off > n]
+        older = [t for off, t in self._marks if off <= n]
+        if self._buf and older and (not keep or keep[0][0] > 0):
+            keep.insert(0, (0, older[-1]))
+        self._marks = keep
+
+    def _next_frame(self) -> tuple[int, bytes] | None:
+        """The first CRC-valid reply frame in the buffer, wherever it starts."""
+        buf = bytes(self._buf)
+        for i in range(max(0, len(buf) - 3)):
+            n = reply_length(buf[i : i + 3])
+            if n is not None and i + n <= len(buf) and crc_ok(buf[i : i + n]):
+                return i, buf[i : i + n]
+        return None
+
+    def _explain(self, frame: bytes, began: float) -> bool:
+        """Account for one valid frame; True when it answers the attempt in flight.
+
+        The frame answers one of the unit's outstanding requests it fits (sent before it
+        began). Devices and gateways do not always answer in order, so which one is
+        only certain when they are all the same request; the one that would have
+        expired first is taken off (the others, and so the longest late window, stay)."""
+        unit, att = frame[0], self.attempt
+        fits = [e for e in self._outstanding.get(unit, ()) if e.sent <= began
+                and _fits(frame, e.expect)]
+        if not fits:
+            self.counts.unsolicited += 1
+            return False
+        gone = min(fits, key=lambda e: e.expires)
+        self._outstanding[unit].remove(gone)
+        oldest = min(e.sent for e in fits)
+        self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))
+        if att is not None and all(e.request == att.request for e in fits):
+            if any(e is not att.entry for e in fits):  # an earlier attempt's answer may be it
+                self.counts.late[unit] += 1 if gone is not att.entry else 0
+            return True
+        self.counts.late[unit] += 1
+        return False
+
+    def _garbled(self, att: Attempt) -> str | None:
+        """A complete frame from the unit with the request's function and a bad CRC."""
+        exp, buf = att.expect, bytes(self._buf)
+        for head in (bytes((exp.unit, exp.function)), bytes((exp.unit, exp.function | 0x80))):
+            i = buf.find(head)
+            if i >= 0:
+                n = reply_length(buf[i : i + 3])
+                if n is not None and i + n <= len(buf):
+                    return f"CRC error in reply: {buf[i : i + n][:24].hex(' ')}"
+        return None
+
+    # -- an attempt that got no answer -------------------------------------------
+
+    def expire(self, now: float, timeout: float) -> str | None:
+        """The attempt's deadline passed: None for a timeout (silence, noise, other
+        units' frames), else why what arrived is a garbled reply. The request stays
+        outstanding, and the next request waits for the drain (by default
+        ``timeout``, the time the device was given)."""
+        att, self.attempt = self.attempt, None
+        self.timeout_at = now
+        self.drain_for = self._drain if self._drain is not None else timeout
+        if att is None:
+            return None
+        late = max(LATE_FACTOR * timeout, SETTLE_FACTOR * self._latency.get(att.expect.unit, 0))
+        att.entry.expires = att.entry.sent + min(self._horizon, late)
+        return diagnose(bytes(att.rx), att.expect)
+
+    def hazard_until(self, request: bytes, now: float) -> float:
+        """Until when ``request`` must not be sent: while an earlier, different request
+        to the same unit may still be answered with a reply of the very shape of
+        ``request``'s (a read reply names no address). 0 when it may go now. Identical
+        requests are no hazard; exception replies, which name only the function, are
+        never taken from an ambiguous frame (see ``_explain``)."""
+        self._forget(now)
+        exp = expect_for(request)
+        queue = self._outstanding.get(request[0], ())
+        if exp is None or not queue:
+            return 0.0
+        return max((e.expires for e in queue if e.request != request
+                    and e.expect.prefix == exp.prefix and e.expect.length == exp.length),
+                   default=0.0)
+
+    def _settle(self, unit: int) -> float:
+        """How long an answered-looking request may still be answered: a few of the
+        unit's reply times (at least a frame's wire time)."""
+        return max(SETTLE_FACTOR * self._latency.get(unit, 0.0),
+                   self.framing.wire_time(MAX_FRAME) + self.framing.silence)
+
+    def abandon(self) -> None:
+        """The attempt ended without an answer for a reason of the port's (closed)."""
+        self.attempt = None
+
+    def outstanding(self, unit: int) -> int:
+        return len(self._outstanding.get(unit, ()))
+
+    def _forget(self, now: float) -> None:
+        for unit, queue in list(self._outstanding.items()):
+            for e in [e for e in queue if e.expires < now]:
+                queue.remove(e)
+                self.counts.dropped += 1
+            if not queue:
+                del self._outstanding[unit]

@@ -1,0 +1,199 @@
+"""The master's line discipline (rtupoll.rtu.line), in virtual time: no port, no clock.
+
+Each test plays a script of what went out, what came in and when, and checks what the
+line says: when the next frame may go, which frame is the answer, what is late.
+"""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.line import LATE_FACTOR, Answer, Garbled, Line
+
+
+def reply(unit: int, first: int, count: int = 2) -> bytes:
+    return read_response(unit, 3, [first + i for i in range(count)])
+
+
+def req(unit: int, address: int, count: int = 2) -> bytes:
+    return read_request(unit, Table.HOLDING, address, count)
+
+
+@pytest.mark.parametrize(("baud", "silence"), [(9600, 3.5 * 11 / 9600), (115200, 0.00175)])
+def test_silence_after_a_reply_and_after_a_request(baud: int, silence: float) -> None:
+    line = Line(Framing(baud, parity="E"))
+    line.send(req(1, 0), 10.0)
+    tx_end = 10.0 + 8 * 11 / baud
+    assert line.ready_at() == pytest.approx(tx_end + silence)
+    assert isinstance(line.receive(reply(1, 0), 10.05), Answer)
+    assert line.ready_at() == pytest.approx(10.05 + silence)
+
+
+def test_drain_after_a_timeout_waits_for_a_quiet_line() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    assert line.expire(0.5, 0.5) is None  # silence: a timeout
+    assert line.ready_at() == pytest.approx(1.0)  # quiet for the timeout that expired
+    line.receive(b"\xff", 0.8)  # noise: quiet counts from the last byte
+    assert line.ready_at() == pytest.approx(1.3)
+    assert line.ready_at(drain=False) == pytest.approx(0.8 + Framing(9600).silence)
+
+
+def test_a_line_that_never_goes_quiet_does_not_hold_the_master_for_ever() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    line.expire(0.5, 0.5)
+    for k in range(161):
+        line.receive(b"\x00", 0.5 + 0.01 * k)  # a chattering line, up to 2.1 s
+    # after three drain periods only the silence after the last byte is waited for
+    assert line.ready_at() == pytest.approx(2.1 + Framing(9600).silence)
+
+
+def test_stray_bytes_before_the_reply_are_skipped() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    assert line.receive(b"\x00\xff", 0.02) is None
+    assert line.receive(reply(1, 0), 0.03) == Answer(reply(1, 0))
+
+
+def test_a_wrong_id_frame_glued_to_the_right_one() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    assert line.receive(reply(7, 99) + reply(1, 0), 0.03) == Answer(reply(1, 0))
+    assert line.counts.unsolicited == 1  # unit 7's frame answered nothing we asked
+
+
+def test_a_reply_split_over_several_chunks() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    r = reply(1, 0)
+    assert line.receive(r[:3], 0.02) is None
+    assert line.receive(r[3:], 0.025) == Answer(r)
+
+
+def test_a_garbled_reply_is_known_at_once() -> None:
+    line = Line(Framing(9600))
+    line.send(req(1, 0), 0.0)
+    bad = bytearray(reply(1, 0))
+    bad[4] ^= 0x40
+    event = line.receive(bytes(bad), 0.02)
+    assert isinstance(event, Garbled) and "CRC" in event.why
+    assert line.attempt is None  # the attempt is over: retry after the silence
+
+
+@pytest.mark.parametrize("late_by", [1, 2, 3, 10])
+def test_a_late_reply_is_never_the_next_requests_answer(late_by: int) -> None:
+    """Read A times out; its reply comes ``late_by`` timeouts late. The next read, B,
+    of the same shape, is held while A may still be answered, and when A's reply
+    arrives it is counted late: B's answer is B's."""
+    timeout = 0.1
+    line = Line(Framing(9600))
+    a, b = req(2, 0), req(2, 2)
+    line.send(a, 0.0)
+    assert line.expire(timeout, timeout) is None
+    now = timeout + 0.05
+    assert line.hazard_until(b, now) >= LATE_FACTOR * timeout  # B must not go yet
+    assert line.hazard_until(a, now) == 0  # A again may: any answer to A is A's
+    late_at = timeout * (1 + late_by)
+    line.receive(reply(2, 1000), late_at)  # A's reply, late
+    assert line.counts.late[2] == 1
+    assert line.hazard_until(b, late_at) == 0  # A answered: B may go
+    line.send(b, late_at + 0.01)
+    assert line.receive(reply(2, 2000), late_at + 0.03) == Answer(reply(2, 2000))
+
+
+def test_two_answers_while_a_different_request_is_outstanding_are_both_distrusted() -> None:
+    """Sent anyway (the bus would have waited), B cannot take A's late reply: either
+    frame may be A's (devices do not always answer in order), so neither is B's
+    answer; B times out and is retried, never decoded from the wrong frame."""
+    line = Line(Framing(9600))
+    line.send(req(2, 0), 0.0)
+    line.expire(0.1, 0.1)
+    line.send(req(2, 2), 0.3)
+    assert line.receive(reply(2, 1000), 0.35) is None  # A's late reply
+    assert line.receive(reply(2, 2000), 0.36) is None  # B's answer, but which is which?
+    assert line.counts.late[2] == 2
+
+
+def test_a_reply_that_began_before_the_request_was_sent_is_not_its_answer() -> None:
+    line = Line(Framing(9600))
+    line.send(req(2, 0), 0.0)
+    line.expire(0.1, 0.1)
+    line.receive(reply(2, 1000)[:4], 0.29)  # A's late reply starts ...
+    line.send(req(2, 0), 0.30)  # (a retry of A would be answered by it: harmless)
+    line.abandon()
+    line.send(req(2, 2), 0.31)
+    assert line.receive(reply(2, 1000)[4:], 0.32) is None
+
+
+def test_a_retry_takes_the_late_answer_of_its_own_first_attempt() -> None:
+    line = Line(Framing(9600))
+    a = req(2, 0)
+    line.send(a, 0.0)
+    line.expire(0.1, 0.1)
+    line.send(a, 0.2)  # a retry of the same request
+    assert line.receive(reply(2, 1000), 0.25) == Answer(reply(2, 1000))
+    # the retry's own answer may still come: a different read must wait for it ...
+    assert line.hazard_until(req(2, 2), 0.26) > 0.26
+    line.receive(reply(2, 1000), 0.27)  # ... and when it comes, it is late, not B's
+    assert line.hazard_until(req(2, 2), 0.28) == 0
+    assert line.counts.late[2] == 1
+
+
+def test_exception_replies_are_matched_like_any_answer() -> None:
+    line = Line(Framing(9600))
+    line.send(req(3, 0), 0.0)
+    exc = with_crc(bytes((3, 0x83, 2)))
+    assert line.receive(exc, 0.02) == Answer(exc)
+
+
+def test_other_units_are_not_held_by_a_late_device() -> None:
+    line = Line(Framing(9600))
+    line.send(req(2, 0), 0.0)
+    line.expire(0.1, 0.1)
+    assert line.hazard_until(req(3, 0), 0.2) == 0
+
+
+def test_random_late_replies_never_give_a_wrong_answer() -> None:
+    """A device that answers each request once, in order, some of them late by up to
+    ten timeouts; a master that obeys ``hazard_until`` and reads different blocks of
+    one shape. Every answer taken carries the block it was asked for."""
+    rnd = random.Random(4)
+    timeout, line = 0.1, Line(Framing(9600))
+    now, wrong, right = 0.0, 0, 0
+    pending: list[tuple[float, bytes]] = []  # the device's replies: (arrival time, frame)
+    for _ in range(300):
+        address = 2 * rnd.randrange(50)
+        request = req(2, address)
+        while True:  # wait as the bus does; replies keep arriving meanwhile
+            while pending and pending[0][0] <= now:
+                at, frame = pending.pop(0)
+                assert line.receive(frame, at) is None  # nothing is awaited
+            ready = max(line.hazard_until(request, now), line.ready_at())
+            if ready <= now:
+                break
+            now = min(ready, pending[0][0]) if pending else ready
+        delay = rnd.choice([0.01, 0.01, 0.01, 1.5 * timeout, 3 * timeout, 10 * timeout])
+        line.send(request, now)
+        pending.append((max([now + delay] + [t for t, _ in pending]), reply(2, address * 100)))
+        deadline, answer = now + timeout, None
+        while pending and pending[0][0] <= deadline and answer is None:
+            at, frame = pending.pop(0)
+            event = line.receive(frame, max(at, now))
+            if isinstance(event, Answer):
+                answer = event.frame
+        if answer is None:
+            line.expire(deadline, timeout)
+            now = deadline
+            continue
+        if answer == reply(2, address * 100):
+            right += 1
+        else:
+            wrong += 1
+    assert wrong == 0
+    assert right > 100
+    assert sum(line.counts.late.values()) > 0
