@@ -46,6 +46,9 @@ class FakeBus:
     async def open(self) -> None: ...
     async def close(self) -> None: ...
 
+    def late(self, unit: int) -> int:
+        return 0
+
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
         self.calls.append((unit, address, retries))

@@ -138,6 +138,8 @@ class Bus:
         self._lock = asyncio.Lock()
         self._client: Any = None
         self.line = Line(self.framing, drain=drain)
+        # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
+        self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._seen = b""  # what pymodbus last showed the receive hook (it resends its buffer)
         self._answer = b""  # the frame to hand pymodbus, once the line identified it
         self._garbled: asyncio.Future[str] | None = None  # set when the line knows at once
@@ -150,6 +152,14 @@ class Bus:
     def late(self, unit: int) -> int:
         """Late replies from ``unit``: answers to requests that had timed out."""
         return int(self.line.counts.late[unit])
+
+    def reply_time(self, unit: int) -> float | None:
+        """``unit``'s last reply time (request's end to reply's first byte), if any."""
+        return self.line.reply_time.get(unit)
+
+    def late_reply_time(self, unit: int) -> float | None:
+        """The reply time of ``unit``'s last late reply, if it sent one."""
+        return self.line.late_reply_time.get(unit)
 
     # -- opening and closing -------------------------------------------------
 
@@ -440,6 +450,7 @@ class Bus:
         if isinstance(event, Answer):
             self._answer = event.frame
             self.stats.wire += self.framing.wire_time(len(event.frame))
+            self._seen = data[len(event.frame):]  # pymodbus cuts what its framer used
             return self._answer
         if isinstance(event, Garbled) and self._garbled is not None \
                 and not self._garbled.done():
