@@ -46,7 +46,7 @@ from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.profile import Field, Profile
 
 if TYPE_CHECKING:
-    from rtupoll.io.bus import Bus
+    from rtupoll.io.interface import BusLike
 
 VERIFY_ATTEMPTS = 3  # a device may take a moment to start answering at its new address
 VERIFY_PAUSE = 0.05  # seconds between attempts
@@ -81,7 +81,19 @@ class Status(str, enum.Enum):
     CHANGED = "changed"
     DONE = "already done"
     FAILED = "failed"
+    UNVERIFIED = "written, unverified"  # interrupted after the write went out
     NOT_RUN = "not run"
+
+
+INTERRUPTED = 130  # the exit code of a row an interruption cut short
+
+
+class PlanInterrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM during a plan: every row's state, reported before it ends."""
+
+    def __init__(self, results: list[Result]) -> None:
+        super().__init__("interrupted")
+        self.results = results
 
 
 @dataclass(frozen=True)
@@ -97,6 +109,7 @@ class Result:
         return {"row": row, "profile": c.profile.id, "address": c.old, "new": c.new,
                 "status": self.status.value, "detail": self.detail,
                 "exit_code": self.error.exit_code if self.error
+                else INTERRUPTED if self.status is Status.UNVERIFIED
                 else None if self.status is Status.NOT_RUN else 0}
 
 
@@ -177,10 +190,11 @@ def dry_run(change: Change) -> list[tuple[str, str]]:
 class Commissioner:
     """Runs address changes on one bus, with per-profile timing (or the user's override)."""
 
-    def __init__(self, bus: Bus, *, timeout: float | None = None, retries: int | None = None,
+    def __init__(self, bus: BusLike, *, timeout: float | None = None, retries: int | None = None,
                  log: Callable[[str], None] | None = None) -> None:
         self.bus, self.timeout, self.retries = bus, timeout, retries
         self.log = log or (lambda _msg: None)
+        self.sent: Change | None = None  # a change whose write may be out, not yet verified
 
     def timing(self, profile: Profile) -> Timing:
         return device_timing(profile, self.timeout, self.retries)
@@ -236,9 +250,11 @@ class Commissioner:
         wrong = await self.identity(change, old)
         if wrong:
             raise RefusedError(f"{change.label}: not the device this change is for: {wrong}")
+        self.sent = change  # from here on, an interruption leaves it unverified
         reply = await self._write(p, field, old, new)
         self.log(f"{change.label}: written ({reply}); verifying")
         await self._verify(change)
+        self.sent = None
         return Result(change, Status.CHANGED,
                       f"changed: answers at {new}"
                       + ("" if old == p.addresses.any else f", silent at {old}")
@@ -289,23 +305,44 @@ class Commissioner:
 
 async def run_plan(commissioner: Commissioner, changes: list[Change],
                    on_result: Callable[[Result], None] | None = None) -> list[Result]:
-    """Run changes in order; stop at the first failure; the rest are reported not run."""
+    """Run changes in order; stop at the first failure; the rest are reported not run.
+
+    Interrupted (Ctrl-C, SIGTERM), every row is still reported: the one in progress as
+    ``written, unverified`` if its write may have gone out, else ``not run``, like the
+    rest; then ``PlanInterrupted`` (a KeyboardInterrupt) carries the results.
+    """
     results: list[Result] = []
-    failed = False
+    failed = interrupted = False
     for change in changes:
-        if failed:
+        if interrupted:
+            result = Result(change, Status.NOT_RUN, "not attempted (interrupted)")
+        elif failed:
             result = Result(change, Status.NOT_RUN, "not attempted (an earlier row failed)")
         else:
+            commissioner.sent = None
             try:
                 result = await commissioner.apply(change)
             except RtupollError as exc:
                 failed = True
                 result = Result(change, Status.FAILED,
                                 str(exc).removeprefix(f"{change.label}: "), exc)
+            except (asyncio.CancelledError, KeyboardInterrupt):
+                interrupted = True
+                result = _interrupted(change, commissioner.sent is change)
         results.append(result)
         if on_result:
             on_result(result)
+    if interrupted:
+        raise PlanInterrupted(results)
     return results
+
+
+def _interrupted(change: Change, sent: bool) -> Result:
+    if sent:
+        return Result(change, Status.UNVERIFIED,
+                      f"interrupted after the write: the device may be at {change.new} or "
+                      f"still at {change.old}; run the plan again to check and finish")
+    return Result(change, Status.NOT_RUN, "interrupted before anything was written")
 
 
 def _same_number(value: object, text: str) -> bool:

@@ -11,22 +11,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
 
 from rtupoll.errors import DeviceException, FrameError
+from rtupoll.io.interface import BusLike
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field, Limits, Profile
-from rtupoll.rtu import Table
 
-__all__ = ["Reader", "Timing", "probe_variant", "read_block", "read_fields", "timing"]
-
-
-class Reader(Protocol):
-    """What device I/O needs of a bus (``rtupoll.io.bus.Bus`` is one)."""
-
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
+__all__ = ["Timing", "probe_variant", "read_block", "read_fields", "timing"]
 
 
 @dataclass(frozen=True)
@@ -44,7 +36,7 @@ def timing(profile: Profile | None, timeout: float | None = None, retries: int |
                   limits.retries if retries is None else retries)
 
 
-async def read_block(bus: Reader, unit: int, block: Block, *, timeout: float,
+async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
                      retries: int) -> list[FieldValue]:
     """One planned read, decoded. Bus errors propagate (the scheduler resumes here)."""
     words = await bus.read(unit, block.table, block.address, block.count,
@@ -52,7 +44,7 @@ async def read_block(bus: Reader, unit: int, block: Block, *, timeout: float,
     return decode_block(block, words)
 
 
-async def read_fields(bus: Reader, profile: Profile, unit: int, fields: Sequence[Field], *,
+async def read_fields(bus: BusLike, profile: Profile, unit: int, fields: Sequence[Field], *,
                       timeout: float | None = None, retries: int | None = None,
                       variant: int | None = None) -> list[FieldValue]:
     """Read ``fields`` in the fewest requests the profile allows; values in request order.
@@ -72,7 +64,7 @@ async def read_fields(bus: Reader, profile: Profile, unit: int, fields: Sequence
     return out
 
 
-async def probe_variant(bus: Reader, profile: Profile, unit: int, *,
+async def probe_variant(bus: BusLike, profile: Profile, unit: int, *,
                         timeout: float | None = None, retries: int | None = None
                         ) -> int | None:
     """The device's variant (e.g. IRNET data structure), or None if the profile has none.

@@ -16,30 +16,32 @@ The order is chosen so a scan stays fast and honest:
   address costs exactly one timeout;
 - every answer is cached per address, so a check already answered by an earlier
   request costs nothing, and a profile that contradicts an answer is never probed;
+- an address whose answer arrives after its probe timed out (``Bus.late``) is asked
+  again with a longer timeout (``jobs.timeouts.late_margin``: twice the late reply's
+  time) before it is called empty, so a slow device is found without making every
+  empty address wait for it;
 - the most specific profiles (most checks) are tried first, so a one-check profile
   (CO2Meter: one register in 0..10000) only claims a device nothing else explains.
 
-Pure apart from ``Transport`` (``bus.Bus`` satisfies it), so it is testable offline.
+Pure apart from the bus (any ``rtupoll.io.interface.BusLike``), so it is testable offline.
 """
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
+from rtupoll.io.interface import BusLike
+from rtupoll.jobs.timeouts import Evidence, late_margin
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Check, Profile
 from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
 
 LATENCY = 0.02  # USB-serial adapters deliver a reply up to a latency-timer tick late
-
-
-class Transport(Protocol):
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
+LATE_WAIT = 4  # after the last address, late answers are awaited this many reply waits
 
 
 Read = tuple[Table, int, int]  # table, wire address, count
@@ -227,7 +229,7 @@ def describe(read: Read, outcome: Outcome) -> str:
 class Identifier:
     """Asks one address the questions that tell which profile it is, caching every answer."""
 
-    def __init__(self, bus: Transport, profiles: Sequence[Profile], setting: Setting,
+    def __init__(self, bus: BusLike, profiles: Sequence[Profile], setting: Setting,
                  margin: float) -> None:
         self.bus, self.setting, self.margin = bus, setting, margin
         self.profiles = [p for p in profiles if p.identify]
@@ -304,7 +306,7 @@ class Identifier:
         return f"ignores function {odd.read_function:02d}, as {p.id} does"
 
 
-async def probe_address(bus: Transport, identifier: Identifier, probes: Sequence[Read],
+async def probe_address(bus: BusLike, identifier: Identifier, probes: Sequence[Read],
                         unit: int) -> Found | None:
     """Is anything at ``unit``? If so, what is it? One timeout per probe when nothing is."""
     cache: dict[Read, Outcome] = {}
@@ -324,7 +326,7 @@ async def probe_address(bus: Transport, identifier: Identifier, probes: Sequence
     return found
 
 
-async def sweep(open_bus: Callable[[Setting], AbstractAsyncContextManager[Transport]],
+async def sweep(open_bus: Callable[[Setting], AbstractAsyncContextManager[BusLike]],
                 settings: Sequence[Setting], addresses: Sequence[int],
                 profiles: Sequence[Profile], *, margin: float, probes: Sequence[Read],
                 found: list[Found], progress: Callable[[Setting, int], None] = lambda s, a: None,
@@ -337,13 +339,40 @@ async def sweep(open_bus: Callable[[Setting], AbstractAsyncContextManager[Transp
     for setting in settings:
         async with open_bus(setting) as bus:
             identifier = Identifier(bus, profiles, setting, margin)
+            empty: list[int] = []  # so far: an answer that comes late gets a second chance
             for unit in addresses:
                 result = await probe_address(bus, identifier, probes, unit)
                 if result is not None:
                     found.append(result)
+                else:
+                    empty.append(unit)
+                found += await _late_ones(bus, profiles, setting, margin, probes, empty)
                 progress(setting, unit)
+            # the last addresses' late answers may still be on their way
+            if empty and callable(getattr(bus, "late", None)):
+                await asyncio.sleep(LATE_WAIT * reply_wait(setting.framing, margin))
+                found += await _late_ones(bus, profiles, setting, margin, probes, empty)
         if first and any(f.setting == setting and f.profile for f in found):
             return
+
+
+async def _late_ones(bus: BusLike, profiles: Sequence[Profile], setting: Setting,
+                     margin: float, probes: Sequence[Read], empty: list[int]) -> list[Found]:
+    """Addresses called empty whose answer has come in late since: asked again with a
+    longer timeout (``jobs.timeouts.late_margin``), before they are called empty."""
+    out: list[Found] = []
+    if not callable(getattr(bus, "late", None)):  # a transport that cannot tell
+        return out
+    for unit in [u for u in empty if bus.late(u)]:
+        empty.remove(unit)
+        took = bus.late_reply_time(unit) if isinstance(bus, Evidence) else None
+        longer = Identifier(bus, profiles, setting, late_margin(margin, took))
+        result = await probe_address(bus, longer, probes, unit)
+        if result is not None:
+            result.evidence.append(f"answered late at first (in {took * 1000:.0f} ms)"
+                                   if took is not None else "answered late at first")
+            out.append(result)
+    return out
 
 
 def merged(found: Sequence[Found]) -> list[Found]:
@@ -354,3 +383,31 @@ def merged(found: Sequence[Found]) -> list[Found]:
     good = {f.address for f in found if not f.garbled}
     return sorted((f for f in found if not f.garbled or f.address not in good),
                   key=lambda f: (f.address, f.setting.baudrate, f.setting.parity))
+
+
+def every_speed(found: Sequence[Found], settings: Sequence[Setting]) -> bool:
+    """Whether every device answered at every baud rate scanned (more than one).
+
+    No real line does that: all devices on a pair share one speed, and a device at the
+    wrong one hears noise. A simulator without wire timing, or a gateway that fixes the
+    serial speed itself, does; ``scan`` then says so and lists each device once.
+    """
+    rates = {s.baudrate for s in settings}
+    seen: dict[int, set[int]] = {}
+    for f in found:
+        if not f.garbled:
+            seen.setdefault(f.address, set()).add(f.setting.baudrate)
+    return len(rates) > 1 and bool(seen) and all(r == rates for r in seen.values())
+
+
+def once_each(found: Sequence[Found]) -> list[Found]:
+    """One answer per address: at its profile's default speed if it answered there."""
+    best: dict[int, Found] = {}
+    for f in found:
+        have = best.get(f.address)
+        if have is None or (f.profile is not None and
+                            f.setting.baudrate == f.profile.serial.baudrate and
+                            (have.profile is None or
+                             have.setting.baudrate != have.profile.serial.baudrate)):
+            best[f.address] = f
+    return [best[a] for a in sorted(best)]

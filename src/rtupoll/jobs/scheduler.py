@@ -30,31 +30,35 @@ import math
 import random
 import time
 from collections.abc import Awaitable, Callable, Sequence
+from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from typing import Any, TypeVar
 
 from rtupoll.config.site import BusConfig, DeviceConfig, Site
-from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RtupollError
+from rtupoll.errors import (
+    BusError,
+    DeviceException,
+    DeviceTimeout,
+    FrameError,
+    PortError,
+    RtupollError,
+)
+from rtupoll.io.interface import BusLike
 from rtupoll.jobs.device import probe_variant, read_block
+from rtupoll.jobs.holes import HoleMemory, Register, bisect, gaps
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State
+from rtupoll.jobs.timeouts import DeviceTiming
+from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 
 T = TypeVar("T")
+Job = Callable[["BusLike"], Awaitable[T]]  # BusPoller.submit: work on the bus, between cycles
 Clock = Callable[[], float]
 PORT_RETRY_CAP = 10.0  # seconds between attempts to reopen a port that went away
 USAGE_MEMORY = 30.0  # seconds over which bus use counts when sharing the bus
 Sink = Callable[["DevicePoller", list[Reading]], None]
-
-
-class Transport(Protocol):
-    """What the scheduler needs of a bus (``rtupoll.io.bus.Bus`` is one)."""
-
-    async def open(self) -> None: ...
-    async def close(self) -> None: ...
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
 
 
 @dataclass(frozen=True)
@@ -83,13 +87,18 @@ class DevicePoller:
     def __init__(self, config: DeviceConfig, bus: BusLoad, *, framing: Framing | None = None,
                  clock: Clock = time.monotonic, wall: Clock = time.time) -> None:
         self.config = config
-        self.blocks: tuple[Block, ...] = plan(config.fields, config.profile)
+        self.blocks: tuple[Block, ...] = plan(config.fields, config.profile, by_interval=True)
+        # blocks whose fields have their own (slower) interval: when each was last read
+        self.block_read: dict[tuple[Table, int, int], float] = {}
         # fields only some generations of the map have (IRNET data structure 1): ask the
         # device which it is before reading them, and report the others as absent
         self.variant_unknown = config.profile.variant is not None and any(
             f.since for f in config.fields)
         self.absent: tuple[Field, ...] = ()
         self.absent_why = ""
+        self.variant: int | None = None  # as the device said (probe_variant)
+        self.holes = HoleMemory()  # registers learned never to bridge (jobs.holes)
+        self.refused: int | None = None  # the last transaction's exception code
         self.stats = DeviceStats()
         self.load = bus
         self.next_due = 0.0
@@ -97,6 +106,9 @@ class DevicePoller:
         self.last_run = -1  # sequence number of the last cycle, for round-robin ties
         self._clock, self._wall = clock, wall
         self.framing = framing or Framing(9600)
+        # the timeout each transaction gets: learned from reply times (jobs.timeouts)
+        self.timing = DeviceTiming(config.profile.limits.timeout, silence=self.framing.silence,
+                                   ceiling=config.timeout_ceiling, pinned=config.timeout)
         self.nominal = nominal_cycle(self.blocks, config, self.framing)
         self._used, self._used_at = 0.0, clock()  # in nominal cycles, decaying
 
@@ -108,7 +120,7 @@ class DevicePoller:
     def charge(self, now: float, seconds: float) -> None:
         self._used, self._used_at = self.used(now) + seconds / self.nominal, now
 
-    async def cycle(self, transport: Transport) -> list[Reading]:
+    async def cycle(self, transport: BusLike) -> list[Reading]:
         """Read every block once (from ``resume``); one reading per field, in field order.
 
         After a failed cycle the first block is a probe (no immediate retries): a
@@ -128,20 +140,32 @@ class DevicePoller:
                 st.record(readings, answered=False)
                 return readings
             answered = not self.variant_unknown  # the probe had its answer
-        n = len(self.blocks)
+        blocks = self.blocks  # this cycle's plan (learning a hole re-plans the next one)
+        n = len(blocks)
         answered = answered or n == 0  # every field asked for is absent: nothing can fail
+        started, attempted = self._clock(), False
         for k in range(n):
             idx = (self.resume + k) % n
-            block = self.blocks[idx]
+            block = blocks[idx]
+            if not self._due(block, started):
+                continue
+            attempted = True
             if stopped is not None:
                 for f in block.fields:
                     out[f.name] = Reading(self._wall(), cfg, f, None, "skipped", stopped)
                 continue
             retries = 0 if probing and not answered else cfg.retry_count
             status, error, values = await self._transact(read_block(
-                transport, cfg.address, block, timeout=cfg.response_timeout, retries=retries))
+                transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
+                via=transport)
+            if status == "exception" and self.refused == 2 and gaps(block):
+                found = await self._find_holes(transport, block, retries)
+                if found is not None:
+                    status, error, values = "ok", "", found
             if status == "ok":
                 answered = True
+                if block.interval is not None:
+                    self.block_read[block.table, block.address, block.count] = started
                 wall = self._wall()
                 for fv in values or ():
                     out[fv.field.name] = Reading(wall, cfg, fv.field, fv, "ok")
@@ -158,36 +182,83 @@ class DevicePoller:
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
         self.resume = 0 if first_failed is None else first_failed
+        answered = answered or not attempted  # only slow blocks, none due: nothing failed
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, "absent", self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
         st.record(readings, answered)
         return readings
 
-    async def _probe_variant(self, transport: Transport, retries: int) -> str:
+    def _due(self, block: Block, now: float) -> bool:
+        """A block of fields with their own ``interval`` is read when that has passed."""
+        if block.interval is None:
+            return True
+        last = self.block_read.get((block.table, block.address, block.count))
+        return last is None or now - last >= block.interval - 1e-3
+
+    async def _probe_variant(self, transport: BusLike, retries: int) -> str:
         """Learn the device's variant once (until it answers, plan for the newest map);
         returns the error when the device did not answer at all."""
         cfg = self.config
         status, error, variant = await self._transact(probe_variant(
-            transport, cfg.profile, cfg.address, timeout=cfg.response_timeout, retries=retries))
+            transport, cfg.profile, cfg.address, timeout=self.timeout(transport),
+            retries=retries), via=transport)
         if status != "ok":
             return error if status == "timeout" else ""  # else: the reads say what is wrong
         self.variant_unknown = False
         if variant is None:
             return ""
-        self.blocks = plan(cfg.fields, cfg.profile, variant=variant)
-        self.nominal = nominal_cycle(self.blocks, cfg, self.framing)
+        self.variant = variant
+        self.replan()
         self.absent = tuple(f for f in cfg.fields if f.since > variant)
         assert cfg.profile.variant is not None
         self.absent_why = f"not in {cfg.profile.variant.name} {variant}"
         self.resume = 0
         return ""
 
-    async def _transact(self, read: Awaitable[T]) -> tuple[str, str, T | None]:
+    def replan(self) -> None:
+        """Plan the reads again (the variant became known, holes were learned)."""
+        cfg = self.config
+        self.blocks = plan(cfg.fields, cfg.profile, variant=self.variant, by_interval=True,
+                           holes=self.holes.registers)
+        self.nominal = nominal_cycle(self.blocks, cfg, self.framing)
+        self.resume = 0
+
+    def learn_holes(self, registers: frozenset[Register], why: str) -> bool:
+        """Never bridge ``registers`` again for this device; True when any was new."""
+        if not self.holes.learn(registers, why):
+            return False
+        self.stats.holes = list(self.holes.notes)
+        self.replan()
+        return True
+
+    async def _find_holes(self, transport: BusLike, block: Block, retries: int
+                          ) -> list[FieldValue] | None:
+        """``block`` got exception 02 over a gap: bisect (``jobs.holes``); the block's
+        values when its fields' own registers read, and from then on it is not bridged."""
+        try:
+            found = await bisect(transport, self.config.address, block,
+                                 timeout=self.timeout(transport), retries=retries)
+        except BusError:
+            return None
+        if found is None:
+            return None
+        self.learn_holes(found.holes, f"exception 02 reading {block}")
+        return found.values
+
+    def timeout(self, transport: object) -> float:
+        """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
+        cfg = self.config
+        return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
+                                  ceiling=cfg.timeout_ceiling)
+
+    async def _transact(self, read: Awaitable[T], *, via: object = None
+                        ) -> tuple[str, str, T | None]:
         """One read (not yet awaited), timed and counted: (status, error, what it read)."""
         cfg, st = self.config, self.stats
         start = self._clock()
         status, error, values = "ok", "", None
+        self.refused = None
         try:
             values = await read
         except DeviceTimeout as exc:
@@ -199,8 +270,11 @@ class DevicePoller:
         except DeviceException as exc:
             status, error = "exception", str(exc)
             st.exceptions[exc.code] += 1
+            self.refused = exc.code
         now = self._clock()
         st.requests += 1
+        self.timing.after(via, cfg.address, answered=status in ("ok", "exception"))
+        st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
         culprit = self.load.add(now, now - start,
                                 failed_by=self if status in ("timeout", "garbled") else None)
         # the bus's quiet period after a failure is the failing device's cost, not ours
@@ -226,7 +300,7 @@ class DevicePoller:
 class BusPoller:
     """One bus: its transport and its devices, polled one transaction at a time."""
 
-    def __init__(self, config: BusConfig, transport: Transport, *, backoff: Backoff,
+    def __init__(self, config: BusConfig, transport: BusLike, *, backoff: Backoff,
                  clock: Clock = time.monotonic, wall: Clock = time.time,
                  rand: Callable[[], float] = random.random) -> None:
         self.config, self.transport, self.backoff = config, transport, backoff
@@ -238,6 +312,13 @@ class BusPoller:
         self._seq = 0
         self._port_failures = 0
         self.port_error = ""  # the last port failure, while the port is gone
+        # held for each device cycle: the gateway shares the line (rtupoll.gateway.turns)
+        self.turn: Callable[[], AbstractAsyncContextManager[None]] = contextlib.nullcontext
+        # from outside the schedule (MQTT get/set): devices to read next, jobs to run
+        # between two cycles, and the event that wakes an idle bus for them
+        self._urgent: list[DevicePoller] = []
+        self._jobs: list[tuple[Job[Any], asyncio.Future[Any]]] = []
+        self._wake = asyncio.Event()
 
     def next_device(self) -> DevicePoller:
         """Among the devices due, the one that used the bus least lately (ties: the one that
@@ -249,6 +330,9 @@ class BusPoller:
         yet answering, so not backed off) gets turns in proportion: it cannot drag the
         live ones down to its pace when the bus is saturated.
         """
+        for d in self._urgent:  # poll_now: ahead of every other device
+            if d in self.devices:
+                return d
         now = self._clock()
         due = [d for d in self.devices if d.next_due <= now]
         if due:
@@ -261,6 +345,7 @@ class BusPoller:
         dev.last_run = self._seq
         try:
             readings = await dev.cycle(self.transport)
+            dev.stats.late = self.transport.late(dev.config.address)
         except PortError as exc:
             # the adapter vanished (or the gateway went away): no device is to blame, so
             # none is backed off; the whole bus pauses briefly and the bus reopens the port
@@ -279,18 +364,98 @@ class BusPoller:
 
     async def run(self, sink: Sink, stop: asyncio.Event) -> None:
         while not stop.is_set():
+            if not self.devices:  # a bus only served to gateway clients
+                await stop.wait()
+                return
+            self._wake.clear()
+            if self._jobs:
+                async with self.turn():
+                    await self._run_job(*self._jobs.pop(0))
+                continue
             dev = self.next_device()
             wait = dev.next_due - self._clock()
             if wait > 0:
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(stop.wait(), wait)
+                await self._idle(stop, wait)
                 continue
-            await self.run_one(dev, sink)
+            if dev in self._urgent:
+                self._urgent.remove(dev)
+            async with self.turn():
+                await self.run_one(dev, sink)
             await asyncio.sleep(0)  # let the other buses and the display run
 
     async def scan_once(self, sink: Sink) -> None:
         for dev in self.devices:
             await self.run_one(dev, sink)
+
+    def poll_now(self, dev: DevicePoller) -> None:
+        """Read ``dev`` next, ahead of the schedule (a backed-off device too), once."""
+        dev.next_due = min(dev.next_due, self._clock())
+        if dev not in self._urgent:
+            self._urgent.append(dev)
+        self._wake.set()
+
+    def submit(self, job: Job[T]) -> asyncio.Future[T]:
+        """Run ``job(transport)`` on this bus between two cycles, before any device that is
+        due (writes, reads of unpolled fields); its result or error comes in the future.
+        Only while ``run`` runs."""
+        future: asyncio.Future[T] = asyncio.get_running_loop().create_future()
+        self._jobs.append((job, future))
+        self._wake.set()
+        return future
+
+    async def _run_job(self, job: Job[Any], future: asyncio.Future[Any]) -> None:
+        if future.cancelled():
+            return
+        try:
+            result = await job(self.transport)
+        except Exception as exc:  # the job's own error, for its caller
+            if not future.cancelled():
+                future.set_exception(exc)
+        else:
+            if not future.cancelled():
+                future.set_result(result)
+
+    async def _idle(self, stop: asyncio.Event, wait: float) -> None:
+        """Sleep up to ``wait`` s; ``stop``, ``poll_now`` or ``submit`` end it early."""
+        waits = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(self._wake.wait())]
+        try:
+            await asyncio.wait(waits, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waits:
+                w.cancel()
+
+    def reconfigure(self, config: BusConfig) -> list[str]:
+        """``Scheduler.reload`` for this bus (same port and settings): what changed."""
+        old = {d.config.name: d for d in self.devices}
+        devices: list[DevicePoller] = []
+        changes: list[str] = []
+        for dc in config.devices:
+            dev = old.pop(dc.name, None)
+            if dev is not None and (dev.config.profile, dev.config.address,
+                                    dev.config.fields) == (dc.profile, dc.address, dc.fields):
+                was = dev.config
+                dev.config = dc
+                if dc.interval != was.interval:
+                    changes.append(f"{dc.name}: interval {was.interval:g} s -> "
+                                   f"{dc.interval:g} s")
+                    if dev.stats.failures == 0:  # a backed-off device keeps its backoff
+                        dev.next_due = min(dev.next_due, self._clock() + dc.interval)
+                if (dc.timeout, dc.retries) != (was.timeout, was.retries):
+                    changes.append(f"{dc.name}: timeout/retries changed")
+                devices.append(dev)
+                continue
+            changes.append(f"{'changed' if dev is not None else 'added'} {dc.name} "
+                           f"({dc.spec}) on {config.name}")
+            devices.append(DevicePoller(dc, self.load, framing=config.framing,
+                                        clock=self._clock, wall=self._wall))
+        changes += [f"removed {name} from {config.name}" for name in old]
+        self.config, self.devices = config, devices
+        return changes
+
+
+def _serial(bus: BusConfig) -> tuple[object, ...]:
+    """What a bus's port is opened with: equal means the open port can stay open."""
+    return (bus.port, bus.baudrate, bus.parity, bus.bytesize, bus.stopbits, bus.deassert_dtr)
 
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
@@ -304,10 +469,10 @@ def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framin
     return max(total, 1e-3)
 
 
-OpenBus = Callable[[BusConfig], Transport]
+OpenBus = Callable[[BusConfig], BusLike]
 
 
-def open_real_bus(config: BusConfig) -> Transport:
+def open_real_bus(config: BusConfig) -> BusLike:
     """A ``rtupoll.io.bus.Bus`` for the configured port (imported here: pymodbus is slow)."""
     from rtupoll.io.bus import Bus, PortSettings
 
@@ -329,6 +494,10 @@ class Scheduler:
                       for b in site.buses]
         self.clock = clock
         self._opened: list[BusPoller] = []
+        self._open_bus, self._rand = open_bus, rand
+        self._tasks: dict[BusPoller, asyncio.Task[None]] = {}  # while ``run`` runs
+        self._running: tuple[Sink, asyncio.Event] | None = None
+        self._tasks_changed = asyncio.Event()
 
     async def open(self) -> None:
         """Open every port, or none: a port that cannot be opened is a configuration error."""
@@ -347,18 +516,28 @@ class Scheduler:
         self._opened.clear()
 
     async def run(self, sink: Sink, stop: asyncio.Event) -> None:
-        """Poll until ``stop`` is set; a cycle in flight then is abandoned, not half-reported."""
-        tasks = [asyncio.create_task(bp.run(sink, stop)) for bp in self.buses]
+        """Poll until ``stop`` is set; a cycle in flight then is abandoned, not half-reported.
+        Buses that ``reload`` adds join, buses it removes leave, while this runs."""
+        self._running = (sink, stop)
+        self._tasks = {bp: asyncio.create_task(bp.run(sink, stop)) for bp in self.buses}
         stopper = asyncio.create_task(stop.wait())
         try:
-            done, _ = await asyncio.wait([*tasks, stopper], return_when=asyncio.FIRST_COMPLETED)
-            for t in done:
-                if t is not stopper:
-                    t.result()  # a bug in a bus task: surface it rather than poll half a site
+            while not stopper.done():
+                self._tasks_changed.clear()
+                changed = asyncio.create_task(self._tasks_changed.wait())
+                done, _ = await asyncio.wait([*self._tasks.values(), stopper, changed],
+                                             return_when=asyncio.FIRST_COMPLETED)
+                changed.cancel()
+                running = set(self._tasks.values())  # not those ``reload`` stopped
+                for t in done:
+                    if t in running:
+                        t.result()  # a bug in a bus task: surface it rather than poll half
         finally:
+            tasks = list(self._tasks.values())
             for t in [*tasks, stopper]:
                 t.cancel()
             await asyncio.gather(*tasks, stopper, return_exceptions=True)
+            self._tasks, self._running = {}, None
 
     async def scan_once(self, sink: Sink) -> None:
         """Every device once (buses concurrently), for ``poll --once``."""
@@ -366,3 +545,51 @@ class Scheduler:
 
     def pollers(self) -> Sequence[DevicePoller]:
         return [d for bp in self.buses for d in bp.devices]
+
+    async def reload(self, site: Site) -> list[str]:
+        """Poll ``site`` from now on, touching only what changed; returns what changed.
+
+        A bus is the same when its port and serial settings are: its port stays open, its
+        task keeps running, and devices whose reads are unchanged (profile, address,
+        fields) keep their state and statistics, taking a new interval, timeout or retry
+        count at once. Other buses are closed, and new ones opened (a port that cannot
+        be opened yet is retried like one that went away).
+        """
+        old = {bp.config.port: bp for bp in self.buses}
+        keep: list[BusPoller] = []
+        changes: list[str] = []
+        for bc in site.buses:
+            bp = old.get(bc.port)
+            if bp is not None and _serial(bp.config) == _serial(bc):
+                del old[bc.port]
+                changes += bp.reconfigure(bc)
+                keep.append(bp)
+                continue
+            keep.append(BusPoller(bc, self._open_bus(bc), backoff=self.backoff,
+                                  clock=self.clock, rand=self._rand))
+        for bp in old.values():  # gone, or its serial settings changed: close it first
+            task = self._tasks.pop(bp, None)
+            if task is not None:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+            if bp in self._opened:
+                self._opened.remove(bp)
+                with contextlib.suppress(Exception):
+                    await bp.transport.close()
+            changes.append(f"closed bus {bp.config.name} ({bp.config.port})")
+        for bp in keep:
+            if bp in self._opened or bp in self._tasks:
+                continue
+            try:
+                await bp.transport.open()
+                changes.append(f"opened bus {bp.config.name} ({bp.config.port}, "
+                               f"{bp.config.serial_text}): {len(bp.devices)} devices")
+            except RtupollError as exc:
+                changes.append(f"bus {bp.config.name}: {exc} (retrying)")
+            self._opened.append(bp)
+            if self._running is not None:
+                self._tasks[bp] = asyncio.create_task(bp.run(*self._running))
+        self.buses[:] = keep
+        self.site = site
+        self._tasks_changed.set()
+        return changes

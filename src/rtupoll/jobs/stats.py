@@ -87,6 +87,10 @@ class DeviceStats:
     ok: int = 0
     timeouts: int = 0
     garbled: int = 0  # CRC errors, garbage, truncated or malformed replies
+    late: int = 0  # replies that came after their request had timed out (never decoded)
+    timeout: float | None = None  # the timeout used now, seconds beyond the wire time
+    timeout_source: str = ""  # pinned (the user's) | profile (nothing learned yet) | learned
+    holes: list[str] = field(default_factory=list)  # registers learned never to bridge, why
     exceptions: Counter[int] = field(default_factory=Counter)
     latencies: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     state: State = State.STARTING

@@ -29,7 +29,7 @@ from rtupoll.model.raw import RegisterSpec, parse_values, words_of
 from rtupoll.rtu import Table
 
 if TYPE_CHECKING:
-    from rtupoll.io.bus import Bus
+    from rtupoll.io.interface import BusLike
 
 RAW_FUNCTIONS = frozenset({5, 6, 15, 16})  # a device with no profile: assume the usual set
 
@@ -143,7 +143,7 @@ def check_range(field: Field, value: Value) -> None:
                            f"{unit}")
 
 
-async def write(bus: Bus, unit: int, op: WriteOp, timing: Timing, *, reply: str = "echo"
+async def write(bus: BusLike, unit: int, op: WriteOp, timing: Timing, *, reply: str = "echo"
                 ) -> tuple[tuple[int, ...], bool]:
     """Send one write (read-modify-write for a shared register); return the words sent
     and whether the device confirmed them with an echo (see ``Bus.write_registers``)."""
@@ -163,7 +163,7 @@ async def write(bus: Bus, unit: int, op: WriteOp, timing: Timing, *, reply: str 
     return words, echoed
 
 
-async def read_back(bus: Bus, unit: int, field: Field, timing: Timing) -> FieldValue:
+async def read_back(bus: BusLike, unit: int, field: Field, timing: Timing) -> FieldValue:
     """Read one field (or raw run) back, as it is now."""
     words = await bus.read(unit, field.table, field.address, field.words,
                            timeout=timing.timeout, retries=timing.retries)
@@ -239,7 +239,7 @@ def plan_raw_write(spec: RegisterSpec, text: str, functions: frozenset[int]) -> 
     return RawWrite(spec, values, words, choose_function(spec.fields()[0], len(words), functions))
 
 
-async def write_raw(bus: Bus, unit: int, rw: RawWrite, timing: Timing) -> None:
+async def write_raw(bus: BusLike, unit: int, rw: RawWrite, timing: Timing) -> None:
     if rw.spec.table is Table.COIL:
         for i, word in enumerate(rw.words):
             await bus.write_coil(unit, rw.spec.address + i, bool(word), timeout=timing.timeout,
@@ -249,7 +249,7 @@ async def write_raw(bus: Bus, unit: int, rw: RawWrite, timing: Timing) -> None:
                               timeout=timing.timeout, retries=timing.retries)
 
 
-async def verify_raw(bus: Bus, unit: int, rw: RawWrite, timing: Timing) -> list[FieldValue]:
+async def verify_raw(bus: BusLike, unit: int, rw: RawWrite, timing: Timing) -> list[FieldValue]:
     """Read the run back; it must hold exactly the words written."""
     spec = rw.spec
     got = await bus.read(unit, spec.table, spec.address, spec.words, timeout=timing.timeout,

@@ -67,6 +67,10 @@ class Length:
     fixed: int = 0
     count_at: int = 0
 
+    @property
+    def known(self) -> bool:
+        return bool(self.fixed or self.count_at)
+
     def of(self, head: bytes) -> int | None:
         """The frame's length from its first bytes; None until the count byte is in."""
         if self.fixed:
@@ -183,3 +187,11 @@ def write_frame_sizes(function: int, count: int) -> tuple[int, int]:
 
 # where a write request's data begins: FC06 value at 4, FC16 values after the byte count
 WRITE_DATA_AT = {5: 4, 6: 4, 15: 7, 16: 7}
+
+
+def reply_values(frame: bytes, count: int) -> tuple[int, ...]:
+    """The registers (FC03/04) or the first ``count`` bits (FC01/02) a read reply carries."""
+    data = frame[3:-2]
+    if frame[1] in (3, 4):
+        return struct.unpack(f">{len(data) // 2}H", data[: len(data) // 2 * 2])
+    return tuple((data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data))))

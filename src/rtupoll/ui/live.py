@@ -2,7 +2,7 @@
 
 Rendering only: it reads the scheduler's state and builds rich renderables, so the
 same code draws the live table, the ``--once`` table and the tests' StringIO
-output. Two layouts: one row per field (device, field, value, unit, status, age)
+output. Two layouts: one row per field (device, field, value, unit, severity, status, age)
 when the terminal is tall enough, else one wrapped line of ``field value unit``
 per device, so the footer (each bus's load, each device's health) never falls off
 the bottom of a small terminal. A spinner, a scan counter, ages and a brief
@@ -40,11 +40,14 @@ class PollView:
 
     def __init__(self, buses: Sequence[BusPoller], *, title: str = "", live: bool = True,
                  clock: Callable[[], float] = time.monotonic,
-                 wall: Callable[[], float] = time.time) -> None:
+                 wall: Callable[[], float] = time.time,
+                 footers: Sequence[Callable[[], RenderableType | None]] = ()) -> None:
         self.buses, self.title, self.live = buses, title, live
+        self.footers = footers  # more footer lines, e.g. the gateway's clients
         self._clock, self._wall = clock, wall
         self._started = clock()
         self._seen: dict[tuple[str, str], tuple[str, float]] = {}  # -> (text, changed at)
+        self._widths: dict[str, int] = {}  # column -> the widest text seen (no jitter)
 
     @property
     def devices(self) -> list[DevicePoller]:
@@ -60,6 +63,7 @@ class PollView:
         if not compact:
             parts.append(Text(""))
         parts.append(self.health_table())
+        parts += [f for f in (footer() for footer in self.footers) if f is not None]
         return Group(*parts)
 
     def full_height(self) -> int:
@@ -80,18 +84,22 @@ class PollView:
         head.append(self.title, style="bold")
         head.append(f" · {online}/{len(devices)} online",
                     style="green" if online == len(devices) else "yellow")
-        head.append(f" · {scans} scans")
+        head.append(f" · {scans} scan{'s' if scans != 1 else ''}")
         if self.live:
             head.append(f" · {self._clock() - self._started:.0f} s · Ctrl-C stops", style="dim")
         return head
 
     # -- one row per field ----------------------------------------------------------
     def readings_table(self) -> Table:
+        """One row per field. A reading's ``severity`` (what the value means) and its
+        ``status`` (whether the read worked) are separate columns, as in JSON. Columns
+        whose text changes every scan keep the widest width seen, so nothing jitters."""
         t = Table(show_edge=False, pad_edge=False, header_style="bold")
         t.add_column("device", no_wrap=True)
         t.add_column("field", no_wrap=True)
         t.add_column("value", justify="right", overflow="fold", max_width=40)
         t.add_column("unit", no_wrap=True)
+        t.add_column("severity", no_wrap=True)
         t.add_column("status", overflow="fold", max_width=30)
         if self.live:
             t.add_column("age", justify="right", no_wrap=True)
@@ -100,14 +108,21 @@ class PollView:
             cfg, st = dev.config, dev.stats
             for i, f in enumerate(cfg.fields):
                 r = st.latest.get(f.name)
-                value, status = self._value(cfg.name, f, r, st), _status(r, st)
+                value = self._value(cfg.name, f, r, st)
                 row: list[RenderableType] = [self._device_label(dev, i), f.name, value, f.unit,
-                                             status]
+                                             _severity(r), _status(r, st)]
                 if self.live:
                     good = st.last_good.get(f.name)
                     row.append(Text(_age(now - good.time) if good else "never",
                                     style="dim" if r is not None and r.ok else "yellow"))
                 t.add_row(*row, end_section=i == len(cfg.fields) - 1)
+        for col in t.columns:
+            if col.header in ("value", "status", "age"):
+                widest = max((Text.from_markup(c).cell_len if isinstance(c, str) else
+                              c.cell_len if isinstance(c, Text) else 0 for c in col.cells),
+                             default=0)
+                col.min_width = self._widths[str(col.header)] = max(
+                    widest, self._widths.get(str(col.header), 0))
         return t
 
     def _device_label(self, dev: DevicePoller, line: int) -> Text:
@@ -191,15 +206,16 @@ class PollView:
                 line.append(f" ({b.port})", style="dim")
             if gateway(b.port) is None:
                 line.append(f" · {b.serial_text}")
-            line.append(f" · busy {load:.0%}", style="bold yellow" if load > 0.9 else "")
-            line.append(f" · {bus.load.rate(now):.0f} transactions/s")
+            if self.live:  # one scan's load says nothing about the bus: only live
+                line.append(f" · busy {load:.0%}", style="bold yellow" if load > 0.9 else "")
+                line.append(f" · {bus.load.rate(now):.0f} transactions/s")
             if bus.port_error:
                 line.append(f" · {bus.port_error}", style="bold red")
             parts.append(line)
             t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
                       padding=(0, 1, 0, 0))
-            for col in ("  device", "state", "ok", "timeout", "garbled", "except", "p50",
-                        "p95", "last ok"):
+            for col in ("  device", "state", "ok", "timeout", "late", "garbled", "except", "p50",
+                        "p95", "waits", "last ok"):
                 t.add_column(col, justify="left" if col in ("  device", "state") else "right",
                              no_wrap=True)
             for dev in bus.devices:
@@ -207,9 +223,9 @@ class PollView:
                 t.add_row(
                     Text("  " + dev.config.name),
                     Text(st.state.value, style=STATE_STYLE[st.state]),
-                    str(st.ok), _count(st.timeouts), _count(st.garbled),
+                    str(st.ok), _count(st.timeouts), _count(st.late), _count(st.garbled),
                     _count(st.exception_count, _codes(st.exceptions.items())),
-                    _ms(st.p50()), _ms(st.p95()),
+                    _ms(st.p50()), _ms(st.p95()), _wait(st.timeout, st.timeout_source),
                     _age(wall - st.last_good_time) if st.last_good_time else "never",
                 )
             parts.append(t)
@@ -242,18 +258,26 @@ class _Chips:
         return Measurement(min(widest, options.max_width), options.max_width)
 
 
-def _status(r: Reading | None, st: DeviceStats) -> Text:
-    if r is None:
-        return Text(st.state.value, style="dim")
-    if r.value is None:
-        style = {"skipped": "dim red", "absent": "dim"}.get(r.status, "red")
-        return Text(_why(r), style=style)
+def _severity(r: Reading | None) -> Text:
+    """What the value means: ok, info, warning, error (or an undocumented code)."""
+    if r is None or r.value is None:
+        return Text("")
     fv = r.value
     label = fv.severity.value
     if fv.field.enum and fv.code is not None and fv.code not in fv.field.enum \
             and fv.field.other is None:
         label = "unknown code"
     return Text(label, style=SEVERITY_STYLE[fv.severity])
+
+
+def _status(r: Reading | None, st: DeviceStats) -> Text:
+    """Whether the read worked: ok, timeout, exception 02, not present, ..."""
+    if r is None:
+        return Text(st.state.value, style="dim")
+    if r.value is None:
+        style = {"skipped": "dim red", "absent": "dim"}.get(r.status, "red")
+        return Text(_why(r), style=style)
+    return Text("ok", style="green")
 
 
 def _why(r: Reading) -> str:
@@ -273,6 +297,15 @@ def _count(n: int, detail: str = "") -> Text:
 
 def _ms(seconds: float | None) -> str:
     return "—" if seconds is None else f"{seconds * 1000:.0f} ms"
+
+
+def _wait(seconds: float | None, source: str) -> Text:
+    """The timeout a device gets now: learned (plain), the profile's (dim), pinned (=)."""
+    if seconds is None:
+        return Text("—")
+    if source == "pinned":
+        return Text(f"={seconds * 1000:.0f} ms")
+    return Text(f"{seconds * 1000:.0f} ms", style="dim" if source == "profile" else "")
 
 
 def _age(seconds: float) -> str:

@@ -1,0 +1,161 @@
+"""Commands from the broker, through the same safe paths as ``rtupoll write`` and ``read``.
+
+``BASE/DEVICE/set`` with ``{"FIELD": value, ...}``: every field is checked first
+(writes switched on, not an address or baud-rate field unless the site file allows
+it, then ``jobs.writes.plan_write``: read-only, range, ``values:``, enum names), and
+nothing is sent unless all pass; then each is written with the device's function
+code, read back and compared (``jobs.writes.verify``). The answer on
+``BASE/DEVICE/set/result`` carries the CLI's wording and exit code:
+
+    {"status": "ok", "exit_code": 0, "values": {"measurement_1_mode": "TBB"}}
+    {"status": "refused", "exit_code": 8, "error": "measurement_1 is read-only (...)"}
+
+``BASE/DEVICE/get``: empty (or ``{}``) reads the whole device now, ahead of the
+schedule; a list of field names (or ``{"fields": [...]}``) reads those fields, polled
+or not, and answers on ``BASE/DEVICE/get/result`` like ``set``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Collection, Sequence
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.errors import (
+    DeviceException,
+    DeviceTimeout,
+    FrameError,
+    PortError,
+    RefusedError,
+    RtupollError,
+    UsageError,
+    VerificationError,
+)
+from rtupoll.jobs.device import Timing, read_fields
+from rtupoll.jobs.writes import WriteOp, plan_write, read_back, verify, write
+from rtupoll.model.interpret import FieldValue
+from rtupoll.model.profile import Field, Poll, Profile
+from rtupoll.ui.records import finite
+
+if TYPE_CHECKING:
+    from rtupoll.config.site import DeviceConfig
+    from rtupoll.io.interface import BusLike
+
+WRITES_OFF = ("writes over MQTT are off: start poll with --mqtt-allow-writes, or set "
+              "mqtt.allow_writes: true in the site file")
+_STATUS: tuple[tuple[type[RtupollError], str], ...] = (
+    (RefusedError, "refused"), (UsageError, "usage"), (VerificationError, "verification"),
+    (DeviceTimeout, "timeout"), (FrameError, "garbled"), (DeviceException, "exception"),
+    (PortError, "port"))
+
+
+def protected(profile: Profile, field: Field) -> str:
+    """Why writing ``field`` could cut the device off the bus ('' when it cannot)."""
+    if field.name == profile.set_address.field or "address" in field.name:
+        return "the device's own address"
+    if field.unit.lower() == "baud" or "baud" in field.name or "uart_speed" in field.name:
+        return "the device's baud rate"
+    return ""
+
+
+def _object(payload: bytes, what: str) -> Any:
+    try:
+        return json.loads(payload.decode("utf-8")) if payload.strip() else None
+    except (UnicodeDecodeError, ValueError):
+        raise UsageError(f"{what}: the payload is not JSON") from None
+
+
+def plan_set(dev: DeviceConfig, payload: bytes, *, writes_on: bool,
+             allow: Collection[str] = ()) -> list[WriteOp]:
+    """Check every ``FIELD: value`` of a set command; raises before anything is sent."""
+    if not writes_on:
+        raise RefusedError(WRITES_OFF)
+    obj = _object(payload, "set")
+    if not isinstance(obj, dict) or not obj:
+        raise UsageError('set: expected a JSON object {"FIELD": value, ...}')
+    p = dev.profile
+    ops = []
+    for name, value in obj.items():
+        field = p.field(str(name))
+        why = protected(p, field)
+        if why and field.name not in allow:
+            raise RefusedError(f"{field.name} is {why}: MQTT writes it only when the site file "
+                               f"allows it (mqtt.devices.{dev.name}.allow: [{field.name}])")
+        ops.append(plan_write(field, _text(field, value), p.limits.functions))
+    return ops
+
+
+def _text(field: Field, value: Any) -> str:
+    """A JSON value as the text ``rtupoll write FIELD=TEXT`` would take."""
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, (int, float, str)):
+        return str(value) if not isinstance(value, float) else repr(value)
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return "|".join(value) if value else "none"
+    raise UsageError(f"{field.name}: {json.dumps(value)} is not a value for it")
+
+
+async def apply_set(bus: BusLike, dev: DeviceConfig, ops: Sequence[WriteOp],
+                    done: dict[str, Any]) -> None:
+    """Write, read back and verify each op in turn; ``done`` collects what each field
+    holds now (a failure part-way leaves the earlier ones in it)."""
+    from rtupoll.io.bus import Bus
+
+    if not isinstance(bus, Bus):
+        raise RefusedError(f"{dev.name}: this bus cannot write")
+    timing = Timing(dev.response_timeout, dev.retry_count)
+    for op in ops:
+        sent, _ = await write(bus, dev.address, op, timing)  # an echo is checked by the bus
+        if "R" not in op.field.access or protected(dev.profile, op.field) == \
+                "the device's own address":
+            done[op.field.name] = None  # write-only, or the device has moved: not read back
+            continue
+        now = await read_back(bus, dev.address, op.field, timing)
+        verify(op, sent, now)
+        done[op.field.name] = value_of(now)
+
+
+def plan_get(dev: DeviceConfig, payload: bytes) -> list[Field] | None:
+    """The fields a get command names (None: the whole device, as polled)."""
+    obj = _object(payload, "get")
+    if isinstance(obj, dict):
+        obj = obj.get("fields") if obj else None
+    if obj is None or obj == []:
+        return None
+    if not isinstance(obj, list) or not all(isinstance(n, str) for n in obj):
+        raise UsageError('get: expected nothing, a list of field names or {"fields": [...]}')
+    fields = []
+    for name in dict.fromkeys(obj):
+        f = dev.profile.field(name)
+        if f.poll is Poll.NEVER:
+            raise RefusedError(f"{name} is never polled: reading it has side effects "
+                               f"({f.description or 'see the profile'}); use 'rtupoll read'")
+        fields.append(f)
+    return fields
+
+
+async def apply_get(bus: BusLike, dev: DeviceConfig, fields: Sequence[Field]
+                    ) -> dict[str, Any]:
+    got = await read_fields(bus, dev.profile, dev.address, fields,
+                            timeout=dev.response_timeout, retries=dev.retry_count)
+    return {fv.field.name: value_of(fv) for fv in got}
+
+
+def value_of(fv: FieldValue) -> Any:
+    """A field's value as every JSON output gives it (``ui.records.record``'s ``value``:
+    null for a sentinel, NaN or infinity)."""
+    return finite(fv.output)
+
+
+def ok(values: dict[str, Any]) -> dict[str, Any]:
+    return {"status": "ok", "exit_code": 0, "values": values}
+
+
+def failed(exc: RtupollError, values: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The CLI's one line and exit code, as a result payload."""
+    status = next((s for cls, s in _STATUS if isinstance(exc, cls)), "error")
+    out: dict[str, Any] = {"status": status, "exit_code": exc.exit_code, "error": str(exc)}
+    if values:
+        out["values"] = values  # the fields written (and read back) before the failure
+    return out

@@ -1,0 +1,99 @@
+"""The virtual bus: the simulator's engine behind the one bus interface, in virtual time.
+
+It obeys the same line discipline as the real bus, so the rules it is used to test
+elsewhere (polling, backoff) hold on the wire too; here: values, exceptions, timeouts
+that cost no wall-clock time, and a late reply that is counted, not decoded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from rtupoll.config.site import from_specs
+from rtupoll.errors import DeviceException, DeviceTimeout
+from rtupoll.io.virtual import VirtualBus
+from rtupoll.jobs.scheduler import Scheduler
+from rtupoll.jobs.stats import State
+from rtupoll.rtu import Table
+from rtupoll.sim.engine import Engine
+from rtupoll.sim.scenario import build
+
+
+class VirtualClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    async def sleep(self, seconds: float) -> None:
+        self.now += max(0.0, seconds)
+        await asyncio.sleep(0)
+
+
+def virtual(devices: list[str], faults: tuple[str, ...] = ()) -> tuple[VirtualBus, VirtualClock]:
+    config = build(devices, faults=faults, seed=1, turnaround=0.002, tick=None)
+    clock = VirtualClock()
+    engine = Engine(config.devices, config.faults, seed=1, tick=None)
+    return VirtualBus(engine, clock=clock, sleep=clock.sleep), clock
+
+
+def test_values_exceptions_and_timeouts_in_virtual_time() -> None:
+    bus, clock = virtual(["radar-level@2"])
+    bus.engine.device(2).pin("level_cm", 333)
+
+    async def go() -> None:
+        assert await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1) == (333,)
+        with pytest.raises(DeviceException) as exc:
+            await bus.read(2, Table.INPUT, 0x4000, 1, timeout=0.1)
+        assert exc.value.code in (1, 2)
+        started = clock.now
+        with pytest.raises(DeviceTimeout):
+            await bus.read(9, Table.HOLDING, 0, 1, timeout=0.5, retries=2)
+        assert clock.now - started == pytest.approx(1.5, abs=0.05)  # three attempts
+
+    wall = time.monotonic()
+    asyncio.run(go())
+    assert time.monotonic() - wall < 1.5  # the 1.5 s of timeouts passed virtually
+
+
+def test_a_late_reply_is_counted_and_never_decoded() -> None:
+    bus, _ = virtual(["radar-level@2"], faults=("slow=0.3@2",))
+    dev = bus.engine.device(2)
+    for name, value in {"air_gap_cm": 111, "air_gap_mm": 2222, "level_cm": 333}.items():
+        dev.pin(name, value)
+
+    async def go() -> list[object]:
+        got: list[object] = []
+        for address in range(3):
+            try:
+                got.append((await bus.read(2, Table.HOLDING, address, 1, timeout=0.1))[0])
+            except DeviceTimeout:
+                got.append("timeout")
+        return got
+
+    assert asyncio.run(go()) == [111, "timeout", 333]
+    assert bus.late(2) == 1
+
+
+def test_the_scheduler_backs_off_a_dead_device_in_virtual_time() -> None:
+    bus, clock = virtual(["radar-level@2", "huiwen-aq@3"], faults=("3:dead",))
+    site = from_specs("virtual", [("radar-level", 2), ("huiwen-aq", 3)], baudrate=9600,
+                      interval=1.0, timeout=0.2, check_serial=False)
+    scheduler = Scheduler(site, open_bus=lambda _config: bus, clock=clock)
+
+    async def go() -> None:
+        poller = scheduler.buses[0]
+        while clock.now < 120:  # what BusPoller.run does, with the waits passed virtually
+            dev = poller.next_device()
+            clock.now = max(clock.now, dev.next_due)
+            await poller.run_one(dev, lambda dev, rs: None)
+
+    asyncio.run(go())
+    live, dead = scheduler.pollers()
+    assert live.stats.state is State.ONLINE and live.stats.cycles >= 100
+    assert dead.stats.state is State.OFFLINE
+    assert dead.stats.timeouts < 15  # backed off: a probe now and then, not every second
