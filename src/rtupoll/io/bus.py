@@ -1,45 +1,49 @@
-"""One RS-485 bus: a pymodbus client per port, driven by the sans-IO line discipline.
+"""One RS-485 bus: pymodbus carries the bytes, the sans-IO line discipline decides.
 
 The only module that imports pymodbus (it renames things between minor releases),
-and a thin one: pymodbus carries the bytes and builds and parses the PDUs; every rule
-of the shared line -- the 3.5-character silence, the drain after a timeout, which
+and a thin one. pymodbus's async client opens the port (serial, ``nodtr://``, or an
+RTU-over-TCP gateway), writes frames and delivers what arrives; frames are built
+and parsed by ``rtupoll.rtu.functions`` (the one function table), and every rule of
+the shared line -- the 3.5-character silence, the drain after a timeout, which
 received bytes answer which request (resynchronisation past noise, foreign and late
-frames), garbled replies known at once -- is ``rtupoll.rtu.line.Line``'s, fed here with
-what went out, what came in, and ``time.monotonic()``.
+frames, the late-reply accounting), garbled replies known at once -- is
+``rtupoll.rtu.line.Line``'s, fed here with what went out, what came in and
+``time.monotonic()``.
 
 - **One transaction in flight**: the bus's lock spans silence, request, reply and
-  retries, so devices polled from several tasks never interleave on the wire.
+  retries, so devices polled from several tasks never interleave on the wire. A
+  request whose answer could be confused with an earlier request's late reply waits
+  (``Line.hazard_until``) *before* taking the lock: other devices go on meanwhile.
 - **Silence**: each request waits until ``Line.ready_at``; asyncio times in whole
   milliseconds, so the last fraction of a millisecond is slept with ``time.sleep``
   (at most 1 ms, no CPU).
-- **Timeout and retries per transaction**: pymodbus runs with retries=0 and a long
-  backstop; the bus bounds each attempt (the timeout plus the frames' wire time, so
-  slow baud rates do not eat the device's time) and retries itself.
-- **Receive filter**: received bytes pass through pymodbus's public ``trace_packet``
-  hook, which may rewrite the stream: the line discipline sees every byte, and
-  pymodbus is handed only the frame the line identified as the answer, or nothing.
+- **Timeout and retries per transaction**: each attempt is bounded by the timeout
+  plus the frames' wire time (slow baud rates do not eat the device's time); the
+  bus retries itself.
+- **Receiving**: pymodbus's receive callback hands every byte to the line; its own
+  framer and PDU decoder are not used (they drop a buffer on one stray byte, and
+  cost CPU the line has already spent).
 - **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.io.serialport``).
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
   permission, refused, unreachable -- named by ``rtupoll.io.serialport``).
 
-pymodbus exceptions never escape; its ``pymodbus`` logger is silenced on import
-unless the application set a level on it (``pymodbus_logging`` turns it on).
+pymodbus's ``pymodbus`` logger is silenced on import unless the application set a
+level on it (``pymodbus_logging`` turns it on).
 """
 from __future__ import annotations
 
 import asyncio
 import logging
+import sys
 import time
 from collections import Counter
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
-from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.framer import FramerType
-from pymodbus.pdu import DecodePDU
 
 from rtupoll.errors import (
     BusError,
@@ -56,19 +60,19 @@ from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.functions import (
     answer_length,
     read_request,
+    reply_values,
+    request_length,
     write_coil_request,
     write_multiple_request,
     write_single_request,
 )
-from rtupoll.rtu.line import Answer, Garbled, Line
+from rtupoll.rtu.line import Answer, Line
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
 _TICK = 0.001  # the event loop's timer resolution (epoll waits in whole milliseconds)
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
-_BACKSTOP = 60.0  # pymodbus's own timeout; the bus's per-attempt deadline is always shorter
-_READERS = {Table.COIL: "read_coils", Table.DISCRETE: "read_discrete_inputs",
-            Table.INPUT: "read_input_registers", Table.HOLDING: "read_holding_registers"}
+_BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 _REPLY_MODES = ("echo", "none", "malformed", "any")
 # BusStats.outcomes keys: one per transaction ("unconfirmed": a tolerated write without echo)
 OUTCOMES = ("ok", "timeout", "frame", "exception", "port", "broadcast", "unconfirmed")
@@ -140,9 +144,7 @@ class Bus:
         self.line = Line(self.framing, drain=drain)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
-        self._seen = b""  # what pymodbus last showed the receive hook (it resends its buffer)
-        self._answer = b""  # the frame to hand pymodbus, once the line identified it
-        self._garbled: asyncio.Future[str] | None = None  # set when the line knows at once
+        self._answer: asyncio.Future[bytes] | None = None  # the attempt in flight's
 
     @property
     def unsolicited(self) -> int:
@@ -160,6 +162,11 @@ class Bus:
     def late_reply_time(self, unit: int) -> float | None:
         """The reply time of ``unit``'s last late reply, if it sent one."""
         return self.line.late_reply_time.get(unit)
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
+        (``Line.patience``: a learned timeout does not shorten it)."""
+        self.line.patience[unit] = seconds
 
     # -- opening and closing -------------------------------------------------
 
@@ -187,8 +194,7 @@ class Bus:
 
     def _make_client(self) -> Any:
         common: dict[str, Any] = dict(framer=FramerType.RTU, timeout=_BACKSTOP, retries=0,
-                                      reconnect_delay=0, name=self.settings.port,
-                                      trace_packet=self._trace)
+                                      reconnect_delay=0, name=self.settings.port)
         if self._gateway:
             client: Any = AsyncModbusTcpClient(self._gateway[0], port=self._gateway[1],
                                                **common)
@@ -196,7 +202,8 @@ class Bus:
             s = self.settings
             client = AsyncModbusSerialClient(self._url, baudrate=s.baudrate, bytesize=s.bytesize,
                                              parity=s.parity, stopbits=s.stopbits, **common)
-        client.set_max_no_responses(1 << 30)  # never let pymodbus drop the link on timeouts
+        # every received byte goes to the line discipline; pymodbus's framer never sees one
+        client.ctx.callback_data = self._received
         return client
 
     async def _connect(self) -> None:
@@ -236,12 +243,9 @@ class Bus:
         if not 1 <= count <= most or not address >= 0 or address + count > 0x10000:
             raise RefusedError(f"cannot read {count} {table.value} from 0x{address:X} "
                                f"(1..{most} within 0..65535)")
-        method = _READERS[table]
-        pdu = await self._transact(
-            lambda: getattr(self._client, method)(address, count=count, device_id=unit),
-            read_request(unit, table, address, count), timeout, retries)
-        values = tuple(int(v) for v in pdu.registers) if table.is_register else \
-            tuple(int(b) for b in pdu.bits[:count])
+        frame = await self._transact(read_request(unit, table, address, count), timeout,
+                                     retries)
+        values = reply_values(frame, count)
         if len(values) != count:
             raise FrameError(f"unit {unit} returned {len(values)} values for {count}")
         return values
@@ -262,29 +266,18 @@ class Bus:
                 not 1 <= len(vals) <= 123 or address < 0 or address + len(vals) > 0x10000 or \
                 any(not 0 <= v <= 0xFFFF for v in vals):
             raise RefusedError(f"cannot write {vals} at 0x{address:X} with function {function}")
-
-        def call() -> Awaitable[Any]:  # looked up per attempt: a reconnect replaces the client
-            if function == 6:
-                return self._client.write_register(  # type: ignore[no-any-return]
-                    address, vals[0], device_id=unit, no_response_expected=unit == 0)
-            return self._client.write_registers(  # type: ignore[no-any-return]
-                address, vals, device_id=unit, no_response_expected=unit == 0)
-
         request = write_single_request(unit, address, vals[0]) if function == 6 else \
             write_multiple_request(unit, address, vals)
-        echoed = await self._transact(call, request, timeout, retries if reply == "echo" else 0,
-                                      tolerate=reply != "echo")
-        return echoed is not None
+        echo = await self._transact(request, timeout, retries if reply == "echo" else 0,
+                                    tolerate=reply != "echo")
+        return bool(echo)
 
     async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
                          retries: int = 0) -> None:
         _check_unit(unit, broadcast=True)
         if not 0 <= address <= 0xFFFF:
             raise RefusedError(f"coil address {address} is outside 0..65535")
-        await self._transact(
-            lambda: self._client.write_coil(address, bool(on), device_id=unit,
-                                            no_response_expected=unit == 0),
-            write_coil_request(unit, address, on), timeout, retries)
+        await self._transact(write_coil_request(unit, address, on), timeout, retries)
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
                        retries: int = 0) -> bytes:
@@ -292,33 +285,26 @@ class Bus:
         an exception PDU (function | 0x80, code) when the device answered with one.
         For a gateway passing other masters' requests through; a broadcast returns b""."""
         _check_unit(unit, broadcast=True)
-        try:
-            request = DecodePDU(True).decode(pdu)
-        except Exception:  # pymodbus's decoder raises several kinds on bad input
-            request = None
-        if request is None:
+        request = with_crc(bytes((unit,)) + pdu)
+        if not pdu or request_length(request) != len(request):
             raise RefusedError(f"function 0x{pdu[:1].hex()} with {len(pdu) - 1} data bytes "
                                "is not a request this bus can send")
-        request.dev_id = unit
-        frame = with_crc(bytes((unit,)) + pdu)
         try:
-            reply = await self._transact(
-                lambda: self._client.execute(unit == 0, request), frame, timeout, retries)
+            frame = await self._transact(request, timeout, retries)
         except DeviceException as exc:
             return bytes((pdu[0] | 0x80, exc.code))
-        return b"" if reply is None else bytes((reply.function_code,)) + reply.encode()
+        return frame[1:-2]
 
     # -- one transaction -----------------------------------------------------
 
-    async def _transact(self, call: Callable[[], Awaitable[Any]], request: bytes,
-                        timeout: float, retries: int, *, tolerate: bool = False) -> Any:
-        """One transaction (``request``: the frame pymodbus will send) under the lock,
-        once no earlier request's late reply could be mistaken for its answer. The
-        request's and its reply's wire time is added to ``timeout`` (the device's own
-        time to answer)."""
+    async def _transact(self, request: bytes, timeout: float, retries: int, *,
+                        tolerate: bool = False) -> bytes:
+        """One transaction under the lock, once no earlier request's late reply could be
+        mistaken for its answer: the answer frame (b"" for a broadcast, or a tolerated
+        write without a valid echo). The request's and its reply's wire time is added to
+        ``timeout`` (the device's own time to answer)."""
         if not 0 < timeout <= 60 or retries < 0:
             raise UsageError(f"timeout {timeout} s / retries {retries} make no sense")
-        unit, function = request[0], request[1]
         frames = len(request) + (answer_length(request) or 0)
         while True:
             await self._hazard_clear(request)
@@ -326,29 +312,27 @@ class Bus:
             if self.line.hazard_until(request, time.monotonic()) <= time.monotonic():
                 break
             self._lock.release()  # another task's request made one: wait again
+        started = time.monotonic()
+        outcome = "ok"
         try:
-            started = time.monotonic()
-            outcome = "ok"
-            try:
-                result = await self._attempts(call, unit, function, timeout, retries,
-                                              timeout + self.framing.wire_time(frames))
-                if result is None:
-                    outcome = "broadcast"
-                return result
-            except (DeviceException, PortError) as exc:
-                outcome = "exception" if isinstance(exc, DeviceException) else "port"
-                raise
-            except BusError as exc:  # DeviceTimeout or FrameError
-                outcome = "unconfirmed" if tolerate else \
-                    "timeout" if isinstance(exc, DeviceTimeout) else "frame"
-                if tolerate:
-                    return None
-                raise
-            finally:
-                self.stats.transactions += 1
-                self.stats.outcomes[outcome] += 1
-                self.stats.busy += time.monotonic() - started
+            frame = await self._attempts(request, timeout, retries,
+                                         timeout + self.framing.wire_time(frames))
+            if not frame:
+                outcome = "broadcast"
+            return frame
+        except (DeviceException, PortError) as exc:
+            outcome = "exception" if isinstance(exc, DeviceException) else "port"
+            raise
+        except BusError as exc:  # DeviceTimeout or FrameError
+            outcome = "unconfirmed" if tolerate else \
+                "timeout" if isinstance(exc, DeviceTimeout) else "frame"
+            if tolerate:
+                return b""
+            raise
         finally:
+            self.stats.transactions += 1
+            self.stats.outcomes[outcome] += 1
+            self.stats.busy += time.monotonic() - started
             self._lock.release()
 
     async def _hazard_clear(self, request: bytes) -> None:
@@ -362,8 +346,9 @@ class Bus:
             self.stats.hazard_waits += 1
             await asyncio.sleep(min(until - now, _HAZARD_POLL))
 
-    async def _attempts(self, call: Callable[[], Awaitable[Any]], unit: int, function: int,
-                        timeout: float, retries: int, limit: float) -> Any:
+    async def _attempts(self, request: bytes, timeout: float, retries: int,
+                        limit: float) -> bytes:
+        unit, function = request[0], request[1]
         failure: BusError = DeviceTimeout(f"no reply from unit {unit}")
         what = FUNCTION_NAMES.get(function, f"function {function}")
         for attempt in range(retries + 1):
@@ -374,11 +359,11 @@ class Bus:
             self.stats.attempts += 1
             tries = f" ({attempt + 1} tries)" if attempt else ""
             try:
-                pdu = await self._attempt(call, limit)
+                frame = await self._attempt(request, limit)
             except _Garbled as exc:
                 failure = FrameError(f"unit {unit}, {what}: {exc}{tries}")
                 continue
-            except (asyncio.TimeoutError, ModbusIOException):
+            except asyncio.TimeoutError:
                 rx = bytes(self.line.attempt.rx) if self.line.attempt else b""
                 why = self.line.expire(time.monotonic(), timeout)
                 if not self.connected:
@@ -388,38 +373,32 @@ class Bus:
                     DeviceTimeout(f"no reply from unit {unit} to {what} within {timeout:g} s"
                                   f"{tries}" + (f" (ignored: {rx[:16].hex(' ')})" if rx else ""))
                 continue
-            except ConnectionException:
-                self.line.abandon()
-                raise PortError(f"{self.settings.port} is not open") from None
-            except Exception as exc:  # anything pymodbus raises: never let it escape
-                self.line.abandon()
-                raise FrameError(f"unit {unit}, {what}: {type(exc).__name__}: {exc}") from None
-            if pdu is None:  # broadcast: nobody answers
+            if not frame:  # broadcast: nobody answers
                 self.line.after_broadcast(self._broadcast_turnaround)
-                return None
-            if pdu.isError():
-                raise DeviceException(int(pdu.exception_code), unit=unit, function=function)
-            return pdu
+                return b""
+            if frame[1] & 0x80:
+                raise DeviceException(frame[2], unit=unit, function=function)
+            return frame
         raise failure
 
-    async def _attempt(self, call: Callable[[], Awaitable[Any]], limit: float) -> Any:
-        """One request and its answer; ``_Garbled`` as soon as the line knows the reply
-        is garbled, ``asyncio.TimeoutError`` after ``limit`` seconds."""
-        self._answer, self._seen = b"", b""
-        self._garbled = asyncio.get_running_loop().create_future()
+    async def _attempt(self, request: bytes, limit: float) -> bytes:
+        """Send ``request``; its answer frame (b"" for a broadcast), ``_Garbled`` as soon
+        as the line knows the reply is garbled, ``asyncio.TimeoutError`` after ``limit``."""
+        if not self.connected:
+            raise PortError(f"{self.settings.port} is not open")
+        self.line.send(request, time.monotonic())
+        self.stats.wire += self.framing.wire_time(len(request))
+        self._client.ctx.send(request)
+        if request[0] == 0:
+            return b""
+        self._answer = asyncio.get_running_loop().create_future()
         try:
-            pending = asyncio.ensure_future(call())  # raises at once if not connected
-            done, _ = await asyncio.wait((pending, self._garbled), timeout=limit,
-                                         return_when=asyncio.FIRST_COMPLETED)
-            if pending in done:
-                return pending.result()
-            pending.cancel()
-            await asyncio.gather(pending, return_exceptions=True)
-            if self._garbled in done:
-                raise _Garbled(self._garbled.result())
-            raise asyncio.TimeoutError
+            if sys.version_info >= (3, 11):
+                async with asyncio.timeout(limit):
+                    return await self._answer
+            return await asyncio.wait_for(self._answer, limit)
         finally:
-            self._garbled = None
+            self._answer = None
 
     async def _quiet_line(self, *, drain: bool) -> None:
         """Wait until the line discipline lets the next frame go."""
@@ -432,45 +411,22 @@ class Bus:
             else:  # the last fraction of a tick, which asyncio would overshoot by up to 1 ms
                 time.sleep(delay)
 
-    def _trace(self, sending: bool, data: bytes) -> bytes:
-        """pymodbus's packet hook: what goes out and what comes in, through the line.
-
-        pymodbus passes everything received since its last send (it keeps what its
-        framer did not use), so only what is new since the last call is fed on.
-        """
-        now = time.monotonic()
-        if sending:
-            self.line.send(data, now)
-            self.stats.wire += self.framing.wire_time(len(data))
-            self._seen = b""
-            return data
-        new = _new_bytes(self._seen, data)
-        self._seen = data
-        event = self.line.receive(new, now)
-        if isinstance(event, Answer):
-            self._answer = event.frame
-            self.stats.wire += self.framing.wire_time(len(event.frame))
-            self._seen = data[len(event.frame):]  # pymodbus cuts what its framer used
-            return self._answer
-        if isinstance(event, Garbled) and self._garbled is not None \
-                and not self._garbled.done():
-            self._garbled.set_result(event.why)
-        return b""
+    def _received(self, data: bytes, addr: object = None) -> int:
+        """pymodbus's receive callback: every byte goes to the line, none to its framer
+        (it returns how much of pymodbus's buffer was used: all of it)."""
+        event = self.line.receive(data, time.monotonic())
+        waiter = self._answer
+        if event is not None and waiter is not None and not waiter.done():
+            if isinstance(event, Answer):
+                self.stats.wire += self.framing.wire_time(len(event.frame))
+                waiter.set_result(event.frame)
+            else:
+                waiter.set_exception(_Garbled(event.why))
+        return len(data)
 
 
 class _Garbled(Exception):
     """The line saw a complete reply with a bad CRC: retry now, not after the timeout."""
-
-
-def _new_bytes(seen: bytes, data: bytes) -> bytes:
-    """What ``data`` (pymodbus's receive buffer) holds beyond ``seen`` (the last one),
-    allowing for a cut from its front."""
-    if data.startswith(seen):
-        return data[len(seen):]
-    for k in range(1, len(seen) + 1):
-        if data.startswith(seen[k:]):
-            return data[len(seen) - k:]
-    return data
 
 
 def _check_unit(unit: int, *, broadcast: bool) -> None:
