@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import sys
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -307,7 +306,8 @@ class Bus:
             raise UsageError(f"timeout {timeout} s / retries {retries} make no sense")
         frames = len(request) + (answer_length(request) or 0)
         while True:
-            await self._hazard_clear(request)
+            if self.line.hazard_until(request, time.monotonic()) > time.monotonic():
+                await self._hazard_clear(request)
             await self._lock.acquire()
             if self.line.hazard_until(request, time.monotonic()) <= time.monotonic():
                 break
@@ -391,13 +391,14 @@ class Bus:
         self._client.ctx.send(request)
         if request[0] == 0:
             return b""
-        self._answer = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        answer: asyncio.Future[bytes] = loop.create_future()
+        self._answer = answer
+        expiry = loop.call_later(limit, _expire, answer)
         try:
-            if sys.version_info >= (3, 11):
-                async with asyncio.timeout(limit):
-                    return await self._answer
-            return await asyncio.wait_for(self._answer, limit)
+            return await answer
         finally:
+            expiry.cancel()
             self._answer = None
 
     async def _quiet_line(self, *, drain: bool) -> None:
@@ -423,6 +424,11 @@ class Bus:
             else:
                 waiter.set_exception(_Garbled(event.why))
         return len(data)
+
+
+def _expire(answer: asyncio.Future[bytes]) -> None:
+    if not answer.done():
+        answer.set_exception(asyncio.TimeoutError())
 
 
 class _Garbled(Exception):

@@ -35,8 +35,10 @@ order). Hence:
 So that the line never has to guess, a request is not sent while an earlier,
 *different* request to the same unit and function may still be answered
 (``hazard_until``): a request that timed out may be answered up to ``LATE_FACTOR``
-timeouts late (or ``SETTLE_FACTOR`` times the longest reply time seen from that unit,
-if longer; at most ``horizon``); a request whose answer was taken from an identical
+timeouts late (counted in the unit's ``patience`` when that is longer than the
+timeout given: a timeout learned shorter than the manual's does not shorten the
+window; or ``SETTLE_FACTOR`` times the longest reply time seen from that unit, if
+longer; at most ``horizon``); a request whose answer was taken from an identical
 earlier request's late reply may still be answered within ``SETTLE_FACTOR`` reply
 times. Its answer arriving ends the wait at once. The bus waits for this outside
 its lock, so other devices keep the line busy meanwhile. Should a frame still fit
@@ -44,6 +46,13 @@ an older different request (a device that dropped it and answers a later one), i
 is counted late and the attempt times out: never a wrong value, at worst a retry.
 What this cannot guarantee: a reply later than the late window of its request, a
 device that answers out of order or twice, and frames from a second master.
+
+**Reply time.** For every frame it explains, the line records the device's reply
+time: from the end of the request on the wire (its first byte's time plus its wire
+time) to the reply's first byte, per unit (``reply_time``; ``late_reply_time`` for late
+replies; ``Answer.reply_time``). It is the evidence ``rtupoll.jobs.timeouts`` learns
+each device's timeout from. When several identical requests are outstanding it is
+counted from the oldest: never shorter than the truth.
 
 **Garbled replies** are known at once: a complete frame from the unit, with the
 request's function, whose CRC is wrong ends the attempt (``Garbled``) without
@@ -81,6 +90,9 @@ class Outstanding:
 @dataclass(frozen=True)
 class Answer:
     frame: bytes
+    # seconds from the end of the (oldest matching) request on the wire to the reply's
+    # first byte: the device's own time to answer, wire time excluded (never below 0)
+    reply_time: float = field(default=0.0, compare=False)
 
 
 @dataclass(frozen=True)
@@ -124,6 +136,13 @@ class Line:
         self.attempt: Attempt | None = None
         self._outstanding: dict[int, deque[Outstanding]] = {}
         self._latency: dict[int, float] = {}  # per unit: the longest reply time seen lately
+        # per unit: the reply time (``Answer.reply_time``) of the last answer, and of the
+        # last late reply (an answer to a request that had timed out or was superseded)
+        self.reply_time: dict[int, float] = {}
+        self.late_reply_time: dict[int, float] = {}
+        # per unit: the timeout its late window is counted in when a shorter one was
+        # given (a learned timeout must not shorten how long a late reply is expected)
+        self.patience: dict[int, float] = {}
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
@@ -190,7 +209,7 @@ class Line:
             self._consume(start + len(frame))
             if self._explain(frame, began) and att is not None:
                 self.attempt = None
-                return Answer(frame)
+                return Answer(frame, self.reply_time[frame[0]])
         if len(self._buf) > 2 * MAX_FRAME:
             self._consume(len(self._buf) - MAX_FRAME)
         if att is not None:
@@ -233,13 +252,19 @@ class Line:
             return False
         gone = min(fits, key=lambda e: e.expires)
         self._outstanding[unit].remove(gone)
-        oldest = min(e.sent for e in fits)
+        first = min(fits, key=lambda e: e.sent)
+        oldest = first.sent
         self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))
+        took = self.reply_time[unit] = max(
+            0.0, began - oldest - self.framing.wire_time(len(first.request)))
         if att is not None and all(e.request == att.request for e in fits):
-            if any(e is not att.entry for e in fits):  # an earlier attempt's answer may be it
-                self.counts.late[unit] += 1 if gone is not att.entry else 0
+            # an earlier attempt's answer may be it
+            if any(e is not att.entry for e in fits) and gone is not att.entry:
+                self.counts.late[unit] += 1
+                self.late_reply_time[unit] = took
             return True
         self.counts.late[unit] += 1
+        self.late_reply_time[unit] = took
         return False
 
     def _garbled(self, att: Attempt) -> str | None:
@@ -265,7 +290,9 @@ class Line:
         self.drain_for = self._drain if self._drain is not None else timeout
         if att is None:
             return None
-        late = max(LATE_FACTOR * timeout, SETTLE_FACTOR * self._latency.get(att.expect.unit, 0))
+        unit = att.expect.unit
+        late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
+                   SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
         return diagnose(bytes(att.rx), att.expect)
 
@@ -275,6 +302,8 @@ class Line:
         ``request``'s (a read reply names no address). 0 when it may go now. Identical
         requests are no hazard; exception replies, which name only the function, are
         never taken from an ambiguous frame (see ``_explain``)."""
+        if request[0] not in self._outstanding:  # nothing unanswered: the usual case
+            return 0.0
         self._forget(now)
         exp = expect_for(request)
         queue = self._outstanding.get(request[0], ())
@@ -298,6 +327,8 @@ class Line:
         return len(self._outstanding.get(unit, ()))
 
     def _forget(self, now: float) -> None:
+        if not self._outstanding:
+            return
         for unit, queue in list(self._outstanding.items()):
             for e in [e for e in queue if e.expires < now]:
                 queue.remove(e)

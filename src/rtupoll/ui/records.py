@@ -3,12 +3,17 @@
 One record per field reading. ``read --format json`` prints exactly these keys;
 ``poll`` adds ``status`` and ``time``. A failed reading has ``value`` null and says
 why in ``status`` and ``error``: it never carries a stale value.
+
+NaN and infinities are not JSON: a float register holding one gives ``value`` null
+and ``text`` ``"NaN"``, ``"+inf"`` or ``"-inf"``. Every output (JSON, CSV, MQTT,
+metrics, Influx) goes through ``finite`` / ``json_safe`` / ``to_json`` for this.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from collections.abc import Mapping
 from typing import Any, TextIO
 
@@ -18,18 +23,44 @@ READ_KEYS = ("device", "profile", "address", "field", "value", "unit", "raw", "s
 POLL_KEYS = ("time", *READ_KEYS, "status", "error")
 
 
+def finite(value: Any) -> Any:
+    """``value``, or None when it is a float NaN or infinity (which JSON cannot carry)."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+def nonfinite_text(value: Any) -> str | None:
+    """``"NaN"``, ``"+inf"`` or ``"-inf"`` for such a float, else None: the text that
+    goes beside a null value so a reader sees why there is none."""
+    if not isinstance(value, float) or math.isfinite(value):
+        return None
+    return "NaN" if math.isnan(value) else ("+inf" if value > 0 else "-inf")
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every NaN/infinity (in dicts, lists and tuples too) replaced by None."""
+    if isinstance(obj, float):
+        return finite(obj)
+    if isinstance(obj, Mapping):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
 def record(device: str, profile: str, address: int, fv: FieldValue) -> dict[str, Any]:
     """One decoded field as a flat dict; enums give their name, flags the active names."""
+    value = fv.output  # null for a sentinel ("not available"); text names it
+    special = nonfinite_text(value)
     return {
         "device": device,
         "profile": profile,
         "address": address,
         "field": fv.field.name,
-        "value": fv.value,
+        "value": finite(value),
         "unit": fv.field.unit,
         "raw": list(fv.raw),
         "severity": fv.severity.value,
-        "text": fv.text,
+        "text": special or fv.text,
     }
 
 
@@ -41,8 +72,16 @@ def failed_record(device: str, profile: str, address: int, field: str, unit: str
             "status": status, "error": error}
 
 
-def to_json(rec: Mapping[str, Any]) -> str:
-    return json.dumps(rec, ensure_ascii=False, separators=(",", ":"))
+def to_json(rec: Any) -> str:
+    """Strict JSON on one line: NaN and infinities become null (see ``json_safe``).
+    The walk through the record is only done for the rare one that holds such a float."""
+    try:
+        return _ENCODE(rec)
+    except ValueError:  # "Out of range float values are not JSON compliant"
+        return _ENCODE(json_safe(rec))
+
+
+_ENCODE = json.JSONEncoder(ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode
 
 
 class CsvWriter:
@@ -63,6 +102,7 @@ class CsvWriter:
 
 
 def _cell(v: Any) -> str:
+    v = finite(v)
     if v is None:
         return ""
     if isinstance(v, list):
