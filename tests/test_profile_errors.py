@@ -55,7 +55,7 @@ def test_check_passes_good_profiles_and_counts_bad_ones() -> None:
     bundled = sorted(Path(__file__).parents[1].joinpath("profiles").glob("*.yaml"))
     bad = FIXTURES / "overlap.yaml"
     result = CliRunner().invoke(cli, ["profiles", "check", *map(str, bundled), str(bad)])
-    assert result.stdout.count(": ok (") == len(bundled) == 5
+    assert result.stdout.count(": ok (") == len(bundled) >= 20
     assert f"1 of {len(bundled) + 1} profile(s) have errors" in result.stderr
 
 

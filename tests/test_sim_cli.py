@@ -75,8 +75,10 @@ def test_default_bus_lists_its_devices_serves_and_stops_on_ctrl_c(
     for pid in ("net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117", "banner-ez-array"):
         assert pid in s.out
     assert "also answers 254 = 0xFE" in s.out
-    assert f"rtupoll read --port {s.port} net-irnet-pro@1" in s.out
-    port = raw_port(s.port)
+    # a bus that could exist: four devices at 9600, the CO2Meter board alone at 115200
+    assert f"rtupoll read -p {s.port} -b 9600 net-irnet-pro@1" in s.out
+    assert "line 2 (a serial port: open it at 115200 baud)" in s.out
+    port = raw_port(s.port, 9600)
     assert port.transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
         rtu.read_response(3, 3, [3])
     rest = s.stop(signal.SIGINT)
@@ -109,7 +111,7 @@ def test_mbpoll_reads_a_value_pinned_on_the_command_line(simulate: Callable[...,
 def test_verbose_prints_the_frames_and_faults(simulate: Callable[..., Simulator],
                                               raw_port: Raw) -> None:
     s = simulate("net-irnet-pro@1", "-v", "--fault", "1:crc@2", "--tick", "0")
-    port = raw_port(s.port)
+    port = raw_port(s.port, 4800)
     read = rtu.read_request(1, Table.INPUT, 6, 2)
     port.transact(read, 9)
     port.transact(read, 9)

@@ -95,3 +95,10 @@ class ScanIncomplete(RtupollError):
     """``poll --once``: one or more devices failed; each is named on stderr."""
 
     exit_code = 9
+
+
+class BrokerError(RtupollError):
+    """``poll --mqtt``: the MQTT broker cannot be reached or refused us at start-up (unknown
+    host, connection refused, wrong user or password, TLS handshake refused)."""
+
+    exit_code = 10

@@ -2,17 +2,42 @@
 
 Subcommands live in their own modules and are imported only when run, so a
 one-shot ``rtupoll read`` does not pay for the simulator or the live table.
+
+The process boundary is handled here too: a signal while Python is still importing,
+a closed or full stdout, closed standard descriptors. Each is one line and an exit
+code, never a traceback.
 """
 
 from __future__ import annotations
 
-import importlib
+import _signal  # type: ignore[import-not-found]  # the builtin behind signal: already loaded
+import contextlib
+import os
 import sys
-from typing import Any
+from types import FrameType
 
-import click
 
-from rtupoll.errors import RtupollError
+def _interrupted_early(signum: int, frame: FrameType | None) -> None:
+    """SIGINT/SIGTERM before ``main`` runs (click and the command are being imported)."""
+    with contextlib.suppress(OSError):
+        os.write(2, b"rtupoll: interrupted\n")
+    raise SystemExit(130)
+
+
+# The console script imports this module first: from here on an early Ctrl-C or SIGTERM
+# is one line and exit 130, not a KeyboardInterrupt traceback or a silent kill.
+if os.path.basename(sys.argv[0] if sys.argv else "") in ("rtupoll", "__main__.py"):
+    for _sig in (_signal.SIGINT, _signal.SIGTERM):
+        _signal.signal(_sig, _interrupted_early)
+
+import importlib  # noqa: E402
+import signal  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
+from typing import Any, TextIO  # noqa: E402
+
+import click  # noqa: E402
+
+from rtupoll.errors import RtupollError, UsageError  # noqa: E402
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -24,13 +49,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "guess": ("rtupoll.cli.guess:guess", "Rank interpretations of an unknown device's registers."),
     "decode": ("rtupoll.cli.decode:decode", "Decode captured RTU frames."),
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
+    "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),
     "profiles": ("rtupoll.cli.profiles:profiles", "List, show and check device profiles."),
 }
 
 EXIT_CODES = """\b
 Exit codes:
   0  success
-  2  bad arguments, profile or configuration
+  2  bad arguments, profile or configuration; output that cannot be written
   3  port cannot be opened (missing, busy, no permission)
   4  no response from the device
   5  the device answered with a Modbus exception
@@ -38,7 +64,7 @@ Exit codes:
   7  garbled reply (CRC error, truncated or malformed frame)
   8  refused before sending (read-only field, value out of range, address taken)
   9  poll --once: one or more devices failed
-  130 interrupted
+  130 interrupted (Ctrl-C or SIGTERM)
 """
 
 
@@ -95,19 +121,107 @@ def cli() -> None:
 
 def main(argv: list[str] | None = None) -> Any:
     """The console script: usage mistakes are one line too, like every other error."""
-    try:
-        code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
-    except click.exceptions.NoArgsIsHelpError as exc:  # plain 'rtupoll': the help
-        click.echo(exc.ctx.get_help() if exc.ctx else str(exc))
-        sys.exit(0)
-    except click.exceptions.UsageError as exc:
-        where = exc.ctx.command_path if exc.ctx else "rtupoll"
-        click.echo(f"rtupoll: {exc.format_message()} (see '{where} --help')", err=True)
-        sys.exit(exc.exit_code)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except (click.exceptions.Abort, KeyboardInterrupt):
-        click.echo("rtupoll: interrupted", err=True)
-        sys.exit(130)
+    with _process():
+        try:
+            code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
+            sys.stdout.flush()  # a full disk shows here, not as "Exception ignored" at exit
+        except click.exceptions.NoArgsIsHelpError as exc:  # plain 'rtupoll': the help
+            click.echo(exc.ctx.get_help() if exc.ctx else str(exc))
+            code = 0
+        except click.exceptions.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx else "rtupoll"
+            click.echo(f"rtupoll: {exc.format_message()} (see '{where} --help')", err=True)
+            code = exc.exit_code
+        except click.ClickException as exc:
+            exc.show()
+            code = exc.exit_code
+        except (click.exceptions.Abort, KeyboardInterrupt):
+            click.echo("rtupoll: interrupted", err=True)
+            code = 130
+        except BrokenPipeError:  # `rtupoll read ... | head -1`: the reader is done
+            code = 0
+        except RtupollError as exc:  # an output error outside a command
+            click.echo(f"rtupoll: {exc}", err=True)
+            code = exc.exit_code
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _as_sigint(signum: int, frame: FrameType | None) -> None:
+    """SIGTERM does what Ctrl-C does at that moment (asyncio's handler cancels the main
+    task, so cleanup and reports run; elsewhere a KeyboardInterrupt)."""
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler) and handler is not _as_sigint:
+        handler(signal.SIGINT, frame)
+        return
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _process() -> Iterator[None]:
+    """While a command runs: SIGINT and SIGTERM interrupt it (commands that run until
+    stopped install their own handlers), stdout errors are one line, and descriptors
+    0-2 are open (a port opened on a closed fd 1 would get the report written into it)."""
+    for fd, mode in ((0, os.O_RDONLY), (1, os.O_RDONLY), (2, os.O_WRONLY)):
+        try:
+            os.fstat(fd)
+        except OSError:  # closed: hold it with /dev/null (fd 1 read-only, so writes fail)
+            held = os.open(os.devnull, mode)
+            if held != fd:
+                os.dup2(held, fd)
+                os.close(held)
+    if sys.stdin is None:
+        sys.stdin = open(0, encoding="utf-8", closefd=False)  # noqa: SIM115
+    if sys.stdout is None:
+        sys.stdout = open(1, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
+    if sys.stderr is None:
+        sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _as_sigint)
+    real = sys.stdout
+    sys.stdout = _GuardedOutput(real)
+    try:
+        yield
+    finally:
+        sys.stdout = real
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+class _GuardedOutput:
+    """stdout whose write errors are an ``RtupollError`` (disk full, closed) or a plain
+    ``BrokenPipeError`` (the reader is done); afterwards fd 1 is /dev/null, so the
+    interpreter's flush at exit has nothing to complain about."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as exc:
+            raise self._failed(exc) from None
+
+    def writelines(self, lines: Any) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as exc:
+            raise self._failed(exc) from None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+    def _failed(self, exc: OSError) -> Exception:
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+        except (OSError, ValueError):
+            pass
+        if isinstance(exc, BrokenPipeError):
+            return exc
+        return UsageError(f"cannot write the output: {exc.strerror or exc}")

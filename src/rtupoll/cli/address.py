@@ -18,6 +18,7 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
+from rtupoll.cli.params import check_baudrate
 from rtupoll.cli.target import (
     Target,
     confirm,
@@ -32,6 +33,7 @@ from rtupoll.errors import RtupollError, UsageError
 from rtupoll.jobs.commission import (
     Change,
     Commissioner,
+    PlanInterrupted,
     Presence,
     Result,
     Status,
@@ -42,6 +44,7 @@ from rtupoll.jobs.commission import (
     shared_reserved,
 )
 from rtupoll.model.profile import Profile
+from rtupoll.ui.records import json_safe
 
 
 class PlanFailed(RtupollError):
@@ -86,6 +89,7 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
     rtupoll set-address -p /dev/ttyUSB0 --plan sensors.csv --yes
     rtupoll set-address -p /dev/ttyUSB0 --interactive radar-level@1 10
     """
+    check_baudrate(baudrate)
     avoid = {} if allow_reserved else shared_reserved(load_library(profile_dirs).profiles.values())
 
     def settings(profile: Profile) -> Any:
@@ -133,7 +137,11 @@ def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Co
           fmt: str) -> None:
     """Run the rows, reporting each as it ends; then fail with the first failure's code."""
     report = _reporter(fmt)
-    results = run_on_bus(settings, lambda bus: run_plan(commissioner(bus), changes, report))
+    try:
+        results = run_on_bus(settings, lambda bus: run_plan(commissioner(bus), changes, report))
+    except PlanInterrupted as exc:  # every row was reported; the summary, then exit 130
+        _summary(exc.results, fmt)
+        raise
     _summary(results, fmt)
     for row, result in enumerate(results, 1):
         if result.error is not None:
@@ -174,10 +182,11 @@ def _reporter(fmt: str) -> Callable[[Result], None]:
         nonlocal row
         row += 1
         if fmt == "json":
-            click.echo(json.dumps(result.record(row), ensure_ascii=False))
+            click.echo(json.dumps(json_safe(result.record(row)), ensure_ascii=False,
+                                  allow_nan=False))
         else:
             mark = {Status.CHANGED: "ok  ", Status.DONE: "skip", Status.FAILED: "FAIL",
-                    Status.NOT_RUN: "----"}[result.status]
+                    Status.UNVERIFIED: "????", Status.NOT_RUN: "----"}[result.status]
             click.echo(f"{mark} {result.change.label}: {result.detail}")
         sys.stdout.flush()
 

@@ -20,6 +20,7 @@ from rtupoll.config.numbers import parse_int
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.model.profile import Profile
 from rtupoll.rtu.capture import Carried, Frame, carried, decode_stream, parse_hex
+from rtupoll.ui.records import finite, json_safe, nonfinite_text
 
 EPILOG = """\b
 Examples:
@@ -65,7 +66,8 @@ def decode(hex_bytes: tuple[str, ...], profile_id: str | None, start: str | None
     for frame in frames:
         fields = carried(frame, profile) if profile else []
         if fmt == "json":
-            click.echo(json.dumps(frame_record(frame, fields, profile), ensure_ascii=False))
+            click.echo(json.dumps(json_safe(frame_record(frame, fields, profile)),
+                                  ensure_ascii=False, allow_nan=False))
         else:
             click.echo("\n".join(describe(frame, fields, profile)))
     bad = [f for f in frames if f.kind != "noise" and not f.crc_ok]
@@ -93,9 +95,9 @@ def frame_record(frame: Frame, fields: list[Carried], profile: Profile | None
         "exception": frame.exception,
         "notes": list(frame.notes),
         "profile": profile.id if profile else None,
-        "fields": [{"field": c.name, "address": c.written, "value": c.value, "unit": c.unit,
-                    "raw": list(c.raw), "text": c.text, "severity": c.severity,
-                    "partial": c.partial} for c in fields],
+        "fields": [{"field": c.name, "address": c.written, "value": finite(c.value),
+                    "unit": c.unit, "raw": list(c.raw), "text": nonfinite_text(c.value) or c.text,
+                    "severity": c.severity, "partial": c.partial} for c in fields],
     }
 
 

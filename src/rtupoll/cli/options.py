@@ -34,3 +34,16 @@ def port_options(f: F) -> F:
                      help="Serial port (/dev/ttyUSB0), or tcp://HOST:PORT for an RTU-over-TCP "
                           "gateway. Also $RTUPOLL_PORT.")(f)
     return f
+
+
+def service_options(f: F) -> F:
+    """--metrics, --log-format: ``poll`` as a service (docs/service.md)."""
+    f = click.option("--log-format", "log_format", type=click.Choice(["text", "json"]),
+                     default=None,
+                     help="Log device and port state changes on stderr: text, or one JSON "
+                          "object per line (journald, Loki). Default: text when stderr is a "
+                          "terminal or the journal, else errors only.")(f)
+    f = click.option("--metrics", "metrics", metavar="HOST:PORT", default=None,
+                     help="Serve Prometheus metrics at http://HOST:PORT/metrics (also "
+                          "'metrics:' in the site file).")(f)
+    return f

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import click
 
 from rtupoll.config.numbers import parse_unit
+from rtupoll.errors import UsageError
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,26 @@ class UnitType(click.ParamType[int, Any]):
             return parse_unit(str(value))
         except ValueError as exc:
             self.fail(str(exc), param, ctx)
+
+
+class Seconds(click.FloatRange):
+    """A number of seconds within a range; NaN (which no range check catches, as it
+    compares false with both bounds) and infinities are refused."""
+
+    name = "seconds"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> Any:
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a number of seconds", param, ctx)
+        return rv
+
+
+def check_baudrate(baudrate: int | None) -> None:
+    """``--baudrate``: a serial speed, or None for the profile's (0 is not "default")."""
+    if baudrate is not None and not 300 <= baudrate <= 4_000_000:
+        raise UsageError(f"--baudrate {baudrate} is outside 300..4000000")
 
 
 DEVICE = DeviceSpecType()

@@ -15,40 +15,65 @@ import io
 import os
 import signal
 import sys
-from collections.abc import AsyncIterator, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
-from rtupoll.cli.options import format_option, profiles_option
-from rtupoll.cli.params import DEVICE, DeviceSpec
-from rtupoll.config.site import DEFAULT_INTERVAL, Site, from_specs, load_site
+from rtupoll.cli.options import format_option, profiles_option, service_options
+from rtupoll.cli.params import DEVICE, DeviceSpec, Seconds
+from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
+from rtupoll.gateway.options import from_options, serve_options
 from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
 
 if TYPE_CHECKING:
     from rich.console import Console
     from rich.live import Live
 
+    from rtupoll.gateway.settings import ServeConfig
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.services import Service
     from rtupoll.jobs.stats import Reading
+    from rtupoll.sim.runner import SimulatedBus
     from rtupoll.ui.live import PollView
 
 REFRESH = 0.25  # seconds between redraws of the live table
-SIM_BAUDRATE = 115200  # framing assumed on a simulated bus without wire timing
+SIM_BAUDRATE = 115200  # framing assumed on a simulated line that answers at any speed
 
 
 class RecordWriter:
-    """JSON lines or CSV, one whole batch per write, flushed: no partial lines, ever."""
+    """JSON lines, CSV or Influx line protocol, one whole batch per write, flushed: no
+    partial lines, ever. ``path``: the file ``out`` is, reopened by ``reopen`` (SIGHUP)."""
 
-    def __init__(self, out: TextIO, fmt: str, *, header: bool = True) -> None:
-        self.out, self.fmt = out, fmt
+    def __init__(self, out: TextIO, fmt: str, *, header: bool = True,
+                 path: Path | None = None) -> None:
+        self.out, self.fmt, self.path = out, fmt, path
         self._buf = io.StringIO()
         self._csv = CsvWriter(self._buf, POLL_KEYS, header=header) if fmt == "csv" else None
+        self.buses: dict[str, str] = {}  # device name -> bus name (influx's bus tag)
+        self._influx = None
+        if fmt == "influx":
+            from rtupoll.outputs.influx import InfluxFormatter
 
-    def write(self, readings: Sequence[Reading]) -> None:
+            self._influx = InfluxFormatter(self.buses)
+
+    def reopen(self) -> None:
+        """Continue in a new file at ``path`` (logrotate moved the old one away)."""
+        if self.path is None:
+            return
+        fresh = not self.path.exists() or self.path.stat().st_size == 0
+        new = self.path.open("a", encoding="utf-8", newline="")
+        old, self.out = self.out, new
+        old.close()
+        if self._csv is not None:
+            self._csv = CsvWriter(self._buf, POLL_KEYS, header=fresh)
+
+    def write(self, readings: Sequence[Reading], state: str = "") -> None:
+        if self._influx is not None:
+            self._buf.write(self._influx.format(readings, state))
+            readings = ()
         for r in readings:
             if self._csv is not None:
                 self._csv.write(r.record())
@@ -75,38 +100,61 @@ class RecordWriter:
               default=None, help="Parity (default: the profiles').")
 @click.option("--stopbits", type=click.Choice(["1", "2"]), default=None,
               help="Stop bits (default: the profiles').")
-@click.option("--interval", "-i", type=click.FloatRange(0, 86_400), default=None,
+@click.option("--interval", "-i", type=Seconds(0, 86_400), default=None,
               help=f"Seconds between scans of each DEVICE [default: {DEFAULT_INTERVAL:g}; "
                    "0: as fast as the bus allows].")
-@click.option("--timeout", type=click.FloatRange(0.01, 30), default=None,
-              help="Response timeout in seconds for each DEVICE (default: its profile's).")
+@click.option("--timeout", type=Seconds(0.01, 30), default=None,
+              help="Pin each DEVICE's response timeout, in seconds (default: learned from "
+                   "its replies, starting at its profile's).")
 @click.option("--retries", type=click.IntRange(0, 10), default=None,
               help="Immediate retries per request (default: the profile's).")
+@click.option("--timeout-ceiling", type=Seconds(0.05, 30), default=None,
+              help="The longest timeout learned for each DEVICE [default: 3].")
+@click.option("--verify-blocks", is_flag=True,
+              help="First read each block of several fields also field by field; where "
+                   "they disagree (a silent shift), say so and stop bridging there.")
+@click.option("--remember-holes", is_flag=True,
+              help="With --config: keep the holes learned per device in SITE.holes.json "
+                   "next to the site file, and start from them.")
 @click.option("--fields", "-f", "fields", default=None, metavar="NAME[,NAME...]",
               help="Poll only these fields (each DEVICE polls those it has).")
 @click.option("--once", is_flag=True,
               help="Read every device once, print, exit (9 if any device failed).")
-@format_option("table", "json", "csv")
+@format_option("table", "json", "csv", "influx")
 @click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Append json/csv records to this file (the table stays on the terminal).")
+              help="Append json/csv/influx records to this file (the table stays on the "
+                   "terminal; SIGHUP reopens it).")
 @click.option("--simulate", is_flag=True,
-              help="Poll simulated devices (all five seed devices when no DEVICE is given).")
+              help="Poll simulated devices (no DEVICE: the five seed devices, on two lines: "
+                   "four at 9600 baud and the CO2Meter board at 115200).")
 @click.option("--baud", type=click.IntRange(300, 4_000_000), default=None,
               help="--simulate: take the real wire time at this baud rate.")
 @click.option("--fault", "faults", multiple=True, metavar="SPEC",
               help="--simulate: inject a fault, e.g. 3:dead, 4:crc@10%, slow=1@5- "
                    "(repeatable; see 'rtupoll simulate --help').")
 @profiles_option
+@service_options
+@serve_options
+@click.option("--mqtt", "mqtt", metavar="URL", default=None,
+              help="Publish to an MQTT broker: mqtt://[USER[:PASS]@]HOST[:PORT][/BASE] "
+                   "(mqtts:// for TLS; also mqtt: in the site file; docs/mqtt.md).")
+@click.option("--mqtt-allow-writes", is_flag=True,
+              help="Take BASE/DEVICE/set commands from the broker (checked like 'write').")
+@click.option("--mqtt-remove-discovery", is_flag=True,
+              help="Remove this gateway's Home Assistant discovery from the broker, and exit.")
 def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
          baudrate: int | None, parity: str | None, stopbits: str | None,
          interval: float | None, timeout: float | None, retries: int | None,
          fields: str | None, once: bool, fmt: str,
          output: Path | None, simulate: bool, baud: int | None, faults: tuple[str, ...],
-         profile_dirs: tuple[Path, ...]) -> None:
+         profile_dirs: tuple[Path, ...], metrics: str | None, log_format: str | None,
+         mqtt: str | None, mqtt_allow_writes: bool, mqtt_remove_discovery: bool,
+         timeout_ceiling: float | None = None, verify_blocks: bool = False,
+         remember_holes: bool = False, **serve: Any) -> None:
     """Poll devices and show their decoded readings live.
 
     \b
-    rtupoll poll --simulate                      # five simulated devices, no hardware
+    rtupoll poll --simulate                      # five simulated devices on two lines
     rtupoll poll -p /dev/ttyUSB0 -b 9600 net-irnet-pro@1 huiwen-aq@3
     rtupoll poll -c site.yaml --format json -o readings.jsonl
     rtupoll poll -c site.yaml --once --format csv
@@ -115,6 +163,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
     finished, nothing is left half-written, and the exit status is 0.
     """
     services: list[Service] = []  # run beside the scheduler (rtupoll.jobs.services)
+    _learning(services, config, verify_blocks, remember_holes)
+    served = from_options(serve)  # --serve: a Modbus TCP gateway (rtupoll.gateway)
     if output is not None and fmt == "table":
         raise UsageError("--output writes json or csv: add --format json or --format csv")
     if (baud or faults) and not simulate:
@@ -122,43 +172,141 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
     if simulate:
         if config or port:
             raise UsageError("--simulate makes its own bus: leave out --config and --port")
-        with _simulated(devices, baud or baudrate, faults) as (sim_port, specs):
-            site = from_specs(sim_port, specs, baudrate=baud or baudrate or SIM_BAUDRATE,
-                              interval=DEFAULT_INTERVAL if interval is None else interval,
-                              fields=_split(fields), timeout=timeout, retries=retries,
-                              profile_dirs=profile_dirs, check_serial=False)
-            site = dataclasses.replace(site, buses=tuple(
-                dataclasses.replace(b, name="simulated") for b in site.buses))
-            title = "simulated bus" + (f", {baud or baudrate} baud" if baud or baudrate
-                                       else ", untimed")
-            _run(site, once=once, fmt=fmt, output=output, title=title, services=services)
+        with _simulated(devices, baud or baudrate, faults) as lines:
+            buses = []
+            wanted = _split(fields)
+            every = {n for line in lines for d in line.config.devices
+                     for n in d.profile.names()}
+            for i, line in enumerate(lines):
+                specs = [(d.profile.id, d.address) for d in line.config.devices]
+                here = {n for d in line.config.devices for n in d.profile.names()}
+                mine = [f for f in wanted if f in here or f not in every]
+                if wanted and not mine:
+                    continue  # --fields that only other lines' devices have
+                speed = line.config.line_speed or SIM_BAUDRATE
+                one = from_specs(line.port, specs, baudrate=speed,
+                                 interval=DEFAULT_INTERVAL if interval is None else interval,
+                                 fields=mine, timeout=timeout, retries=retries,
+                                 profile_dirs=profile_dirs, check_serial=False,
+                                 timeout_ceiling=timeout_ceiling)
+                buses += [dataclasses.replace(b, name=f"line{i + 1}" if len(lines) > 1
+                                              else "simulated") for b in one.buses]
+            site = dataclasses.replace(one, buses=tuple(buses))
+            timing = f"{baud or baudrate} baud" if baud or baudrate else "untimed"
+            title = (f"simulated: {len(buses)} lines" if len(buses) > 1
+                     else "simulated bus") + f", {timing}"
+            site = _gateway(site, served, services, fmt)
+            if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services,
+                     fmt):
+                return
+            _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
+                 metrics=metrics, log_format=log_format)
         if fmt == "table" and not once and not faults:
             click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
-                       "--baud 9600.\nYour own devices: rtupoll poll -p /dev/ttyUSB0 "
-                       "PROFILE@ADDRESS...", err=True)
+                       "--baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
+                       "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
         if devices or port:
             raise UsageError("give either --config or --port with devices, not both")
         if any(v is not None for v in (interval, fields, timeout, retries, baudrate, parity,
-                                       stopbits)):
-            raise UsageError("--interval, --fields, --timeout, --retries and serial options "
-                             "are set per bus and device in the site file")
+                                       stopbits, timeout_ceiling)):
+            raise UsageError("--interval, --fields, --timeout, --timeout-ceiling, --retries "
+                             "and serial options are set per bus and device in the site file")
+        if served is not None:
+            raise UsageError("with --config, set serve: per bus in the site file")
         site = load_site(config, profile_dirs)
     else:
+        if not port and devices:
+            raise UsageError(f"which port is {devices[0].profile}@{devices[0].address} on? "
+                             "give --port PORT (or $RTUPOLL_PORT), e.g. -p /dev/ttyUSB0, or "
+                             "--simulate to try it without hardware")
         if not port:
             raise UsageError("nothing to poll: give --config FILE, or --port PORT and DEVICEs "
                              "(PROFILE@ADDRESS), or --simulate to try it without hardware")
-        if not devices:
+        if not devices and served is not None:  # a pure gateway
+            site = Site((BusConfig(port, port, baudrate or 9600, (parity or "N").upper(),
+                                   stopbits=int(stopbits or 1)),))
+        elif not devices:
             raise UsageError(f"name the devices on {port}: PROFILE@ADDRESS... "
-                             "(e.g. net-irnet-pro@1)")
-        site = from_specs(port, [(d.profile, d.address) for d in devices], baudrate=baudrate,
-                          parity=parity, stopbits=int(stopbits) if stopbits else None,
-                          interval=DEFAULT_INTERVAL if interval is None else interval,
-                          fields=_split(fields), timeout=timeout, retries=retries,
-                          profile_dirs=profile_dirs)
+                             "(e.g. net-irnet-pro@1), or --serve HOST:PORT to be a gateway")
+        else:
+            site = from_specs(port, [(d.profile, d.address) for d in devices],
+                              baudrate=baudrate, parity=parity,
+                              stopbits=int(stopbits) if stopbits else None,
+                              interval=DEFAULT_INTERVAL if interval is None else interval,
+                              fields=_split(fields), timeout=timeout, retries=retries,
+                              profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
+    site = _gateway(site, served, services, fmt)
+    if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt):
+        return
     _run(site, once=once, fmt=fmt, output=output,
-         title=config.name if config else str(port), services=services)
+         title=config.name if config else str(port), services=services,
+         metrics=metrics, log_format=log_format,
+         reload=(lambda: load_site(config, profile_dirs)) if config is not None else None)
+
+
+def _gateway(site: Site, served: ServeConfig | None, services: list[Service], fmt: str
+             ) -> Site:
+    """``--serve`` on the (one) bus, and the gateway service for every bus that serves."""
+    if served is not None:
+        if len(site.buses) != 1:
+            raise UsageError(f"--serve serves one bus, and there are {len(site.buses)}: name "
+                             "devices of one line, or use a site file with serve: per bus")
+        site = dataclasses.replace(site, buses=(dataclasses.replace(site.buses[0],
+                                                                    serve=served),))
+    if any(b.serve for b in site.buses):
+        from rtupoll.gateway.service import GatewayService, to_info, to_log
+
+        # a live table on a terminal shows the gateway's log lines in its footer
+        live = fmt == "table" and sys.stdout.isatty()
+        services.append(GatewayService(log=None if live else to_log,
+                                       info=None if live else to_info))
+    return site
+
+
+def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: bool,
+          services: list[Service], fmt: str) -> bool:
+    """``--mqtt`` or the site file's ``mqtt:``: the MQTT service (rtupoll.outputs.mqtt).
+    True when ``--mqtt-remove-discovery`` did its job: nothing is polled then."""
+    if site.mqtt is None and not url:
+        if allow_writes or remove:
+            raise UsageError("--mqtt-allow-writes and --mqtt-remove-discovery need --mqtt URL "
+                             "(or mqtt: in the site file)")
+        return False
+    from rtupoll.outputs import mqtt as mqtt_out
+
+    settings = mqtt_out.from_options(site, url, allow_writes=allow_writes)
+    assert settings is not None
+    if remove:
+        gone = mqtt_out.remove_discovery_now(settings, site)
+        click.echo(f"rtupoll: removed {len(gone)} Home Assistant discovery configs from "
+                   f"{settings.where} ({settings.discovery_prefix}/device/...)", err=True)
+        return True
+    # under the live table its news is a footer line rather than log lines
+    services.append(mqtt_out.MqttService(settings, site, once=once,
+                                         log_lines=fmt != "table"))
+    return False
+
+
+def _learning(services: list[Service], config: Path | None, verify: bool,
+              remember: bool) -> None:
+    """``--verify-blocks`` and ``--remember-holes``: services (rtupoll.jobs.hole_services)."""
+    if not verify and not remember:
+        return
+    from rtupoll.jobs.hole_services import RememberHoles, VerifyBlocks
+    from rtupoll.jobs.holes import HoleStore
+
+    def say(text: str) -> None:
+        click.echo(f"rtupoll: {text}", err=True)
+
+    if remember:
+        if config is None:
+            raise UsageError("--remember-holes keeps them next to the site file: give "
+                             "--config FILE")
+        services.append(RememberHoles(HoleStore.for_site(config), say))
+    if verify:
+        services.append(VerifyBlocks(say))
 
 
 def _split(fields: str | None) -> list[str]:
@@ -167,28 +315,36 @@ def _split(fields: str | None) -> list[str]:
 
 @contextlib.contextmanager
 def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequence[str]
-               ) -> Iterator[tuple[str, list[tuple[str, int]]]]:
-    """Start the simulator in-process; yield its port and the devices it serves."""
-    from rtupoll.sim.runner import SEED_DEVICES, simulated_bus
+               ) -> Iterator[list[SimulatedBus]]:
+    """Start the simulator in-process: the devices on lines that could exist (the seed
+    devices by default: four at 9600 and the CO2Meter board at 115200), one port each.
+    With devices named and a baud rate, they are one line at that rate, as asked."""
+    from rtupoll.sim.runner import simulated_lines
 
-    specs = [(d.profile, d.address) for d in devices] or list(SEED_DEVICES)
-    with simulated_bus([f"{p}@{a}" for p, a in specs], baudrate=baudrate,
-                       faults=tuple(faults)) as sim:
-        yield sim.port, specs
+    with simulated_lines([f"{d.profile}@{d.address}" for d in devices], baudrate=baudrate,
+                         one_line=bool(devices and baudrate), faults=tuple(faults)) as lines:
+        yield list(lines)
 
 
 def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
-         services: Sequence[Service] = ()) -> None:
+         services: Sequence[Service] = (), metrics: str | None = None,
+         log_format: str | None = None, reload: Callable[[], Site] | None = None) -> None:
     from rich.console import Console
 
+    from rtupoll.jobs.reload import daemon_services
     from rtupoll.jobs.scheduler import Scheduler
     from rtupoll.ui.live import PollView
 
     scheduler = Scheduler(site)
+    _adapter_warnings(site)
     console = Console(stderr=fmt != "table" and output is None)
     show_table = fmt == "table" or (output is not None and console.is_terminal)
     with _sink(fmt, output) as writer:
-        view = PollView(scheduler.buses, title=title, live=not once)
+        services = [*services, *daemon_services(
+            site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
+            log_format=log_format, reload=reload)]
+        view = PollView(scheduler.buses, title=title, live=not once,
+                        footers=[f for s in services if (f := getattr(s, "footer", None))])
         if once:
             readings = asyncio.run(_once(scheduler, writer, services))
             if show_table:
@@ -197,6 +353,16 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
         else:
             asyncio.run(_forever(scheduler, writer, view if show_table else None, console,
                                  services))
+
+
+def _adapter_warnings(site: Site) -> None:
+    """One line per USB adapter whose latency timer adds more than 1 ms to every reply."""
+    from rtupoll.io.serialport import latency_timer, latency_warning
+
+    for bus in site.buses:
+        warning = latency_warning(bus.port, latency_timer(bus.port))
+        if warning:
+            click.echo(f"rtupoll: {warning}", err=True)
 
 
 @contextlib.contextmanager
@@ -214,7 +380,12 @@ def _sink(fmt: str, output: Path | None) -> Iterator[RecordWriter | None]:
     try:
         fresh = not output.exists() or output.stat().st_size == 0
         with output.open("a", encoding="utf-8", newline="") as fh:
-            yield RecordWriter(fh, fmt, header=fresh)
+            writer = RecordWriter(fh, fmt, header=fresh, path=output)
+            try:
+                yield writer
+            finally:
+                if writer.out is not fh:  # reopened on SIGHUP
+                    writer.out.close()
     except OSError as exc:
         raise UsageError(f"cannot write {output}: {exc.strerror}") from None
 
@@ -274,7 +445,7 @@ async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: Poll
         if writer is None:
             return
         try:
-            writer.write(readings)
+            writer.write(readings, dev.stats.state.value)
         except BrokenPipeError:
             stop.set()
             raise

@@ -1,4 +1,4 @@
-"""``rtupoll profiles``: list, show and check device profiles."""
+"""``rtupoll profiles``: list, search, show, check and import device profiles."""
 
 from __future__ import annotations
 
@@ -13,40 +13,129 @@ from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import bundled_dir, load_library, load_one, load_profile
-from rtupoll.errors import ProfileError
+from rtupoll.errors import ProfileError, UsageError
 from rtupoll.model.profile import Choice, Field, Profile
 
 
 @click.group()
 def profiles() -> None:
-    """List, show and check device profiles."""
+    """List, search, show, check and import device profiles."""
 
 
 @profiles.command("list")
 @profiles_option
 @format_option("table", "json")
 def list_(profile_dirs: tuple[Path, ...], fmt: str) -> None:
-    """Every profile on the search path: user directories first, then the bundled ones."""
-    lib = load_library(profile_dirs)
-    rows = sorted(lib.profiles.values(), key=lambda p: p.id)
+    """Every profile on the search path (user directories first, then the bundled ones),
+    grouped by kind of device and vendor."""
+    _print_profiles(list(load_library(profile_dirs).profiles.values()), fmt,
+                    "Device profiles")
+
+
+@profiles.command("search")
+@click.argument("text")
+@profiles_option
+@format_option("table", "json")
+def search(text: str, profile_dirs: tuple[Path, ...], fmt: str) -> None:
+    """Profiles whose id, vendor, model, kind or manual, or one of whose field names or
+    descriptions, contain TEXT (any case). Exit 2 when none does.
+
+    \b
+    rtupoll profiles search eastron
+    rtupoll profiles search "solar charge"
+    rtupoll profiles search humidity        # devices with a humidity field
+    """
+    found = [(p, why) for p in load_library(profile_dirs).profiles.values()
+             if (why := matches(p, text))]
+    if not found:
+        raise UsageError(f"no profile matches {text!r}; 'rtupoll profiles list' shows them all")
+    _print_profiles([p for p, _ in found], fmt, f"Profiles matching {text!r}",
+                    {p.id: why for p, why in found})
+
+
+@profiles.command("import")
+@click.argument("file", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option("-o", "--output", "out", type=click.Path(path_type=Path, file_okay=False),
+              default=Path("imported"), show_default=True,
+              help="Directory for the profiles and site.yaml (created if needed).")
+def import_(file: Path, out: Path) -> None:
+    """Convert a Home Assistant 'modbus:' YAML configuration, or a Telegraf
+    [[inputs.modbus]] request-style configuration (FILE ending .toml or .conf), into
+    profiles (one per hub and slave) and a site file for 'rtupoll poll --config'. What
+    cannot be converted is listed on stderr as FILE:LINE: path: why; the rest is written.
+
+    \b
+    rtupoll profiles import configuration.yaml -o site/
+    rtupoll profiles import telegraf.conf -o site/
+    rtupoll poll --config site/site.yaml --once
+    """
+    if file.suffix in (".toml", ".conf"):
+        from rtupoll.config.telegraf_import import import_telegraf
+
+        result = import_telegraf(file)
+    else:
+        from rtupoll.config.ha_import import import_ha
+
+        result = import_ha(file)
+    for line in result.report:
+        click.echo(line, err=True)
+    if not result.profiles:
+        raise UsageError(f"{file}: nothing could be converted")
+    out.mkdir(parents=True, exist_ok=True)
+    for pid, text in result.profiles.items():
+        (out / f"{pid}.yaml").write_text(text, encoding="utf-8")
+    (out / "site.yaml").write_text(result.site, encoding="utf-8")
+    for pid in result.profiles:
+        load_profile(out / f"{pid}.yaml")  # what was written must load
+    click.echo(f"{len(result.profiles)} profile(s), {result.converted} field(s) written to "
+               f"{out}/; {len(result.report)} note(s) above; poll with: rtupoll poll "
+               f"--config {out / 'site.yaml'}")
+
+
+def matches(p: Profile, text: str) -> str:
+    """Why a profile matches a search (empty: it does not)."""
+    needle = text.lower()
+    for what, value in (("id", p.id), ("vendor", p.vendor), ("kind", p.kind),
+                        ("model", p.model), ("manual", p.manual)):
+        if needle in value.lower():
+            return what
+    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()]
+    return f"field {', '.join(names[:3])}" + (" ..." if len(names) > 3 else "") if names else ""
+
+
+def _print_profiles(rows: list[Profile], fmt: str, title: str,
+                    why: dict[str, str] | None = None) -> None:
+    rows = sorted(rows, key=lambda p: (p.kind or "~", p.vendor.lower(), p.id))
     if fmt == "json":
         for p in rows:
-            click.echo(json.dumps({"id": p.id, "vendor": p.vendor, "model": p.model,
-                                   "manual": p.manual, "path": p.path,
-                                   "bundled": Path(p.path).parent == bundled_dir()}))
+            rec = {"id": p.id, "vendor": p.vendor, "model": p.model, "kind": p.kind,
+                   "manual": p.manual, "path": p.path,
+                   "bundled": Path(p.path).parent == bundled_dir()}
+            if why is not None:
+                rec["match"] = why[p.id]
+            click.echo(json.dumps(rec, ensure_ascii=False))
         return
-    t = RichTable(title="Device profiles", box=box.SIMPLE_HEAD, pad_edge=False)
-    t.add_column("id", no_wrap=True, style="bold")
+    t = RichTable(title=title, box=box.SIMPLE_HEAD, pad_edge=False)
+    t.add_column("kind / id", no_wrap=True, style="bold")
     t.add_column("device", ratio=1)
     t.add_column("serial", no_wrap=True)
     t.add_column("fields", justify="right")
-    t.add_column("from", no_wrap=True)
+    user = [p for p in rows if Path(p.path).parent != bundled_dir()]
+    if why is not None or user:
+        t.add_column("matches" if why is not None else "from", ratio=1 if why else None)
+    kind = None
     for p in rows:
+        if p.kind != kind:
+            kind = p.kind
+            t.add_row(Text(kind or "other", style="bold underline"))
         s = p.serial
-        t.add_row(p.id, f"{p.vendor}: {p.model}",
-                  f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}",
-                  str(len(p.fields)),
-                  "bundled" if Path(p.path).parent == bundled_dir() else p.path)
+        cells = ["  " + p.id, f"{p.vendor} {p.model}",
+                 f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}", str(len(p.fields))]
+        if why is not None:
+            cells.append(why[p.id])
+        elif user:
+            cells.append("bundled" if p not in user else p.path)
+        t.add_row(*cells)
     Console().print(t)
 
 
@@ -76,7 +165,7 @@ def show(profile_id: str, profile_dirs: tuple[Path, ...]) -> None:
         t.add_column("description", ratio=1)
     for f in p.fields:
         where = f"{_TABLE[f.table.value]} {f.written}"
-        if f.written != f"0x{f.address:04X}":
+        if f.written.split(" ")[0] != f"0x{f.address:04X}":
             where += f" = 0x{f.address:04X}"
         cells = [where, _type(f), _unit(f), f.access]
         desc = _describe(f)
@@ -118,7 +207,7 @@ def _summary(p: Profile) -> str:
     s, a, lim = p.serial, p.addresses, p.limits
     others = [b for b in s.baudrates if b != s.baudrate]
     lines = [
-        f"[bold]{p.id}[/] — {p.vendor} {p.model}",
+        f"[bold]{p.id}[/] — {p.vendor} {p.model}" + (f" ({p.kind})" if p.kind else ""),
         f"manual      {p.manual}",
         f"serial      {s.baudrate} {s.bytesize}{s.parity}{s.stopbits}"
         + (f" (can be set to {', '.join(map(str, others))})" if others else "")
@@ -134,6 +223,8 @@ def _summary(p: Profile) -> str:
             f"{p.set_address.field} via FC{p.set_address.function:02d}" if p.set_address.field
             else f"not supported: {p.set_address.unsupported}"),
     ]
+    if p.extends:
+        lines.append(f"extends     {p.extends}")
     if p.notes:
         lines.append(f"notes       {p.notes}")
     return "\n".join(lines)
@@ -163,7 +254,20 @@ def _describe(f: Field) -> str:
     tags += [f"{f.minimum:g}..{f.maximum:g}"] if f.range else []
     tags += [f"variant {f.since}+"] if f.since else []
     tags += ["public source"] if f.source == "public" else []
+    tags += ["counter"] if f.counter else []
+    tags += [f"every {f.interval:g} s"] if f.interval else []
+    tags += [f"{f.precision} decimals"] if f.precision is not None else []
+    tags += [f"{_code(k, f)} = {c.name}" for k, c in f.sentinels.items()]
     return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()
+
+
+def _code(k: int | float, f: Field) -> str:
+    """A sentinel as the registers show it (a signed -32768 is 0x8000 on the wire)."""
+    if not isinstance(k, int):
+        return f"{k:g}"
+    if k < 0:
+        k += 1 << (f.layout.width or (8 if f.layout.type.value in ("u8", "i8") else 16 * f.words))
+    return f"0x{k:X}" if k > 9 else str(k)
 
 
 _STYLE = {"error": "red", "warning": "yellow", "info": "cyan", "ok": ""}

@@ -15,7 +15,17 @@ from typing import Any, TypeVar
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
-from rtupoll.cli.target import Target, load_target, port_settings, run_on_bus, timing_options
+from rtupoll.cli.params import check_baudrate
+from rtupoll.cli.target import (
+    Target,
+    load_target,
+    need_port,
+    port_optional,
+    port_settings,
+    run_on_bus,
+    speed_note,
+    timing_options,
+)
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
@@ -83,6 +93,7 @@ def fields_of(profile: Profile, names: Sequence[str], force: bool) -> list[Field
     return fields
 
 
+@port_optional
 @click.command()
 @click.argument("device", metavar="DEVICE")
 @click.argument("items", nargs=-1, metavar="[FIELD|SPEC]...")
@@ -95,7 +106,7 @@ def fields_of(profile: Profile, names: Sequence[str], force: bool) -> list[Field
 @click.option("--force", is_flag=True,
               help="Read a field marked 'poll: never' (reading it has side effects).")
 @profiles_option
-def read(device: str, items: tuple[str, ...], port: str, baudrate: int | None,
+def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | None,
          parity: str | None, stopbits: str | None, timeout: float | None, retries: int | None,
          raw: bool, addressing: str, type_name: str, order: str | None, fmt: str, hex_: bool,
          force: bool, profile_dirs: tuple[Path, ...]) -> None:
@@ -108,7 +119,9 @@ def read(device: str, items: tuple[str, ...], port: str, baudrate: int | None,
     rtupoll read -p /dev/ttyUSB0 --raw --modicon 5 30006:5
     rtupoll read -p /dev/ttyUSB0 --raw --type f32 --order DCBA 1 input:6
     """
+    check_baudrate(baudrate)
     target = load_target(device, profile_dirs, bare_ok=raw)
+    port = need_port(port)
     if not raw and target.profile is None:
         raise UsageError("a bare address needs --raw")
     if not raw and (addressing != "pdu" or order or type_name != "u16"):
@@ -119,12 +132,14 @@ def read(device: str, items: tuple[str, ...], port: str, baudrate: int | None,
         max_regs = target.profile.limits.max_registers if target.profile else 125
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         rows = run_on_bus(settings, lambda bus: read_raw(bus, target.unit, specs, max_regs,
-                                                         timing))
+                                                         timing),
+                          on_timeout=speed_note(settings, target.profile, baudrate))
     else:
         assert target.profile is not None
         fields = fields_of(target.profile, items, force)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing))
+        rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing),
+                          on_timeout=speed_note(settings, target.profile, baudrate))
     emit(target, rows, fmt, hex_)
 
 
@@ -201,6 +216,8 @@ def table(target: Target, rows: list[Row], hex_: bool, title: str = "") -> None:
 
     p = target.profile
     raw = (bool(rows) and ":" in rows[0][0].written) or p is None
+    if p is None and title.startswith(f"{target.name} "):  # "1 after writing" -> "unit 1 ..."
+        title = f"unit {title}"
     heading = title or (f"{target.name} — {p.vendor} {p.model}" if p else
                         f"unit {target.unit} (no profile)")
     if raw and not title:

@@ -19,13 +19,17 @@ import click
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
+from rtupoll.io.serialport import latency_timer, latency_warning
 from rtupoll.jobs.scan import (
+    LATENCY,
     Found,
     Read,
     Setting,
     default_baudrates,
     default_margin,
+    every_speed,
     merged,
+    once_each,
     parse_addresses,
     parse_list,
     presence_probes,
@@ -93,6 +97,12 @@ def scan(port: str, addresses: str, baudrates: str | None, parities: str, includ
     settings = [Setting(r, p) for r in rates for p in pars]
     probes = presence_probes(library) + [_probe(t) for t in extra_probes]
     margin = default_margin(library) if turnaround is None else turnaround
+    latency = latency_timer(port)  # a USB adapter's latency timer, when it is one
+    if latency is not None and turnaround is None:  # beyond what the margin allows for
+        margin += max(0.0, latency - LATENCY)
+    warning = latency_warning(port, latency)
+    if warning:
+        click.echo(warning, err=True)
     if not units or not settings:
         raise UsageError("nothing to scan: no addresses or no serial settings left")
 
@@ -112,6 +122,12 @@ def scan(port: str, addresses: str, baudrates: str | None, parities: str, includ
         _report(merged(found), fmt)
         raise
     results = merged(found)
+    if every_speed(results, settings):
+        tried = ", ".join(str(r) for r in dict.fromkeys(s.baudrate for s in settings))
+        click.echo(f"every device answered at every baud rate scanned ({tried}): this port "
+                   "answers at any speed (a simulator without wire timing, or a gateway that "
+                   "sets the line's speed itself), so each is listed once", err=True)
+        results = once_each(results)
     _report(results, fmt)
     if not results:
         raise DeviceTimeout("no device answered at any address and setting scanned")

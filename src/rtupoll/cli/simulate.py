@@ -10,6 +10,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING
@@ -17,11 +18,13 @@ from typing import TYPE_CHECKING
 import click
 
 from rtupoll.cli.options import profiles_option
+from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
 from rtupoll.rtu import Table
 
 if TYPE_CHECKING:
-    from rtupoll.sim.runner import SimulatedBus
+    from rtupoll.sim.runner import SimulatedBus, SimulatedLines
+    from rtupoll.sim.server import WireFrame
 
 FAULT_HELP = (
     "Inject a fault (repeatable): [ADDRESS:]KIND[=ARG][@WHEN]. KIND: dead, slow[=SECONDS], "
@@ -36,7 +39,7 @@ FAULT_HELP = (
               help="Wire timing: requests and replies take their real time at this baud "
                    "rate (8N1), plus the 3.5-character silence and each device's turnaround. "
                    "Default: no timing, replies at once.")
-@click.option("--turnaround", type=click.FloatRange(0, 10), default=None, metavar="SECONDS",
+@click.option("--turnaround", type=Seconds(0, 10), default=None, metavar="SECONDS",
               help="Every device's time from request to reply (default: each profile's "
                    "limits.turnaround, applied with --baud).")
 @click.option("--scenario", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -50,40 +53,58 @@ FAULT_HELP = (
 @click.option("--fault", "faults", multiple=True, metavar="SPEC", help=FAULT_HELP)
 @click.option("--seed", type=int, default=None,
               help="Seed for moving values and fault rates (default 0): same seed, same run.")
-@click.option("--tick", type=click.FloatRange(0, 3600), default=1.0, show_default=True,
+@click.option("--tick", type=Seconds(0, 3600), default=1.0, show_default=True,
               metavar="SECONDS", help="How often values move; 0 freezes them.")
 @click.option("--link", type=click.Path(dir_okay=False), default=None,
               help="Also make this symbolic link to the pty (a stable port name).")
 @click.option("--tcp", default=None, metavar="HOST:PORT",
               help="Serve RTU frames over TCP (like a serial gateway) instead of a pty.")
+@click.option("--tap", type=click.Path(dir_okay=False), default=None,
+              help="Also offer a second pty, linked here, that receives a copy of every byte "
+                   "on the line (for 'rtupoll sniff').")
+@click.option("--replay", type=click.Path(dir_okay=False, exists=True, path_type=Path),
+              default=None, help="Serve the devices of a capture ('rtupoll sniff --capture'): "
+                                 "their captured replies, values and reply times.")
 @click.option("--verbose", "-v", is_flag=True, help="Print every frame on the wire.")
 @profiles_option
 def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | None,
              scenario: Path | None, sets: tuple[str, ...], options: tuple[str, ...],
              faults: tuple[str, ...], seed: int | None, tick: float, link: str | None,
-             tcp: str | None, verbose: bool, profile_dirs: tuple[Path, ...]) -> None:
+             tcp: str | None, tap: str | None, replay: Path | None, verbose: bool,
+             profile_dirs: tuple[Path, ...]) -> None:
     """Serve simulated Modbus RTU devices until interrupted.
 
     Devices are PROFILE@ADDRESS (e.g. net-irnet-pro@1 huiwen-aq@3); with none, one of
-    each bundled profile is served. Clients open the printed pty path as a serial port
-    (any baud rate), or connect to --tcp.
+    each bundled profile. Devices go on lines that could exist, one pty each: a line
+    runs at one speed, so devices that share no speed get a line each (the default
+    demo: four devices at 9600, the CO2Meter board at 115200). A line answers only
+    clients that opened it at its speed. With --baud N every named device is on one
+    line at N, with real wire timing. Or connect to --tcp.
     """
-    from rtupoll.sim.runner import simulated_bus
-    from rtupoll.sim.server import WireFrame
+    from rtupoll.sim.runner import simulated_lines
 
     if link and tcp:
         raise UsageError("--link names a pty; it cannot be used with --tcp")
-    if tcp is not None and ":" not in tcp:
-        raise UsageError(f"--tcp {tcp!r} is not HOST:PORT (e.g. 127.0.0.1:5020)")
+    if tcp is not None and (":" not in tcp or not tcp.rpartition(":")[2].isdigit()
+                            or int(tcp.rpartition(":")[2]) > 65535):
+        raise UsageError(f"--tcp {tcp!r} is not HOST:PORT, PORT 0..65535 (e.g. 127.0.0.1:5020)")
     t0 = time.monotonic()
+    if replay is not None:
+        from rtupoll.sim.replay import replay_lines
 
-    def show(frame: WireFrame) -> None:
-        click.echo(f"{frame.time - t0:10.4f}  {frame}")
-
-    bus: SimulatedBus = simulated_bus(
-        devices, baudrate=baud, faults=faults, scenario=scenario, tcp=tcp or False, seed=seed,
-        sets=sets, options=options, turnaround=turnaround, tick=tick or None,
-        profile_dirs=profile_dirs, link=link, on_wire=show if verbose else None)
+        if devices or scenario or sets or options or faults:
+            raise UsageError("--replay serves the capture's devices: leave out devices, "
+                             "--scenario, --set, --option and --fault")
+        lines = replay_lines(replay, baud=baud, tcp=tcp or False, link=link, tap=tap)
+    else:
+        lines = simulated_lines(
+            devices, baudrate=baud, one_line=bool(baud and (devices or scenario)),
+            faults=faults, scenario=scenario, tcp=tcp or False, seed=seed, sets=sets,
+            options=options, turnaround=turnaround, tick=tick or None,
+            profile_dirs=profile_dirs, link=link, tap=tap)
+    if verbose:
+        for i, line in enumerate(lines):
+            line.on_wire = _shower(t0, f"line {i + 1} " if len(lines) > 1 else "")
     stop = threading.Event()
 
     caught: list[int] = []
@@ -94,37 +115,85 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        bus.start()
+        lines.start()
         try:
-            _banner(bus, link)
+            if replay is not None:
+                from rtupoll.sim.replay import banner
+
+                click.echo("\n".join(banner(lines, replay)))
+            else:
+                _banner(lines)
             sys.stdout.flush()  # a pipe is block-buffered; whoever reads us needs the port
             while not stop.wait(0.5):
                 pass
         finally:
-            bus.stop()
+            lines.stop()
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-    engine = bus.engine
-    assert engine is not None
+    requests = replies = 0
+    for line in lines:
+        assert line.engine is not None
+        requests += line.engine.requests
+        replies += line.engine.replies
     newline = "\n" if caught[:1] == [signal.SIGINT] else ""  # after the terminal's ^C
-    click.echo(f"{newline}stopped after {engine.requests} requests ({engine.replies} replies).")
+    click.echo(f"{newline}stopped after {requests} requests ({replies} replies).")
 
 
-def _banner(bus: SimulatedBus, link: str | None) -> None:
-    c = bus.config
-    devices = bus.device_list()
-    if bus.port.startswith("tcp:"):
-        what = "RTU over TCP, like a serial gateway"
-    elif c.baudrate:
-        what = f"a serial port: open it at {c.baudrate} baud"
+def _shower(t0: float, prefix: str) -> Callable[[WireFrame], None]:
+    def show(frame: WireFrame) -> None:
+        click.echo(f"{frame.time - t0:10.4f}  {prefix}{frame}")
+    return show
+
+
+def _banner(lines: SimulatedLines) -> None:
+    from rtupoll.sim.scenario import cannot_run
+
+    many = len(lines) > 1
+    tries: list[str] = []
+    for i, bus in enumerate(lines):
+        c = bus.config
+        devices = bus.device_list()
+        speed = c.line_speed
+        if bus.port.startswith("tcp:"):
+            what = "RTU over TCP, like a serial gateway" + (f", at {speed} baud" if speed
+                                                             else "")
+        elif speed:
+            what = f"a serial port: open it at {speed} baud"
+        else:
+            what = "a serial port: open it at any baud rate"
+        click.echo(f"Simulating {len(devices)} device{'s' if len(devices) != 1 else ''} on "
+                   + click.style(bus.port, bold=True)
+                   + (f", linked as {bus.link}" if bus.link else "")
+                   + (f", line {i + 1}" if many else "") + f" ({what})")
+        if bus.tap_port:
+            click.echo(f"  tap: {bus.tap} -> {bus.tap_port} (a copy of every byte on the "
+                       "line, for 'rtupoll sniff')")
+        _devices(bus)
+        if c.faults:
+            click.echo("  bus faults: " + ", ".join(str(f) for f in c.faults))
+        for note in cannot_run(c):
+            click.echo(f"  note: {note}: a real one would not answer on this line")
+        tries += _hints(bus, first=i == 0)
+    timed = lines.lines[0].config
+    if timed.baudrate:
+        fr = lines.lines[0].framing
+        assert fr is not None
+        click.echo(f"Wire timing: {timed.baudrate} baud 8N1 (3.5-character silence "
+                   f"{fr.silence * 1000:.2f} ms, plus each device's turnaround).")
     else:
-        what = "a serial port: open it at any baud rate"
-    click.echo(f"Simulating {len(devices)} device{'s' if len(devices) != 1 else ''} on "
-               + click.style(bus.port, bold=True) + (f", linked as {link}" if link else "")
-               + f" ({what})")
+        click.echo("Wire timing: off, replies at once (--baud N for real wire time).")
+    click.echo(f"Values move every {timed.tick:g} s (seed {timed.seed})." if timed.tick
+               else f"Values are frozen (seed {timed.seed}).")
+    click.echo("Try:")
+    for t in tries:
+        click.echo(f"  {t}")
+    click.echo("Press Ctrl-C to stop.")
+
+
+def _devices(bus: SimulatedBus) -> None:
     rows = []
-    for d in devices:
+    for d in bus.device_list():
         p = d.profile
         any_ = p.addresses.any
         also = f" (also answers {any_} = 0x{any_:02X})" if any_ and any_ != d.address else ""
@@ -138,27 +207,31 @@ def _banner(bus: SimulatedBus, link: str | None) -> None:
     click.echo(f"  {'addr':>4}  {'profile':<{width}}  device")
     for addr, pid, what in rows:
         click.echo(f"  {addr:>4}  {pid:<{width}}  {what}")
-    if c.faults:
-        click.echo("  bus faults: " + ", ".join(str(f) for f in c.faults))
-    if c.baudrate:
-        fr = bus.framing
-        assert fr is not None
-        click.echo(f"Wire timing: {c.baudrate} baud 8N1 (3.5-character silence "
-                   f"{fr.silence * 1000:.2f} ms, plus each device's turnaround).")
-    else:
-        click.echo("Wire timing: off, replies at once (--baud N for real wire time).")
-    click.echo(f"Values move every {c.tick:g} s (seed {c.seed})." if c.tick
-               else f"Values are frozen (seed {c.seed}).")
-    first = devices[0]
-    field = next((f for f in first.profile.default_fields() if f in first.fields), None)
-    click.echo("Try:")
-    port = link or bus.port
-    click.echo(f"  rtupoll read --port {port} {first.profile.id}@{first.address}")
-    click.echo(f"  rtupoll poll --port {port} " + " ".join(d.name for d in devices))
-    if field is not None and not bus.port.startswith("tcp:") and first.address <= 247:
+
+
+def _hints(bus: SimulatedBus, *, first: bool) -> list[str]:
+    """Commands that work as printed against this line: its port and its speed."""
+    from rtupoll.sim.scenario import speeds
+
+    c = bus.config
+    speed = c.line_speed
+    devices = [d for d in bus.device_list() if speed is None or speed in speeds(d.profile)]
+    if not devices:
+        return []
+    port = bus.link or bus.port
+    b = f" -b {speed}" if speed else ""
+    out = []
+    if first:
+        d = devices[0]
+        out.append(f"rtupoll read -p {port}{b} {d.profile.id}@{d.address}")
+    if speed or len({d.profile.serial.baudrate for d in devices}) == 1:
+        out.append(f"rtupoll poll -p {port}{b} " + " ".join(
+            f"{d.profile.id}@{d.address}" for d in devices))
+    first_dev = devices[0]
+    field = next((f for f in first_dev.profile.default_fields() if f in first_dev.fields), None)
+    if first and field is not None and not port.startswith("tcp:") and first_dev.address <= 247:
         kind = "3" if field.table is Table.INPUT else "4"
-        baud = c.baudrate or first.profile.serial.baudrate
-        click.echo(f"  mbpoll -m rtu -b {baud} -P none -0 -1 "
-                   f"-a {first.address} -t {kind}:hex -r {field.address} -c {field.words} "
-                   f"{port}")
-    click.echo("Press Ctrl-C to stop.")
+        baud = speed or first_dev.profile.serial.baudrate
+        out.append(f"mbpoll -m rtu -b {baud} -P none -0 -1 -a {first_dev.address} "
+                   f"-t {kind}:hex -r {field.address} -c {field.words} {port}")
+    return out

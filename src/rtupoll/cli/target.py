@@ -18,7 +18,7 @@ import click
 
 from rtupoll.config.library import load_one
 from rtupoll.config.numbers import parse_unit
-from rtupoll.errors import RefusedError, UsageError
+from rtupoll.errors import DeviceTimeout, RefusedError, UsageError
 from rtupoll.model.profile import Profile
 
 if TYPE_CHECKING:
@@ -54,6 +54,22 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
     if sep and not pid:
         raise UsageError(f"{text!r} names no profile before '@'")
     return Target(load_one(pid, profile_dirs) if pid else None, unit)
+
+
+def port_optional(command: click.Command) -> click.Command:
+    """Make ``--port`` optional in click, so ``need_port`` can say where a port comes from
+    (click's own message does not mention $RTUPOLL_PORT)."""
+    for p in command.params:
+        if p.name == "port":
+            p.required = False
+    return command
+
+
+def need_port(port: str | None) -> str:
+    if not port:
+        raise UsageError("which port? give --port PORT (e.g. -p /dev/ttyUSB0, or "
+                         "tcp://HOST:PORT for a gateway), or set $RTUPOLL_PORT")
+    return port
 
 
 def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
@@ -96,12 +112,35 @@ def confirm(question: str, yes: bool) -> None:
         raise RefusedError("not confirmed: nothing was sent")
 
 
-def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]]) -> T:
-    """Open the port, run ``job`` with the bus, close the port (whatever happens)."""
+def speed_note(settings: PortSettings, profile: Profile | None, baudrate: int | None) -> str:
+    """Where the speed came from, for a timeout: a wrong baud rate is the most common
+    reason a device is silent in the field, so say which one was used and what to do."""
+    if settings.port.startswith("tcp://"):
+        return ""
+    if baudrate:
+        where = "as given"
+    elif profile is not None:
+        where = f"{profile.id}'s default"
+    else:
+        where = "the default without a profile"
+    return (f" at {settings.baudrate} baud ({where}); if the device runs at another speed, "
+            f"find it with 'rtupoll scan -p {settings.port}' or give --baudrate")
+
+
+def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
+               on_timeout: str = "") -> T:
+    """Open the port, run ``job`` with the bus, close the port (whatever happens).
+
+    ``on_timeout`` is added to a no-response error (``speed_note``)."""
     from rtupoll.io.bus import Bus
 
     async def main() -> T:
         async with Bus(settings) as bus:
             return await job(bus)
 
-    return asyncio.run(main())
+    try:
+        return asyncio.run(main())
+    except DeviceTimeout as exc:
+        if not on_timeout:
+            raise
+        raise type(exc)(f"{exc}{on_timeout}") from None

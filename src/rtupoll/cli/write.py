@@ -7,12 +7,14 @@ confirmation. What is printed afterwards is what the device holds now.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any
 
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
+from rtupoll.cli.params import check_baudrate
 from rtupoll.cli.read import Row, emit, raw_options, specs_of
 from rtupoll.cli.target import (
     Target,
@@ -22,7 +24,7 @@ from rtupoll.cli.target import (
     run_on_bus,
     timing_options,
 )
-from rtupoll.errors import RefusedError, UsageError
+from rtupoll.errors import BusError, DeviceTimeout, FrameError, RefusedError, UsageError
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.jobs.writes import (
@@ -37,6 +39,8 @@ from rtupoll.jobs.writes import (
     write_raw,
 )
 from rtupoll.jobs.writes import write as write_field
+from rtupoll.model.profile import Field
+from rtupoll.rtu import Table
 
 
 def split_assignment(text: str) -> tuple[str, str]:
@@ -88,6 +92,7 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
     rtupoll write -p /dev/ttyUSB0 banner-ez-array@1 measurement_1_mode=TBB
     rtupoll write -p /dev/ttyUSB0 --raw --yes 5 holding:0x0010=1,2,3
     """
+    check_baudrate(baudrate)
     target = load_target(device, profile_dirs, bare_ok=raw)
     if not raw and target.profile is None:
         raise UsageError("a bare address needs --raw")
@@ -104,9 +109,10 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
             spec_text, value = split_assignment(text)
             spec = specs_of(target, [spec_text], addressing, type_name, order)[0]
             raws.append(plan_raw_write(spec, value, functions))
+            check_move(target, raws[-1])
         confirm(_question(target, [r.describe() for r in raws]), yes)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: _raw(bus, target.unit, raws, timing))
+        rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing))
     else:
         ops = plan_fields(target, assignments)
         confirm(_question(target, [op.describe() for op in ops]), yes)
@@ -132,9 +138,64 @@ async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing) -> li
     return rows
 
 
-async def _raw(bus: Any, unit: int, raws: list[RawWrite], timing: Timing) -> list[Row]:
+async def _raw(bus: Any, target: Target, raws: list[RawWrite], timing: Timing) -> list[Row]:
     rows: list[Row] = []
     for rw in raws:
-        await write_raw(bus, unit, rw, timing)
-        rows += [(fv.field, fv, "") for fv in await verify_raw(bus, unit, rw, timing)]
+        moved = address_register(target, rw)
+        if moved is not None:
+            rows += await _raw_move(bus, target, rw, moved, timing)
+            continue
+        await write_raw(bus, target.unit, rw, timing)
+        rows += [(fv.field, fv, "") for fv in await verify_raw(bus, target.unit, rw, timing)]
     return rows
+
+
+def address_register(target: Target, rw: RawWrite) -> tuple[Field, int] | None:
+    """The profile's address register and the address written to it, when a raw write
+    covers it: such a write moves the device, so it is verified at the new address."""
+    p = target.profile
+    if p is None or not p.set_address.field or rw.spec.table is not Table.HOLDING:
+        return None
+    f = p.field(p.set_address.field)
+    if not rw.spec.address <= f.address < rw.spec.address + rw.spec.words:
+        return None
+    return f, rw.words[f.address - rw.spec.address]
+
+
+def _moves(target: Target, rw: RawWrite, moved: tuple[Field, int]) -> str:
+    field, new = moved
+    pid = target.profile.id if target.profile else "the device"
+    return (f"{rw.spec.label(0)} is {pid}'s address register ({field.name}): writing {new} "
+            f"there moves the device to address {new}")
+
+
+def check_move(target: Target, rw: RawWrite) -> None:
+    """A raw write that would move the device somewhere it cannot be reached is refused."""
+    moved = address_register(target, rw)
+    if moved is None or target.profile is None:
+        return
+    a, new = target.profile.addresses, moved[1]
+    why = a.reserved.get(new) if new in a.reserved else (
+        f"outside its range {a.lo}..{a.hi}" if not a.lo <= new <= a.hi or new > 247 else "")
+    if why:
+        raise RefusedError(f"{_moves(target, rw, moved)}, which is {why}; 'rtupoll "
+                           f"set-address {target.name} NEW' checks and verifies the move")
+
+
+async def _raw_move(bus: Any, target: Target, rw: RawWrite, moved: tuple[Field, int],
+                    timing: Timing) -> list[Row]:
+    """A raw write to the address register: the reply may come from nowhere (the device
+    has moved, or answers the write with a non-echo), so look for it at the new address."""
+    what = _moves(target, rw, moved)
+    new = moved[1]
+    with contextlib.suppress(BusError):  # judged by reading back, like set-address
+        await write_raw(bus, target.unit, rw, timing)
+    try:
+        rows = await verify_raw(bus, new, rw, timing)
+    except BusError as exc:
+        old = "" if new == target.unit else f" (and no longer at {target.unit})"
+        kind = type(exc) if type(exc) in (DeviceTimeout, FrameError) else BusError
+        raise kind(f"{what}{old}, but reading it back there failed: {exc}; find it with "
+                   f"'rtupoll scan -p {bus.settings.port}'") from None
+    click.echo(f"rtupoll: {what}; it answers there now", err=True)
+    return [(fv.field, fv, f"device now at address {new}") for fv in rows]

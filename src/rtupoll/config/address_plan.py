@@ -59,20 +59,30 @@ def load_plan(path: Path, profile_dirs: Iterable[Path] = (),
             raise ConfigError(str(exc), file=str(path), line=line) from None
         changes.append(change)
     if not changes:
-        raise ConfigError("the plan has no rows", file=str(path))
+        raise ConfigError("the plan has no rows", file=str(path), line=1)
     _no_clashes(path, changes)
     return changes
 
 
 def _csv_rows(path: Path) -> list[tuple[int, dict[str, str]]]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read: {exc.strerror}", file=str(path)) from None
-    lines = [(n, t) for n, t in enumerate(text.splitlines(), 1)
+    from rtupoll.config.yamlsrc import read_bytes, utf8
+
+    text = utf8(read_bytes(path, ConfigError), str(path), ConfigError)
+    lines = [(n, t.rstrip("\r")) for n, t in enumerate(text.split("\n"), 1)
              if t.strip() and not t.lstrip().startswith("#")]
     if not lines:
-        raise ConfigError("the plan is empty", file=str(path))
+        raise ConfigError("the plan is empty", file=str(path), line=1)
+    bad = next(((n, t) for n, t in lines if not t.replace("\t", " ").isprintable()), None)
+    if bad:
+        raise ConfigError("a control character (a CSV file is text)", file=str(path),
+                          line=bad[0])
+    try:
+        return _csv_table(path, lines)
+    except csv.Error as exc:
+        raise ConfigError(f"CSV: {exc}", file=str(path), line=lines[0][0]) from None
+
+
+def _csv_table(path: Path, lines: list[tuple[int, str]]) -> list[tuple[int, dict[str, str]]]:
     reader = csv.reader([t for _, t in lines], skipinitialspace=True)
     header = [h.strip().lower() for h in next(reader)]
     unknown = [h for h in header if h not in COLUMNS]

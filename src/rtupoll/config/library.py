@@ -14,9 +14,11 @@ from importlib import resources
 from pathlib import Path
 from typing import TypeVar
 
+import yaml
+
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import UsageError
-from rtupoll.model.codec import ByteOrder, DataType, EncodeError, Layout, encode, int_range
+from rtupoll.model.codec import ByteOrder, DataType, EncodeError, Layout, bits_range, encode
 from rtupoll.model.profile import (
     AddressChange,
     Addresses,
@@ -35,23 +37,30 @@ from rtupoll.rtu import Table
 
 T = TypeVar("T")
 PROFILES_ENV = "RTUPOLL_PROFILES"  # extra profile directories, os.pathsep-separated
+MAX_FIELDS = 4096  # fields in one profile (the largest bundled: 40)
 
 _TYPES = [t.value for t in DataType]
 _ORDERS = [o.value for o in ByteOrder]
 _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing", "addresses",
              "limits", "byte_order", "byteorder", "wordorder", "fields", "identify",
-             "set_address", "variant"}
+             "set_address", "variant", "kind", "extends", "without"}
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
-               "range", "values", "poll", "alone", "since", "source"}
+               "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
+               "interval", "counter", "typical"}
 
 
 def load_profile(path: Path) -> Profile:
-    """Read and validate one profile file."""
+    """Read and validate one profile file (and the profiles it ``extends``)."""
     root = load(path)
-    top = root.mapping(_TOP_KEYS, {"id", "vendor", "model", "manual", "addressing", "fields"})
+    top, field_nodes = _merged(root, path, ())
+    missing = sorted({"id", "vendor", "model", "manual", "addressing"} - top.keys())
+    if missing:
+        raise root.fail(f"missing required key {missing[0]!r}")
+    if not field_nodes and "fields" not in top:
+        raise root.fail("missing required key 'fields'")
     addressing = top["addressing"].choice(Addressing, [a.value for a in Addressing])
-    serial = _serial(top["serial"]) if "serial" in top else Serial()
+    serial = _serial(top["serial"]) if "serial" in top else Serial(baudrates=(9600,))
     limits = _limits(top["limits"]) if "limits" in top else Limits()
     default_order = _order(top, top.get("byte_order"), ByteOrder.ABCD)
     pid = top["id"].text()
@@ -59,9 +68,14 @@ def load_profile(path: Path) -> Profile:
         raise top["id"].fail("ids are lower-case letters, digits and dashes")
 
     fields: list[Field] = []
-    for fnode in top["fields"].sequence():
+    for fnode in field_nodes:
         fields.append(_field(fnode, addressing, default_order, limits))
-    _check_fields(top["fields"], fields, limits)
+    # bit fields share registers with each other; they are checked here, the rest below
+    plain = [i for i, f in enumerate(fields) if not f.layout.width]
+    anchor = top.get("fields") or root
+    _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]),
+                  [fields[i] for i in plain], limits)
+    _check_shared(field_nodes, fields)
     by_name = {f.name: f for f in fields}
 
     profile = Profile(
@@ -70,6 +84,8 @@ def load_profile(path: Path) -> Profile:
         model=top["model"].text(),
         manual=top["manual"].text(),
         notes=top["notes"].text() if "notes" in top else "",
+        kind=top["kind"].text() if "kind" in top else "",
+        extends=_extends(root),
         addressing=addressing,
         serial=serial,
         limits=limits,
@@ -86,6 +102,106 @@ def load_profile(path: Path) -> Profile:
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")
     return profile
+
+
+def _extends(root: Node) -> str:
+    raw = root.node
+    for k, v in raw.value if isinstance(raw, yaml.MappingNode) else ():
+        if str(k.value) == "extends" and isinstance(v, yaml.ScalarNode):
+            return str(v.value)
+    return ""
+
+
+class _Fields(Node):
+    """A field list assembled from several files (``extends``): each field keeps its own
+    file and line, so an error in an inherited field points at the parent profile."""
+
+    def __init__(self, anchor: Node, items: list[Node]) -> None:
+        super().__init__(anchor.node, anchor.file, anchor.path, anchor._error)
+        self._items = items
+
+    def sequence(self) -> list[Node]:
+        return list(self._items)
+
+
+def _merged(root: Node, path: Path, seen: tuple[Path, ...]
+            ) -> tuple[dict[str, Node], list[Node]]:
+    """The top-level keys and field nodes of a profile, its ``extends`` chain resolved.
+
+    The child's keys replace the parent's; its fields are added to the parent's, a
+    field of the same name replaces the parent's in place, and ``without`` drops some.
+    """
+    top = root.mapping(_TOP_KEYS)
+    own = top["fields"].sequence() if "fields" in top else []
+    if "extends" not in top:
+        for key in ("without",):
+            if key in top:
+                raise top[key].fail("only a profile that 'extends' another drops fields")
+        return top, own
+    parent_id = top["extends"].text()
+    parent_path = _find_parent(parent_id, path)
+    if parent_path is None:
+        raise top["extends"].fail(f"no profile {parent_id!r} next to this file or on the "
+                                  f"profile search path")
+    if parent_path.resolve() in seen or parent_path.resolve() == path.resolve():
+        raise top["extends"].fail(f"{parent_id!r} extends this profile: a loop")
+    base, inherited = _merged(load(parent_path), parent_path, (*seen, path.resolve()))
+    drop: dict[str, Node] = {}
+    for n in top["without"].sequence() if "without" in top else []:
+        drop[n.text()] = n
+    known = {_field_name(n) for n in inherited}
+    for name, n in drop.items():
+        if name not in known:
+            raise n.fail(f"{parent_id} has no field {name!r} to drop")
+    mine = {_field_name(n): n for n in own}
+    fields = [mine.pop(_field_name(n), n) for n in inherited if _field_name(n) not in drop]
+    fields += [n for n in own if _field_name(n) in mine]
+    merged = {k: v for k, v in base.items() if k != "fields"}
+    merged.update((k, v) for k, v in top.items() if k not in ("extends", "without"))
+    return merged, fields
+
+
+def _field_name(node: Node) -> str:
+    """A field's name, read without resolving the node (which ``mapping`` does once)."""
+    raw: yaml.Node | None = node.node
+    while isinstance(raw, yaml.MappingNode):
+        merged = None
+        for k, v in raw.value:
+            if k.tag == "tag:yaml.org,2002:merge":
+                merged = v
+            elif str(k.value) == "name" and isinstance(v, yaml.ScalarNode):
+                return str(v.value)
+        raw = merged
+    return f"#{node.line}"
+
+
+def _find_parent(pid: str, child: Path) -> Path | None:
+    for directory in [child.parent, *search_path()]:
+        candidate = directory / f"{pid}.yaml"
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _check_shared(nodes: list[Node], fields: list[Field]) -> None:
+    """Bit fields (and u8 halves) in a register: their bits must not overlap anything."""
+    by_register: dict[tuple[Table, int], list[int]] = {}
+    for i, f in enumerate(fields):
+        for r in range(f.address, f.end):
+            by_register.setdefault((f.table, r), []).append(i)
+    names: dict[str, int] = {}
+    for i, f in enumerate(fields):
+        if f.name in names and (f.layout.width or fields[names[f.name]].layout.width):
+            raise nodes[i].fail(
+                f"duplicate field name {f.name!r} (first at line {names[f.name]})")
+        names.setdefault(f.name, f.line)
+        if not f.layout.width:
+            continue
+        for j in by_register[f.table, f.address]:
+            g = fields[j]
+            if j != i and not f.can_share(g):
+                raise nodes[i].fail(
+                    f"{f.name} overlaps {g.name} (line {g.line}) in the {f.table.value} table")
 
 
 def _opt(m: Mapping[str, Node], key: str, get: Callable[[Node], T], default: T) -> T:
@@ -204,7 +320,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         raise m["name"].fail(f"{name!r} is not a lower_snake_case name")
     table = m["table"].choice(Table, [t.value for t in Table])
     dtype = m["type"].choice(DataType, _TYPES)
-    written = m["address"].integer(0, 0x1FFFF)
+    written, shift, width = _address(m["address"], dtype, table)
     if addressing in (Addressing.DIRECT, Addressing.MODICON) and table.is_register:
         base = table.modicon_base
         if not base < written <= base + (9999 if addressing is Addressing.DIRECT else 65536):
@@ -237,11 +353,11 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     if scale == 0:
         raise m["scale"].fail("scale cannot be 0")
     layout = Layout(dtype, words, order, scale, m["offset"].number() if "offset" in m else 0.0,
-                    byte)
+                    byte, shift, width)
     if words > limits.max_registers:
         raise m["type"].fail(
             f"{words} registers are more than the device reads at once ({limits.max_registers})")
-    fit = (1 << (8 if dtype in (DataType.U8, DataType.I8) else 16 * words)) - 1
+    fit = (1 << (width or (8 if dtype in (DataType.U8, DataType.I8) else 16 * words))) - 1
     enum_map: dict[int, Choice] = {}
     flags: dict[int, Choice] = {}
     other = None
@@ -264,7 +380,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         if lo > hi:
             raise m["range"].fail(f"lowest {lo:g} is above highest {hi:g}")
         if dtype.is_integer:
-            tlo, thi = int_range(dtype)
+            tlo, thi = bits_range(layout)
             vlo, vhi = sorted((tlo * scale + layout.offset, thi * scale + layout.offset))
             if lo < vlo - 1e-9 or hi > vhi + 1e-9:
                 raise m["range"].fail(f"[{lo:g}, {hi:g}] does not fit {dtype.value} "
@@ -281,12 +397,19 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         raise m["access"].fail(f"{access!r} is not one of: R, RW, W")
     if "W" in access and table in (Table.INPUT, Table.DISCRETE):
         raise m["access"].fail(f"{table.value} registers cannot be written")
+    if "W" in access and width:
+        raise m["access"].fail("bit fields are read-only (a write would need read-modify-"
+                               "write of the register, which 'rtupoll write' does for u8 only)")
     source = m["source"].text() if "source" in m else "manual"
     if source not in ("manual", "public"):
         raise m["source"].fail(f"{source!r} is not one of: manual, public")
+    sentinels = _sentinels(m["sentinels"], layout) if "sentinels" in m else {}
+    counter = m["counter"].flag() if "counter" in m else False
+    if counter and (enum_map or flags or dtype in (DataType.STRING, DataType.BOOL)):
+        raise m["counter"].fail("only a number can be a counter")
     return Field(
         name=name, table=table, address=wire, layout=layout,
-        written=addressing.show(table, wire),
+        written=addressing.show(table, wire) + _bits_text(shift, width),
         unit=m["unit"].text() if "unit" in m else "",
         description=m["description"].text() if "description" in m else "",
         access=access, enum=enum_map, other=other, flags=flags, minimum=lo, maximum=hi,
@@ -294,8 +417,78 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         poll=m["poll"].choice(Poll, [p.value for p in Poll]) if "poll" in m else Poll.DEFAULT,
         alone=m["alone"].flag() if "alone" in m else False,
         since=m["since"].integer(0, 255) if "since" in m else 0,
-        source=source, line=node.line,
+        source=source, sentinels=sentinels,
+        precision=m["precision"].integer(-6, 9) if "precision" in m else None,
+        interval=_opt(m, "interval", _interval, None), counter=counter,
+        typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
     )
+
+
+def _typical(node: Node, layout: Layout) -> float | str:
+    """A field's everyday value (the simulator starts there): it must fit the field."""
+    value: float | str = node.text() if layout.type is DataType.STRING else node.number()
+    try:
+        encode(value, layout)
+    except EncodeError as exc:
+        raise node.fail(f"{node.value()} does not fit the field: {exc}") from None
+    return value
+
+
+def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
+    """``address``: a register, or ``REGISTER:SHIFT:WIDTH`` for a bit field inside one
+    (read as written: YAML would take an unquoted 12288:4:4 for a base-60 number)."""
+    text = node.text() if not node.is_mapping and not node.is_list else ""
+    if ":" not in text:
+        return node.integer(0, 0x1FFFF), 0, 0
+    parts = text.split(":")
+    try:
+        reg, shift, width = (int(p.strip(), 0) for p in parts)
+    except ValueError:
+        raise node.fail(f"{text!r} is not REGISTER:SHIFT:WIDTH (e.g. 0x3200:4:4)") from None
+    if dtype not in (DataType.U16, DataType.I16) or not table.is_register:
+        raise node.fail(f"a bit field is u16 or i16 in a register, not {dtype.value}")
+    if not 0 <= reg <= 0x1FFFF:
+        raise node.fail(f"{reg} is outside 0..{0x1FFFF}")
+    if not 0 <= shift <= 15 or not 1 <= width <= 16 - shift:
+        raise node.fail(f"bits {shift}..{shift + width - 1} are not inside one 16-bit register")
+    return reg, shift, width
+
+
+def _bits_text(shift: int, width: int) -> str:
+    if not width:
+        return ""
+    return f" bit {shift}" if width == 1 else f" bits {shift}-{shift + width - 1}"
+
+
+def _interval(node: Node) -> float:
+    seconds = node.number()
+    if not 0.05 <= seconds <= 86400:
+        raise node.fail(f"{seconds:g} s is outside 0.05..86400 s")
+    return seconds
+
+
+def _sentinels(node: Node, layout: Layout) -> dict[int | float, Choice]:
+    """Stored values (before scale) that mean "no reading", each with a name."""
+    if layout.type in (DataType.STRING, DataType.BOOL):
+        raise node.fail(f"a {layout.type.value} field has no sentinel values")
+    out: dict[int | float, Choice] = {}
+    for k, v in node.items():
+        if layout.type.is_integer:
+            code = k.integer()
+            lo, hi = bits_range(layout)
+            # written as the register shows it (0xFFFF) or as the signed value (-1)
+            if code > hi and layout.type.value[0] == "i" and code <= 2 * hi + 1:
+                code -= 2 * (hi + 1)
+            if not lo <= code <= hi:
+                raise k.fail(f"sentinel {code} does not fit the field ({lo}..{hi})")
+            key: int | float = code
+        else:
+            key = k.number()
+        choice = _choice(v)
+        if not v.is_mapping:  # a bare name: it is not a reading, so not "ok"
+            choice = Choice(choice.name, Severity.WARNING)
+        out[key] = choice
+    return out
 
 
 def _check_fields(node: Node, fields: list[Field], limits: Limits) -> None:
@@ -306,16 +499,27 @@ def _check_fields(node: Node, fields: list[Field], limits: Limits) -> None:
             raise items[i].mapping()["name"].fail(
                 f"duplicate field name {f.name!r} (first at line {seen[f.name]})")
         seen[f.name] = f.line
-    for i, f in enumerate(fields):
-        for g in fields[:i]:
-            if f.table is not g.table or f.address >= g.end or g.address >= f.end:
-                continue
+    if len(fields) > MAX_FIELDS:
+        raise node.fail(f"{len(fields)} fields; a profile holds at most {MAX_FIELDS}")
+    # n log n: in address order, a field is compared only with the fields still open at its
+    # start; those all share that register, so (allowed: two u8 halves) there are at most 2
+    order = sorted(range(len(fields)), key=lambda k: (fields[k].table.value, fields[k].address))
+    open_: list[int] = []
+    for k in order:
+        f = fields[k]
+        open_ = [j for j in open_ if fields[j].table is f.table and fields[j].end > f.address]
+        for j in open_:
+            g = fields[j]
             bytes_ok = f.layout.type in (DataType.U8, DataType.I8) and \
                 g.layout.type in (DataType.U8, DataType.I8) and f.layout.byte != g.layout.byte \
                 and f.words == g.words == 1
             if not bytes_ok:
+                i, first = (k, g) if j < k else (j, f)  # reported at the later one in the file
+                later = fields[i]
                 raise items[i].mapping()["address"].fail(
-                    f"{f.name} overlaps {g.name} (line {g.line}) in the {f.table.value} table")
+                    f"{later.name} overlaps {first.name} (line {first.line}) in the "
+                    f"{later.table.value} table")
+        open_.append(k)
     _ = limits
 
 

@@ -22,12 +22,19 @@ from typing import TypeVar
 from rtupoll.config.library import load_one
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
+from rtupoll.gateway.settings import ServeConfig
+from rtupoll.gateway.settings import from_node as serve_from_node
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
-from rtupoll.model.profile import Field, Poll, Profile
+from rtupoll.model.profile import Addressing, Field, Poll, Profile
+from rtupoll.outputs.mqtt_settings import MqttSettings
+from rtupoll.outputs.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.rtu import Framing
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
+# the serial defaults of a bus with no devices (only served to gateway clients)
+_NO_DEVICE = Profile(id="(no device)", vendor="", model="", manual="",
+                     addressing=Addressing.PDU, fields=())
 
 T = TypeVar("T")
 Fail = Callable[[str, str], RtupollError]  # (key, message) -> the error to raise
@@ -45,6 +52,7 @@ class DeviceConfig:
     timeout: float | None = None  # None: the profile's
     retries: int | None = None  # None: the profile's
     line: int = 0
+    timeout_ceiling: float | None = None  # the longest timeout learned (None: the default)
 
     @property
     def spec(self) -> str:
@@ -71,6 +79,7 @@ class BusConfig:
     stopbits: int = 1
     devices: tuple[DeviceConfig, ...] = ()
     line: int = 0
+    serve: ServeConfig | None = None  # Modbus TCP served to other masters (rtupoll.gateway)
 
     @property
     def deassert_dtr(self) -> bool:
@@ -90,6 +99,8 @@ class BusConfig:
 class Site:
     buses: tuple[BusConfig, ...]
     source: str = "command line"
+    metrics: str = ""  # HOST:PORT to serve Prometheus metrics on ("": none)
+    mqtt: MqttSettings | None = None  # the site file's mqtt: section (docs/mqtt.md)
 
     def devices(self) -> Iterator[tuple[BusConfig, DeviceConfig]]:
         for bus in self.buses:
@@ -100,9 +111,11 @@ class Site:
 # ---------------------------------------------------------------------------
 # the site file
 
-_TOP_KEYS = {"profiles", "buses"}
-_BUS_KEYS = {"name", "port", "baudrate", "parity", "bytesize", "stopbits", "devices"}
-_DEVICE_KEYS = {"name", "profile", "address", "interval", "fields", "timeout", "retries"}
+_TOP_KEYS = {"profiles", "buses", "metrics", "mqtt"}
+_BUS_KEYS = {"name", "port", "baudrate", "parity", "bytesize", "stopbits", "devices",
+             "serve"}
+_DEVICE_KEYS = {"name", "profile", "address", "interval", "fields", "timeout", "retries",
+                "timeout_ceiling"}
 
 
 def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
@@ -135,23 +148,35 @@ def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
         ports[bus.port] = bus
     seen: dict[str, DeviceConfig] = {}
     for node, bus in zip(bus_nodes, buses, strict=True):
-        dnodes = node.mapping()["devices"].sequence()
+        bm = node.mapping()
+        dnodes = bm["devices"].sequence() if "devices" in bm else []
         for dnode, dev in zip(dnodes, bus.devices, strict=True):
             if dev.name in seen:
                 raise (dnode.mapping().get("name") or dnode).fail(
                     f"device name {dev.name!r} is already used at line {seen[dev.name].line}")
             seen[dev.name] = dev
-    return Site(tuple(buses), source=str(path))
+    metrics = _listen(top["metrics"]) if "metrics" in top else ""
+    mqtt = parse_mqtt(top["mqtt"], path, seen) if "mqtt" in top else None
+    return Site(tuple(buses), source=str(path), metrics=metrics, mqtt=mqtt)
+
+
+def _listen(node: Node) -> str:
+    """``metrics: HOST:PORT`` (``:PORT``: every interface)."""
+    text = node.text().strip()
+    _host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or int(port) > 65535:
+        raise node.fail(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
+    return text
 
 
 def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
-    m = node.mapping(_BUS_KEYS, {"port", "devices"})
+    m = node.mapping(_BUS_KEYS, {"port"} if "serve" in node.mapping() else {"port", "devices"})
     port = _port(m["port"])
-    dnodes = m["devices"].sequence()
-    if not dnodes:
+    dnodes = m["devices"].sequence() if "devices" in m else []
+    if not dnodes and "serve" not in m:
         raise m["devices"].fail("no devices: a bus needs at least one")
     devices = tuple(_device(n, extra) for n in dnodes)
-    profiles = [d.profile for d in devices]
+    profiles = [d.profile for d in devices] or [_NO_DEVICE]  # a pure gateway: 9600 8N1
     fail = (m.get("baudrate") or m["port"]).fail
     serial: dict[str, int | str] = {
         "baudrate": m["baudrate"].integer(300, 4_000_000) if "baudrate" in m else
@@ -166,7 +191,8 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
     bus = BusConfig(name=m["name"].text() if "name" in m else port, port=port,
                     baudrate=int(serial["baudrate"]), parity=str(serial["parity"]),
                     bytesize=int(serial["bytesize"]), stopbits=int(serial["stopbits"]),
-                    devices=devices, line=node.line)
+                    devices=devices, line=node.line,
+                    serve=serve_from_node(m["serve"]) if "serve" in m else None)
 
     def fail_at(dnode: Node) -> Fail:
         dm = dnode.mapping()
@@ -191,8 +217,14 @@ def _port(node: Node) -> str:
 def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
     m = node.mapping(_DEVICE_KEYS, {"profile", "address"})
     pnode = m["profile"]
+    pid = pnode.text()
+    if pid.endswith((".yaml", ".yml")):  # a file: from the site file's folder, like profiles:
+        file = Path(pnode.file).parent / pid
+        if not file.is_file():
+            raise pnode.fail(f"no profile file {file}")
+        pid = str(file)
     try:
-        profile = load_one(pnode.text(), extra)
+        profile = load_one(pid, extra)
     except UsageError as exc:  # unknown id; a broken profile file keeps its own file:line
         raise pnode.fail(str(exc)) from None
     address = m["address"].integer(0, 255)
@@ -204,6 +236,9 @@ def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
     if timeout is not None and not 0.01 <= timeout <= 30:
         raise m["timeout"].fail(f"{timeout:g} s is outside 0.01..30 s")
     retries = m["retries"].integer(0, 10) if "retries" in m else None
+    ceiling = m["timeout_ceiling"].number() if "timeout_ceiling" in m else None
+    if ceiling is not None and not 0.05 <= ceiling <= 30:
+        raise m["timeout_ceiling"].fail(f"{ceiling:g} s is outside 0.05..30 s")
     if "fields" in m:
         fnodes = m["fields"].sequence()
         if not fnodes:
@@ -216,7 +251,8 @@ def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
         fields = profile.default_fields()
     _plannable(profile, fields, (m.get("fields") or pnode).fail)
     name = m["name"].text() if "name" in m else f"{profile.id}@{address}"
-    return DeviceConfig(name, profile, address, fields, interval, timeout, retries, node.line)
+    return DeviceConfig(name, profile, address, fields, interval, timeout, retries, node.line,
+                        ceiling)
 
 
 def _field(profile: Profile, name: str, fail: Callable[[str], RtupollError]) -> Field:
@@ -324,7 +360,8 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
                parity: str | None = None, stopbits: int | None = None,
                interval: float = DEFAULT_INTERVAL, fields: Sequence[str] = (),
                timeout: float | None = None, retries: int | None = None,
-               profile_dirs: Sequence[Path] = (), check_serial: bool = True) -> Site:
+               profile_dirs: Sequence[Path] = (), check_serial: bool = True,
+               timeout_ceiling: float | None = None) -> Site:
     """One bus from ``--port`` and ``PROFILE@ADDRESS`` arguments, checked like a site file.
 
     Serial settings not given come from the profiles when they agree. ``fields``
@@ -366,7 +403,8 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
                          "use a site file"),
         stopbits=stopbits or _common(profiles, "stop bits", lambda p: p.serial.stopbits,
                                      UsageError, "give --stopbits"),
-        devices=tuple(DeviceConfig(name, p, a, fs, interval, timeout, retries)
+        devices=tuple(DeviceConfig(name, p, a, fs, interval, timeout, retries,
+                                   timeout_ceiling=timeout_ceiling)
                       for name, p, (_, a), fs in zip(names, profiles, specs, chosen,
                                                      strict=True)),
     )

@@ -159,6 +159,43 @@ async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
     return None
 
 
+LATENCY_OK = 0.001  # seconds: an adapter latency timer above this is worth lowering
+UDEV_RULE = ('ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", '
+             'ATTR{latency_timer}="1"')
+
+
+def latency_timer(port: str, *, root: str = "/") -> float | None:
+    """A USB-serial adapter's latency timer in seconds (Linux: ``/sys/bus/usb-serial/
+    devices/ttyUSBn/latency_timer``, in ms), or None for any other port or when unknown.
+
+    The adapter holds received bytes up to this long before passing them on (FTDI: 16 ms
+    by default), so every reply seems that much slower. ``root``: where ``/sys`` and
+    ``/dev`` are looked up (tests give a directory tree of their own)."""
+    if "://" in port.replace(_PREFIX, ""):
+        return None
+    path = device_path(port)
+    if root != "/":
+        path = os.path.join(root, path.lstrip("/"))
+    tty = os.path.basename(os.path.realpath(path))
+    if not tty.startswith("ttyUSB"):
+        return None
+    try:
+        with open(os.path.join(root, "sys/bus/usb-serial/devices", tty, "latency_timer")) as f:
+            return int(f.read().strip()) / 1000
+    except (OSError, ValueError):
+        return None
+
+
+def latency_warning(port: str, latency: float | None) -> str | None:
+    """One line for the user when ``port``'s adapter latency timer is above 1 ms."""
+    if latency is None or latency <= LATENCY_OK:
+        return None
+    tty = os.path.basename(os.path.realpath(device_path(port)))
+    return (f"{port}: the USB adapter's latency timer is {latency * 1000:g} ms, added to "
+            f"every reply; lower it with 'echo 1 | sudo tee /sys/bus/usb-serial/devices/"
+            f"{tty}/latency_timer' or for good with the udev rule {UDEV_RULE}")
+
+
 def _group_of(path: str) -> str:
     try:
         import grp  # POSIX only

@@ -99,8 +99,7 @@ class VirtualBus:
             await self._until(lambda: self.line.hazard_until(request, self._clock()))
             failure: Exception = DeviceTimeout(f"no reply from unit {unit}")
             for attempt in range(retries + 1):
-                first = attempt == 0
-                await self._until(lambda: self.line.ready_at(drain=first))
+                await self._until(self.line.ready_at if attempt == 0 else self._no_drain)
                 now = self._clock()
                 self.line.send(request, now)
                 self.sent.append(request)
@@ -131,6 +130,9 @@ class VirtualBus:
                         DeviceTimeout(f"no reply from unit {unit} to {what} within "
                                       f"{timeout:g} s")
             raise failure
+
+    def _no_drain(self) -> float:
+        return self.line.ready_at(drain=False)
 
     async def _until(self, ready: Callable[[], float]) -> None:
         """Let time pass until ``ready()``, delivering replies that arrive meanwhile."""

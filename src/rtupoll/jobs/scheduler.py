@@ -236,14 +236,19 @@ class DevicePoller:
                           ) -> list[FieldValue] | None:
         """``block`` got exception 02 over a gap: bisect (``jobs.holes``); the block's
         values when its fields' own registers read, and from then on it is not bridged."""
+        key = (block.table, block.address, block.count)
+        if key in self.holes.tried:
+            return None
         try:
             found = await bisect(transport, self.config.address, block,
                                  timeout=self.timeout(transport), retries=retries)
         except BusError:
             return None
         if found is None:
+            self.holes.tried.add(key)
             return None
-        self.learn_holes(found.holes, f"exception 02 reading {block}")
+        self.learn_holes(found.holes, f"exception 02 reading {block.table.value} "
+                                      f"0x{block.address:04X}+{block.count}")
         return found.values
 
     def timeout(self, transport: object) -> float:

@@ -13,6 +13,7 @@ swapped, ``DCBA`` fully little-endian. 64-bit values extend the same rule
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
 import struct
@@ -93,10 +94,21 @@ class Layout:
     scale: float = 1.0
     offset: float = 0.0
     byte: str = "low"  # u8/i8: which byte of the register, "high" or "low"
+    shift: int = 0  # bit field: the value's lowest bit in the register (u16/i16)
+    width: int = 0  # bit field: how many bits (0: the whole register)
 
     @property
     def scaled(self) -> bool:
         return self.scale != 1 or self.offset != 0
+
+    @property
+    def mask(self) -> int:
+        """The register bits this value occupies (a whole register unless a bit field)."""
+        if self.width:
+            return ((1 << self.width) - 1) << self.shift
+        if self.type in (DataType.U8, DataType.I8):
+            return 0xFF00 if self.byte == "high" else 0x00FF
+        return 0xFFFF
 
 
 def _to_bytes(words: Sequence[int], order: ByteOrder) -> bytes:
@@ -133,8 +145,28 @@ def decode_raw(words: Sequence[int], layout: Layout) -> int | float | str | bool
     if t in (DataType.U8, DataType.I8):
         byte = (words[0] >> 8) if layout.byte == "high" else words[0]
         return int(struct.unpack(_STRUCT[t.value], bytes([byte & 0xFF]))[0])
+    if layout.width:
+        bits = (words[0] >> layout.shift) & ((1 << layout.width) - 1)
+        if t is DataType.I16 and bits >> (layout.width - 1):
+            bits -= 1 << layout.width
+        return bits
     value = struct.unpack(">" + _STRUCT[t.value], _to_bytes(words, layout.order))[0]
     return float(value) if t.is_float else int(value)
+
+
+def short_f32(x: float) -> float:
+    """The shortest decimal that is the same 32-bit float: f32 296.15 is stored as
+    296.1499938964844, which no one wrote and no one should read. Exact: packing the
+    result as f32 gives the same bits back (NaN and infinities pass through)."""
+    if not math.isfinite(x):
+        return float(x)
+    bits = struct.pack(">f", x)
+    for digits in range(1, 10):
+        candidate = float(f"{x:.{digits}g}")
+        with contextlib.suppress(OverflowError):  # rounded up past the largest f32
+            if struct.pack(">f", candidate) == bits:
+                return candidate
+    return float(x)
 
 
 def decode(words: Sequence[int], layout: Layout) -> int | float | str | bool:
@@ -174,9 +206,13 @@ def encode_raw(raw: int | float | str | bool, layout: Layout,
         if not math.isfinite(raw) or raw != int(raw):
             raise EncodeError(f"{raw!r} is not a whole number, as {t.value} needs")
         raw = int(raw)
-    lo, hi = int_range(t)
+    lo, hi = bits_range(layout)
     if not lo <= raw <= hi:
-        raise EncodeError(f"{raw} is outside {t.value} ({lo}..{hi})")
+        what = f"{layout.width} bits" if layout.width else t.value
+        raise EncodeError(f"{raw} is outside {what} ({lo}..{hi})")
+    if layout.width:
+        other = current[0] if current else 0
+        return ((other & ~layout.mask & 0xFFFF) | ((raw << layout.shift) & layout.mask),)
     if t in (DataType.U8, DataType.I8):
         byte = raw & 0xFF
         other = current[0] if current else 0
@@ -198,6 +234,15 @@ def encode(value: int | float | str | bool, layout: Layout,
             raw = nearest
         return encode_raw(raw, layout, current)
     return encode_raw(value, layout, current)
+
+
+def bits_range(layout: Layout) -> tuple[int, int]:
+    """The stored integers a layout can hold: its type's, or its bit field's."""
+    if not layout.width:
+        return int_range(layout.type)
+    n = layout.width
+    return (-(1 << (n - 1)), (1 << (n - 1)) - 1) if layout.type is DataType.I16 \
+        else (0, (1 << n) - 1)
 
 
 def int_range(t: DataType) -> tuple[int, int]:

@@ -7,6 +7,7 @@ go through ``interpret`` / ``field_words`` so they agree.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -15,12 +16,15 @@ from rtupoll.model.codec import (
     Value,
     active_flags,
     decode,
+    decode_raw,
     encode,
+    encode_raw,
     enum_code,
     enum_name,
     flags_mask,
+    short_f32,
 )
-from rtupoll.model.profile import Field, Severity
+from rtupoll.model.profile import Choice, Field, Severity
 
 
 @dataclass(frozen=True)
@@ -32,16 +36,39 @@ class FieldValue:
     raw: tuple[int, ...]  # the registers as read
     code: int | None = None  # the integer behind an enum or flags field
     severity: Severity = Severity.OK
+    # the stored value is one of the field's sentinels ("not available", "sensor error"):
+    # ``value`` then holds what the registers decode to, which is not a reading
+    sentinel: Choice | None = None
+
+    @property
+    def present(self) -> bool:
+        """A real reading (not a sentinel)."""
+        return self.sentinel is None
+
+    @property
+    def output(self) -> Value | None:
+        """The value outputs should publish: None when the device says there is none."""
+        return None if self.sentinel is not None else self.value
 
     @property
     def text(self) -> str:
+        if self.sentinel is not None:
+            return self.sentinel.name
         return format_value(self.field, self.value)
 
 
 def interpret(field: Field, words: Sequence[int]) -> FieldValue:
-    """Registers -> meaning. Unknown enum codes and undocumented flag bits stay visible."""
+    """Registers -> meaning. Unknown enum codes and undocumented flag bits stay visible;
+    a sentinel is reported by its name, never as a number."""
     raw = tuple(words)
-    value = decode(raw, field.layout)
+    if field.sentinels:
+        stored = decode_raw(raw, field.layout)
+        if isinstance(stored, (int, float)) and not isinstance(stored, bool):
+            choice = field.sentinels.get(stored)
+            if choice is not None:
+                return FieldValue(field, decode(raw, field.layout), raw, None,
+                                  choice.severity, choice)
+    value = _rounded(field, raw)
     if field.enum and isinstance(value, int):
         choice = field.enum.get(value)
         if choice is None:
@@ -62,7 +89,12 @@ def interpret(field: Field, words: Sequence[int]) -> FieldValue:
 
 def field_words(field: Field, value: Value, current: Sequence[int] | None = None
                 ) -> tuple[int, ...]:
-    """Meaning -> registers: enum names, flag name lists or numbers. Inverse of ``interpret``."""
+    """Meaning -> registers: enum names, flag name lists, sentinel names or numbers.
+    Inverse of ``interpret``."""
+    if field.sentinels and isinstance(value, str):
+        for stored, choice in field.sentinels.items():
+            if choice.name == value:
+                return encode_raw(stored, field.layout, current)
     if field.enum and isinstance(value, str):
         value = enum_code(value, {c: ch.name for c, ch in field.enum.items()})
     elif field.flags and isinstance(value, list):
@@ -72,11 +104,37 @@ def field_words(field: Field, value: Value, current: Sequence[int] | None = None
     return encode(value, field.layout, current)
 
 
+def _rounded(field: Field, words: tuple[int, ...]) -> Value:
+    """The decoded value; a float at the precision its type carries (an f32 296.15 is
+    296.15, not 296.1499938964844), then at the field's ``precision`` when it has one."""
+    layout = field.layout
+    value = decode(words, layout)
+    if not isinstance(value, float) or not math.isfinite(value):
+        return value
+    if layout.type is DataType.F32:
+        stored = short_f32(float(decode_raw(words, layout)))
+        value = round(stored * layout.scale + layout.offset, 9) if layout.scaled else stored
+    if field.precision is not None and math.isfinite(value):
+        value = round(value, field.precision)
+        if field.precision <= 0:
+            return int(value)
+    return value
+
+
 def format_value(field: Field, value: Value) -> str:
-    """For people: floats to the precision the type carries, flags joined."""
+    """For people: floats at the field's precision, else at the precision the type
+    carries; flags joined."""
     if isinstance(value, list):
         return ", ".join(value) if value else "none"
     if isinstance(value, float):
+        if field.precision is not None and math.isfinite(value):
+            return f"{value:.{max(field.precision, 0)}f}"
+        if field.layout.type is DataType.F32 and math.isfinite(value):
+            # the value is already the shortest decimal for its f32: print it positional
+            # (an f32 energy total of 35565090 Wh, not 3.556509e+07)
+            text = repr(value)
+            if "e" not in text:
+                return text[:-2] if text.endswith(".0") else text
         digits = 7 if field.layout.type is DataType.F32 else 10
         return f"{value:.{digits}g}"
     return str(value)

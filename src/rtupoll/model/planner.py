@@ -25,7 +25,7 @@ Pure: no I/O, inputs never mutated.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 from rtupoll.errors import FrameError, RefusedError
@@ -55,6 +55,12 @@ class Block:
     def function(self) -> int:
         return self.table.read_function
 
+    @property
+    def interval(self) -> float | None:
+        """Seconds between reads of this block's fields when polled (None: every cycle);
+        a plan made with ``by_interval`` never mixes fields of different intervals."""
+        return min((f.interval for f in self.fields if f.interval is not None), default=None)
+
     def __str__(self) -> str:
         names = ", ".join(f.name for f in self.fields)
         return f"{self.table.value} 0x{self.address:04X}+{self.count} ({names})"
@@ -71,7 +77,8 @@ def read_limit(profile: Profile, table: Table) -> int:
 
 
 def plan(fields: Sequence[Field], profile: Profile, *,
-         variant: int | None = None) -> tuple[Block, ...]:
+         variant: int | None = None, by_interval: bool = False,
+         holes: Collection[tuple[Table, int]] = ()) -> tuple[Block, ...]:
     """The fewest block reads covering ``fields`` within ``profile``'s limits.
 
     Fields are deduplicated by name; with ``variant`` given, fields newer than it are
@@ -79,16 +86,22 @@ def plan(fields: Sequence[Field], profile: Profile, *,
     resume a scan at the block that failed. Raises ``RefusedError`` when a field
     cannot be read at all: its function is not supported, it is wider than one read,
     or it shares a register with a ``poll: never`` field it was not asked with.
+    With ``by_interval`` (polling), fields with different ``interval`` never share a
+    block, so energy totals read every minute do not ride along with power every second.
+    ``holes``: registers learned never to bridge for this device (``jobs.holes``: the
+    device refused a block over them, or answered it shifted); a field's own registers
+    are still read.
     """
     wanted: dict[str, Field] = {}
     for f in for_variant(fields, variant):
         wanted.setdefault(f.name, f)
     forbidden = _registers(profile.forbidden())
-    unbridgeable = forbidden | _registers(f for f in profile.fields if f.alone)
+    unbridgeable = forbidden | _registers(f for f in profile.fields if f.alone) | \
+        frozenset(holes)
     limit_gap = profile.limits.max_gap
 
     blocks: list[Block] = []
-    groups: dict[Table, list[Field]] = {}
+    groups: dict[tuple[Table, float | None], list[Field]] = {}
     for f in wanted.values():
         fn = f.table.read_function
         if fn not in profile.limits.functions:
@@ -105,9 +118,9 @@ def plan(fields: Sequence[Field], profile: Profile, *,
         if f.alone or f.poll is Poll.NEVER:
             blocks.append(Block(f.table, f.address, f.words, (f,)))
             continue
-        groups.setdefault(f.table, []).append(f)
+        groups.setdefault((f.table, f.interval if by_interval else None), []).append(f)
 
-    for table, members in groups.items():
+    for (table, _), members in groups.items():
         limit = read_limit(profile, table)
         run: list[Field] = []
         start = end = 0

@@ -100,6 +100,14 @@ class Field:
     alone: bool = False  # must be read in a request of its own
     since: int = 0  # first variant (e.g. IRNET data structure) that has it
     source: str = "manual"  # "manual", or "public" for facts from outside the seed manual
+    # stored values (before scale) that mean "no reading": "not available", "sensor error"
+    sentinels: Mapping[int | float, Choice] = dataclasses.field(default_factory=dict)
+    precision: int | None = None  # decimal places the value is rounded to
+    interval: float | None = None  # seconds between reads when polled (None: the device's)
+    # a total that only grows (energy, operating hours): outputs may mark it
+    # ``total_increasing`` (Home Assistant) or as a counter (Prometheus)
+    counter: bool = False
+    typical: float | str | None = None  # an everyday value: where the simulator starts
     line: int = 0
 
     @property
@@ -114,6 +122,11 @@ class Field:
     @property
     def writable(self) -> bool:
         return "W" in self.access
+
+    def can_share(self, other: Field) -> bool:
+        """Whether this field may occupy a register ``other`` also occupies: only one-register
+        fields whose bits do not overlap (two u8 halves, bit fields of a status word)."""
+        return self.words == other.words == 1 and not self.layout.mask & other.layout.mask
 
     @property
     def range(self) -> bool:
@@ -210,6 +223,8 @@ class Profile:
     set_address: AddressChange = AddressChange(unsupported="the profile does not say")
     variant: Variant | None = None
     notes: str = ""
+    kind: str = ""  # what sort of device: energy meter, gas sensor, solar charger, ...
+    extends: str = ""  # the id of the profile this one was built on
     path: str = ""
 
     def field(self, name: str) -> Field:

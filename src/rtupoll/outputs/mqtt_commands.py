@@ -100,10 +100,6 @@ async def apply_set(bus: BusLike, dev: DeviceConfig, ops: Sequence[WriteOp],
                     done: dict[str, Any]) -> None:
     """Write, read back and verify each op in turn; ``done`` collects what each field
     holds now (a failure part-way leaves the earlier ones in it)."""
-    from rtupoll.io.bus import Bus
-
-    if not isinstance(bus, Bus):
-        raise RefusedError(f"{dev.name}: this bus cannot write")
     timing = Timing(dev.response_timeout, dev.retry_count)
     for op in ops:
         sent, _ = await write(bus, dev.address, op, timing)  # an echo is checked by the bus

@@ -21,10 +21,19 @@ from rtupoll.errors import UsageError
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Profile
-from rtupoll.rtu import FUNCTION_NAMES, Table, crc16, exception_name, with_crc
+from rtupoll.rtu.crc import crc16, crc_ok, with_crc
+from rtupoll.rtu.functions import (
+    EXCEPTION_LENGTH,
+    FUNCTION_NAMES,
+    MAX_FRAME,
+    WRITE_FUNCTIONS,
+    Table,
+    exception_name,
+    reply_length,
+    request_length,
+)
 
 READS = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
-MAX_FRAME = 256  # the RTU maximum, address to CRC
 
 
 @dataclass(frozen=True)
@@ -90,23 +99,21 @@ def parse_hex(parts: Iterable[str]) -> list[bytes]:
 
 
 def _lengths(data: bytes) -> list[tuple[int, str]]:
-    """The frame lengths the function code allows at the start of ``data``, with the kind."""
+    """The frame lengths the function code allows at the start of ``data``, with the kind
+    (from the function table; a write's echo is settled from context)."""
     if len(data) < 2:
         return []
-    fc = data[1]
+    if data[1] & 0x80:
+        return [(EXCEPTION_LENGTH, "exception")]
+    if data[1] not in READS and data[1] not in WRITE_FUNCTIONS:
+        return []
+    options = [(request_length(data), "request"), (reply_length(data), "response")]
+    if data[1] in (15, 16):  # the 8-byte echo first: a request carries its data
+        options.reverse()
     out: list[tuple[int, str]] = []
-    if fc & 0x80:
-        out.append((5, "exception"))
-    elif fc in READS:
-        out.append((8, "request"))
-        if len(data) >= 3:
-            out.append((5 + data[2], "response"))
-    elif fc in (5, 6):
-        out.append((8, "request"))  # or its echo: settled from context
-    elif fc in (15, 16):
-        out.append((8, "response"))
-        if len(data) >= 7:
-            out.append((9 + data[6], "request"))
+    for n, kind in options:
+        if n is not None and all(n != m for m, _ in out):
+            out.append((n, kind))
     return out
 
 
@@ -122,21 +129,21 @@ def split(data: bytes, *, base: int = 0) -> list[tuple[int, bytes, str | None]]:
     i = 0
     while i < len(data):
         rest = data[i:]
-        valid = [(n, k) for n, k in _lengths(rest) if 4 <= n <= len(rest) and _crc_ok(rest[:n])]
+        valid = [(n, k) for n, k in _lengths(rest) if 4 <= n <= len(rest) and crc_ok(rest[:n])]
         if valid:
             n, kind = _prefer(valid, frames)
             frames.append((base + i, rest[:n], kind))
             i += n
             continue
         skip = next((s for s in (1, 2) if s < len(rest) and any(
-            4 <= n <= len(rest) - s and _crc_ok(rest[s : s + n])
+            4 <= n <= len(rest) - s and crc_ok(rest[s : s + n])
             for n, _ in _lengths(rest[s:]))), 0)
         if skip:
             frames.append((base + i, rest[:skip], "noise"))
             i += skip
             continue
         anylen = next((n for n in range(4, min(len(rest), MAX_FRAME) + 1)
-                       if _crc_ok(rest[:n])), 0)
+                       if crc_ok(rest[:n])), 0)
         if anylen:
             frames.append((base + i, rest[:anylen], None))
             i += anylen
@@ -158,10 +165,6 @@ def _prefer(options: list[tuple[int, str]], before: list[tuple[int, bytes, str |
     if len(options) > 1 and before and before[-1][2] == "request":
         return next((o for o in options if o[1] == "response"), options[0])
     return options[0]
-
-
-def _crc_ok(frame: bytes) -> bool:
-    return len(frame) >= 4 and crc16(frame[:-2]) == frame[-2] | frame[-1] << 8
 
 
 def _crc_bytes(body: bytes) -> bytes:

@@ -26,6 +26,10 @@ Behaviour a real device of the profile would show, without naming any device:
   ``short`` (``unit 06 02 VALUE crc``, the Huiwen manual's frame) or ``none``.
 - reading a ``poll: never`` register has its side effect: a peak value resets.
 - FC05 on a profile without coil fields (command coils, e.g. a reset) is echoed.
+- quirks of a real map the profile does not know (faults ``hole=R`` and ``shift=R``): an
+  undocumented hole at register R answers exception 02 to any read over it, even
+  inside a bridged gap; a *silent* one is skipped by block reads, which return the
+  registers after it shifted down (padded with 0) instead of an exception.
 """
 
 from __future__ import annotations
@@ -77,6 +81,10 @@ class SimDevice:
         self.write_reply = config.write_reply
         self.rng = random.Random(f"{seed}:{p.id}@{config.address}")
         self.faults = FaultSet(config.faults, seed, f"{p.id}@{config.address}")
+        self.holes = frozenset(int(f.arg) for f in config.faults
+                               if f.kind == "hole" and f.arg is not None)
+        self.shifts = frozenset(int(f.arg) for f in config.faults
+                                if f.kind == "shift" and f.arg is not None)
         self.requests = 0  # requests this device received (its faults count these)
         self.tick, self.start, self.ticks = tick, start, 0
         self.variant, self._exception_at = self._variant(config.variant)
@@ -235,9 +243,17 @@ class SimDevice:
         for r in regs:
             if (table, r) in self._exception_at:
                 return exception_response(unit, fc, self._exception_at[table, r])
-        if any(r not in self.readable[table] for r in regs):
+        if any(r not in self.readable[table] for r in regs) or (
+                table.is_register and any(r in self.holes for r in regs)) or (
+                count == 1 and table.is_register and address in self.shifts):
             return self._refuse(unit, fc, 2)
         words = self.words(table, address, count)
+        skipped = sorted(r for r in regs if r in self.shifts) if table.is_register else []
+        if skipped:  # the silent hole: the registers after it move down, 0 fills the end
+            kept = [r for r in range(address, address + count + len(skipped))
+                    if r not in self.shifts][:count]
+            img = self.image[table]
+            words = tuple(img.get(r, 0) for r in kept)
         for f in {f.name: f for r in regs for f in self._by_register.get((table, r), ())}.values():
             if self.motions[f.name].on_read():  # e.g. a peak that reading resets
                 self._render(f)

@@ -41,11 +41,17 @@ KINDS: dict[str, str] = {
     "exception": "an exception reply with code ARG (default 4) instead of the answer",
     "lose-first": "the first ARG requests after start-up are lost (default: the profile's "
                   "limits.lost_after_powerup, or 3)",
+    "hole": "register ARG (wire address) is an undocumented hole: any read over it gets "
+            "exception 02, even inside a gap the profile bridges",
+    "shift": "register ARG is an undocumented hole the device silently skips: a block read "
+             "over it returns the following registers shifted down, padded with 0",
 }
+QUIRKS = ("hole", "shift")  # properties of the device's map, not of one request
 SILENT = ("dead", "lose-first")
 _FLOAT_ARG = {"slow"}
 _INT_ARG = {"stray": (0, 255), "truncate": (1, 255), "wrong-id": (0, 255),
-            "wrong-id-first": (0, 255), "exception": (1, 255), "lose-first": (0, 1000)}
+            "wrong-id-first": (0, 255), "exception": (1, 255), "lose-first": (0, 1000),
+            "hole": (0, 0xFFFF), "shift": (0, 0xFFFF)}
 
 
 class FaultSpecError(UsageError):
@@ -83,7 +89,10 @@ def _number(text: str, what: str, spec: str) -> int:
 def parse_fault(spec: str) -> Fault:
     """``[ADDRESS:]KIND[=ARG][@WHEN]`` -> Fault (see the module docstring)."""
     text = spec.strip()
-    rest, _, when = text.partition("@")
+    rest, at, when = text.partition("@")
+    if at and not when.strip():
+        raise FaultSpecError(f"fault {spec!r}: nothing after '@' (a rate like 10% or "
+                             "request numbers like 3, 2,4 or 5-)")
     target: int | None = None
     if ":" in rest:
         addr, _, rest = rest.partition(":")
@@ -116,6 +125,9 @@ def parse_fault(spec: str) -> Fault:
         else:
             raise FaultSpecError(f"fault {spec!r}: {kind} takes no argument")
     rate, schedule = _when(when, spec) if when else (None, ())
+    if kind in QUIRKS and (target is None or arg is None or when):
+        raise FaultSpecError(f"fault {spec!r}: {kind} is a register of one device: "
+                             f"ADDRESS:{kind}=REGISTER, without @WHEN")
     if kind == "lose-first" and when:
         raise FaultSpecError(f"fault {spec!r}: lose-first has its own schedule "
                              "(the first N requests); give N as lose-first=N")

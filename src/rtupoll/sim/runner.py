@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import termios
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TypeVar
@@ -26,10 +27,19 @@ from typing import TypeVar
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import FieldValue
 from rtupoll.rtu import Framing, Table
+from rtupoll.sim.consistent import make_consistent
 from rtupoll.sim.device import DeviceConfig, SimDevice
 from rtupoll.sim.engine import Engine
-from rtupoll.sim.scenario import DEFAULT_DEVICES, BusConfig, build, parse_device, profile
+from rtupoll.sim.scenario import (
+    DEFAULT_DEVICES,
+    BusConfig,
+    build,
+    parse_device,
+    profile,
+    split_lines,
+)
 from rtupoll.sim.server import Server, WireFrame
+from rtupoll.sim.values import Static
 
 T = TypeVar("T")
 # the devices a bus holds when none are named: (profile id, address) pairs
@@ -44,15 +54,42 @@ def running() -> list[SimulatedBus]:
         return list(_RUNNING)
 
 
+class _LineServer(Server):
+    """A server whose pty answers only clients at the line's speed, timed or not.
+
+    Without wire timing a reply still goes out at once, but a client that opened the
+    port at another speed gets silence, as from a real line: so ``scan`` finds each
+    device at its line's speed only, and a wrong ``--baudrate`` fails as in the field.
+    """
+
+    def __init__(self, engine: Engine, *, speed: int | None, framing: Framing | None,
+                 on_wire: Callable[[WireFrame], None] | None) -> None:
+        super().__init__(engine, framing=framing, on_wire=on_wire)
+        self.speed = speed
+
+    def _line_mismatch(self, fd: int) -> str | None:
+        if self.speed is None or self.framing is not None:
+            return super()._line_mismatch(fd)
+        ospeed = termios.tcgetattr(fd)[5]
+        if ospeed != getattr(termios, f"B{self.speed}", ospeed):
+            return f"sent at another baud rate than the line's {self.speed}"
+        return None
+
+
 class SimulatedBus:
     """A bus of simulated devices served on a pty (or TCP) from a background thread."""
 
     def __init__(self, config: BusConfig, *, tcp: bool | str = False, link: str | None = None,
-                 on_wire: Callable[[WireFrame], None] | None = None) -> None:
+                 on_wire: Callable[[WireFrame], None] | None = None, tap: str | None = None,
+                 engine: Engine | None = None) -> None:
+        """``tap``: also offer a pty, linked there, that hears every byte on the line;
+        ``engine``: serve this one (e.g. ``sim.replay``) instead of the config's devices."""
         self.config, self.tcp, self.link, self.on_wire = config, tcp, link, on_wire
         self.framing = Framing(config.baudrate) if config.baudrate else None
         self.port = ""
+        self.tap, self.tap_port = tap, ""
         self.engine: Engine | None = None
+        self._given = engine
         self._server: Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -65,7 +102,10 @@ class SimulatedBus:
         if self._thread is not None:
             raise RuntimeError("this simulated bus was already started")
         c = self.config
-        self.engine = Engine(c.devices, c.faults, seed=c.seed, tick=c.tick, start=time.monotonic())
+        self.engine = self._given or Engine(c.devices, c.faults, seed=c.seed, tick=c.tick,
+                                            start=time.monotonic())
+        for d in self.engine.devices:
+            _consistent(d, c.line_speed)
         self._thread = threading.Thread(target=self._run, name=f"rtupoll-sim-{id(self):x}",
                                         daemon=True)
         self._thread.start()
@@ -107,13 +147,15 @@ class SimulatedBus:
     async def _main(self) -> None:
         assert self.engine is not None
         try:
-            server = self._server = Server(self.engine, framing=self.framing,
-                                           on_wire=self.on_wire)
+            server = self._server = _LineServer(self.engine, speed=self.config.speed,
+                                                framing=self.framing, on_wire=self.on_wire)
             if self.tcp:
                 host, _, port = (self.tcp if isinstance(self.tcp, str) else "").rpartition(":")
                 self.port = await server.serve_tcp(host or "127.0.0.1", int(port or 0))
             else:
                 self.port = await server.serve_pty(self.link)
+            if self.tap:
+                self.tap_port = await server.serve_tap(self.tap)
         except BaseException as exc:
             self._error = exc
             if self._server is not None:
@@ -149,8 +191,13 @@ class SimulatedBus:
         return self.engine.device(unit)
 
     def set(self, unit: int, field: str, value: Value) -> None:
-        """Pin a field of the device at ``unit`` to ``value`` (it stops moving)."""
-        self._call(lambda: self.device(unit).pin(field, value))
+        """Pin a field of the device at ``unit`` to ``value`` (it stops moving); fields
+        that follow it (``sim.consistent``) follow at once."""
+        def pin() -> None:
+            d = self.device(unit)
+            d.pin(field, value)
+            d.advance(0)
+        self._call(pin)
 
     def get(self, unit: int, field: str) -> FieldValue:
         """What the device at ``unit`` would answer for ``field`` now."""
@@ -182,6 +229,7 @@ class SimulatedBus:
             assert self.engine is not None, "start the bus first"
             new = SimDevice(config, seed=self.config.seed, tick=self.config.tick,
                             start=time.monotonic())
+            _consistent(new, self.config.line_speed)
             self.engine.devices.append(new)
             return new
         return self._call(add)
@@ -213,22 +261,108 @@ class SimulatedBus:
             time.sleep(0.002)
 
 
+def _consistent(d: SimDevice, speed: int | None) -> None:
+    """Related fields of a new device agree (``sim.consistent``), rendered into its image."""
+    changed = make_consistent(d.profile, d.fields, d.motions, tuple(d.config.pins), d.rng,
+                              speed)
+    for name in changed:
+        m = d.motions[name]
+        if isinstance(m, Static):
+            d.pin(name, m.value)
+    d.advance(0)
+
+
 def simulated_bus(devices: Sequence[str] = (), *, baudrate: int | None = None,
                   faults: Sequence[str] = (), scenario: str | Path | None = None,
                   tcp: bool | str = False, seed: int | None = None, sets: Sequence[str] = (),
                   options: Sequence[str] = (), turnaround: float | None = None,
                   tick: float | None = 1.0, profile_dirs: Iterable[Path] = (),
                   link: str | None = None,
-                  on_wire: Callable[[WireFrame], None] | None = None) -> SimulatedBus:
+                  on_wire: Callable[[WireFrame], None] | None = None,
+                  tap: str | None = None) -> SimulatedBus:
     """A simulated bus, started by ``with`` (or ``.start()``, then ``.stop()``).
 
     ``devices``: ``PROFILE@ADDRESS`` strings (or anything whose ``str`` is one); none
     and no scenario devices: one of each bundled profile (``scenario.DEFAULT_DEVICES``).
     ``faults``: fault specs (``faults.parse_fault``); ``sets``/``options``:
     ``PROFILE@ADDRESS.NAME=VALUE`` as on the command line; ``tcp``: True (a free port on
-    127.0.0.1) or ``"HOST:PORT"``; ``tick``: seconds per value step (None: frozen).
+    127.0.0.1) or ``"HOST:PORT"``; ``tick``: seconds per value step (None: frozen);
+    ``tap``: a link to a second pty that hears every byte on the line (``.tap_port``).
     """
     config = build([str(d) for d in devices], scenario=scenario, sets=sets, options=options,
                    faults=faults, seed=seed, baudrate=baudrate, turnaround=turnaround,
                    tick=tick, profile_dirs=profile_dirs)
-    return SimulatedBus(config, tcp=tcp, link=link, on_wire=on_wire)
+    return SimulatedBus(config, tcp=tcp, link=link, on_wire=on_wire, tap=tap)
+
+
+class SimulatedLines:
+    """Several simulated lines (one pty or TCP port each), started and stopped together."""
+
+    def __init__(self, lines: Sequence[SimulatedBus]) -> None:
+        self.lines = list(lines)
+
+    def start(self) -> SimulatedLines:
+        try:
+            for line in self.lines:
+                line.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def stop(self) -> None:
+        for line in self.lines:
+            line.stop()
+
+    def __enter__(self) -> SimulatedLines:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    def __iter__(self) -> Iterator[SimulatedBus]:
+        return iter(self.lines)
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    def line_of(self, unit: int) -> SimulatedBus:
+        """The line that serves the device configured at ``unit``."""
+        for line in self.lines:
+            if any(d.address == unit for d in line.config.devices):
+                return line
+        raise KeyError(unit)
+
+
+def simulated_lines(devices: Sequence[str] = (), *, baudrate: int | None = None,
+                    one_line: bool = False, faults: Sequence[str] = (),
+                    scenario: str | Path | None = None, tcp: bool | str = False,
+                    seed: int | None = None, sets: Sequence[str] = (),
+                    options: Sequence[str] = (), turnaround: float | None = None,
+                    tick: float | None = 1.0, profile_dirs: Iterable[Path] = (),
+                    link: str | None = None,
+                    on_wire: Callable[[WireFrame], None] | None = None,
+                    tap: str | None = None) -> SimulatedLines:
+    """The devices on lines that could exist (``scenario.split_lines``), one port each.
+
+    Arguments as ``simulated_bus``. ``baudrate``: wire timing, and the speed preferred
+    for the first line; ``one_line``: every device on one line (at ``baudrate``, or at
+    any speed without it), as asked, even one that could not run there. ``link``: the
+    first line's link; line N's gets N appended. ``tcp`` ``HOST:PORT``: line N listens
+    on PORT + N - 1 (a free port each with PORT 0 or ``True``). ``tap``: as ``link``.
+    """
+    config = build([str(d) for d in devices], scenario=scenario, sets=sets, options=options,
+                   faults=faults, seed=seed, baudrate=baudrate, turnaround=turnaround,
+                   tick=tick, profile_dirs=profile_dirs)
+    lines = (config,) if one_line or (config.baudrate and baudrate is None) \
+        else split_lines(config, baudrate)
+    out = []
+    for i, line in enumerate(lines):
+        where: bool | str = tcp
+        if isinstance(tcp, str) and i:
+            host, _, port = tcp.rpartition(":")
+            where = f"{host}:{int(port) + i if int(port or 0) else 0}"
+        out.append(SimulatedBus(line, tcp=where, link=f"{link}{i + 1}" if link and i else link,
+                                on_wire=on_wire, tap=f"{tap}{i + 1}" if tap and i else tap))
+    return SimulatedLines(out)

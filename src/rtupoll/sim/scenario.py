@@ -18,6 +18,11 @@ read through ``yamlsrc``, so a mistake is reported as ``file:line: path: message
 
 Devices named on the command line are added to the scenario's; a device in both is one
 device. With no device anywhere, the bus holds ``DEFAULT_DEVICES``.
+
+A real RS-485 line runs at one speed, and not every device runs at every speed (the
+CO2Meter board only at 115200, the IRNET not at 115200). ``split_lines`` puts devices on
+as few lines as can exist: the speed most of them run at first, then the rest, so the
+default demo is two lines (9600 and 115200), each answering only at its own speed.
 """
 
 from __future__ import annotations
@@ -44,13 +49,72 @@ DEFAULT_DEVICES = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-
 OPTIONS = ("variant", "write_reply", "turnaround")
 
 
+# Baud rates in the order people meet them, to break ties between equally good speeds.
+COMMON_RATES = (9600, 19200, 38400, 115200, 57600, 4800, 2400, 1200)
+
+
 @dataclass(frozen=True)
 class BusConfig:
     devices: tuple[DeviceConfig, ...]
     faults: tuple[Fault, ...] = ()  # bus-wide faults (a device's own sit in its config)
-    baudrate: int | None = None
+    baudrate: int | None = None  # wire timing at this rate (and the line's speed)
     seed: int = 0
     tick: float | None = 1.0  # seconds per value step; None: values never move
+    speed: int | None = None  # without timing: the only speed the line answers at
+
+    @property
+    def line_speed(self) -> int | None:
+        """The speed a client must open the line at (None: any speed)."""
+        return self.baudrate or self.speed
+
+
+def speeds(p: Profile) -> tuple[int, ...]:
+    """Every baud rate a profile's device can run at."""
+    return p.serial.baudrates or (p.serial.baudrate,)
+
+
+def split_lines(config: BusConfig, prefer: int | None = None) -> tuple[BusConfig, ...]:
+    """The devices on as few lines as could exist, each line at one speed (and parity).
+
+    Each round takes the speed most remaining devices run at (``prefer`` when any of
+    them runs at it; ties: more devices' default, then the more common rate) and puts
+    every device that runs at it on one line. Bus-wide faults go to every line. A line
+    gets wire timing at its speed when ``config`` has timing (``baudrate``), else it
+    only answers clients at its speed (``speed``).
+    """
+    left = list(config.devices)
+    out: list[BusConfig] = []
+    while left:
+        counts: dict[tuple[int, str, int], tuple[int, int]] = {}
+        for d in left:
+            s = d.profile.serial
+            for r in speeds(d.profile):
+                n, dflt = counts.get((r, s.parity, s.stopbits), (0, 0))
+                counts[(r, s.parity, s.stopbits)] = (n + 1, dflt + (r == s.baudrate))
+
+        def rank(k: tuple[int, str, int], counts: dict[tuple[int, str, int], tuple[int, int]]
+                 = counts) -> tuple[int, int, int, int]:
+            common = COMMON_RATES.index(k[0]) if k[0] in COMMON_RATES else len(COMMON_RATES)
+            return (k[0] == prefer, counts[k][0], counts[k][1], -common)
+
+        rate, parity, stop = max(counts, key=rank)
+        here = [d for d in left if rate in speeds(d.profile)
+                and (d.profile.serial.parity, d.profile.serial.stopbits) == (parity, stop)]
+        left = [d for d in left if d not in here]
+        timed = config.baudrate is not None
+        out.append(dataclasses.replace(config, devices=tuple(here),
+                                       baudrate=rate if timed else None,
+                                       speed=None if timed else rate))
+    return tuple(out)
+
+
+def cannot_run(config: BusConfig) -> list[str]:
+    """Devices on a line whose speed their profile does not list: a bus that cannot exist."""
+    rate = config.line_speed
+    if rate is None:
+        return []
+    return [f"{d.name} runs at {', '.join(map(str, speeds(d.profile)))} only, not {rate}"
+            for d in config.devices if rate not in speeds(d.profile)]
 
 
 _CACHE: dict[tuple[str, tuple[str, ...], str], Profile] = {}
@@ -98,7 +162,10 @@ def parse_value(field: Field, text: str) -> Value:
 
 def _checked(cfg: DeviceConfig, name: str, value: Value) -> Value:
     f = cfg.profile.field(name)
-    field_words(f, value)  # raises EncodeError (a RefusedError) if it cannot be encoded
+    try:
+        field_words(f, value)  # raises EncodeError (a RefusedError) if it cannot be encoded
+    except (ValueError, OverflowError):  # NaN or infinity for a scaled integer field
+        raise UsageError(f"{name}: {value!r} cannot be stored as {f.layout.type.value}") from None
     return value
 
 
@@ -213,6 +280,8 @@ def build(devices: Sequence[str] = (), *, scenario: str | Path | None = None,
         bus_faults += [f] if f else []
     if turnaround is None and "turnaround" in top:
         turnaround = top["turnaround"].number()
+        if not 0 <= turnaround <= 10:
+            raise top["turnaround"].fail(f"{turnaround:g} s is outside 0..10 s")
     if turnaround is not None:
         for a, cfg in b.devices.items():
             if cfg.turnaround is None:
@@ -222,7 +291,10 @@ def build(devices: Sequence[str] = (), *, scenario: str | Path | None = None,
     if baudrate is None and "baudrate" in top:
         baudrate = top["baudrate"].integer(300, 4_000_000)
     if "tick" in top:
-        tick = top["tick"].number() or None
+        tick = top["tick"].number()
+        if not 0 <= tick <= 3600:
+            raise top["tick"].fail(f"{tick:g} s is outside 0..3600 s (0 freezes values)")
+        tick = tick or None
     return BusConfig(tuple(b.devices[a] for a in sorted(b.devices)), tuple(bus_faults),
                      baudrate, seed, tick)
 

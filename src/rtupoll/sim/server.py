@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import os
 import struct
 import termios
@@ -77,6 +78,7 @@ class _Link:
     def received(self, data: bytes) -> None:
         srv = self.server
         now = srv.loop.time()
+        srv.to_tap(data, now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0))
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
@@ -115,6 +117,7 @@ class _Link:
         now = srv.loop.time()
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
+        srv.to_tap(tx.data)
         try:
             self.write(tx.data)
         except OSError as exc:  # nobody reading and the pty buffer full: lost, as on a wire
@@ -144,6 +147,8 @@ class Server:
         self._fds: list[int] = []
         self._link_path: Path | None = None
         self._tcp: asyncio.Server | None = None
+        self._tap: int | None = None  # the tap pty's master: hears every byte on the line
+        self._tap_link: Path | None = None
 
     def log(self, when: float, direction: str, data: bytes, note: str = "") -> None:
         frame = WireFrame(when, direction, data, note)
@@ -199,6 +204,33 @@ class Server:
             self._link_path = _make_link(Path(link), path)
         self.port = path
         return path
+
+    async def serve_tap(self, link: str) -> str:
+        """A second pty that receives a copy of every byte on the line (for a sniffer);
+        ``link`` becomes a symbolic link to it. Bytes written to it are ignored."""
+        master, slave = os.openpty()
+        self._fds += [master, slave]
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._tap = master
+        path = os.ttyname(slave)
+        self._tap_link = _make_link(Path(link), path)
+        return path
+
+    def to_tap(self, data: bytes, at: float | None = None) -> None:
+        """Copy bytes on the line to the tap: now, or at ``at`` (when they end on the wire)."""
+        if self._tap is None:
+            return
+        if at is not None and at > self.loop.time():
+            def copy() -> None:
+                self._pending.discard(handle)
+                self.to_tap(data)
+
+            handle = self.loop.call_at(at, copy)
+            self._pending.add(handle)
+            return
+        with contextlib.suppress(OSError):  # nobody listening, the pty buffer full: lost
+            _write_all(self._tap, data)
 
     def _line_mismatch(self, fd: int) -> str | None:
         """With wire timing, why the client's line settings would garble this bus, if they do.
@@ -257,6 +289,9 @@ class Server:
         self._fds.clear()
         if self._link_path is not None and self._link_path.is_symlink():
             self._link_path.unlink()
+        if self._tap_link is not None and self._tap_link.is_symlink():
+            self._tap_link.unlink()
+        self._tap = None
 
 
 def _write_all(fd: int, data: bytes) -> None:

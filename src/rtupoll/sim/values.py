@@ -13,7 +13,7 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass
 
-from rtupoll.model.codec import DataType, Value, int_range
+from rtupoll.model.codec import DataType, Value, bits_range
 from rtupoll.model.profile import Field, Poll, Profile, Severity
 
 # chance per tick that an enum leaves its normal code or a flag shows up: with a dozen
@@ -30,9 +30,18 @@ def value_range(field: Field, profile: Profile) -> tuple[float, float]:
         if check.field == field.name and check.range is not None:
             return check.range
     t = field.layout.type
+    if isinstance(field.typical, (int, float)):
+        # around the everyday value the profile gives, never across zero from it
+        half = abs(field.typical) * 0.5 or 1.0
+        lo_t, hi_t = field.typical - half, field.typical + half
+        if t.is_integer:
+            blo, bhi = sorted(v * field.layout.scale + field.layout.offset
+                              for v in bits_range(field.layout))
+            lo_t, hi_t = max(lo_t, blo), min(hi_t, bhi)
+        return lo_t, hi_t
     if t.is_float:
         return 0.0, 100.0
-    lo, hi = int_range(t) if t.is_integer else (0, 1)
+    lo, hi = bits_range(field.layout) if t.is_integer else (0, 1)
     scale, offset = field.layout.scale, field.layout.offset
     lo_v, hi_v = sorted((lo * scale + offset, hi * scale + offset))
     # a default span that is clearly a value, not a full-scale or wrapped-around number
@@ -46,7 +55,7 @@ def quantize(field: Field, value: float) -> int | float:
         return value
     scale, offset = field.layout.scale, field.layout.offset
     raw = round((value - offset) / scale)
-    lo, hi = int_range(t)
+    lo, hi = bits_range(field.layout)
     raw = min(max(raw, lo), hi)
     if scale == 1 and offset == 0:
         return int(raw)
@@ -59,8 +68,11 @@ _TYPICAL = {"°C": (18.0, 26.0), "degC": (18.0, 26.0), "C": (18.0, 26.0), "K": (
 
 
 def _typical(field: Field, lo: float, hi: float, rng: random.Random) -> float:
-    """Where a measurement starts: typical for its unit, else low in a range that starts
-    at zero (concentrations, distances), else mid-range."""
+    """Where a measurement starts: the profile's ``typical`` value, else typical for its
+    unit, else low in a range that starts at zero (concentrations, distances), else
+    mid-range."""
+    if isinstance(field.typical, (int, float)):
+        return float(field.typical)
     if field.unit in _TYPICAL:
         return rng.uniform(*_TYPICAL[field.unit])
     share = rng.uniform(0.05, 0.3) if lo >= 0 else rng.uniform(0.3, 0.6)
@@ -96,9 +108,25 @@ class Walk(Motion):
 
     def step(self, rng: random.Random) -> None:
         span = self.hi - self.lo
+        if isinstance(self.field.typical, (int, float)):  # stay near it: values agree
+            span = min(span, abs(self.field.typical) * 0.2)
         self.x += rng.gauss(0.0, span * 0.01) + (self.home - self.x) * 0.05
         self.x = min(max(self.x, self.lo), self.hi)
         self.value = quantize(self.field, self.x)
+
+
+class Counter(Motion):
+    """A total that only grows (``counter: true``): energy, operating hours."""
+
+    def __init__(self, field: Field, start: float, rate: float) -> None:
+        self.field, self.x, self.rate = field, start, rate
+        self.value = quantize(field, self.x)
+
+    def step(self, rng: random.Random) -> None:
+        self.x += rng.uniform(0.5, 1.5) * self.rate
+        value = quantize(self.field, self.x)
+        if isinstance(value, (int, float)) and isinstance(self.value, (int, float)):
+            self.value = max(value, self.value)  # clamped at the top: stays, never wraps
 
 
 class Events(Motion):
@@ -150,6 +178,8 @@ def motion_for(field: Field, profile: Profile, rng: random.Random) -> Motion:
     """The behaviour a field gets when nothing pins it."""
     t = field.layout.type
     if t is DataType.STRING:
+        if isinstance(field.typical, str):
+            return Static(field.typical)
         return Static(f"SIM-{field.name}".upper()[: 2 * field.words])
     if t is DataType.BOOL:
         return Static(False)
@@ -161,8 +191,15 @@ def motion_for(field: Field, profile: Profile, rng: random.Random) -> Motion:
             or list(field.flags)
         return Events(0, bits) if field.poll is Poll.DEFAULT else Static(0)
     lo, hi = value_range(field, profile)
+    if field.counter:
+        start = float(field.typical) if isinstance(field.typical, (int, float)) \
+            else lo + (hi - lo) * rng.uniform(0.01, 0.1)
+        step = abs(field.layout.scale) if t.is_integer else max(abs(start), 1.0) * 1e-5
+        return Counter(field, start, step)
     if field.poll is Poll.NEVER:
         return Peak(field, lo, hi)
     if field.poll is Poll.DEFAULT:
         return Walk(field, lo, hi, rng)
+    if field.typical is not None:
+        return Static(quantize(field, float(field.typical)))
     return Static(quantize(field, rng.uniform(lo, lo + (hi - lo) / 4)))

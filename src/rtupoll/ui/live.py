@@ -55,14 +55,15 @@ class PollView:
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
         height = options.height or console.height
-        yield self.render(compact=self.live and self.full_height() > height)
+        yield self.render(compact=self.live and self.full_height() > height,
+                          width=options.max_width)
 
-    def render(self, *, compact: bool = False) -> RenderableType:
+    def render(self, *, compact: bool = False, width: int | None = None) -> RenderableType:
         parts: list[RenderableType] = [self.header()] if self.title else []
         parts.append(self.compact_table() if compact else self.readings_table())
         if not compact:
             parts.append(Text(""))
-        parts.append(self.health_table())
+        parts.append(self.health_table(width))
         parts += [f for f in (footer() for footer in self.footers) if f is not None]
         return Group(*parts)
 
@@ -141,15 +142,19 @@ class PollView:
 
     # -- one wrapped line per device --------------------------------------------------
     def compact_table(self) -> Table:
+        """One wrapped line of readings per device, for a short terminal: no header row,
+        and a device's state under its name only when it is not online (the name's
+        colour and the footer say it too), so two buses still fit 80x24."""
         t = Table(show_edge=False, pad_edge=False, header_style="bold", show_lines=False,
-                  box=None, padding=(0, 1, 0, 0))
+                  box=None, padding=(0, 1, 0, 0), show_header=False)
         width = max(len(d.config.name) for d in self.devices) + 1
         t.add_column("device", no_wrap=True, min_width=width)
         t.add_column("readings", ratio=1)
         for dev in self.devices:
             cfg, st = dev.config, dev.stats
             label = Text(cfg.name, style="bold " + STATE_STYLE[st.state])
-            label.append(f"\n{st.state.value}", style=STATE_STYLE[st.state])
+            if st.state is not State.ONLINE:
+                label.append(f"\n{st.state.value}", style=STATE_STYLE[st.state])
             latest = [st.latest.get(f.name) for f in cfg.fields]
             if latest and all(r is not None and not r.ok for r in latest):
                 # nothing read: one line saying why, not a row of dashes
@@ -194,7 +199,10 @@ class PollView:
         return Text(text, style=style)
 
     # -- footer -----------------------------------------------------------------------
-    def health_table(self) -> Group:
+    def health_table(self, width: int | None = None) -> Group:
+        """Each bus's line and its devices' health. Narrower than 90 columns, counter
+        columns that are 0 for every device (late, garbled) are left out, so the rest
+        fits 80 columns whole."""
         now, wall = self._clock(), self._wall()
         parts: list[RenderableType] = []
         for bus in self.buses:
@@ -212,23 +220,33 @@ class PollView:
             if bus.port_error:
                 line.append(f" · {bus.port_error}", style="bold red")
             parts.append(line)
-            t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
-                      padding=(0, 1, 0, 0))
-            for col in ("  device", "state", "ok", "timeout", "late", "garbled", "except", "p50",
-                        "p95", "waits", "last ok"):
-                t.add_column(col, justify="left" if col in ("  device", "state") else "right",
-                             no_wrap=True)
+            heads = ("  device", "state", "ok", "timeout", "late", "garbled", "except", "p50",
+                     "p95", "waits", "last ok")
+            rows: list[list[RenderableType]] = []
             for dev in bus.devices:
                 st = dev.stats
-                t.add_row(
+                rows.append([
                     Text("  " + dev.config.name),
                     Text(st.state.value, style=STATE_STYLE[st.state]),
                     str(st.ok), _count(st.timeouts), _count(st.late), _count(st.garbled),
                     _count(st.exception_count, _codes(st.exceptions.items())),
                     _ms(st.p50()), _ms(st.p95()), _wait(st.timeout, st.timeout_source),
                     _age(wall - st.last_good_time) if st.last_good_time else "never",
-                )
+                ])
+            keep = [i for i, h in enumerate(heads) if width is None or width >= 90
+                    or h not in ("late", "garbled") or any(str(r[i]) != "0" for r in rows)]
+            t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
+                      padding=(0, 1, 0, 0))
+            for i in keep:
+                t.add_column(heads[i], justify="left" if heads[i] in ("  device", "state")
+                             else "right", no_wrap=True)
+            for r in rows:
+                t.add_row(*(r[i] for i in keep))
             parts.append(t)
+            for dev in bus.devices:  # registers learned never to bridge (jobs.holes)
+                for note in dev.stats.holes:
+                    parts.append(Text(f"  {dev.config.name}: not bridged: {note}",
+                                      style="dim"))
         return Group(*parts)
 
 

@@ -1,0 +1,156 @@
+"""The Modbus TCP gateway: a client's added latency against the wire, and what a
+hammering client costs the poller -- measured in one run.
+
+The simulator runs as ``rtupoll simulate --baud N`` in its own process (turnaround 0),
+and so does the Modbus TCP client (pymodbus's plain synchronous client, reading the
+Huiwen module's four input registers at 30006 in a loop), so the gateway's process
+does only the gateway's and the poller's work. Four phases on the same simulator:
+
+1. direct: rtupoll's own bus reads the same four registers (no gateway): the floor
+   rtupoll's RTU master sets on this machine;
+2. gateway alone (``poll --serve`` with no devices): the client's latency through
+   the gateway, against the transaction's wire time and against the direct read;
+3. poller alone: three devices at interval 0 (the bus saturated): its transactions/s;
+4. poller and the hammering client together: both rates, and the client's latency.
+
+Run: .venv/bin/python benchmarks/gateway.py [--baud 9600] [--seconds 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import statistics
+import subprocess
+import sys
+import time
+
+from poll_common import simulator
+
+from rtupoll.config.site import BusConfig, Site, from_specs
+from rtupoll.gateway.service import GatewayService
+from rtupoll.gateway.settings import ServeConfig
+from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
+from rtupoll.rtu import Framing, Table, transaction_wire_time
+
+DEVICES = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3")
+UNIT, ADDRESS, COUNT = 3, 0x7536, 4  # Huiwen: PM2.5, TVOC, HCHO, CO2
+
+
+def client(port: int, seconds: float) -> None:
+    """The hammering client (a child process): latencies in seconds, as JSON on stdout."""
+    from pymodbus.client import ModbusTcpClient
+
+    c = ModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+    assert c.connect()
+    lat: list[float] = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        t = time.monotonic()
+        r = c.read_input_registers(ADDRESS, count=COUNT, device_id=UNIT)
+        if r.isError() or len(r.registers) != COUNT:
+            raise SystemExit(f"client: bad answer {r}")
+        lat.append(time.monotonic() - t)
+    c.close()
+    print(json.dumps(lat))
+
+
+async def direct(port: str, baud: int, n: int) -> list[float]:
+    lat = []
+    async with Bus(PortSettings(port, baud)) as bus:
+        for _ in range(n):
+            t = time.monotonic()
+            await bus.read(UNIT, Table.INPUT, ADDRESS, COUNT, timeout=0.5)
+            lat.append(time.monotonic() - t)
+    return lat
+
+
+async def served(site: Site, seconds: float, hammer: bool) -> tuple[Scheduler, list[float]]:
+    scheduler = Scheduler(site)
+    service = GatewayService()
+
+    def sink(dev: DevicePoller, readings: list[Reading]) -> None:
+        if any(not r.ok for r in readings):
+            raise SystemExit(f"{dev.config.name}: {readings[0].error}")
+
+    stop = asyncio.Event()
+    await scheduler.open()
+    await service.start(scheduler)
+    port = service.gateways[0].address[1]
+    task = asyncio.create_task(scheduler.run(sink, stop))
+    lat: list[float] = []
+    try:
+        if hammer:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, __file__, "--client", str(port), "--seconds", str(seconds),
+                stdout=subprocess.PIPE)
+            out, _ = await proc.communicate()
+            lat = json.loads(out)
+        else:
+            await asyncio.sleep(seconds)
+    finally:
+        stop.set()
+        await task
+        await service.stop()
+        await scheduler.close()
+    return scheduler, lat
+
+
+def requests(s: Scheduler) -> int:
+    return sum(d.stats.requests for d in s.pollers())
+
+
+def ms(x: float) -> str:
+    return f"{x * 1000:.1f} ms"
+
+
+def run(baud: int, seconds: float) -> None:
+    framing = Framing(baud)
+    wire = transaction_wire_time(framing, 8, 5 + 2 * COUNT)
+    serve = ServeConfig("127.0.0.1", 0)
+    with simulator(baud, DEVICES) as port:
+        d = asyncio.run(direct(port, baud, 100))
+        gw_only = Site((BusConfig("gw", port, baud, serve=serve),))
+        _, alone = asyncio.run(served(gw_only, seconds, hammer=True))
+        specs = [(x.split("@")[0], int(x.split("@")[1])) for x in DEVICES]
+        site = from_specs(port, specs, baudrate=baud, interval=0, check_serial=False)
+        site = Site((BusConfig(**{**site.buses[0].__dict__, "serve": serve}),))
+        poller_only, _ = asyncio.run(served(site, seconds, hammer=False))
+        shared, both = asyncio.run(served(site, seconds, hammer=True))
+    med_d, med_g = statistics.median(d), statistics.median(alone)
+    print(f"{baud} baud; transaction (FC04, 4 registers) on the wire with two silences: "
+          f"{ms(wire)}")
+    print(f"direct read (rtupoll's bus, no gateway): median {ms(med_d)} = "
+          f"{med_d / wire:.2f}x the wire time")
+    print(f"through the gateway (pymodbus TCP client, no poller): median {ms(med_g)} = "
+          f"{med_g / wire:.2f}x the wire time; added by the gateway over the direct read: "
+          f"{ms(med_g - med_d)}")
+    r0 = requests(poller_only) / seconds
+    r1 = requests(shared) / seconds
+    c1 = len(both) / seconds
+    print(f"poller alone (3 devices, interval 0): {r0:.1f} transactions/s")
+    print(f"poller with a hammering client: {r1:.1f} transactions/s "
+          f"({r1 / r0:.0%} of alone); the client got {c1:.1f} requests/s, latency p50 "
+          f"{ms(statistics.median(both))}, p95 {ms(sorted(both)[int(0.95 * len(both))])}; "
+          f"line shared {r1 / (r1 + c1):.0%} poller / {c1 / (r1 + c1):.0%} client")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--baud", type=int, default=9600)
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--client", type=int, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.client is not None:
+        client(args.client, args.seconds)
+        return
+    with contextlib.suppress(KeyboardInterrupt):
+        run(args.baud, args.seconds)
+
+
+if __name__ == "__main__":
+    main()

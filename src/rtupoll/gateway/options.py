@@ -1,0 +1,60 @@
+"""``rtupoll poll``'s ``--serve*`` options, and the ``ServeConfig`` they make."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
+
+import click
+
+from rtupoll.errors import UsageError
+from rtupoll.gateway.settings import DEFAULT_QUEUE, DEFAULT_TIMEOUT, ServeConfig, serve_config
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def serve_options(f: F) -> F:
+    """The options; ``poll`` takes them as ``**serve`` and calls ``from_options``."""
+    for option in reversed((
+        click.option("--serve", "serve", default=None, metavar="[tcp://|rtu+tcp://][HOST:]PORT",
+                     help="Serve Modbus TCP (or RTU over TCP) to other masters, sharing this "
+                          "bus (HOST defaults to 127.0.0.1; see docs/gateway.md)."),
+        click.option("--serve-allow", "serve_allow", multiple=True, metavar="CIDR",
+                     help="--serve: client networks allowed (repeatable; default: any)."),
+        click.option("--serve-read-only", "serve_read_only", is_flag=True,
+                     help="--serve: refuse every write (exception 01)."),
+        click.option("--serve-cache", "serve_cache", type=click.FloatRange(0, 3600),
+                     default=0.0, metavar="SECONDS",
+                     help="--serve: answer reads from data polled at most this long ago."),
+        click.option("--serve-broadcast", "serve_broadcast", is_flag=True,
+                     help="--serve: pass broadcast writes (unit 0) to the line."),
+        click.option("--serve-setup-writes", "serve_setup_writes", multiple=True,
+                     type=click.IntRange(1, 255), metavar="UNIT",
+                     help="--serve: let clients write this unit's address and baud-rate "
+                          "registers (repeatable)."),
+        click.option("--serve-queue", "serve_queue", type=click.IntRange(1, 1000),
+                     default=DEFAULT_QUEUE, show_default=True,
+                     help="--serve: requests that may wait for the line; more get 0x0A."),
+        click.option("--serve-timeout", "serve_timeout", type=click.FloatRange(0.01, 30),
+                     default=DEFAULT_TIMEOUT, show_default=True,
+                     help="--serve: response timeout for units rtupoll does not poll."),
+    )):
+        f = option(f)
+    return f
+
+
+def from_options(opts: Mapping[str, Any]) -> ServeConfig | None:
+    """The ``ServeConfig`` of ``--serve``; None without it (other --serve-* then refused)."""
+    listen = opts.get("serve")
+    if listen is None:
+        given = [k for k, v in opts.items() if k != "serve" and v not in (None, (), False)
+                 and not (k == "serve_cache" and v == 0)
+                 and not (k == "serve_queue" and v == DEFAULT_QUEUE)
+                 and not (k == "serve_timeout" and v == DEFAULT_TIMEOUT)]
+        if given:
+            raise UsageError(f"--{given[0].replace('_', '-')} is an option of --serve")
+        return None
+    return serve_config(listen, allow=opts["serve_allow"], read_only=opts["serve_read_only"],
+                        cache=opts["serve_cache"], broadcast=opts["serve_broadcast"],
+                        setup_writes=opts["serve_setup_writes"], queue=opts["serve_queue"],
+                        timeout=opts["serve_timeout"])

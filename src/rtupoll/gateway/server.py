@@ -1,0 +1,320 @@
+"""One bus's gateway: an asyncio listener, a worker per client, requests onto the line.
+
+Each connection has a reader (bytes -> frames through the sans-IO decoder) and a
+worker that answers its frames in order. Before a request may take a turn on the
+line (``turns``) it is checked (``pdu.parse``, ``access``); a request for a device
+the scheduler has backed off as offline is answered 0x0B at once, a read the cache
+covers from the cache. At most ``queue`` requests (all clients together) wait for
+the line; one more is answered 0x0A at once.
+
+A client that disconnects with a request on the line does not cut it short (a
+transaction abandoned half-way would leave its reply to collide with the next
+request): it completes, its reply is dropped, and the client's queued requests
+are dropped unanswered. A frame that cannot be trusted (``MbapError``) closes
+that client's connection with one log line; nothing of it reaches the line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
+from rtupoll.gateway import mbap, rtutcp
+from rtupoll.gateway.access import Access
+from rtupoll.gateway.cache import ReadCache
+from rtupoll.gateway.clients import ClientStats
+from rtupoll.gateway.line import Line
+from rtupoll.gateway.pdu import (
+    ILLEGAL_FUNCTION,
+    PATH_UNAVAILABLE,
+    TARGET_FAILED,
+    Ask,
+    BadRequest,
+    exception_pdu,
+    parse,
+    read_reply,
+)
+from rtupoll.gateway.settings import ServeConfig
+from rtupoll.gateway.turns import Turns
+from rtupoll.jobs.stats import State
+
+if TYPE_CHECKING:
+    from rtupoll.jobs.scheduler import BusPoller, DevicePoller
+    from rtupoll.jobs.stats import Reading
+
+Log = Callable[[str], None]
+Clock = Callable[[], float]
+KEEP_CLIENTS = 32  # disconnected clients' counters kept for the footer and JSON
+EVENTS = 5  # log lines kept for the live table
+STOP_WAIT = 2.0  # seconds a stopping gateway lets a request on the line complete
+
+
+class SilentUnits:
+    """Backoff for units rtupoll does not poll (a polled one has the scheduler's): after
+    ``after`` timeouts in a row a unit is answered 0x0B at once for ``base`` seconds,
+    doubling up to ``cap`` while each probe (the first request after the hold) also
+    times out; one answer ends it. Pure: the caller gives the time."""
+
+    def __init__(self, *, after: int = 3, base: float = 1.0, cap: float = 30.0) -> None:
+        self.after, self.base, self.cap = after, base, cap
+        self._failures: dict[int, int] = {}
+        self._until: dict[int, float] = {}
+
+    def held(self, unit: int, now: float) -> bool:
+        return now < self._until.get(unit, 0.0)
+
+    def timed_out(self, unit: int, now: float) -> None:
+        n = self._failures[unit] = self._failures.get(unit, 0) + 1
+        if n >= self.after:
+            self._until[unit] = now + min(self.cap, self.base * 2 ** (n - self.after))
+
+    def answered(self, unit: int) -> None:
+        self._failures.pop(unit, None)
+        self._until.pop(unit, None)
+
+
+class Gateway:
+    """Serves ``config`` for the bus ``poller`` polls, through ``line``."""
+
+    def __init__(self, config: ServeConfig, poller: BusPoller, line: Line, turns: Turns, *,
+                 log: Log | None = None, info: Log | None = None,
+                 clock: Clock = time.monotonic) -> None:
+        self.config, self.poller, self.line, self.turns = config, poller, line, turns
+        self._devices: object = None
+        self.units: dict[int, DevicePoller] = {}
+        self.access = Access(config, {})
+        self._learn_devices()
+        self.cache = ReadCache(config.cache) if config.cache > 0 else None
+        self.silent = SilentUnits()  # units not polled that stopped answering
+        self.clients: list[ClientStats] = []
+        self.events: deque[str] = deque(maxlen=EVENTS)
+        self.pending = 0  # requests queued or on the line, all clients
+        self._log, self._info, self._clock = log, info, clock
+        self._server: asyncio.Server | None = None
+        self._handlers: set[asyncio.Task[None]] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    def _learn_devices(self) -> None:
+        """The polled devices by unit, and the access rules for their profiles (again
+        after a reload changed the bus's devices)."""
+        if self.poller.devices is self._devices:
+            return
+        self._devices = self.poller.devices
+        self.units = {d.config.address: d for d in self.poller.devices}
+        self.access = Access(self.config, {u: d.config.profile for u, d in self.units.items()})
+
+    # -- life ---------------------------------------------------------------------
+    async def start(self) -> None:
+        cfg = self.config
+        try:
+            self._server = await asyncio.start_server(self._handle, cfg.host, cfg.port)
+        except OSError as exc:
+            raise PortError(f"cannot serve {cfg.url}: {exc.strerror or exc}") from None
+        if cfg.port == 0:  # the port the system chose, in the log and the footer
+            self.config = dataclasses.replace(cfg, port=self.address[1])
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """Where it listens (the port the system chose, for ``:0``)."""
+        assert self._server is not None and self._server.sockets
+        host, port = self._server.sockets[0].getsockname()[:2]
+        return str(host), int(port)
+
+    async def stop(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(Exception):
+                await self._server.wait_closed()
+            self._server = None
+        for writer in list(self._writers):  # each client sees the end of its stream
+            writer.close()
+        if self._handlers:
+            await asyncio.wait(list(self._handlers), timeout=STOP_WAIT)
+        for task in list(self._handlers):
+            task.cancel()
+        await asyncio.gather(*self._handlers, return_exceptions=True)
+
+    def on_readings(self, dev: DevicePoller, readings: Sequence[Reading]) -> None:
+        """The poller's decoded registers, for the cache."""
+        if self.cache is None:
+            return
+        now = self._clock()
+        for r in readings:
+            if r.value is not None:
+                self.cache.put(dev.config.address, r.field.table, r.field.address,
+                               r.value.raw, now)
+
+    def log(self, stats: ClientStats, message: str, *, once: str | None = None) -> None:
+        """A log line about a client; with ``once``, only the first time for that reason."""
+        if once is not None:
+            if once in stats.logged:
+                return
+            stats.logged.add(once)
+        self.events.append(f"client {stats.peer}: {message}")  # under the gateway's line
+        line = f"gateway {self.config.url}: client {stats.peer}: {message}"
+        if self._log is not None:
+            self._log(line)
+
+    # -- one connection -------------------------------------------------------------
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+                      ) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._handlers.add(task)
+        self._writers.add(writer)
+        peer = writer.get_extra_info("peername") or ("?", 0)
+        stats = ClientStats(f"{peer[0]}:{peer[1]}" if ":" not in str(peer[0])
+                            else f"[{peer[0]}]:{peer[1]}")
+        self.clients.append(stats)
+        del self.clients[:-KEEP_CLIENTS]
+        try:
+            if not self.access.peer_allowed(str(peer[0])):
+                stats.refused += 1
+                self.log(stats, "refused: not in the allowed networks "
+                         f"({', '.join(map(str, self.config.allow))}); connection closed")
+                return
+            await self._converse(reader, writer, stats)
+        except asyncio.CancelledError:  # the gateway stops: the client is let go
+            pass
+        finally:
+            stats.connected = False
+            if stats.requests and self._info is not None:
+                self._info(f"gateway {self.config.url}: client {stats.peer}: disconnected: "
+                           f"{stats.summary()}")
+            writer.close()
+            with contextlib.suppress(Exception, asyncio.CancelledError):
+                await writer.wait_closed()
+            self._handlers.discard(task)
+            self._writers.discard(writer)
+
+    async def _converse(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                        stats: ClientStats) -> None:
+        decoder = mbap.MbapDecoder() if self.config.framing == "mbap" else rtutcp.RtuDecoder()
+        queue: asyncio.Queue[tuple[mbap.Frame, float] | None] = asyncio.Queue()
+        worker = asyncio.create_task(self._work(queue, writer, stats))
+        try:
+            while not worker.done():
+                try:
+                    data = await reader.read(4096)
+                except (ConnectionError, OSError):
+                    break
+                if not data:
+                    break
+                try:
+                    frames = decoder.feed(data)
+                except mbap.MbapError as exc:
+                    self.log(stats, f"malformed frame, connection closed: {exc}")
+                    break
+                for frame in frames:
+                    stats.requests += 1
+                    if self.pending >= self.config.queue:
+                        stats.busy += 1
+                        self.log(stats, f"queue full ({self.config.queue} requests): "
+                                 "answered 0x0A", once="queue")
+                        self._send(writer, frame, exception_pdu(frame.pdu[0], PATH_UNAVAILABLE))
+                        continue
+                    self.pending += 1
+                    queue.put_nowait((frame, self._clock()))
+        finally:
+            while not queue.empty():  # not started: dropped with the connection
+                if queue.get_nowait() is not None:
+                    self.pending -= 1
+            queue.put_nowait(None)
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.shield(worker)  # a request on the line completes
+
+    async def _work(self, queue: asyncio.Queue[tuple[mbap.Frame, float] | None],
+                    writer: asyncio.StreamWriter, stats: ClientStats) -> None:
+        while True:
+            item = await queue.get()
+            if item is None:
+                return
+            frame, queued = item
+            try:
+                reply = await self.answer(frame.unit, frame.pdu, stats, queued)
+            finally:
+                self.pending -= 1
+            if reply is not None and not writer.is_closing():
+                self._send(writer, frame, reply)
+                with contextlib.suppress(ConnectionError, OSError):
+                    await writer.drain()
+
+    def _send(self, writer: asyncio.StreamWriter, frame: mbap.Frame, pdu: bytes) -> None:
+        if writer.is_closing():
+            return
+        data = rtutcp.encode(frame.unit, pdu) if frame.tid is None else \
+            mbap.encode(frame.tid, frame.unit, pdu)
+        with contextlib.suppress(ConnectionError, OSError, RuntimeError):
+            writer.write(data)
+
+    # -- one request ----------------------------------------------------------------
+    async def answer(self, unit: int, pdu: bytes, stats: ClientStats,
+                     queued: float | None = None) -> bytes | None:
+        """The reply PDU for one request (None: a broadcast, which has no reply)."""
+        self._learn_devices()
+        try:
+            ask = parse(pdu)
+        except BadRequest as exc:
+            stats.refused += 1
+            self.log(stats, f"refused: {exc.reason}", once=exc.reason)
+            return exception_pdu(pdu[0] if pdu else 0, exc.code)
+        refusal = self.access.check(unit, ask)
+        if refusal is not None:
+            stats.refused += 1
+            self.log(stats, f"refused: {refusal.reason}", once=refusal.reason)
+            return exception_pdu(ask.function, refusal.code)
+        dev = self.units.get(unit)
+        if (dev is not None and dev.stats.state is State.OFFLINE) or \
+                (dev is None and self.silent.held(unit, self._clock())):
+            stats.timeouts += 1
+            return exception_pdu(ask.function, TARGET_FAILED)
+        if ask.read and self.cache is not None and ask.table is not None:
+            got = self.cache.get(unit, ask.table, ask.address, ask.count, self._clock())
+            if got is not None:
+                stats.answered += 1
+                stats.cached += 1
+                return read_reply(ask.function, got)
+        reply = await self._on_line(unit, ask, stats, queued, dev)
+        return None if unit == 0 else reply
+
+    async def _on_line(self, unit: int, ask: Ask, stats: ClientStats, queued: float | None,
+                       dev: DevicePoller | None) -> bytes:
+        timeout = dev.config.response_timeout if dev is not None else self.config.timeout
+        async with self.turns.turn(id(stats)):
+            start = self._clock()
+            if queued is not None:
+                stats.waits.append(start - queued)
+            failed = False
+            try:
+                reply = await self.line.transact(unit, ask.pdu, timeout=timeout, retries=0)
+                self.silent.answered(unit)
+                if reply[:1] == bytes((ask.function | 0x80,)):
+                    stats.exceptions += 1
+                else:
+                    stats.answered += 1
+                return reply
+            except (DeviceTimeout, FrameError) as exc:
+                if isinstance(exc, DeviceTimeout) and dev is None and unit:
+                    self.silent.timed_out(unit, self._clock())
+                failed = True
+                stats.timeouts += 1
+                return exception_pdu(ask.function, TARGET_FAILED)
+            except RefusedError as exc:  # a function the bus cannot build
+                stats.refused += 1
+                self.log(stats, f"refused: {exc}", once=f"fc{ask.function}")
+                return exception_pdu(ask.function, ILLEGAL_FUNCTION)
+            except PortError as exc:
+                stats.busy += 1
+                self.log(stats, f"answered 0x0A: {exc}", once="port")
+                return exception_pdu(ask.function, PATH_UNAVAILABLE)
+            finally:
+                end = self._clock()
+                self.poller.load.add(end, end - start, failed_by=self if failed else None)
+                if ask.write and self.cache is not None and ask.table is not None:
+                    self.cache.forget(unit, ask.table, ask.address, ask.count)

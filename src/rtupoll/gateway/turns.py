@@ -1,0 +1,96 @@
+"""Fair turns on one RS-485 line between the poller and the gateway's clients.
+
+The line carries one transaction at a time. The poller takes a turn per device cycle
+(``BusPoller.turn``); a client takes one per request. When both wait, turns alternate
+between the two sides: after a poller cycle the next waiting client request goes,
+after a client request the poller's next cycle. Among clients, turns go round-robin,
+one request each. So with the line saturated, the poller keeps at least half of the
+turns whatever the clients do, a hammering client cannot starve another client, and
+when the poller is idle (between its intervals) clients get the whole line.
+
+Turns are handed over in order with futures: nothing here sleeps or reads a clock,
+so the rule is tested in virtual time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections import OrderedDict, deque
+from collections.abc import AsyncIterator
+
+POLLER = None  # the poller's key; clients are keyed by any hashable (their connection)
+
+
+class Turns:
+    def __init__(self) -> None:
+        self._busy = False
+        self._last_poller = False  # whose turn ended last
+        self._poller: deque[asyncio.Future[None]] = deque()
+        self._clients: OrderedDict[object, deque[asyncio.Future[None]]] = OrderedDict()
+        self.granted = {"poller": 0, "clients": 0}
+
+    @property
+    def waiting(self) -> int:
+        return len(self._poller) + sum(len(q) for q in self._clients.values())
+
+    @contextlib.asynccontextmanager
+    async def turn(self, who: object = POLLER) -> AsyncIterator[None]:
+        """Hold the line for one poller cycle (``who`` None) or one client request."""
+        if not self._busy and not self.waiting:
+            self._grant(who is POLLER)
+        else:
+            fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            queue = self._poller if who is POLLER else self._clients.setdefault(who, deque())
+            queue.append(fut)
+            try:
+                await fut
+            except asyncio.CancelledError:
+                if fut.done() and not fut.cancelled():  # granted as we were cancelled
+                    self._release()
+                else:
+                    self._forget(who, fut)
+                raise
+        try:
+            yield
+        finally:
+            self._release()
+
+    def _grant(self, poller: bool) -> None:
+        self._busy, self._last_poller = True, poller
+        self.granted["poller" if poller else "clients"] += 1
+
+    def _release(self) -> None:
+        self._busy = False
+        while True:
+            if self._has_clients() and (self._last_poller or not self._poller):
+                fut, poller = self._pop_client(), False
+            elif self._poller:
+                fut, poller = self._poller.popleft(), True
+            else:
+                return
+            if not fut.done():  # (a waiter cancelled but not yet forgotten is skipped)
+                self._grant(poller)
+                fut.set_result(None)
+                return
+
+    def _has_clients(self) -> bool:
+        return any(self._clients.values())
+
+    def _pop_client(self) -> asyncio.Future[None]:
+        """The next client request, round-robin: one from each client in turn."""
+        for key in list(self._clients):
+            queue = self._clients[key]
+            if queue:
+                fut = queue.popleft()
+                self._clients.move_to_end(key)
+                if not queue:
+                    del self._clients[key]
+                return fut
+            del self._clients[key]
+        raise LookupError("no client waiting")
+
+    def _forget(self, who: object, fut: asyncio.Future[None]) -> None:
+        queue = self._poller if who is POLLER else self._clients.get(who)
+        if queue is not None and fut in queue:
+            queue.remove(fut)

@@ -1,0 +1,267 @@
+"""Holes in a device's register map: found, remembered, never bridged again.
+
+The planner joins fields across gaps of up to ``limits.max_gap`` registers, because
+most devices read an undocumented register in a gap as 0. Some do not, and a manual
+rarely says which:
+
+- **a refused block**: the block read over the gap gets exception 02 (illegal data
+  address). When every field's own registers still read by themselves, the hole is
+  in a gap: ``bisect`` halves the gaps until it has the registers the device refuses
+  (a gap whose halves all read is taken whole: what the device refused is bridging
+  it). The fields were read meanwhile, so that cycle still has every value.
+- **a silent shift**: the block read answers, but the registers after an
+  undocumented hole come back shifted (or padded) instead of an exception
+  (pysolarfocus#61). Only comparing catches that: ``verify_block`` reads a block and
+  each of its fields alone, twice over so a value that moved is not a mismatch, and
+  names the fields and addresses that disagree.
+
+Either way the registers go into the device's ``HoleMemory``; the poller re-plans
+with them as ``holes`` (``model.planner.plan``), so the gap is never bridged again
+for that device. ``HoleStore`` keeps them in a small JSON file next to the site file,
+per device, with the profile and the variant they were learned for, so the next run
+starts with them (a different profile or variant there starts afresh).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+from rtupoll.errors import ConfigError, DeviceException
+from rtupoll.model.interpret import FieldValue
+from rtupoll.model.planner import Block, decode_block
+from rtupoll.model.profile import Field
+from rtupoll.rtu import Table
+
+Register = tuple[Table, int]
+STORE_VERSION = 1
+
+
+class Reader(Protocol):
+    async def read(self, unit: int, table: Table, address: int, count: int, *,
+                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
+
+
+def gaps(block: Block) -> list[range]:
+    """The runs of registers ``block`` reads that none of its fields needs."""
+    used = {r for f in block.fields for r in range(f.address, f.end)}
+    out: list[range] = []
+    start: int | None = None
+    for r in range(block.address, block.end + 1):
+        inside = r < block.end and r not in used
+        if inside and start is None:
+            start = r
+        elif not inside and start is not None:
+            out.append(range(start, r))
+            start = None
+    return out
+
+
+def pieces(block: Block) -> list[Block]:
+    """``block`` cut at its gaps: the fields' own registers, in reads without gaps."""
+    out: list[Block] = []
+    run: list[Field] = []
+    end = 0
+    for f in sorted(block.fields, key=lambda g: (g.address, g.end)):
+        if run and f.address > end:
+            out.append(Block(block.table, run[0].address, end - run[0].address, tuple(run)))
+            run = []
+        if not run:
+            end = f.end
+        run.append(f)
+        end = max(end, f.end)
+    if run:
+        out.append(Block(block.table, run[0].address, end - run[0].address, tuple(run)))
+    return out
+
+
+def show(registers: Iterable[Register]) -> str:
+    """``input 0x7540-0x7541, 0x7550``: registers as short ranges."""
+    by_table: dict[Table, list[int]] = {}
+    for t, r in sorted(registers, key=lambda x: (x[0].value, x[1])):
+        by_table.setdefault(t, []).append(r)
+    parts = []
+    for t, regs in by_table.items():
+        spans: list[str] = []
+        lo = prev = regs[0]
+        for r in [*regs[1:], -1]:
+            if r == prev + 1:
+                prev = r
+                continue
+            spans.append(f"0x{lo:04X}" if lo == prev else f"0x{lo:04X}-0x{prev:04X}")
+            lo = prev = r
+        parts.append(f"{t.value} {', '.join(spans)}")
+    return "; ".join(parts)
+
+
+@dataclass(frozen=True)
+class Bisection:
+    """What ``bisect`` found: the block's fields, read without its gaps, and the holes."""
+
+    values: list[FieldValue]
+    holes: frozenset[Register]
+    reads: int  # requests it took
+
+
+async def bisect(bus: Reader, unit: int, block: Block, *, timeout: float,
+                 retries: int) -> Bisection | None:
+    """``block`` got exception 02: find the registers in its gaps the device refuses.
+
+    None when a field's own registers are refused too (then it is no hole in a gap,
+    and the exception stands). Timeouts and garbled replies propagate."""
+    reads = 0
+    values: list[FieldValue] = []
+    for piece in pieces(block):
+        reads += 1
+        try:
+            words = await bus.read(unit, piece.table, piece.address, piece.count,
+                                   timeout=timeout, retries=retries)
+        except DeviceException:
+            return None
+        values += decode_block(piece, words)
+    holes: set[int] = set()
+    for gap in gaps(block):
+        found, n = await _halve(bus, unit, block.table, gap, timeout=timeout, retries=retries)
+        reads += n
+        holes |= found
+    if not holes:  # each gap reads by itself: what it refused was bridging them at all
+        holes = {r for g in gaps(block) for r in g}
+    return Bisection(values, frozenset((block.table, r) for r in holes), reads)
+
+
+async def _halve(bus: Reader, unit: int, table: Table, span: range, *, timeout: float,
+                 retries: int) -> tuple[set[int], int]:
+    """The registers of ``span`` the device refuses, by halving; and the reads it took."""
+    try:
+        await bus.read(unit, table, span.start, len(span), timeout=timeout, retries=retries)
+        return set(), 1
+    except DeviceException:
+        if len(span) == 1:
+            return {span.start}, 1
+    mid = span.start + len(span) // 2
+    lo, n1 = await _halve(bus, unit, table, range(span.start, mid), timeout=timeout,
+                          retries=retries)
+    hi, n2 = await _halve(bus, unit, table, range(mid, span.stop), timeout=timeout,
+                          retries=retries)
+    return lo | hi, 1 + n1 + n2
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """A block read that disagrees with its fields read alone: a silent shift."""
+
+    block: Block
+    fields: tuple[tuple[Field, tuple[int, ...], tuple[int, ...]], ...]  # (field, block, alone)
+
+    def __str__(self) -> str:
+        def words(ws: Sequence[int]) -> str:
+            return " ".join(f"{w:04X}" for w in ws)
+
+        parts = [f"{f.name} (0x{f.address:04X}) reads {words(alone)} alone but "
+                 f"{words(inblock)} in the block" for f, inblock, alone in self.fields]
+        return f"{self.block.table.value} 0x{self.block.address:04X}+{self.block.count}: " + \
+            "; ".join(parts)
+
+    def holes(self) -> frozenset[Register]:
+        """Where to stop bridging: the gap before the first field that disagrees (or,
+        with none right before it, every gap of the block)."""
+        first = min(f.address for f, _, _ in self.fields)
+        before = [g for g in gaps(self.block) if g.stop == first]
+        chosen = before or gaps(self.block)
+        return frozenset((self.block.table, r) for g in chosen for r in g)
+
+
+async def verify_block(bus: Reader, unit: int, block: Block, *, timeout: float,
+                       retries: int, tries: int = 3) -> Mismatch | None:
+    """Read ``block``, each field alone, and ``block`` again; a field whose registers
+    agree between the two block reads but not with its own read is a mismatch. A value
+    that moved meanwhile is read again (up to ``tries`` rounds); still moving: no verdict
+    (None). Bus errors propagate."""
+    for _ in range(tries):
+        first = await bus.read(unit, block.table, block.address, block.count,
+                               timeout=timeout, retries=retries)
+        alone = {f.name: await bus.read(unit, f.table, f.address, f.words, timeout=timeout,
+                                        retries=retries) for f in block.fields}
+        second = await bus.read(unit, block.table, block.address, block.count,
+                                timeout=timeout, retries=retries)
+        bad, moved = [], False
+        for f in block.fields:
+            at = f.address - block.address
+            a, b = tuple(first[at : at + f.words]), tuple(second[at : at + f.words])
+            if a != b:
+                moved = True
+            elif tuple(alone[f.name]) != a:
+                bad.append((f, a, tuple(alone[f.name])))
+        if bad:
+            return Mismatch(block, tuple(bad))
+        if not moved:
+            return None
+    return None
+
+
+@dataclass
+class HoleMemory:
+    """One device's learned holes, with why, for the life of the process (and the store)."""
+
+    registers: set[Register] = field(default_factory=set)
+    notes: list[str] = field(default_factory=list)
+    # blocks already bisected without finding a hole (a field's own register refused):
+    # not bisected again every scan
+    tried: set[tuple[Table, int, int]] = field(default_factory=set)
+
+    def learn(self, registers: Iterable[Register], why: str) -> bool:
+        """Add ``registers``; True when any was new."""
+        new = set(registers) - self.registers
+        if not new:
+            return False
+        self.registers |= new
+        self.notes.append(f"{show(new)}: {why}")
+        return True
+
+
+class HoleStore:
+    """Learned holes in a small JSON file: per device, with its profile and variant."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._data: dict[str, dict[str, object]] = {}
+        if path.exists():
+            try:
+                raw = json.loads(path.read_text())
+                devices = raw["devices"] if raw.get("version") == STORE_VERSION else {}
+                if not isinstance(devices, dict):
+                    raise TypeError("devices is not a mapping")
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise ConfigError(f"{path}: not a holes file rtupoll wrote ({exc}); "
+                                  "delete it to start afresh") from None
+            self._data = devices
+
+    @staticmethod
+    def for_site(site_file: Path) -> HoleStore:
+        """The store next to a site file: ``site.yaml`` -> ``site.holes.json``."""
+        return HoleStore(site_file.with_name(site_file.stem + ".holes.json"))
+
+    def get(self, device: str, profile: str, variant: int | None) -> set[Register]:
+        entry = self._data.get(device)
+        if not entry or entry.get("profile") != profile or entry.get("variant") != variant:
+            return set()
+        regs = entry.get("holes")
+        out: set[Register] = set()
+        for item in regs if isinstance(regs, list) else []:
+            try:
+                out.add((Table(item[0]), int(item[1])))
+            except (ValueError, TypeError, IndexError):
+                continue
+        return out
+
+    def put(self, device: str, profile: str, variant: int | None,
+            registers: Iterable[Register]) -> None:
+        """Record ``device``'s holes and write the file."""
+        self._data[device] = {"profile": profile, "variant": variant,
+                              "holes": [[t.value, r] for t, r in sorted(
+                                  registers, key=lambda x: (x[0].value, x[1]))]}
+        self.path.write_text(json.dumps({"version": STORE_VERSION, "devices": self._data},
+                                        indent=1) + "\n")

@@ -1,0 +1,153 @@
+"""SIGHUP for ``rtupoll poll``: reopen the output file, reload the site file.
+
+A service (``rtupoll.jobs.services``) that, on SIGHUP, first reopens ``--output``
+(logrotate moved it away: records continue in a new file at the same path), then
+reads the site file again and hands it to ``Scheduler.reload``: devices added,
+removed or changed take effect, ports that did not change stay open. A file with
+a mistake changes nothing: the running configuration goes on and the mistake is
+logged as ``file:line: path: message``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import sys
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
+
+from rtupoll.errors import RtupollError
+
+if TYPE_CHECKING:
+    from rtupoll.config.site import Site
+    from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+    from rtupoll.jobs.services import Service
+    from rtupoll.jobs.stats import Reading
+
+log = logging.getLogger("rtupoll.reload")
+
+
+class Reopenable(Protocol):
+    buses: dict[str, str]  # device name -> bus name, for records that name the bus
+
+    def reopen(self) -> None: ...
+
+
+class ReloadService:
+    """SIGHUP -> reopen the output, reload the site (when there is a site file)."""
+
+    def __init__(self, load: Callable[[], Site] | None, output: Reopenable | None = None,
+                 *, notify: Callable[[str], None] | None = None) -> None:
+        self.load, self.output, self.notify = load, output, notify
+        self.reloads = 0  # completed reloads, whatever their outcome
+        self._scheduler: Scheduler | None = None
+        self._pending: asyncio.Task[None] | None = None
+        self._again = False
+
+    async def start(self, scheduler: Scheduler) -> None:
+        self._scheduler = scheduler
+        self._name_buses()
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.hangup)
+
+    def hangup(self) -> None:
+        """The signal handler: one reload at a time; a SIGHUP during one runs another."""
+        if self._pending is not None and not self._pending.done():
+            self._again = True
+            return
+        self._pending = asyncio.get_running_loop().create_task(self._reload())
+
+    async def _reload(self) -> None:
+        while True:
+            self._again = False
+            await self.reload_once()
+            if not self._again:
+                return
+
+    async def reload_once(self) -> None:
+        if self.notify is not None:
+            self.notify("reloading")
+        if self.output is not None:
+            try:
+                self.output.reopen()
+                log.info("reopened the output file", extra={"event": "reopen"})
+            except OSError as exc:
+                log.error("cannot reopen the output file: %s (writing on to the old one)",
+                          exc, extra={"event": "reopen", "error": str(exc)})
+        if self.load is not None and self._scheduler is not None:
+            try:
+                site = self.load()
+            except RtupollError as exc:
+                log.error("reload refused, polling goes on unchanged: %s", exc,
+                          extra={"event": "reload", "error": str(exc)})
+            else:
+                if site.metrics != self._scheduler.site.metrics:
+                    log.warning("reload: metrics: %s takes effect at the next start",
+                                site.metrics or "(none)", extra={"event": "reload"})
+                changes = await self._scheduler.reload(site)
+                self._name_buses()
+                for c in changes:
+                    log.info("reload: %s", c, extra={"event": "reload"})
+                if not changes:
+                    log.info("reload: nothing changed", extra={"event": "reload"})
+        self.reloads += 1
+        if self.notify is not None:
+            self.notify("reloaded")
+
+    def _name_buses(self) -> None:
+        if self.output is not None and self._scheduler is not None:
+            self.output.buses.clear()
+            self.output.buses.update({d.config.name: bp.config.name
+                                      for bp in self._scheduler.buses for d in bp.devices})
+
+    def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
+        return None
+
+    async def stop(self) -> None:
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            asyncio.get_running_loop().remove_signal_handler(signal.SIGHUP)
+        if self._pending is not None and not self._pending.done():
+            self._pending.cancel()
+            await asyncio.gather(self._pending, return_exceptions=True)
+
+
+def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table: bool,
+                    metrics: str | None, log_format: str | None,
+                    reload: Callable[[], Site] | None) -> list[Service]:
+    """The services that make ``poll`` a daemon (docs/service.md), in start order:
+    state-change logging (not under the live table, which shows the states itself),
+    ``/metrics``, SIGHUP (reload and reopen), and systemd's notify protocol last, so
+    READY=1 means everything runs.
+
+    Logging is on when asked for (``log_format``) or when stderr is a terminal or the
+    journal; otherwise (a pipe, a file: a script reading the records) only errors."""
+    from rtupoll.ui import logs
+    from rtupoll.ui.systemd import Notifier
+
+    verbose = log_format is not None or sys.stderr.isatty() or \
+        bool(os.environ.get("JOURNAL_STREAM"))
+    logs.setup(log_format or "text", level=logging.INFO if verbose else logging.ERROR)
+    if writer is not None:
+        writer.buses.update({d.name: b.name for b, d in site.devices()})
+    services: list[Service] = []
+    if verbose and not table and not once:  # --once names each failed device itself
+        services.append(logs.StateLog())
+    if metrics:
+        from rtupoll.outputs.metrics import MetricsService
+
+        services.append(MetricsService(metrics))
+    if once:
+        return services
+    notifier = Notifier()
+
+    def notify(what: str) -> None:
+        if what == "reloading":
+            notifier.reloading()
+        else:
+            notifier.reloaded("polling")
+
+    services += [ReloadService(reload, writer, notify=notify), notifier]
+    return services

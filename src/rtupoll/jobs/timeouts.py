@@ -1,0 +1,198 @@
+"""How long to wait for a device's reply, learned from how long it takes.
+
+A fixed timeout is a guess that is wrong both ways: too short and a slow device
+flaps between online and timeouts, too long and a dead device (or an empty address)
+costs the whole timeout every time it is asked. The bus already measures every
+answer, so each device's timeout is derived from its own **reply times**: from the
+end of the request on the wire to the first byte of the reply (``rtu.line``), wire
+time excluded, since the bus adds the frames' wire time to any timeout itself.
+
+The rules (``TimeoutEstimator``, pure, times as arguments):
+
+- the start is the profile's ``limits.timeout`` (the manual's word);
+- the target is a high percentile (``QUANTILE``) of the last ``WINDOW`` reply times
+  times ``MARGIN``, never below the floor: ``FLOOR`` plus the 3.5-character silence
+  plus the USB adapter's latency timer (``io.serialport.latency_timer``), never above
+  the ceiling (``CEILING``, or the site file's ``timeout_ceiling:`` / ``--timeout-ceiling``);
+- **up at once**: a reply slower than the timeout allows for raises it straight to
+  ``MARGIN`` times that reply time; a **late reply** (heard after its request timed
+  out, ``Bus.late``) raises it to ``MARGIN`` times the late reply's time, and at least
+  ``LATE_GROWTH`` times what it was;
+- **down slowly**: towards a lower target by ``DOWN`` of the difference per answer,
+  so one fast spell does not undo what a slow one taught;
+- a timeout alone teaches nothing (the device may be gone): a dead device keeps the
+  short timeout it had learned, so probing it costs little;
+- a pinned timeout (``--timeout``, site file ``timeout:``) is used as given;
+- a learned timeout shorter than the profile's does not shorten how long a late reply
+  is still expected (``Bus.set_patience``, ``rtu.line``'s late window): waiting less
+  must never mean mistaking a late reply for the next answer.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+from rtupoll.errors import UsageError
+
+FLOOR = 0.02  # seconds: never wait less than this beyond the wire time and the silence
+CEILING = 3.0  # seconds: never learn a timeout longer than this (unless pinned)
+MARGIN = 2.0  # timeout = MARGIN x the slow end of the reply times
+QUANTILE = 99  # percent: "the slow end"
+WINDOW = 128  # reply times kept
+DOWN = 0.05  # per answer, the share of the way down to a lower target
+LATE_GROWTH = 2.0  # a late reply at least multiplies the timeout by this
+
+
+def quantile(values: Iterable[float], q: float) -> float | None:
+    """Nearest-rank percentile (q in 0..100), None without data."""
+    data = sorted(values)
+    if not data:
+        return None
+    rank = max(1, -(-len(data) * q // 100))
+    return data[int(rank) - 1]
+
+
+@dataclass
+class TimeoutEstimator:
+    """One device's timeout: starts at ``start``, learns from reply times (module docstring)."""
+
+    start: float
+    floor: float = FLOOR
+    ceiling: float = CEILING
+    samples: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    learned: bool = False  # some evidence has moved it from the start
+    late_replies: int = 0
+    current: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.floor <= self.ceiling:
+            raise UsageError(f"timeout floor {self.floor:g} s and ceiling {self.ceiling:g} s "
+                             "make no sense")
+        self.current = self._clamp(self.start)
+
+    def _clamp(self, t: float) -> float:
+        return min(self.ceiling, max(self.floor, t))
+
+    @property
+    def timeout(self) -> float:
+        return self.current
+
+    def target(self) -> float | None:
+        """What the reply times alone call for (None before any)."""
+        slow = quantile(self.samples, QUANTILE)
+        return None if slow is None else self._clamp(MARGIN * slow)
+
+    def answered(self, reply_time: float) -> None:
+        """An answer (or an exception reply) came ``reply_time`` s after the request."""
+        self.samples.append(max(0.0, reply_time))
+        self.learned = True
+        target = self.target()
+        assert target is not None
+        if MARGIN * reply_time > self.current:  # slower than allowed for: up at once
+            self.current = self._clamp(MARGIN * reply_time)
+        elif target >= self.current:
+            self.current = target
+        else:
+            self.current = max(target, self.current - DOWN * (self.current - target))
+
+    def late(self, reply_time: float | None) -> None:
+        """A reply came after its request had timed out (``reply_time`` if known)."""
+        self.late_replies += 1
+        self.learned = True
+        grown = self.current * LATE_GROWTH
+        if reply_time is not None:
+            self.samples.append(reply_time)
+            grown = max(grown, MARGIN * reply_time)
+        self.current = self._clamp(max(self.current, grown))
+
+    def set_floor(self, floor: float) -> None:
+        """A new floor (the adapter's latency became known); the timeout respects it."""
+        self.floor = min(floor, self.ceiling)
+        self.current = self._clamp(self.current)
+
+
+@runtime_checkable
+class Evidence(Protocol):
+    """What a transport tells about reply times (``rtupoll.io.bus.Bus`` does)."""
+
+    def late(self, unit: int) -> int: ...
+    def reply_time(self, unit: int) -> float | None: ...
+    def late_reply_time(self, unit: int) -> float | None: ...
+
+
+def adapter_latency(transport: object) -> float:
+    """The transport's USB adapter latency (``Bus.adapter_latency``), 0 if it has none."""
+    value = getattr(transport, "adapter_latency", 0.0)
+    return float(value) if isinstance(value, (int, float)) else 0.0
+
+
+class DeviceTiming:
+    """One polled device's timeout, fed from its transport's evidence.
+
+    ``pinned``: the user's timeout (None: learn). ``before`` is called before each
+    transaction and gives the timeout to use (taking late replies heard since the
+    last call into account); ``after`` takes the transaction's outcome.
+    """
+
+    def __init__(self, start: float, *, silence: float, ceiling: float | None = None,
+                 pinned: float | None = None) -> None:
+        self.silence = silence
+        self.pinned = pinned
+        self.estimator = TimeoutEstimator(start, floor=FLOOR + silence,
+                                          ceiling=CEILING if ceiling is None else ceiling)
+        self._late_seen: int | None = None
+
+    @property
+    def timeout(self) -> float:
+        return self.pinned if self.pinned is not None else self.estimator.timeout
+
+    @property
+    def source(self) -> str:
+        """pinned (the user's), profile (not learned yet) or learned."""
+        if self.pinned is not None:
+            return "pinned"
+        return "learned" if self.estimator.learned else "profile"
+
+    def before(self, transport: object, unit: int, *, pinned: float | None = None,
+               ceiling: float | None = None) -> float:
+        """The timeout for the next transaction to ``unit`` (``pinned``, ``ceiling``: the
+        device's configuration now, which a reload may change)."""
+        self.pinned = pinned
+        self.estimator.ceiling = CEILING if ceiling is None else ceiling
+        self.estimator.set_floor(FLOOR + self.silence + adapter_latency(transport))
+        if isinstance(transport, Evidence):
+            self._take_late(transport, unit)
+        patience = getattr(transport, "set_patience", None)
+        if callable(patience):  # a late reply stays expected as long as the manual allows
+            patience(unit, max(self.estimator.start, self.timeout))
+        return self.timeout
+
+    def after(self, transport: object, unit: int, answered: bool) -> None:
+        """``answered``: the transaction got a reply (data or an exception reply)."""
+        if not isinstance(transport, Evidence):
+            return
+        if answered:
+            took = transport.reply_time(unit)
+            if took is not None:
+                self.estimator.answered(took)
+        self._take_late(transport, unit)
+
+    def _take_late(self, transport: Evidence, unit: int) -> None:
+        n = transport.late(unit)
+        if self._late_seen is None:
+            self._late_seen = n
+        if n > self._late_seen:
+            self._late_seen = n
+            self.estimator.late(transport.late_reply_time(unit))
+
+
+def late_margin(margin: float, late_reply: float | None, ceiling: float = CEILING) -> float:
+    """How long to wait when asking again an address whose answer came late (``scan``):
+    ``MARGIN`` times the late reply's time, at least ``LATE_GROWTH`` times ``margin``."""
+    longer = LATE_GROWTH * margin
+    if late_reply is not None:
+        longer = max(longer, MARGIN * late_reply)
+    return min(ceiling, longer)

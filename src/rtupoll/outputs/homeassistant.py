@@ -1,0 +1,221 @@
+"""Home Assistant MQTT discovery, generated from the profiles.
+
+One retained message per Modbus device in HA's device-based form
+(``PREFIX/device/OBJECT_ID/config`` with ``dev``, ``o`` and ``cmps``), one per bus
+(the HA device the sensors are ``via_device``), so removing a device is one empty
+retained payload. Per polled field:
+
+- a number: a ``sensor`` with its unit, and ``device_class``/``state_class`` where the
+  unit implies one (°C, %RH, ppm of CO2, µg/m³ of PM2.5, V, A, W, kWh, ...);
+- an enum: an ``enum`` sensor whose options are the profile's names (plus the
+  catch-all name and ``unknown`` for codes the manual does not list);
+- a flag set: one ``binary_sensor`` per flag (``problem`` when its severity is a
+  warning or an error); a bool (coil): one ``binary_sensor``;
+- text: a plain ``sensor``;
+- with writes on, a writable enum is also a ``select`` and a writable number a
+  ``number``, both sending ``{"FIELD": value}`` to ``BASE/DEVICE/set``.
+
+Every entity reads ``BASE/DEVICE`` (``value_json``; a failed read is null, which HA
+shows as unknown) and is available only when both ``BASE/bridge/state`` and
+``BASE/DEVICE/availability`` say ``online``. Identifiers are built from the base topic
+and the device's topic name only, so they are the same on every run.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.model.codec import DataType
+from rtupoll.model.profile import Field, Severity
+
+if TYPE_CHECKING:
+    from rtupoll.config.site import BusConfig, DeviceConfig
+
+ORIGIN = {"name": "rtupoll", "url": "https://github.com/rtupoll/rtupoll"}
+# profile unit -> (Home Assistant unit, device class); ppm and µg/m³ depend on the field
+_UNITS: dict[str, tuple[str, str | None]] = {
+    "°C": ("°C", "temperature"), "°F": ("°F", "temperature"), "K": ("K", "temperature"),
+    "%RH": ("%", "humidity"), "%rh": ("%", "humidity"),
+    "V": ("V", "voltage"), "mV": ("mV", "voltage"), "kV": ("kV", "voltage"),
+    "A": ("A", "current"), "mA": ("mA", "current"),
+    "W": ("W", "power"), "kW": ("kW", "power"), "MW": ("MW", "power"),
+    "VA": ("VA", "apparent_power"), "kVA": ("kVA", "apparent_power"),
+    "var": ("var", "reactive_power"), "kvar": ("kvar", "reactive_power"),
+    "Wh": ("Wh", "energy"), "kWh": ("kWh", "energy"), "MWh": ("MWh", "energy"),
+    "Hz": ("Hz", "frequency"),
+    "Pa": ("Pa", "pressure"), "hPa": ("hPa", "pressure"), "kPa": ("kPa", "pressure"),
+    "bar": ("bar", "pressure"), "mbar": ("mbar", "pressure"), "psi": ("psi", "pressure"),
+    "mm": ("mm", "distance"), "cm": ("cm", "distance"), "m": ("m", "distance"),
+    "km": ("km", "distance"),
+    "lx": ("lx", "illuminance"),
+    "s": ("s", "duration"), "min": ("min", "duration"), "h": ("h", "duration"),
+    "d": ("d", "duration"),
+    "m³": ("m³", "volume"), "L": ("L", "volume"), "m³/h": ("m³/h", "volume_flow_rate"),
+    "L/min": ("L/min", "volume_flow_rate"), "dB": ("dB", "sound_pressure"),
+    "dBm": ("dBm", "signal_strength"), "W/m²": ("W/m²", "irradiance"),
+}
+_ENERGY = {"energy"}
+_UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
+
+
+def safe_id(text: str) -> str:
+    """Letters, digits, ``_`` and ``-`` only: what HA accepts in object ids."""
+    return _UNSAFE.sub("_", text)
+
+
+def object_id(base: str, name: str) -> str:
+    return safe_id(f"rtupoll_{base}_{name}")
+
+
+def bus_object_id(base: str, bus: str) -> str:
+    return safe_id(f"rtupoll_{base}_bus_{bus}")
+
+
+def config_topic(prefix: str, oid: str) -> str:
+    return f"{prefix}/device/{oid}/config"
+
+
+def classify(field: Field) -> tuple[str, str | None, str | None]:
+    """(HA unit, device class, state class) of a numeric field."""
+    unit, cls = _UNITS.get(field.unit, (field.unit, None))
+    name = field.name.lower()
+    if field.unit == "ppm":
+        cls = "carbon_dioxide" if "co2" in name else (
+            "volatile_organic_compounds_parts" if "voc" in name else None)
+    elif field.unit in ("µg/m³", "ug/m3", "μg/m³"):
+        unit = "µg/m³"
+        cls = ("pm25" if re.search(r"pm_?2[._]?5", name) else "pm10" if "pm10" in name
+               else "pm1" if re.search(r"pm_?1(?!\d)", name)
+               else "volatile_organic_compounds" if "voc" in name else None)
+    if cls in _ENERGY:
+        return unit, cls, "total_increasing" if field.counter else "total"
+    return unit, cls, "total_increasing" if field.counter else "measurement"
+
+
+def _value(field: Field) -> str:
+    return f"value_json[{field.name!r}]"
+
+
+def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
+    """The HA entities of one field, by component id (``field`` or ``field_FLAG``)."""
+    uid_base = field.name
+    v = _value(field)
+    out: dict[str, dict[str, Any]] = {}
+    t = field.layout.type
+    if field.enum:
+        options = [c.name for c in field.enum.values()]
+        if field.other is not None:
+            options.append(field.other.name)
+        options.append("unknown")
+        out[uid_base] = {"p": "sensor", "name": _name(field), "device_class": "enum",
+                         "options": list(dict.fromkeys(options)),
+                         # "unknown (9)" / "OTHER (9)": the code goes, the name stays
+                         "value_template": f"{{{{ {v}.split(' (')[0] if {v} is not none "
+                                           "else none }}"}
+        if controls and field.writable:
+            out[f"{uid_base}_set"] = {
+                "p": "select", "name": f"{_name(field)} setting",
+                "options": [c.name for c in field.enum.values()],
+                "value_template": f"{{{{ {v} if {v} is not none else none }}}}",
+                "command_template": f'{{"{field.name}": "{{{{ value }}}}"}}'}
+    elif field.flags:
+        for choice in field.flags.values():
+            out[f"{uid_base}_{safe_id(choice.name)}"] = {
+                "p": "binary_sensor", "name": f"{_name(field)} {choice.name}",
+                **({"device_class": "problem"}
+                   if choice.severity in (Severity.WARNING, Severity.ERROR) else {}),
+                "value_template": f"{{% if {v} is none %}}None{{% elif {choice.name!r} in "
+                                  f"{v} %}}ON{{% else %}}OFF{{% endif %}}"}
+    elif t is DataType.BOOL:
+        out[uid_base] = {"p": "binary_sensor", "name": _name(field),
+                         "value_template": f"{{% if {v} is none %}}None{{% elif {v} %}}ON"
+                                           "{% else %}OFF{% endif %}"}
+    elif t is DataType.STRING:
+        out[uid_base] = {"p": "sensor", "name": _name(field), "value_template": f"{{{{ {v} }}}}"}
+    else:
+        unit, cls, state_class = classify(field)
+        entity: dict[str, Any] = {"p": "sensor", "name": _name(field),
+                                  "value_template": f"{{{{ {v} }}}}", "state_class": state_class}
+        if unit:
+            entity["unit_of_measurement"] = unit
+        if cls:
+            entity["device_class"] = cls
+        out[uid_base] = entity
+        if controls and field.writable:
+            control: dict[str, Any] = {
+                "p": "number", "name": f"{_name(field)} setting", "mode": "box",
+                "value_template": f"{{{{ {v} }}}}",
+                "command_template": f'{{"{field.name}": {{{{ value }}}}}}'}
+            if field.minimum is not None:
+                control["min"] = field.minimum
+            if field.maximum is not None:
+                control["max"] = field.maximum
+            if unit:
+                control["unit_of_measurement"] = unit
+            out[f"{uid_base}_set"] = control
+    return out
+
+
+def _name(field: Field) -> str:
+    return field.name.replace("_", " ")
+
+
+def device_config(dev: DeviceConfig, bus: BusConfig, *, base: str, topic: str,
+                  controls: Mapping[str, bool], qos: int) -> dict[str, Any]:
+    """The discovery payload of one Modbus device; ``topic`` is its topic name,
+    ``controls`` which fields get a select/number (writes on, field allowed)."""
+    oid = object_id(base, topic)
+    cmps: dict[str, dict[str, Any]] = {}
+    for f in dev.fields:
+        for cid, entity in components(f, controls=controls.get(f.name, False)).items():
+            entity["unique_id"] = f"{oid}_{cid}"
+            if entity["p"] in ("select", "number"):
+                entity["command_topic"] = f"{base}/{topic}/set"
+            cmps[cid] = entity
+    p = dev.profile
+    return {
+        "dev": {"ids": [oid], "name": dev.name, "mf": p.vendor, "mdl": p.model,
+                "mdl_id": p.id, "via_device": bus_object_id(base, bus.name)},
+        "o": ORIGIN,
+        "cmps": cmps,
+        "state_topic": f"{base}/{topic}",
+        "availability": [{"topic": f"{base}/bridge/state"},
+                         {"topic": f"{base}/{topic}/availability"}],
+        "availability_mode": "all",
+        "qos": qos,
+    }
+
+
+def bus_config(bus: BusConfig, *, base: str, qos: int) -> dict[str, Any]:
+    """The bus as an HA device: its devices hang off it (``via_device``); its one entity
+    says whether the gateway polling it is connected."""
+    oid = bus_object_id(base, bus.name)
+    return {
+        "dev": {"ids": [oid], "name": f"RS-485 {bus.name}", "mf": "rtupoll",
+                "mdl": f"RS-485 bus ({bus.serial_text})"},
+        "o": ORIGIN,
+        "cmps": {"gateway": {"p": "binary_sensor", "name": "gateway",
+                             "device_class": "connectivity", "unique_id": f"{oid}_gateway",
+                             "state_topic": f"{base}/bridge/state",
+                             "payload_on": "online", "payload_off": "offline"}},
+        "qos": qos,
+    }
+
+
+def is_ours(payload: Mapping[str, Any], base: str) -> bool:
+    """A discovery payload this gateway (this base topic) published."""
+    origin = payload.get("o")
+    if not isinstance(origin, Mapping) or origin.get("name") != ORIGIN["name"]:
+        return False
+    ids = payload.get("dev", {}).get("ids") if isinstance(payload.get("dev"), Mapping) else None
+    prefix = safe_id(f"rtupoll_{base}_")
+    if not (isinstance(ids, list) and any(isinstance(i, str) and i.startswith(prefix)
+                                          for i in ids)):
+        return False
+    topics = [payload.get("state_topic")]
+    cmps = payload.get("cmps")
+    if isinstance(cmps, Mapping):
+        topics += [c.get("state_topic") for c in cmps.values() if isinstance(c, Mapping)]
+    return any(isinstance(t, str) and t.startswith(f"{base}/") for t in topics)

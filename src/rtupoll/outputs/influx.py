@@ -1,0 +1,176 @@
+"""InfluxDB line protocol: ``rtupoll poll --format influx``.
+
+One line per block read (the fields a reply carried share its arrival time) and one
+status line per device cycle, so telegraf (``inputs.execd``), ``influx write`` and
+VictoriaMetrics take the stream as it is::
+
+    rtupoll,address=3,bus=line1,device=air,profile=huiwen-aq co2=1175i,co2_level="GOOD",\
+co2_level_code=1i 1763803502517000000
+    rtupoll_status,address=3,bus=line1,device=air,profile=huiwen-aq up=1i,ok=15i,failed=0i,\
+state="online" 1763803502517000000
+
+(each line broken here only to fit).
+
+- measurement ``rtupoll``: tags ``address``, ``bus``, ``device``, ``profile`` (sorted, as
+  InfluxDB prefers); one field per field read: integers with ``i``, floats as they
+  are, enum fields as their name (string) plus ``NAME_code`` (integer), flag fields as
+  the active flag names joined with ``|`` plus ``NAME_code`` (the register's bits),
+  strings as strings. A failed reading is left out: never a stale value, never a
+  zero. NaN and infinities (which line protocol cannot carry) are left out too.
+- measurement ``rtupoll_status``: ``up`` (1 when the cycle got a valid reply),
+  ``ok`` and ``failed`` field counts, ``state`` and, when something failed, ``status``
+  and ``error`` (the first failure's).
+- timestamps: nanoseconds since the epoch (to the microsecond), from the time the
+  reply arrived.
+
+Escaping (the spec's rules): measurement names escape commas and spaces; tag keys,
+tag values and field keys escape commas, equals signs and spaces; string field
+values are double-quoted with ``"`` and ``\\`` escaped. Line breaks, which no part
+of a line may hold, become spaces; a trailing backslash on a key is dropped. Empty tag
+values are left out (they are invalid).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rtupoll.jobs.stats import Reading
+
+MEASUREMENT = "rtupoll"
+STATUS_MEASUREMENT = "rtupoll_status"
+INT64_MAX = (1 << 63) - 1
+_MEASUREMENT_ESC = str.maketrans({",": "\\,", " ": "\\ ", "\n": " ", "\r": " "})
+_KEY_ESC = str.maketrans({",": "\\,", "=": "\\=", " ": "\\ ", "\n": " ", "\r": " "})
+_STRING_ESC = str.maketrans({'"': '\\"', "\\": "\\\\", "\n": " ", "\r": " "})
+
+
+def measurement(name: str) -> str:
+    return name.translate(_MEASUREMENT_ESC)
+
+
+def key(text: str) -> str:
+    """A tag key, tag value or field key. A trailing backslash would escape the
+    separator after it, so it is dropped."""
+    return text.rstrip("\\").translate(_KEY_ESC)
+
+
+def string(text: str) -> str:
+    return '"' + text.translate(_STRING_ESC) + '"'
+
+
+def number(value: object) -> str | None:
+    """A field value for a number or bool; None when line protocol cannot carry it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        if -INT64_MAX - 1 <= value <= INT64_MAX:
+            return f"{value}i"
+        return repr(float(value))
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else None
+    return None
+
+
+def tags(reading: Reading, bus: str) -> str:
+    d = reading.device
+    pairs = {"address": str(d.address), "bus": bus, "device": d.name, "profile": d.profile.id}
+    return ",".join(f"{key(k)}={key(v)}" for k, v in sorted(pairs.items()) if v)
+
+
+def field_values(reading: Reading) -> list[tuple[str, str]]:
+    """``(escaped key, value text)`` for one good reading; empty for a failed one."""
+    fv = reading.value
+    if fv is None:
+        return []
+    name = key(fv.field.name)
+    value = fv.output  # None: a sentinel ("not available"), which is no reading
+    out: list[tuple[str, str]] = []
+    if value is None:
+        return out
+    if isinstance(value, list):  # flags: the active names, and the bits behind them
+        out.append((name, string("|".join(value))))
+    elif isinstance(value, str):
+        out.append((name, string(value)))
+    else:
+        text = number(value)
+        if text is not None:
+            out.append((name, text))
+    if fv.code is not None and (fv.field.enum or fv.field.flags):
+        out.append((key(fv.field.name + "_code"), f"{fv.code}i"))
+    return out
+
+
+def nanoseconds(t: float) -> int:
+    """Line protocol's nanoseconds; a float clock carries microseconds, so that is what
+    is kept (no invented digits)."""
+    return round(t * 1e6) * 1000
+
+
+def lines(readings: Sequence[Reading], *, bus: str = "", state: str = "") -> list[str]:
+    """One device cycle's readings as line protocol (no trailing newlines).
+
+    ``bus`` names the bus tag, ``state`` the device's state after the cycle (both
+    optional: without them the tag or field is left out).
+    """
+    if not readings:
+        return []
+    tagset = tags(readings[0], bus)
+    out: list[str] = []
+    group: list[tuple[str, str]] = []
+    at: float | None = None
+    for r in readings:
+        fields = field_values(r)
+        if not fields:
+            continue
+        if at is not None and r.time != at and group:
+            out.append(_line(MEASUREMENT, tagset, group, at))
+            group = []
+        at = r.time
+        group.extend(fields)
+    if group and at is not None:
+        out.append(_line(MEASUREMENT, tagset, group, at))
+    out.append(_status_line(readings, tagset, state))
+    return out
+
+
+def _status_line(readings: Sequence[Reading], tagset: str, state: str) -> str:
+    good = sum(1 for r in readings if r.ok)
+    failed = [r for r in readings if not r.ok and r.status not in ("absent", "skipped")]
+    skipped = sum(1 for r in readings if r.status == "skipped")
+    up = good > 0 or any(r.status == "exception" for r in readings) or \
+        all(r.status == "absent" for r in readings)
+    fields = [("up", "1i" if up else "0i"), ("ok", f"{good}i"),
+              ("failed", f"{len(failed) + skipped}i")]
+    if state:
+        fields.append(("state", string(state)))
+    if failed:
+        fields += [("status", string(failed[0].status)), ("error", string(failed[0].error))]
+    return _line(STATUS_MEASUREMENT, tagset, fields, max(r.time for r in readings))
+
+
+def _line(name: str, tagset: str, fields: Iterable[tuple[str, str]], t: float) -> str:
+    head = measurement(name) + ("," + tagset if tagset else "")
+    return f"{head} {','.join(f'{k}={v}' for k, v in fields)} {nanoseconds(t)}"
+
+
+class InfluxFormatter:
+    """``RecordWriter``'s influx format: readings in, whole lines out."""
+
+    def __init__(self, buses: dict[str, str] | None = None) -> None:
+        """``buses``: device name -> bus name, for the ``bus`` tag."""
+        self.buses = buses if buses is not None else {}
+
+    def format(self, readings: Sequence[Reading], state: str = "") -> str:
+        """Lines for one device cycle (``state``: the device's state after it), or for
+        several devices' cycles in a row (``poll --once``)."""
+        out: list[str] = []
+        start = 0
+        for i in range(1, len(readings) + 1):
+            if i == len(readings) or readings[i].device.name != readings[start].device.name:
+                run = readings[start:i]
+                out += lines(run, bus=self.buses.get(run[0].device.name, ""), state=state)
+                start = i
+        return "".join(line + "\n" for line in out)

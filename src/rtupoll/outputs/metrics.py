@@ -1,0 +1,423 @@
+"""Prometheus metrics: ``rtupoll poll --metrics HOST:PORT`` serves ``/metrics``.
+
+A custom collector reads the scheduler's own state at scrape time (each device's
+latest cycle and ``DeviceStats``, each bus's ``BusLoad``, the bus's ``BusStats``):
+nothing is updated per reading except the latency histogram, which has to count
+every transaction. The HTTP server runs on the event loop, so a scrape never
+sees a half-updated device. ``prometheus_client`` (the ``metrics`` extra) is
+imported only when this runs.
+
+Names (docs/service.md has the list): one gauge per numeric field, named from the
+profile's field and unit in base units (``rtupoll_co2_ppm``,
+``rtupoll_temperature_celsius`` from kelvin or degrees Celsius alike), labelled
+``bus`` and ``device``. A generic ``rtupoll_reading{field,unit}`` would put
+different units under one name, so ``sum`` and ``avg`` over it would mean nothing,
+against Prometheus's naming practice; per-field names also make the queries read
+as what they measure. A field whose name already carries its unit (the radar's
+``level_cm`` and ``level_mm``, one level at two resolutions) keeps its name as it is.
+Enums: ``_code`` (the number) and ``_state{state}`` (1 for the current name, 0 for
+the other documented ones); flags: ``_flag{flag}``, one series per flag; strings:
+``_info{value}``. A reading that failed in the device's latest cycle is not
+exported: the series disappears, it never keeps its last value as if fresh.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import re
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.errors import UsageError
+from rtupoll.jobs.stats import State
+
+if TYPE_CHECKING:
+    from prometheus_client import CollectorRegistry
+    from prometheus_client.core import Metric
+
+    from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.stats import Reading
+    from rtupoll.model.profile import Field
+
+log = logging.getLogger("rtupoll.metrics")
+
+PREFIX = "rtupoll_"
+# transaction times on RS-485: a few ms at 115200 baud to a second for a slow device
+BUCKETS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+# profile unit -> (Prometheus unit word, scale, offset): value * scale + offset
+UNITS: dict[str, tuple[str, float, float]] = {
+    "K": ("celsius", 1.0, -273.15), "°C": ("celsius", 1.0, 0.0), "degC": ("celsius", 1.0, 0.0),
+    "m": ("meters", 1.0, 0.0), "cm": ("meters", 0.01, 0.0), "mm": ("meters", 0.001, 0.0),
+    "%": ("ratio", 0.01, 0.0), "%RH": ("ratio", 0.01, 0.0),
+    "s": ("seconds", 1.0, 0.0), "ms": ("seconds", 0.001, 0.0), "min": ("seconds", 60.0, 0.0),
+    "h": ("seconds", 3600.0, 0.0), "d": ("seconds", 86400.0, 0.0),
+    "V": ("volts", 1.0, 0.0), "mV": ("volts", 0.001, 0.0),
+    "A": ("amperes", 1.0, 0.0), "mA": ("amperes", 0.001, 0.0),
+    "W": ("watts", 1.0, 0.0), "kW": ("watts", 1000.0, 0.0),
+    "Wh": ("joules", 3600.0, 0.0), "kWh": ("joules", 3.6e6, 0.0),
+    "Pa": ("pascals", 1.0, 0.0), "hPa": ("pascals", 100.0, 0.0), "kPa": ("pascals", 1e3, 0.0),
+    "bar": ("pascals", 1e5, 0.0), "Hz": ("hertz", 1.0, 0.0),
+    "µg/m³": ("micrograms_per_cubic_meter", 1.0, 0.0),
+    "ug/m3": ("micrograms_per_cubic_meter", 1.0, 0.0),
+}
+
+
+# the collector's own families (and their sample names): no field may take these names
+RESERVED = frozenset({
+    f"rtupoll_{n}{suffix}" for n in (
+        "device_up", "device_state", "device_info", "requests", "exceptions", "cycles",
+        "last_good_reading_age_seconds", "request_duration_seconds", "bus_utilisation_ratio",
+        "bus_transactions", "bus_busy_seconds", "bus_port_up", "bus_port_losses")
+    for suffix in ("", "_total", "_bucket", "_count", "_sum", "_created")})
+
+
+def parse_listen(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (every interface) -> (host, port)."""
+    host, sep, port = text.strip().rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise UsageError(f"metrics address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
+    host = host.strip("[]") or "0.0.0.0"
+    return host, int(port)
+
+
+# ---------------------------------------------------------------------------
+# naming
+
+
+def _word(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")
+
+
+@dataclass(frozen=True)
+class FieldMetric:
+    """How one profile field is exported: its family name, kind and unit conversion."""
+
+    name: str  # without the kind's suffix (_code, _state, _flag, _info)
+    kind: str  # "gauge" | "enum" | "flags" | "info"
+    help: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+    def convert(self, value: float) -> float:
+        return value * self.scale + self.offset if (self.scale, self.offset) != (1, 0) \
+            else float(value)
+
+
+def field_metric(f: Field) -> FieldMetric:
+    """The metric a profile field becomes (see the module docstring)."""
+    base = _word(f.name) or "field"
+    help_text = (f.description or f.name).splitlines()[0] if (f.description or f.name) else ""
+    if f.enum:
+        return FieldMetric(PREFIX + base, "enum", help_text)
+    if f.flags:
+        return FieldMetric(PREFIX + base, "flags", help_text)
+    if f.layout.type.value == "string":
+        return FieldMetric(PREFIX + base, "info", help_text)
+    unit = f.unit.strip()
+    if unit and base.endswith("_" + _word(unit)):  # level_cm: the name says the unit
+        return FieldMetric(PREFIX + base, "gauge", f"{help_text} ({unit})")
+    word, scale, offset = UNITS.get(unit, (_word(unit), 1.0, 0.0))
+    name = base if not word or base.endswith("_" + word) else f"{base}_{word}"
+    note = f" ({unit}" + (f", as {word}" if word and word != _word(unit) else "") + ")" \
+        if unit else ""
+    return FieldMetric(PREFIX + name, "gauge", help_text + note, scale, offset)
+
+
+# ---------------------------------------------------------------------------
+# what is counted between scrapes
+
+
+@dataclass
+class Histogram:
+    """Cumulative transaction times of one device (Prometheus buckets)."""
+
+    counts: list[int] = field(default_factory=lambda: [0] * len(BUCKETS))
+    total: int = 0
+    sum: float = 0.0
+    last: object = None  # the last latency seen in DeviceStats.latencies (by identity)
+
+    def observe(self, seconds: float) -> None:
+        for i, bound in enumerate(BUCKETS):
+            if seconds <= bound:
+                self.counts[i] += 1
+        self.total += 1
+        self.sum += seconds
+
+    def catch_up(self, latencies: Any) -> None:
+        """Observe what was appended to a ``DeviceStats.latencies`` deque since last time
+        (recognised by object identity, so a full, rolling window is read correctly)."""
+        new: list[float] = []
+        for x in reversed(latencies):
+            if x is self.last:
+                break
+            new.append(x)
+        for x in reversed(new):
+            self.observe(x)
+        if latencies:
+            self.last = latencies[-1]
+
+
+@dataclass
+class BusCounters:
+    port_losses: int = 0
+    port_down: bool = False
+
+
+# ---------------------------------------------------------------------------
+# the collector
+
+
+class SchedulerCollector:
+    """``prometheus_client`` collector over a running ``Scheduler`` (read at scrape time)."""
+
+    def __init__(self, scheduler: Scheduler, *, wall: Callable[[], float] = time.time,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.scheduler = scheduler
+        self.wall, self.clock = wall, clock
+        self.histograms: dict[str, Histogram] = {}  # device name -> its transaction times
+        self.bus_counters: dict[str, BusCounters] = {}  # bus name -> port losses
+        self._fields: dict[tuple[str, str], FieldMetric] = {}
+
+    # called by the service per device cycle --------------------------------
+
+    def observe(self, bus: BusPoller, dev: DevicePoller, readings: list[Reading]) -> None:
+        self.histograms.setdefault(dev.config.name, Histogram()).catch_up(dev.stats.latencies)
+        bc = self.bus_counters.setdefault(bus.config.name, BusCounters())
+        down = bool(readings) and all(r.status == "port" for r in readings)
+        if down and not bc.port_down:
+            bc.port_losses += 1
+        bc.port_down = down
+
+    # called by prometheus_client at scrape time ----------------------------
+
+    def collect(self) -> Iterator[Metric]:
+        from prometheus_client.core import (
+            CounterMetricFamily,
+            GaugeMetricFamily,
+            HistogramMetricFamily,
+        )
+
+        dev_labels = ["bus", "device"]
+        up = GaugeMetricFamily("rtupoll_device_up", "1 when the device's last cycle got a valid "
+                               "reply; 0 when backed off or never answered", labels=dev_labels)
+        state = GaugeMetricFamily("rtupoll_device_state", "The device's state (1 for the "
+                                  "current one)", labels=[*dev_labels, "state"])
+        info = GaugeMetricFamily("rtupoll_device_info", "The device's profile and address",
+                                 labels=[*dev_labels, "profile", "address"])
+        requests = CounterMetricFamily("rtupoll_requests", "Transactions by outcome",
+                                       labels=[*dev_labels, "outcome"])
+        exceptions = CounterMetricFamily("rtupoll_exceptions", "Exception replies by code",
+                                         labels=[*dev_labels, "code"])
+        cycles = CounterMetricFamily("rtupoll_cycles", "Device cycles (scans)",
+                                     labels=dev_labels)
+        age = GaugeMetricFamily("rtupoll_last_good_reading_age_seconds",
+                                "Seconds since the device's last good reading "
+                                "(absent when it never answered)", labels=dev_labels)
+        latency = HistogramMetricFamily("rtupoll_request_duration_seconds",
+                                        "Time of answered transactions", labels=dev_labels)
+        bus_labels = ["bus"]
+        util = GaugeMetricFamily("rtupoll_bus_utilisation_ratio",
+                                 "Share of the last 10 s the bus was busy", labels=bus_labels)
+        btx = CounterMetricFamily("rtupoll_bus_transactions", "Transactions on the bus",
+                                  labels=bus_labels)
+        busy = CounterMetricFamily("rtupoll_bus_busy_seconds",
+                                   "Seconds the bus was held (rate() of it: utilisation)",
+                                   labels=bus_labels)
+        port_up = GaugeMetricFamily("rtupoll_bus_port_up", "1 while the port is open and "
+                                    "working; 0 while it is gone (adapter unplugged, gateway "
+                                    "down)", labels=bus_labels)
+        losses = CounterMetricFamily("rtupoll_bus_port_losses", "Times the port went away",
+                                     labels=bus_labels)
+        families: dict[str, Metric] = {}
+        now, wall = self.clock(), self.wall()
+        for bp in self.scheduler.buses:
+            b = bp.config.name
+            util.add_metric([b], bp.load.utilisation(now))
+            btx.add_metric([b], bp.load.transactions)
+            stats = getattr(bp.transport, "stats", None)
+            if stats is not None and isinstance(getattr(stats, "busy", None), float):
+                busy.add_metric([b], stats.busy)
+            port_up.add_metric([b], 0.0 if bp.port_error else 1.0)
+            losses.add_metric([b], self.bus_counters.get(b, BusCounters()).port_losses)
+            for dev in bp.devices:
+                d, st = dev.config.name, dev.stats
+                labels = [b, d]
+                up.add_metric(labels, 1.0 if st.state is State.ONLINE else 0.0)
+                for s in State:
+                    state.add_metric([*labels, s.value], 1.0 if st.state is s else 0.0)
+                info.add_metric([*labels, dev.config.profile.id, str(dev.config.address)], 1.0)
+                for outcome, n in (("ok", st.ok), ("timeout", st.timeouts),
+                                   ("garbled", st.garbled),
+                                   ("exception", st.exception_count)):
+                    requests.add_metric([*labels, outcome], n)
+                for code, n in sorted(st.exceptions.items()):
+                    exceptions.add_metric([*labels, f"{code:02d}"], n)
+                cycles.add_metric(labels, st.cycles)
+                if st.last_good_time is not None:
+                    age.add_metric(labels, max(0.0, wall - st.last_good_time))
+                h = self.histograms.get(d)
+                if h is not None:
+                    cum = [(_le(bound), float(n)) for bound, n in zip(BUCKETS, h.counts,
+                                                                       strict=True)]
+                    latency.add_metric(labels, [*cum, ("+Inf", float(h.total))], h.sum)
+                for r in st.latest.values():
+                    if r.value is not None:
+                        self._reading(families, labels, dev, r)
+        yield from (up, state, info, requests, exceptions, cycles, age, latency,
+                    util, btx, busy, port_up, losses)
+        yield from families.values()
+
+    def _metric(self, dev: DevicePoller, f: Field) -> FieldMetric:
+        k = (dev.config.profile.id, f.name)
+        fm = self._fields.get(k)
+        if fm is None:
+            fm = self._fields[k] = field_metric(f)
+        return fm
+
+    def _reading(self, families: dict[str, Metric], labels: list[str], dev: DevicePoller,
+                 r: Reading) -> None:
+        from prometheus_client.core import GaugeMetricFamily
+
+        fv = r.value
+        assert fv is not None
+        fm = self._metric(dev, r.field)
+
+        def family(suffix: str, extra: tuple[str, ...] = ()) -> GaugeMetricFamily:
+            name = fm.name + suffix
+            if name in RESERVED:  # a field called device_up must not shadow the real one
+                name += "_value"
+            fam = families.get(name)
+            want = ["bus", "device", *extra]
+            if fam is not None and isinstance(fam, GaugeMetricFamily) and \
+                    fam.samples and list(fam.samples[0].labels) != want:
+                name = f"{name}_{_word(dev.config.profile.id)}"  # a clash across profiles
+                fam = families.get(name)
+            if fam is None:
+                fam = families[name] = GaugeMetricFamily(name, fm.help, labels=want)
+            assert isinstance(fam, GaugeMetricFamily)
+            return fam
+
+        value = fv.output  # None: a sentinel ("not available"), which is no reading
+        if value is None:
+            return
+        if fm.kind == "enum" and fv.code is not None:
+            family("_code").add_metric(labels, float(fv.code))
+            names = [c.name for c in r.field.enum.values()]
+            if isinstance(value, str) and value not in names:
+                names.append(value)
+            fam = family("_state", ("state",))
+            for n in names:
+                fam.add_metric([*labels, n], 1.0 if n == value else 0.0)
+        elif fm.kind == "flags" and isinstance(value, list):
+            names = [c.name for c in r.field.flags.values()]
+            names += [n for n in value if n not in names]
+            fam = family("_flag", ("flag",))
+            for n in names:
+                fam.add_metric([*labels, n], 1.0 if n in value else 0.0)
+        elif isinstance(value, str):
+            family("_info", ("value",)).add_metric([*labels, value], 1.0)
+        elif isinstance(value, (int, float)):
+            converted = fm.convert(float(value))
+            if math.isfinite(converted):  # a NaN register is no reading
+                family("").add_metric(labels, converted)
+
+
+def _le(bound: float) -> str:
+    return repr(float(bound))
+
+
+# ---------------------------------------------------------------------------
+# the service: an HTTP listener on the event loop
+
+
+class MetricsService:
+    """Serves ``/metrics`` for the life of ``poll`` (a ``rtupoll.jobs.services.Service``)."""
+
+    def __init__(self, listen: str) -> None:
+        self.host, self.port = parse_listen(listen)
+        try:
+            import prometheus_client  # noqa: F401
+        except ImportError:
+            raise UsageError("--metrics needs prometheus_client: pip install "
+                             "'rtupoll[metrics]'") from None
+        self.collector: SchedulerCollector | None = None
+        self.registry: CollectorRegistry | None = None
+        self._server: asyncio.Server | None = None
+        self._bus_of: dict[str, BusPoller] = {}
+        self.address = ""  # http://HOST:PORT/metrics once listening
+
+    async def start(self, scheduler: Scheduler) -> None:
+        from prometheus_client import CollectorRegistry
+
+        self.collector = SchedulerCollector(scheduler)
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(self.collector)
+        try:
+            self._server = await asyncio.start_server(self._serve, self.host, self.port)
+        except OSError as exc:
+            why = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise UsageError(f"--metrics: cannot listen on {self.host}:{self.port}: "
+                             f"{why}") from None
+        sock = self._server.sockets[0].getsockname()
+        host = f"[{sock[0]}]" if ":" in sock[0] else sock[0]
+        self.address = f"http://{host}:{sock[1]}/metrics"
+        log.info("serving metrics on %s", self.address, extra={"event": "metrics"})
+
+    def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
+        if self.collector is None:
+            return
+        bus = self._bus_of.get(dev.config.name)
+        if bus is None or dev not in bus.devices:  # new, or moved by a reload
+            self._bus_of = {d.config.name: bp for bp in self.collector.scheduler.buses
+                            for d in bp.devices}
+            bus = self._bus_of.get(dev.config.name)
+        if bus is not None:
+            self.collector.observe(bus, dev, readings)
+
+    async def stop(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            self._server = None
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """One request per connection: GET or HEAD /metrics, / says where they are."""
+        try:
+            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10.0)
+            request, *header_lines = head.decode("latin-1").split("\r\n")
+            method, _, rest = request.partition(" ")
+            path = rest.partition(" ")[0].partition("?")[0]
+            headers = {k.strip().lower(): v.strip() for k, _, v in
+                       (h.partition(":") for h in header_lines if h)}
+            if method not in ("GET", "HEAD"):
+                status, ctype, body = "405 Method Not Allowed", "text/plain", b"GET only\n"
+            elif path == "/metrics" and self.registry is not None:
+                from prometheus_client.exposition import choose_encoder
+
+                encoder, ctype = choose_encoder(headers.get("accept", ""))
+                status, body = "200 OK", encoder(self.registry)
+            elif path == "/":
+                status, ctype = "200 OK", "text/plain; charset=utf-8"
+                body = b"rtupoll: metrics at /metrics\n"
+            else:
+                status, ctype, body = "404 Not Found", "text/plain", b"not found: try /metrics\n"
+            writer.write(f"HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\n"
+                         f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+                         .encode("latin-1"))
+            if method != "HEAD":
+                writer.write(body)
+            await writer.drain()
+        except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError,
+                ConnectionError, UnicodeError):
+            pass
+        finally:
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()

@@ -1,0 +1,286 @@
+"""What the sniffer knows about the bus: every unit seen, its health and its latest fields.
+
+Fed ``rtu.stream.Transaction``s, it keeps per unit what the other master saw: requests,
+replies, reply times, exceptions, timeouts and garbled replies, and the registers the
+replies carried. A unit named ``PROFILE@ADDRESS`` (or in the site file) is decoded
+through its profile; any other unit keeps its raw registers, and when what it answered
+fits a bundled profile's identify rules (``jobs.scan.check_passes``) it "looks like"
+that profile. A failed transaction yields records with no value (status timeout,
+garbled or exception), never a stale or misread one. Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import Counter, deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from rtupoll.errors import DeviceException
+from rtupoll.jobs.scan import check_passes
+from rtupoll.jobs.stats import iso_time, percentile
+from rtupoll.model.interpret import FieldValue, interpret
+from rtupoll.model.profile import Field, Profile
+from rtupoll.rtu.functions import READ_FUNCTIONS, Table
+from rtupoll.rtu.stream import Transaction
+from rtupoll.ui.records import POLL_KEYS, failed_record, record
+
+TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
+RATE_WINDOW = 10.0  # seconds over which the request rate is measured
+REPLY_WINDOW = 1000  # reply times kept for the percentiles
+
+
+@dataclass(frozen=True)
+class Known:
+    """A device the user named: a profile at an address, and what to call it."""
+
+    name: str
+    profile: Profile
+    address: int
+
+
+@dataclass(frozen=True)
+class Request:
+    """What a read or write request asks for, from its bytes."""
+
+    function: int
+    table: Table | None
+    start: int
+    count: int
+
+    @property
+    def text(self) -> str:
+        if self.table is None:
+            return f"function {self.function:#04x}"
+        verb = "read" if self.function in READ_FUNCTIONS else "write"
+        return f"{verb} {self.table.value} 0x{self.start:04X} x{self.count}"
+
+
+def parse_request(data: bytes) -> Request:
+    fc = data[1] & 0x7F
+    if fc in READ_FUNCTIONS or fc in (15, 16):
+        start, count = struct.unpack(">HH", data[2:6]) if len(data) >= 6 else (0, 0)
+        table = TABLES.get(fc, Table.COIL if fc == 15 else Table.HOLDING)
+        return Request(fc, table, start, count)
+    if fc in (5, 6) and len(data) >= 6:
+        return Request(fc, Table.COIL if fc == 5 else Table.HOLDING,
+                       struct.unpack(">H", data[2:4])[0], 1)
+    return Request(fc, None, 0, 0)
+
+
+def carried_words(tx: Transaction) -> tuple[Request, tuple[int, ...]] | None:
+    """The registers (or bits) a successful transaction carried: read or written."""
+    if tx.status != "ok" or tx.request is None or tx.reply is None:
+        return None
+    req, data = parse_request(tx.request.data), tx.reply.data
+    if req.table is None:
+        return None
+    if req.function in (3, 4):
+        body = data[3:-2]
+        return req, struct.unpack(f">{len(body) // 2}H", body)
+    if req.function in (1, 2):
+        body = data[3:-2]
+        return req, tuple((body[i // 8] >> (i % 8)) & 1 for i in range(req.count))
+    if req.function == 6:
+        return req, (struct.unpack(">H", tx.request.data[4:6])[0],)
+    if req.function == 5:
+        return req, (1 if tx.request.data[4] == 0xFF else 0,)
+    if req.function == 16:
+        body = tx.request.data[7:-2]
+        return req, struct.unpack(f">{len(body) // 2}H", body)
+    return None
+
+
+@dataclass
+class Unit:
+    """One unit id seen on the line, and its health as the other master sees it."""
+
+    unit: int
+    known: Known | None = None
+    requests: int = 0
+    ok: int = 0
+    timeouts: int = 0
+    garbled: int = 0
+    exceptions: Counter[int] = field(default_factory=Counter)
+    reply_times: deque[float] = field(default_factory=lambda: deque(maxlen=REPLY_WINDOW))
+    recent: deque[float] = field(default_factory=deque)  # request times, for the rate
+    last_seen: float = 0.0
+    latest: dict[str, tuple[float, FieldValue]] = field(default_factory=dict)
+    failed: dict[str, tuple[float, str]] = field(default_factory=dict)  # field -> status
+    image: dict[tuple[Table, int], int] = field(default_factory=dict)  # latest raw words
+    refused: dict[tuple[Table, int], int] = field(default_factory=dict)  # exception codes
+    answered: set[int] = field(default_factory=set)  # functions answered normally
+    reads: set[tuple[Table, int, int]] = field(default_factory=set)
+    hints: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.known.name if self.known else f"unit {self.unit}"
+
+    def rate(self, now: float) -> float:
+        while self.recent and self.recent[0] < now - RATE_WINDOW:
+            self.recent.popleft()
+        return len(self.recent) / RATE_WINDOW
+
+    def p50(self) -> float | None:
+        return percentile(self.reply_times, 50)
+
+    def p95(self) -> float | None:
+        return percentile(self.reply_times, 95)
+
+
+class BusView:
+    """Every unit seen, the line's own troubles, and the records to print."""
+
+    def __init__(self, known: Sequence[Known] = (), library: Sequence[Profile] = ()) -> None:
+        self.units: dict[int, Unit] = {k.address: Unit(k.address, k) for k in known}
+        self.library = [p for p in library if p.identify]
+        self.noise = 0  # stray bytes events
+        self.broken = 0  # CRC-bad frames answering no request
+        self.orphans = 0  # replies to no request seen
+        self.broadcasts = 0
+        self.transactions = 0
+        self.first: float | None = None
+        self.last: float = 0.0
+
+    def unit(self, address: int) -> Unit:
+        if address not in self.units:
+            self.units[address] = Unit(address)
+        return self.units[address]
+
+    def add(self, tx: Transaction) -> list[dict[str, Any]]:
+        """Take in one transaction; returns the JSON records it yields (POLL_KEYS)."""
+        self.first = tx.time if self.first is None else self.first
+        end = tx.reply.end if tx.reply else (tx.request.end if tx.request else tx.time)
+        self.last = max(self.last, end)
+        if tx.status == "noise":
+            self.noise += 1
+            return []
+        if tx.status == "broken":
+            self.broken += 1
+            return []
+        if tx.status == "orphan":
+            self.orphans += 1
+            return []
+        if tx.status == "broadcast":
+            self.broadcasts += 1
+            return []
+        assert tx.request is not None
+        self.transactions += 1
+        u = self.unit(tx.request.data[0])
+        u.requests += 1
+        u.recent.append(tx.time)
+        u.rate(tx.time)  # keeps the window's times only
+        u.last_seen = end
+        req = parse_request(tx.request.data)
+        if tx.status == "ok":
+            u.ok += 1
+            if tx.reply_time is not None:
+                u.reply_times.append(tx.reply_time)
+            u.answered.add(req.function)
+        elif tx.status == "exception":
+            u.exceptions[tx.exception or 0] += 1
+            if req.table is not None:
+                u.refused[req.table, req.start] = tx.exception or 0
+        elif tx.status == "timeout":
+            u.timeouts += 1
+        elif tx.status == "garbled":
+            u.garbled += 1
+        got = carried_words(tx)
+        if got is not None:
+            r, words = got
+            assert r.table is not None
+            if r.function in READ_FUNCTIONS:
+                u.reads.add((r.table, r.start, r.count))
+            for i, w in enumerate(words):
+                u.image[r.table, r.start + i] = w
+        if u.known is None:
+            if got is not None or tx.status == "exception":
+                u.hints = self.looks_like(u)
+            return self._raw_records(u, tx, got, end)
+        return self._records(u, tx, req, got, end)
+
+    # -- records --------------------------------------------------------------
+    def _records(self, u: Unit, tx: Transaction, req: Request,
+                 got: tuple[Request, tuple[int, ...]] | None, end: float
+                 ) -> list[dict[str, Any]]:
+        k = u.known
+        assert k is not None
+        if req.table is None or req.function not in READ_FUNCTIONS:
+            return []
+        fields = [f for f in k.profile.fields if f.table is req.table
+                  and f.address < req.start + req.count and f.end > req.start]
+        out: list[dict[str, Any]] = []
+        stamp = iso_time(end)
+        for f in fields:
+            inside = f.address >= req.start and f.end <= req.start + req.count
+            if got is not None and inside:
+                _, words = got
+                fv = interpret(f, words[f.address - req.start : f.end - req.start])
+                u.latest[f.name] = (end, fv)
+                u.failed.pop(f.name, None)
+                rec = record(k.name, k.profile.id, k.address, fv)
+                rec.update(status="ok", error="")
+            elif got is None:
+                u.failed[f.name] = (end, tx.status)
+                rec = failed_record(k.name, k.profile.id, k.address, f.name, f.unit,
+                                    tx.status, tx.note)
+            else:
+                continue  # only part of the field was read: nothing to say about it
+            rec["time"] = stamp
+            out.append({key: rec.get(key) for key in POLL_KEYS})
+        return out
+
+    def _raw_records(self, u: Unit, tx: Transaction,
+                     got: tuple[Request, tuple[int, ...]] | None, end: float
+                     ) -> list[dict[str, Any]]:
+        """A unit with no profile: one record per register read, ``TABLE:ADDRESS``."""
+        if got is None or got[0].function not in READ_FUNCTIONS:
+            return []
+        r, words = got
+        assert r.table is not None
+        stamp = iso_time(end)
+        return [{"time": stamp, "device": u.name, "profile": None, "address": u.unit,
+                 "field": f"{r.table.value}:{r.start + i}", "value": w, "unit": "",
+                 "raw": [w], "severity": "ok", "text": f"0x{w:04X}", "status": "ok",
+                 "error": ""} for i, w in enumerate(words)]
+
+    # -- "looks like" ----------------------------------------------------------
+    def looks_like(self, u: Unit) -> list[str]:
+        """Bundled profiles whose identify rules what ``u`` answered satisfies, best first.
+
+        A profile fits when at least one of its checks could be evaluated from the
+        registers seen, every check that could passed, every function the unit answered
+        is one the profile supports, and every block the master read holds one of its
+        fields.
+        """
+        ranked: list[tuple[int, str, str]] = []
+        for p in self.library:
+            if any(fn not in p.limits.functions for fn in u.answered):
+                continue
+            if any(not any(f.table is t and f.address < a + n and f.end > a for f in p.fields)
+                   for t, a, n in u.reads):
+                continue
+            passed: list[str] = []
+            for check in p.identify:
+                f = p.field(check.field)
+                outcome = self._outcome(u, f)
+                if outcome is None:
+                    continue
+                why = check_passes(check, p, u.unit, outcome)
+                if why is None:
+                    passed = []
+                    break
+                passed.append(why)
+            else:
+                if passed:
+                    ranked.append((-len(passed), p.id, f"{p.id} ({'; '.join(passed)})"))
+        return [text for _, _, text in sorted(ranked)]
+
+    def _outcome(self, u: Unit, f: Field) -> tuple[int, ...] | DeviceException | None:
+        words = [u.image.get((f.table, r)) for r in range(f.address, f.end)]
+        if all(w is not None for w in words):
+            return tuple(w for w in words if w is not None)
+        code = u.refused.get((f.table, f.address))
+        return DeviceException(code, unit=u.unit) if code is not None else None

@@ -1,0 +1,69 @@
+"""The tap: a serial port opened for listening only.
+
+pyserial directly, used read-only: this module never calls ``write``, and the port is
+opened with DTR and RTS deasserted (``io.serialport.Serial``), because on adapters
+whose RS-485 driver is enabled by RTS an asserted RTS would put the sniffer's
+transmitter on the pair and jam the bus. The adapter's transmitter must stay off
+(docs/sniff.md): an adapter with automatic direction control only transmits when
+written to, which this never does.
+
+Arrival times are wall-clock seconds since the epoch, taken from the monotonic clock
+(so they never jump backwards) plus the wall time at opening.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import time
+from collections.abc import Callable, Iterator
+
+from rtupoll.errors import PortError, UsageError
+from rtupoll.io.serialport import Serial, gateway, open_error
+from rtupoll.rtu.timing import Framing
+
+POLL = 0.02  # seconds between ticks while the line is quiet
+
+
+class ListenPort:
+    """A serial port that is only ever read from."""
+
+    def __init__(self, path: str, framing: Framing) -> None:
+        if gateway(path) is not None or "://" in path:
+            raise UsageError(f"{path}: sniff listens on a serial port (an RS-485 adapter on "
+                             "the pair); a TCP gateway only shows its own master's traffic")
+        port = Serial()
+        port.port = path
+        port.baudrate = framing.baudrate
+        port.bytesize = framing.bytesize
+        port.parity = framing.parity
+        port.stopbits = framing.stopbits
+        port.timeout = 0
+        port.exclusive = True
+        try:
+            port.open()
+        except (OSError, ValueError) as exc:
+            raise PortError(open_error(path, exc)) from None
+        self.path, self._port = path, port
+        self._fd = port.fileno()
+        mono, wall = time.monotonic(), time.time()
+        self.clock: Callable[[], float] = lambda: wall + (time.monotonic() - mono)
+
+    def chunks(self, stop: Callable[[], bool]) -> Iterator[tuple[bytes, float]]:
+        """``(bytes, arrival)`` as they come; ``(b"", now)`` every ``POLL`` s of quiet."""
+        while not stop():
+            ready, _, _ = select.select([self._fd], [], [], POLL)
+            if not ready:
+                yield b"", self.clock()
+                continue
+            try:
+                data = os.read(self._fd, 4096)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                raise PortError(f"{self.path}: {exc.strerror or exc} (adapter unplugged?)"
+                                ) from None
+            yield data, self.clock()
+
+    def close(self) -> None:
+        self._port.close()

@@ -1,0 +1,132 @@
+"""The sniffer for people: one line per transaction, and the live per-device table."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
+from typing import Any
+
+from rich.console import Group, RenderableType
+from rich.table import Table
+from rich.text import Text
+
+from rtupoll.model.profile import Severity
+from rtupoll.rtu.stream import Transaction
+from rtupoll.sniff.model import BusView, Unit, parse_request
+
+SEVERITY_STYLE = {Severity.OK: "", Severity.INFO: "cyan", Severity.WARNING: "yellow",
+                  Severity.ERROR: "bold red"}
+HEADLINE = {"timeout": "NO REPLY", "garbled": "GARBLED REPLY", "exception": "EXCEPTION",
+            "orphan": "REPLY TO NO REQUEST", "broken": "BROKEN FRAME", "noise": "STRAY BYTES"}
+
+
+def clock(t: float) -> str:
+    """UTC time of day to the millisecond, as in the JSON records' ``time``."""
+    return datetime.fromtimestamp(t, timezone.utc).strftime("%H:%M:%S.%f")[:-3]
+
+
+def ms(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds * 1000:.1f} ms"
+
+
+def frame_line(tx: Transaction, view: BusView, records: Sequence[Mapping[str, Any]]) -> str:
+    """One transaction in one line: time, unit, what was asked, reply time, what came back."""
+    head = clock(tx.time)
+    if tx.status in ("noise", "broken"):
+        return f"{head}  {HEADLINE[tx.status]}: {tx.note}"
+    if tx.status == "orphan":
+        assert tx.reply is not None
+        return f"{head}  {HEADLINE['orphan']}: {tx.reply.data.hex(' ')} ({tx.note})"
+    assert tx.request is not None
+    unit = view.units.get(tx.request.data[0])
+    who = unit.name if unit is not None else f"unit {tx.request.data[0]}"
+    if tx.status == "broadcast":
+        who = "broadcast (unit 0)"
+    elif unit is not None and unit.known is not None:
+        spec = f"{unit.known.profile.id}@{unit.unit}"
+        who = spec if unit.known.name == spec else f"{unit.known.name} ({spec})"
+    req = parse_request(tx.request.data)
+    parts = [head, who, f"fc{req.function:02d} {req.text}"]
+    if tx.reply_time is not None:
+        slow = ""
+        if unit is not None and unit.known is not None \
+                and tx.reply_time > unit.known.profile.limits.timeout:
+            slow = f" SLOW (the profile allows {unit.known.profile.limits.timeout:g} s)"
+        parts.append(f"reply {ms(tx.reply_time)}{slow}")
+    if tx.status in HEADLINE:
+        parts.append(f"{HEADLINE[tx.status]}: {tx.note}")
+    elif tx.status == "ok":
+        ok = [r for r in records if r.get("status") == "ok"]
+        if ok and ok[0].get("profile") is None:
+            parts.append("values " + " ".join(f"{r['value']:04X}" for r in ok))
+        elif ok:
+            parts.append(" ".join(f"{r['field']}={r['text']}" + (f" {r['unit']}" if r["unit"]
+                                                                  else "") for r in ok))
+        elif req.function in (5, 6, 15, 16):
+            parts.append("written (echoed)")
+    if unit is not None and unit.hints and tx.status == "ok":
+        parts.append(f"looks like {unit.hints[0].split(' ')[0]}")
+    return "  ".join(parts)
+
+
+def render(view: BusView, now: float, title: str = "") -> RenderableType:
+    """The live table: every unit's health, then the latest value of each decoded field."""
+    health = Table(title=title or None, title_justify="left", expand=False, pad_edge=False)
+    for name, justify in (("unit", "right"), ("device", "left"), ("req/s", "right"),
+                          ("ok", "right"), ("t/o", "right"), ("bad", "right"),
+                          ("exc", "left"), ("p50", "right"), ("p95", "right")):
+        health.add_column(name, justify=justify)  # type: ignore[arg-type]
+    for u in sorted(view.units.values(), key=lambda u: u.unit):
+        health.add_row(str(u.unit), _device(u), f"{u.rate(now):.1f}", str(u.ok),
+                       _count(u.timeouts, "yellow"), _count(u.garbled, "red"),
+                       _exceptions(u), ms(u.p50()), ms(u.p95()))
+    fields = Table(expand=False, pad_edge=False)
+    for name in ("device", "field", "value", "unit", "age"):
+        fields.add_column(name, justify="right" if name in ("value", "age") else "left")
+    for u in sorted(view.units.values(), key=lambda u: u.unit):
+        if u.known is None:
+            for (table, address), word in sorted(u.image.items(), key=lambda x: (x[0][0].value,
+                                                                                   x[0][1]))[:8]:
+                fields.add_row(u.name, f"{table.value}:{address}", f"0x{word:04X}", "", "")
+            continue
+        for f in u.known.profile.fields:
+            if f.name in u.failed and (f.name not in u.latest
+                                       or u.failed[f.name][0] >= u.latest[f.name][0]):
+                when, status = u.failed[f.name]
+                last = f" (last {u.latest[f.name][1].text})" if f.name in u.latest else ""
+                fields.add_row(u.name, f.name, Text(status + last, style="yellow"), f.unit,
+                               _age(now - when))
+            elif f.name in u.latest:
+                when, fv = u.latest[f.name]
+                fields.add_row(u.name, f.name, Text(fv.text, style=SEVERITY_STYLE[fv.severity]),
+                               f.unit, _age(now - when))
+    hints = [Text(f"unit {u.unit} looks like {u.hints[0]}", style="cyan")
+             for u in sorted(view.units.values(), key=lambda u: u.unit) if u.hints]
+    line = Text(f"{view.transactions} transactions; stray bytes {view.noise}, broken frames "
+                f"{view.broken}, replies to no request {view.orphans}, broadcasts "
+                f"{view.broadcasts}; t/o: timeouts, bad: garbled replies, exc: exceptions "
+                "(code x count)", style="dim")
+    return Group(health, *hints, fields, line)
+
+
+def _device(u: Unit) -> Text:
+    if u.known is not None:
+        return Text(u.known.name)
+    if u.hints:
+        return Text(f"raw ({u.hints[0].split(' ')[0]}?)", style="cyan")
+    return Text("raw", style="dim")
+
+
+def _count(n: int, style: str) -> Text:
+    return Text(str(n), style=style if n else "")
+
+
+def _exceptions(u: Unit) -> Text:
+    if not u.exceptions:
+        return Text("0")
+    return Text(", ".join(f"{code:02d}x{n}" for code, n in sorted(u.exceptions.items())),
+                style="yellow")
+
+
+def _age(seconds: float) -> str:
+    return f"{max(0.0, seconds):.0f} s"

@@ -1,0 +1,108 @@
+"""End to end: the real ``rtupoll poll --serve`` as a subprocess, mbpoll (``-m tcp``) and
+raw RTU-over-TCP sockets as the other masters, the simulator as the line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import pytest
+
+from rtupoll.rtu import crc_ok, with_crc
+from rtupoll.sim.runner import SimulatedBus
+
+Sim = Callable[..., SimulatedBus]
+MBPOLL = shutil.which("mbpoll")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextmanager
+def rtupoll(*args: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
+    """``rtupoll poll ... --serve 127.0.0.1:PORT``, until it listens; stopped by SIGTERM."""
+    port = free_port()
+    serve = next((a for a in args if a.startswith("rtu+tcp://")), None)
+    listen = serve.replace("PORT", str(port)) if serve else f"127.0.0.1:{port}"
+    argv = [a for a in args if a != serve]
+    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", *argv, "--serve", listen],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise AssertionError(f"rtupoll did not listen: {proc.communicate()}"
+                                         ) from None
+                time.sleep(0.05)
+        yield proc, port
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+
+
+def mbpoll(port: int, *args: str, write: tuple[str, ...] = ()
+           ) -> subprocess.CompletedProcess[str]:
+    assert MBPOLL is not None
+    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", "1", *args,
+                           "127.0.0.1", *write], capture_output=True, text=True, timeout=20)
+
+
+def values(out: str) -> list[int]:
+    return [int(line.split()[-1]) for line in out.splitlines() if line.startswith("[")]
+
+
+@pytest.mark.skipif(MBPOLL is None, reason="mbpoll is not installed (scripts/test installs it)")
+def test_mbpoll_reads_and_writes_through_rtupoll_polling_the_same_line(sim: Sim) -> None:
+    bus = sim("huiwen-aq@3", "net-irnet-pro@1", tick=None)
+    bus.set(3, "co2", 640)
+    with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "0", "--format",
+                 "json", "huiwen-aq@3", "net-irnet-pro@1") as (proc, port):
+        read = mbpoll(port, "-a", "3", "-t", "3", "-r", "30007", "-c", "4")  # 0x7536..
+        wrote = mbpoll(port, "-a", "1", "-t", "4:hex", "-r", "513",
+                       write=("0x0000", "0x4248"))
+        back = mbpoll(port, "-a", "1", "-t", "4", "-r", "513", "-c", "2")
+        silent = mbpoll(port, "-a", "9", "-t", "4", "-r", "1")
+        time.sleep(0.3)
+    out, err = proc.communicate()
+    assert read.returncode == 0, read.stdout + read.stderr
+    assert values(read.stdout) == list(bus.registers(3, "input", 0x7536, 4))
+    assert values(read.stdout)[3] == 640
+    assert wrote.returncode == 0, wrote.stdout + wrote.stderr
+    assert values(back.stdout) == [0, 0x4248]
+    assert silent.returncode != 0 and "Target device failed to respond" in silent.stderr
+    recs = [json.loads(line) for line in out.splitlines()]
+    assert len(recs) > 40 and {r["status"] for r in recs} == {"ok"}  # polling kept going
+    assert not [w for w in bus.wire if w.direction == "in" and "garbage" in w.note]
+    assert proc.returncode == 0, err
+
+
+def test_a_pure_gateway_serves_rtu_over_tcp(sim: Sim) -> None:
+    bus = sim("radar-level@4", tick=None)
+    bus.set(4, "air_gap_cm", 321)
+    with rtupoll("--port", bus.port, "rtu+tcp://127.0.0.1:PORT") as (proc, port), \
+            socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+        s.sendall(with_crc(bytes.fromhex("04 03 00 00 00 01")))
+        reply = b""
+        while len(reply) < 7:
+            reply += s.recv(64)
+        s.sendall(with_crc(bytes.fromhex("04 03 00 00 00 01"))[:-1] + b"\x00")  # bad CRC
+        s.settimeout(3)
+        end = s.recv(64)
+    _, err = proc.communicate()
+    assert crc_ok(reply) and reply[:5] == bytes.fromhex("04 03 02 01 41")  # 321
+    assert end == b"" and "CRC error" in err and proc.returncode == 0

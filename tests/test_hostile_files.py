@@ -1,0 +1,521 @@
+"""Hostile input, by name: files that used to hang the tool or end in a traceback, and
+command lines that were accepted as nonsense (issue 9, parts 2 and 3).
+
+Every loader (profile, site file, scenario, address plan) must answer a bad file with
+``file:line: path: message`` and exit 2, in bounded time; the command line must answer
+a bad argument, a full disk, a closed stdout or an early signal with one line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from rtupoll.cli import cli
+from rtupoll.config.address_plan import load_plan
+from rtupoll.config.library import MAX_FIELDS, load_profile
+from rtupoll.config.site import load_site
+from rtupoll.config.yamlsrc import MAX_BYTES
+from rtupoll.errors import ProfileError
+from rtupoll.sim.runner import SimulatedBus
+from rtupoll.sim.scenario import build
+from rtupoll.ui.records import CsvWriter, finite, json_safe, nonfinite_text, to_json
+
+RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
+BUNDLED = Path(__file__).parents[1] / "profiles"
+FIXTURES = Path(__file__).parent / "fixtures" / "hostile"
+LIMIT = 5.0  # seconds any one hostile file may take (the worst measured: ~1.5 s)
+
+SITE = """\
+buses:
+  - name: line1
+    port: /dev/ttyUSB0
+    baudrate: 9600
+    devices:
+      - {name: tank, profile: radar-level, address: 4, interval: 2}
+"""
+SCENARIO = """\
+seed: 7
+turnaround: 0.01
+devices:
+  - device: huiwen-aq@3
+    values: {co2: 800}
+faults: ["3:crc@10%"]
+"""
+PLAN = """\
+- {profile: radar-level, address: 1, new: 11}
+"""
+
+
+def _profile(path: Path) -> Any:
+    return load_profile(path)
+
+
+def _scenario(path: Path) -> Any:
+    return build(scenario=path)
+
+
+LOADERS: dict[str, tuple[str, Callable[[Path], Any]]] = {
+    # kind -> (file name, loader); a profile's file name must match its id
+    "profile": ("radar-level.yaml", _profile),
+    "site": ("site.yaml", load_site),
+    "scenario": ("bus.yaml", _scenario),
+    "plan": ("plan.yaml", load_plan),
+}
+
+
+def refused(kind: str, data: bytes | str, tmp_path: Path) -> ProfileError:
+    """Load ``data`` as ``kind``: it must fail with file:line, exit 2, in bounded time."""
+    name, loader = LOADERS[kind]
+    path = tmp_path / name
+    path.write_bytes(data.encode() if isinstance(data, str) else data)
+    t0 = time.monotonic()
+    with pytest.raises(ProfileError) as info:
+        loader(path)
+    assert time.monotonic() - t0 < LIMIT
+    err = info.value
+    assert err.exit_code == 2
+    assert re.match(rf"{re.escape(str(path))}:[1-9]\d*: ", str(err)), str(err)
+    return err
+
+
+# -- whole files that are hostile --------------------------------------------------
+
+def nested_merges(levels: int = 9) -> str:
+    """The 581-byte file of the report: each level merges the one below nine times."""
+    lines = ["m0: &m0 {a: 1, b: 2}"]
+    for i in range(1, levels + 1):
+        lines.append(f"m{i}: &m{i} {{<<: [{', '.join([f'*m{i - 1}'] * 9)}]}}")
+    return "\n".join([*lines, "x:", f"  <<: *m{levels}", ""])
+
+
+def billion_laughs() -> str:
+    lines = ['a0: &a0 ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for i in range(1, 10):
+        lines.append(f"a{i}: &a{i} [{','.join([f'*a{i - 1}'] * 9)}]")
+    return "\n".join(lines) + "\n"
+
+
+WHOLE_FILES: dict[str, tuple[bytes | str, str]] = {
+    # name -> (content, what the message says)
+    "nested-merge-keys": (nested_merges(), "aliases and merge keys are expanded"),
+    "billion-laughs": (billion_laughs(), "aliases and merge keys are expanded"),
+    "binary-garbage": (bytes(range(256)) * 8, "not UTF-8"),
+    "not-utf8": ("id: caf\xe9\n".encode("latin-1"), "not UTF-8 text (byte 0xE9)"),
+    "control-character": ("id: radar-level\nvendor: a\x07b\n", "character 0x07"),
+    "nul-byte": ("id: radar-level\x00\n", "character 0x00"),
+    "deep-flow-nesting": ("a: " + "[" * 200_000, "nested more than"),
+    "deep-block-nesting": ("- " * 100_000 + "x\n", "nested more than"),
+    "recursive-alias": ("a: &x [1, *x]\n", "contains it"),
+    "recursive-merge": ("a: &x {b: 1, c: {<<: *x}}\n", "contains it"),
+    "empty": ("", "empty"),
+    "syntax": ("a: [1, 2\nb: 3\n", "YAML syntax"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(LOADERS))
+@pytest.mark.parametrize("case", sorted(WHOLE_FILES))
+def test_a_hostile_file_is_one_line_with_file_and_line(kind: str, case: str,
+                                                       tmp_path: Path) -> None:
+    content, says = WHOLE_FILES[case]
+    err = refused(kind, content, tmp_path)
+    assert says in str(err)
+
+
+@pytest.mark.parametrize("kind", sorted(LOADERS))
+def test_a_ten_megabyte_file_is_refused_unread(kind: str, tmp_path: Path) -> None:
+    # the report's file: 131,072 fields, 10 MB; refused by size before parsing
+    field = "  - {name: f, table: input, address: 1, type: u16}\n"
+    data = "id: radar-level\nfields:\n" + field * (10_000_000 // len(field))
+    err = refused(kind, data, tmp_path)
+    assert f"larger than {MAX_BYTES >> 10} KiB" in str(err)
+    assert err.line == 1
+
+
+def test_a_nested_merge_file_from_the_report_is_refused(tmp_path: Path) -> None:
+    text = (FIXTURES / "nested-merge.yaml").read_text()
+    assert len(text) < 600
+    err = refused("profile", text, tmp_path)
+    assert "merge keys" in str(err)
+
+
+# -- values in otherwise good files ----------------------------------------------
+
+def _radar(**limits: str) -> str:
+    text = (BUNDLED / "radar-level.yaml").read_text()
+    for key, value in limits.items():
+        text, n = re.subn(rf"(?m)^  {key}: .*$", f"  {key}: {value}", text)
+        assert n == 1, key
+    return text
+
+
+PROFILE_VALUES = {
+    # name -> (limits key, value, what the message says)
+    "python-tag": ("timeout", '!!python/object/apply:os.system "true"',
+                   "unsupported tag !!python/object/apply:os.system"),
+    "python-name": ("timeout", "!!python/name:os.system x", "unsupported tag"),
+    "float-abc": ("timeout", '!!float "abc"', "'abc' is not a valid !!float"),
+    "int-abc": ("retries", '!!int "abc"', "'abc' is not a valid !!int"),
+    "bool-maybe": ("retries", '!!bool "maybe"', "'maybe' is not a valid !!bool"),
+    "turnaround-nan": ("turnaround", ".nan", "expected a finite number, got .nan"),
+    "turnaround-inf": ("turnaround", ".inf", "expected a finite number"),
+    "timeout-nan": ("timeout", ".NaN", "expected a finite number"),
+    "merge-scalar": ("timeout", "0.3\n  <<: 5", "a merge key (<<) takes a mapping"),
+    "huge-int": ("retries", "9" * 5000, "is not a valid !!int"),
+    "huge-float": ("timeout", "1.0e+999", "expected a finite number"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PROFILE_VALUES))
+def test_a_profile_value_that_used_to_crash_is_a_line(case: str, tmp_path: Path) -> None:
+    key, value, says = PROFILE_VALUES[case]
+    err = refused("profile", _radar(**{key: value}), tmp_path)
+    assert says in str(err)
+    assert err.path.startswith("limits") or case == "merge-scalar", str(err)
+
+
+def test_a_python_tag_on_text_is_refused_too(tmp_path: Path) -> None:
+    text = (BUNDLED / "radar-level.yaml").read_text().replace(
+        "model: 60 GHz", "model: !!python/name:os.system 60 GHz")
+    err = refused("profile", text, tmp_path)
+    assert "model: unsupported tag !!python/name:os.system" in str(err)
+
+
+@pytest.mark.parametrize("where,value", [
+    ("scale", ".nan"), ("scale", ".inf"), ("scale", "-.inf"), ("offset", ".nan"),
+    ("values", "[.nan]"), ("values", "[1, .inf]"), ("range", "[0, .nan]")])
+def test_nan_and_infinity_are_refused_where_a_number_is_meant(where: str, value: str,
+                                                            tmp_path: Path) -> None:
+    text = (BUNDLED / "radar-level.yaml").read_text().replace(
+        "{name: level_mm, table: holding, address: 0x0003, type: u16, unit: mm,",
+        f"{{name: level_mm, table: holding, address: 0x0003, type: u16, unit: mm, "
+        f"{where}: {value},")
+    err = refused("profile", text, tmp_path)
+    assert "expected a finite number" in str(err)
+    assert ".level_mm" not in err.path and err.path.startswith("fields[3]")
+
+
+@pytest.mark.parametrize("key,value", [("interval", ".nan"), ("interval", ".inf"),
+                                       ("timeout", ".nan")])
+def test_a_site_number_must_be_finite(key: str, value: str, tmp_path: Path) -> None:
+    err = refused("site", SITE.replace("interval: 2", f"interval: 2, {key}: {value}")
+                  .replace("interval: 2, interval", "interval"), tmp_path)
+    assert "finite number" in str(err)
+
+
+@pytest.mark.parametrize("text,says", [
+    ("turnaround: .nan", "finite number"),
+    ("turnaround: 50", "outside 0..10 s"),
+    ("turnaround: !!float abc", "not a valid !!float"),
+    ("seed: !!int abc", "not a valid !!int"),
+    ("tick: .nan", "finite number"),
+    ("tick: -1", "outside 0..3600"),
+])
+def test_a_scenario_number_must_make_sense(text: str, says: str, tmp_path: Path) -> None:
+    key = text.split(":")[0]
+    base = SCENARIO if key in ("seed", "turnaround") else SCENARIO + "tick: 1\n"
+    err = refused("scenario", re.sub(rf"(?m)^{key}: .*$", text, base), tmp_path)
+    assert says in str(err)
+
+
+def test_a_scenario_nan_pin_on_a_scaled_integer_is_a_line(tmp_path: Path) -> None:
+    err = refused("scenario", SCENARIO.replace("{co2: 800}", "{temperature: .nan}"), tmp_path)
+    assert "temperature" in str(err) and "nan" in str(err)
+
+
+def test_a_scenario_may_pin_nan_on_a_float_register(tmp_path: Path) -> None:
+    # a float register holding NaN is what a device may really send: the simulator can
+    (tmp_path / "bus.yaml").write_text(
+        "devices:\n  - device: net-irnet-pro@1\n    values: {concentration: .nan}\n")
+    config = build(scenario=tmp_path / "bus.yaml")
+    pinned = config.devices[0].pins["concentration"]
+    assert isinstance(pinned, float) and math.isnan(pinned)
+
+
+def test_a_fault_with_nothing_after_the_at_sign_is_refused(tmp_path: Path) -> None:
+    err = refused("scenario", SCENARIO.replace('"3:crc@10%"', '"3:dead@"'), tmp_path)
+    assert "nothing after '@'" in str(err)
+
+
+# -- address plans (CSV) -----------------------------------------------------------
+
+@pytest.mark.parametrize("data,says", [
+    ("profile,address,new\nradar-level,1,caf\xe9\n".encode("latin-1"), "not UTF-8"),
+    ("profile,address,new\nradar-level,1,\x0011\n", "control character"),
+    (b"", "empty"),
+    ("profile,address,new\n" + "x" * 200_000 + ",1,2\n", "CSV: field larger"),
+])
+def test_a_hostile_csv_plan_is_a_line(data: bytes | str, says: str, tmp_path: Path) -> None:
+    path = tmp_path / "plan.csv"
+    path.write_bytes(data.encode() if isinstance(data, str) else data)
+    with pytest.raises(ProfileError) as info:
+        load_plan(path)
+    assert re.match(rf"{re.escape(str(path))}:[1-9]\d*: ", str(info.value)), str(info.value)
+    assert says in str(info.value)
+
+
+# -- the overlap check: n log n, and a cap ------------------------------------------
+
+def _fields_profile(n: int, *, overlap: bool = False) -> str:
+    head = (BUNDLED / "radar-level.yaml").read_text().split("\nfields:\n")[0]
+    head = re.sub(r"(?ms)^identify:.*?(?=^set_address:)", "", head)
+    head = re.sub(r"(?ms)^set_address:.*\Z", "", head)
+    lines = [f"  - {{name: f{i}, table: holding, address: {i}, type: u16}}" for i in range(n)]
+    if overlap:
+        lines.append(f"  - {{name: late, table: holding, address: {n // 2}, type: u32}}")
+    return head + "\nfields:\n" + "\n".join(lines) + "\n"
+
+
+def test_four_thousand_fields_are_checked_quickly(tmp_path: Path) -> None:
+    path = tmp_path / "radar-level.yaml"
+    path.write_text(_fields_profile(4000))
+    t0 = time.monotonic()
+    profile = load_profile(path)
+    assert len(profile.fields) == 4000
+    assert time.monotonic() - t0 < LIMIT  # quadratic took ~1.6 s for 4,000, 6.5 s for 8,000
+
+
+def test_an_overlap_is_reported_at_the_later_field(tmp_path: Path) -> None:
+    err = refused("profile", _fields_profile(300, overlap=True), tmp_path)
+    assert "late overlaps f150 (line" in str(err)
+    assert err.path == "fields[300].address"
+
+
+def test_a_profile_holds_at_most_max_fields(tmp_path: Path) -> None:
+    err = refused("profile", _fields_profile(MAX_FIELDS + 1), tmp_path)
+    assert f"at most {MAX_FIELDS}" in str(err)
+
+
+# -- site files: a profile file is found from the site file's folder ----------------
+
+def test_a_site_profile_file_is_resolved_from_the_site_folder(tmp_path: Path) -> None:
+    site_dir = tmp_path / "site"
+    (site_dir / "mine").mkdir(parents=True)
+    (site_dir / "mine" / "radar-level.yaml").write_text(
+        (BUNDLED / "radar-level.yaml").read_text())
+    (site_dir / "site.yaml").write_text(SITE.replace("profile: radar-level",
+                                                     "profile: mine/radar-level.yaml"))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    old = os.getcwd()
+    os.chdir(elsewhere)
+    try:
+        site = load_site(Path("../site/site.yaml"))
+        used = Path(site.buses[0].devices[0].profile.path).resolve()
+    finally:
+        os.chdir(old)
+    assert used == (site_dir / "mine" / "radar-level.yaml").resolve()
+
+
+def test_a_missing_site_profile_file_has_a_line(tmp_path: Path) -> None:
+    err = refused("site", SITE.replace("profile: radar-level", "profile: nope.yaml"), tmp_path)
+    assert err.line == 6 and "no profile file" in str(err)
+    assert str(tmp_path / "nope.yaml") in str(err)
+
+
+# -- NaN and infinities in JSON and CSV --------------------------------------------
+
+def test_finite_and_json_safe_turn_nan_and_inf_into_null() -> None:
+    assert finite(float("nan")) is None and finite(float("-inf")) is None
+    assert finite(1.5) == 1.5 and finite("NaN") == "NaN"
+    assert [nonfinite_text(v) for v in (float("nan"), float("inf"), float("-inf"), 1.0)] == \
+        ["NaN", "+inf", "-inf", None]
+    nested = {"a": [float("nan"), {"b": float("inf")}], "c": (1, float("-inf"))}
+    assert json_safe(nested) == {"a": [None, {"b": None}], "c": [1, None]}
+    line = to_json({"value": float("nan"), "raw": [1, 2]})
+    assert json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}")) == \
+        {"value": None, "raw": [1, 2]}
+
+
+def test_csv_cells_of_nan_are_empty() -> None:
+    import io
+
+    out = io.StringIO()
+    CsvWriter(out, ("value", "text")).write({"value": float("nan"), "text": "NaN"})
+    assert out.getvalue().splitlines() == ["value,text", ",NaN"]
+
+
+def test_read_json_of_a_nan_register_is_strict_json(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("net-irnet-pro@1", tick=None, sets=["net-irnet-pro@1.concentration=nan"])
+    result = CliRunner().invoke(cli, ["read", "-p", bus.port, "--format", "json",
+                                      "net-irnet-pro@1", "concentration"])
+    assert result.exit_code == 0, result.output
+    rec = json.loads(result.stdout, parse_constant=lambda c: pytest.fail(f"bare {c}"))
+    assert rec["value"] is None and rec["text"] == "NaN"
+    csv = CliRunner().invoke(cli, ["read", "-p", bus.port, "--format", "csv",
+                                   "net-irnet-pro@1", "concentration"])
+    row = csv.stdout.splitlines()[1]
+    assert ",concentration,,ppm," in row and row.endswith(",NaN")  # value empty, text NaN
+
+
+def test_poll_json_of_a_nan_register_is_strict_json(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("net-irnet-pro@1", tick=None, sets=["net-irnet-pro@1.concentration=-inf"])
+    result = CliRunner().invoke(cli, ["poll", "-p", bus.port, "-b", "4800", "--once",
+                                      "--format", "json", "net-irnet-pro@1"])
+    assert result.exit_code == 0, result.output
+    recs = [json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}"))
+            for line in result.stdout.splitlines()]
+    conc = next(r for r in recs if r["field"] == "concentration")
+    assert (conc["value"], conc["text"], conc["status"]) == (None, "-inf", "ok")
+
+
+# -- the command line ----------------------------------------------------------------
+
+def rtupoll(*args: str, timeout: float = 30, **kw: Any) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([RTUPOLL, *args], capture_output=True, text=True, timeout=timeout,
+                          **kw)
+
+
+def one_line(proc: subprocess.CompletedProcess[str]) -> str:
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("args,says", [
+    (["read", "-p", "/dev/null", "-b", "99999999999", "huiwen-aq@3"], "outside 300..4000000"),
+    (["read", "-p", "/dev/null", "-b", "0", "huiwen-aq@3"], "--baudrate 0 is outside"),
+    (["write", "-p", "/dev/null", "-b", "0", "radar-level@1", "slave_address=2"],
+     "--baudrate 0"),
+    (["set-address", "-p", "/dev/null", "-b", "0", "radar-level@1", "2"], "--baudrate 0"),
+    (["poll", "-p", "/dev/null", "--interval", "nan", "huiwen-aq@3"], "not a number of seconds"),
+    (["poll", "-p", "/dev/null", "--timeout", "nan", "huiwen-aq@3"], "not a number of seconds"),
+    (["simulate", "--tick", "nan"], "not a number of seconds"),
+    (["simulate", "--turnaround", "nan"], "not a number of seconds"),
+    (["simulate", "--tcp", "127.0.0.1:99999"], "PORT 0..65535"),
+    (["simulate", "--fault", "3:dead@"], "nothing after '@'"),
+])
+def test_nonsense_on_the_command_line_is_refused(args: list[str], says: str) -> None:
+    proc = rtupoll(*args)
+    assert proc.returncode == 2, proc.stderr
+    assert says in one_line(proc)
+
+
+@pytest.mark.parametrize("kind,args", [
+    ("profile", ["profiles", "check", "{}"]),
+    ("profile", ["decode", "--profile", "{}", "01", "04", "00", "06", "00", "02", "91", "CA"]),
+    ("site", ["poll", "-c", "{}", "--once"]),
+    ("scenario", ["simulate", "--scenario", "{}"]),
+    ("plan", ["set-address", "-p", "/dev/null", "--plan", "{}", "--dry-run"]),
+])
+@pytest.mark.parametrize("case", ["nested-merge-keys", "binary-garbage", "deep-flow-nesting"])
+def test_every_command_that_loads_a_file_gives_its_line(kind: str, args: list[str], case: str,
+                                                        tmp_path: Path) -> None:
+    path = tmp_path / LOADERS[kind][0]
+    content = WHOLE_FILES[case][0]
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    t0 = time.monotonic()
+    proc = rtupoll(*[a.replace("{}", str(path)) for a in args])
+    assert time.monotonic() - t0 < LIMIT + 5
+    assert proc.returncode == 2, proc.stderr
+    assert re.search(rf"{re.escape(str(path))}:[1-9]\d*: ", proc.stderr), proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_a_full_disk_is_one_line(tmp_path: Path) -> None:
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([RTUPOLL, "profiles", "list"], stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=30)
+    assert proc.returncode == 2
+    assert one_line(proc) == "rtupoll: cannot write the output: No space left on device"
+
+
+def test_a_closed_stdout_is_one_line() -> None:
+    proc = subprocess.run(f"exec {RTUPOLL} profiles list >&-", shell=True,
+                          stderr=subprocess.PIPE, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert one_line(proc) == "rtupoll: cannot write the output: Bad file descriptor"
+
+
+def test_json_to_a_full_disk_after_a_read_is_one_line(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@3", tick=None)
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([RTUPOLL, "read", "-p", bus.port, "--format", "json",
+                               "huiwen-aq@3"], stdout=full, stderr=subprocess.PIPE, text=True,
+                              timeout=30)
+    assert proc.returncode == 2
+    assert "No space left on device" in one_line(proc)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_early_signal_never_shows_our_traceback(sig: signal.Signals) -> None:
+    """Signals while Python starts and imports: from the first line of rtupoll's code on,
+    one line and exit 130. (The interpreter's own start-up, before any of it runs, can
+    still print its KeyboardInterrupt; that is not in the package's hands.)"""
+    codes = []
+    for delay in (0.0, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, 1.5):
+        # 'decode -' reads stdin, which stays open: it waits until the signal
+        proc = subprocess.Popen([RTUPOLL, "decode", "-"], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+        ours = [line for line in err.splitlines() if "/rtupoll/" in line or "/click/" in line]
+        assert not ours, err
+        if proc.returncode == 130:
+            assert err.strip().splitlines()[-1] == "rtupoll: interrupted", err
+        codes.append(proc.returncode)
+    assert codes[-1] == 130  # long after start: one line, exit 130, also for SIGTERM
+    assert set(codes) <= {130, -sig, 1}, codes  # -sig, 1: during Python's own start-up
+
+
+def test_an_interrupted_plan_reports_every_row(sim: Callable[..., SimulatedBus],
+                                               tmp_path: Path) -> None:
+    """SIGINT while row 1's write is on the wire: row 1 written, unverified; 2 and 3 not run."""
+    bus = sim("radar-level@1", "radar-level@2", "radar-level@3", tick=None,
+              faults=["1:slow=1.2@2-"])  # the write (request 2 to unit 1) is answered late
+    plan = tmp_path / "plan.csv"
+    plan.write_text("profile,address,new\nradar-level,1,11\nradar-level,2,12\n"
+                    "radar-level,3,13\n")
+    proc = subprocess.Popen([RTUPOLL, "set-address", "-p", bus.port, "-b", "9600",
+                             "--timeout", "1.5", "--retries", "0", "--yes", "--format", "json",
+                             "--plan", str(plan)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 20
+    while not any(w.direction == "in" and len(w.data) >= 2 and w.data[:2] == b"\x01\x06"
+                  for w in bus.wire):
+        assert time.monotonic() < deadline and proc.poll() is None, "no write was sent"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert [(r["row"], r["status"], r["exit_code"]) for r in rows] == [
+        (1, "written, unverified", 130), (2, "not run", None), (3, "not run", None)]
+    assert "may be at 11 or still at 1" in rows[0]["detail"]
+    assert "Traceback" not in err and err.strip().endswith("rtupoll: interrupted")
+
+
+def test_a_raw_write_to_the_address_register_says_where_the_device_went(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@3", tick=None)
+    proc = rtupoll("write", "-p", bus.port, "--raw", "--yes", "--format", "json",
+                   "huiwen-aq@3", "holding:0x9C41=7")
+    assert proc.returncode == 0, proc.stderr
+    assert bus.addresses() == {"huiwen-aq@3": 7}
+    assert "huiwen-aq's address register (slave_address): writing 7 there moves the device " \
+           "to address 7; it answers there now" in one_line(proc)
+    assert json.loads(proc.stdout)["value"] == 7
+
+
+def test_a_raw_write_of_an_unreachable_address_is_refused(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@3", tick=None)
+    proc = rtupoll("write", "-p", bus.port, "--raw", "--yes", "huiwen-aq@3", "holding:0x9C41=0")
+    assert proc.returncode == 8
+    assert "outside its range 1..247" in one_line(proc)
+    assert bus.addresses() == {"huiwen-aq@3": 3}
+

@@ -1,0 +1,261 @@
+"""Prometheus metrics: ``rtupoll poll --metrics HOST:PORT`` scraped over real HTTP.
+
+The end-to-end test runs the real command in a subprocess against a simulated bus
+with one dead device, scrapes ``/metrics`` twice and parses the exposition with
+``prometheus_client``'s own parser. The others drive the collector in-process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.parser import text_string_to_metric_families
+
+from rtupoll.cli import cli
+from rtupoll.config.library import load_one
+from rtupoll.config.site import from_specs
+from rtupoll.jobs.scheduler import DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
+from rtupoll.outputs.metrics import SchedulerCollector, field_metric, parse_listen
+from rtupoll.sim.runner import SimulatedBus
+
+Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def parse(text: str) -> Samples:
+    out: Samples = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[s.name, tuple(sorted(s.labels.items()))] = s.value
+    return out
+
+
+def get(samples: Samples, name: str, **labels: str) -> float | None:
+    return samples.get((name, tuple(sorted(labels.items()))))
+
+
+def scrape(port: int, path: str = "/metrics") -> str:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as r:
+        body: bytes = r.read()
+        assert r.status == 200
+    return body.decode()
+
+
+def test_scraped_over_http_while_polling_with_a_dead_device(
+        sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead"])
+    for name, value in {"co2": 777, "temperature": 21, "humidity": 40,
+                        "co2_level": "GOOD"}.items():
+        bus.set(3, name, value)
+    port = free_port()
+    err = (tmp_path / "stderr").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rtupoll", "poll", "-p", bus.port, "--format", "json",
+         "--interval", "0.2", "--timeout", "0.1", "--metrics", f"127.0.0.1:{port}",
+         "--log-format", "text",
+         "huiwen-aq@3", "radar-level@4"],
+        stdout=subprocess.DEVNULL, stderr=err)
+    try:
+        first: Samples = {}
+        deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
+        while time.monotonic() < deadline:
+            with contextlib.suppress(OSError):
+                first = parse(scrape(port))
+                cycles = get(first, "rtupoll_cycles_total", bus=bus.port, device="radar-level@4")
+                if (cycles or 0) >= 2 and get(first, "rtupoll_device_up", bus=bus.port,
+                                              device="huiwen-aq@3") == 1:
+                    break
+            time.sleep(0.1)
+        live = {"bus": bus.port, "device": "huiwen-aq@3"}
+        dead = {"bus": bus.port, "device": "radar-level@4"}
+        assert get(first, "rtupoll_device_up", **live) == 1
+        assert get(first, "rtupoll_device_up", **dead) == 0
+        # the pinned values, in base units where the profile's unit has one
+        assert get(first, "rtupoll_co2_ppm", **live) == 777
+        assert get(first, "rtupoll_temperature_celsius", **live) == 21
+        assert get(first, "rtupoll_humidity_ratio", **live) == pytest.approx(0.40)
+        assert get(first, "rtupoll_co2_level_state", **live, state="GOOD") == 1
+        assert get(first, "rtupoll_co2_level_state", **live, state="SEVERE") == 0
+        assert get(first, "rtupoll_co2_level_code", **live) is not None
+        # the dead device: no readings at all, timeouts counted, no good reading ever
+        assert not [k for k in first if k[0].startswith(("rtupoll_air_gap", "rtupoll_level"))]
+        assert (get(first, "rtupoll_requests_total", **dead, outcome="timeout") or 0) >= 2
+        assert get(first, "rtupoll_requests_total", **dead, outcome="ok") == 0
+        assert get(first, "rtupoll_last_good_reading_age_seconds", **dead) is None
+        assert get(first, "rtupoll_last_good_reading_age_seconds", **live) is not None
+        assert get(first, "rtupoll_device_info", **live, profile="huiwen-aq", address="3") == 1
+        assert get(first, "rtupoll_bus_port_up", bus=bus.port) == 1
+        assert (get(first, "rtupoll_request_duration_seconds_count", **live) or 0) > 0
+        util = get(first, "rtupoll_bus_utilisation_ratio", bus=bus.port)
+        assert util is not None and 0 < util <= 1
+
+        time.sleep(0.6)
+        second = parse(scrape(port))
+        counters = [k for k in first if k[0].endswith(("_total", "_count", "_bucket", "_sum"))]
+        assert len(counters) > 20
+        assert all(second[k] >= first[k] for k in counters), "a counter went down"
+        assert sum(second[k] for k in counters) > sum(first[k] for k in counters)
+        with pytest.raises(urllib.error.HTTPError) as nope:
+            scrape(port, "/nothing")
+        assert nope.value.code == 404
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=20)
+        err.close()
+    log = (tmp_path / "stderr").read_text()
+    assert code == 0, log
+    assert f"serving metrics on http://127.0.0.1:{port}/metrics" in log
+    # the dead device is logged once when it stops answering, not every scan
+    assert log.count("radar-level@4 on") == 1, log
+
+
+async def _cycles(scheduler: Scheduler, n: int, collector: SchedulerCollector) -> None:
+    bp = scheduler.buses[0]
+
+    def sink(dev: DevicePoller, readings: list[Reading]) -> None:
+        collector.observe(bp, dev, readings)
+
+    await scheduler.open()
+    try:
+        for _ in range(n):
+            await scheduler.scan_once(sink)
+    finally:
+        await scheduler.close()
+
+
+def test_a_device_that_dies_loses_its_readings_and_its_up(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("radar-level@4", faults=["4:dead@6-"])  # 5 fields, one read each: 1 good cycle
+    bus.set(4, "level_cm", 150)
+    scheduler = Scheduler(from_specs(bus.port, [("radar-level", 4)], timeout=0.05, retries=0))
+    collector = SchedulerCollector(scheduler)
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    labels = {"bus": bus.port, "device": "radar-level@4"}
+
+    asyncio.run(_cycles(scheduler, 1, collector))
+    alive = parse(generate_latest(registry).decode())
+    assert get(alive, "rtupoll_level_cm", **labels) == 150
+    assert get(alive, "rtupoll_device_up", **labels) == 1
+
+    asyncio.run(_cycles(scheduler, 1, collector))
+    gone = parse(generate_latest(registry).decode())
+    assert get(gone, "rtupoll_level_cm", **labels) is None  # not its last value
+    assert get(gone, "rtupoll_device_up", **labels) == 0
+    assert get(gone, "rtupoll_device_state", **labels, state="retrying") == 1
+    assert get(gone, "rtupoll_requests_total", **labels, outcome="timeout") == 1
+    assert (get(gone, "rtupoll_last_good_reading_age_seconds", **labels) or -1) >= 0
+
+
+def test_names_follow_the_base_units() -> None:
+    irnet, huiwen, radar = (load_one(p) for p in ("net-irnet-pro", "huiwen-aq", "radar-level"))
+    kelvin = field_metric(irnet.field("temperature"))
+    assert kelvin.name == "rtupoll_temperature_celsius"
+    assert kelvin.convert(296.15) == pytest.approx(23.0)
+    assert field_metric(huiwen.field("temperature")).name == "rtupoll_temperature_celsius"
+    assert field_metric(huiwen.field("humidity")).convert(45) == pytest.approx(0.45)
+    assert field_metric(huiwen.field("co2")).name == "rtupoll_co2_ppm"
+    # the name already says its unit: kept, not converted (cm and mm would collide)
+    level = field_metric(radar.field("level_cm"))
+    assert (level.name, level.convert(150)) == ("rtupoll_level_cm", 150.0)
+    assert field_metric(irnet.field("error")).kind == "enum"
+    assert field_metric(irnet.field("warning")).kind == "flags"
+
+
+def test_listen_addresses() -> None:
+    assert parse_listen("127.0.0.1:9100") == ("127.0.0.1", 9100)
+    assert parse_listen(":9100") == ("0.0.0.0", 9100)
+    assert parse_listen("[::1]:9100") == ("::1", 9100)
+
+
+def poll(*args: str) -> Any:
+    return CliRunner().invoke(cli, ["poll", *args])
+
+
+def test_a_bad_or_busy_address_is_one_line_exit_2(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@3")
+    bad = poll("-p", bus.port, "--once", "--metrics", "localhost", "huiwen-aq@3")
+    assert bad.exit_code == 2
+    assert bad.stderr.strip() == ("rtupoll: metrics address 'localhost': expected HOST:PORT, "
+                                  "e.g. 127.0.0.1:9100")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        busy = poll("-p", bus.port, "--once", "--metrics", f"127.0.0.1:{port}", "huiwen-aq@3")
+    assert busy.exit_code == 2
+    assert busy.stderr.startswith(f"rtupoll: --metrics: cannot listen on 127.0.0.1:{port}: ")
+    assert len(busy.stderr.splitlines()) == 1
+
+
+def test_without_prometheus_client_it_says_what_to_install(
+        sim: Callable[..., SimulatedBus], monkeypatch: pytest.MonkeyPatch) -> None:
+    bus = sim("huiwen-aq@3")
+    monkeypatch.setitem(sys.modules, "prometheus_client", None)  # import fails
+    result = poll("-p", bus.port, "--once", "--metrics", "127.0.0.1:0", "huiwen-aq@3")
+    assert result.exit_code == 2
+    assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: pip install "
+                                     "'rtupoll[metrics]'")
+
+
+def test_metrics_in_the_site_file(tmp_path: Path) -> None:
+    from rtupoll.config.site import load_site
+    from rtupoll.errors import ConfigError
+
+    path = tmp_path / "site.yaml"
+    body = ("buses:\n  - port: /dev/ttyUSB0\n    baudrate: 9600\n    devices:\n"
+            "      - {profile: huiwen-aq, address: 3}\n")
+    path.write_text("metrics: 127.0.0.1:9464\n" + body)
+    assert load_site(path).metrics == "127.0.0.1:9464"
+    path.write_text(body + "metrics: 9464\n")
+    with pytest.raises(ConfigError) as bad:
+        load_site(path)
+    assert str(bad.value) == (f"{path}:6: metrics: '9464': expected HOST:PORT, "
+                              "e.g. 127.0.0.1:9100")
+
+
+def test_a_nan_register_is_no_sample_and_no_influx_field(
+        sim: Callable[..., SimulatedBus]) -> None:
+    from rtupoll.outputs.influx import lines
+
+    bus = sim("net-irnet-pro@1")
+    bus.set(1, "concentration", float("nan"))
+    bus.set(1, "temperature", 296.15)
+    site = from_specs(bus.port, [("net-irnet-pro", 1)], baudrate=9600, check_serial=False)
+    scheduler = Scheduler(site)
+    collector = SchedulerCollector(scheduler)
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    asyncio.run(_cycles(scheduler, 1, collector))
+    text = generate_latest(registry).decode()
+    samples = parse(text)
+    labels = {"bus": bus.port, "device": "net-irnet-pro@1"}
+    assert get(samples, "rtupoll_temperature_celsius", **labels) == pytest.approx(23.0)
+    assert get(samples, "rtupoll_concentration_ppm", **labels) is None
+    assert all(v == v for v in samples.values())  # no NaN sample anywhere
+    assert not [line for line in text.splitlines() if line.endswith(("NaN", "nan"))]
+    readings = list(scheduler.pollers()[0].stats.latest.values())
+    assert any(r.value is not None and r.field.name == "concentration" for r in readings)
+    out = "\n".join(lines(readings))
+    assert "concentration=" not in out and "temperature=296.15" in out
+    assert not [f for f in out.replace(" ", ",").split(",") if f.lower().endswith("=nan")]

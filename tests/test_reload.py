@@ -1,0 +1,253 @@
+"""SIGHUP: the site file reloaded while polling goes on, and the output file reopened.
+
+In-process tests drive ``Scheduler.reload`` and the ``ReloadService`` against
+simulated buses (the ports that do not change must stay open: the same client
+object before and after); the last test sends real SIGHUPs to ``rtupoll poll``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from rtupoll.config.site import load_site
+from rtupoll.jobs.reload import ReloadService
+from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+from rtupoll.jobs.stats import Reading
+from rtupoll.sim.runner import SimulatedBus
+
+
+def site_file(path: Path, *buses: tuple[str, list[str]]) -> Path:
+    """``buses``: (port, device lines in flow style)."""
+    text = "buses:\n"
+    for port, devices in buses:
+        text += f"  - port: {port}\n    baudrate: 9600\n    devices:\n"
+        text += "".join(f"      - {d}\n" for d in devices)
+    path.write_text(text)
+    return path
+
+
+def client_of(bp: BusPoller) -> object:
+    """The bus's pymodbus client: the same object means the port was never reopened."""
+    return vars(bp.transport).get("_client")
+
+
+class Run:
+    """A scheduler running in the background of a test's event loop, counting cycles."""
+
+    def __init__(self, scheduler: Scheduler) -> None:
+        self.scheduler = scheduler
+        self.cycles: Counter[str] = Counter()
+        self.stop = asyncio.Event()
+        self.task: asyncio.Task[None] | None = None
+
+    def sink(self, dev: DevicePoller, readings: list[Reading]) -> None:
+        self.cycles[dev.config.name] += 1
+
+    async def __aenter__(self) -> Run:
+        await self.scheduler.open()
+        self.task = asyncio.create_task(self.scheduler.run(self.sink, self.stop))
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.stop.set()
+        assert self.task is not None
+        await self.task  # a bus task that crashed would raise here
+        await self.scheduler.close()
+
+    async def until(self, done: Callable[[], bool], limit: float = 20.0) -> None:
+        deadline = time.monotonic() + limit  # a guard against a hang, not a timing claim
+        while not done():
+            assert self.task is not None and not self.task.done(), "polling stopped"
+            assert time.monotonic() < deadline, f"not reached: {dict(self.cycles)}"
+            await asyncio.sleep(0.02)
+
+    async def more(self, name: str, n: int) -> None:
+        target = self.cycles[name] + n
+        await self.until(lambda: self.cycles[name] >= target)
+
+
+def test_add_change_and_remove_devices_keep_the_port_open(
+        sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3", "radar-level@4")
+    path = tmp_path / "site.yaml"
+    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
+    tank = "{name: tank, profile: radar-level, address: 4, interval: 0.05, fields: [level_cm]}"
+
+    async def main() -> None:
+        scheduler = Scheduler(load_site(site_file(path, (bus.port, [air]))))
+        async with Run(scheduler) as run:
+            await run.more("air", 3)
+            bp, client = scheduler.buses[0], client_of(scheduler.buses[0])
+            poller = bp.devices[0]
+            assert client is not None
+
+            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [air, tank]))))
+            assert changes == ["added tank (radar-level@4) on " + bus.port]
+            await run.more("tank", 3)
+            await run.more("air", 3)  # the first device never stopped
+            assert scheduler.buses == [bp] and bp.devices[0] is poller  # its state kept
+            assert client_of(bp) is client  # the port was not reopened
+
+            slow = air.replace("interval: 0.05", "interval: 30")
+            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [slow, tank]))))
+            assert changes == ["air: interval 0.05 s -> 30 s"]
+            await run.more("air", 1)  # at most the one already due
+            before = run.cycles["air"]
+            await run.more("tank", 5)
+            assert run.cycles["air"] == before  # now due only every 30 s
+            assert bp.devices[0] is poller and poller.config.interval == 30
+
+            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [slow]))))
+            assert changes == [f"removed tank from {bus.port}"]
+            await asyncio.sleep(0.05)  # a cycle in flight may still finish
+            after = run.cycles["tank"]
+            await asyncio.sleep(0.3)
+            assert run.cycles["tank"] == after
+            assert [d.config.name for d in scheduler.pollers()] == ["air"]
+            assert client_of(bp) is client
+
+    asyncio.run(main())
+
+
+def test_buses_come_and_go_while_the_others_poll(sim: Callable[..., SimulatedBus],
+                                                 tmp_path: Path) -> None:
+    one, two = sim("huiwen-aq@3"), sim("radar-level@4")
+    path = tmp_path / "site.yaml"
+    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
+    tank = "{name: tank, profile: radar-level, address: 4, interval: 0.05, fields: [level_cm]}"
+
+    async def main() -> None:
+        scheduler = Scheduler(load_site(site_file(path, (one.port, [air]))))
+        async with Run(scheduler) as run:
+            await run.more("air", 2)
+            first = scheduler.buses[0]
+            changes = await scheduler.reload(load_site(site_file(
+                path, (one.port, [air]), (two.port, [tank]))))
+            assert changes == [f"opened bus {two.port} ({two.port}, 9600 8N1): 1 devices"]
+            await run.more("tank", 3)
+            await run.more("air", 3)
+            assert scheduler.buses[0] is first
+
+            changes = await scheduler.reload(load_site(site_file(path, (two.port, [tank]))))
+            assert changes == [f"closed bus {one.port} ({one.port})"]
+            assert client_of(first) is None  # closed
+            after = run.cycles["air"]
+            await run.more("tank", 5)
+            assert run.cycles["air"] == after
+
+    asyncio.run(main())
+
+
+def test_a_broken_file_keeps_the_running_configuration(
+        sim: Callable[..., SimulatedBus], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    bus = sim("huiwen-aq@3")
+    path = tmp_path / "site.yaml"
+    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
+    site_file(path, (bus.port, [air]))
+
+    async def main() -> None:
+        scheduler = Scheduler(load_site(path))
+        service = ReloadService(lambda: load_site(path))
+        async with Run(scheduler) as run:
+            await service.start(scheduler)
+            await run.more("air", 2)
+            path.write_text(path.read_text().replace("address: 3", "adress: 3"))
+            with caplog.at_level(logging.INFO, logger="rtupoll"):
+                await service.reload_once()
+            await run.more("air", 3)  # still polling, as before
+            assert [d.config.name for d in scheduler.pollers()] == ["air"]
+            await service.stop()
+
+    asyncio.run(main())
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert len(errors) == 1
+    assert errors[0].startswith(f"reload refused, polling goes on unchanged: {path}:5: ")
+    assert "adress" in errors[0]
+
+
+def test_sighup_reloads_and_reopens_the_output(sim: Callable[..., SimulatedBus],
+                                               tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3", "radar-level@4")
+    path = tmp_path / "site.yaml"
+    out = tmp_path / "readings.jsonl"
+    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.1, fields: [co2]}"
+    tank = "{name: tank, profile: radar-level, address: 4, interval: 0.1, fields: [level_cm]}"
+    site_file(path, (bus.port, [air]))
+    err = (tmp_path / "stderr").open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(path),
+                             "--format", "json", "-o", str(out), "--log-format", "json"],
+                            stdout=subprocess.DEVNULL, stderr=err)
+
+    def devices(file: Path) -> Counter[str]:
+        if not file.exists():
+            return Counter()
+        text = file.read_text()
+        whole = text[:text.rfind("\n") + 1]
+        return Counter(json.loads(line)["device"] for line in whole.splitlines())
+
+    def wait(done: Callable[[], bool]) -> None:
+        deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
+        while not done():
+            assert proc.poll() is None, (tmp_path / "stderr").read_text()
+            assert time.monotonic() < deadline, (tmp_path / "stderr").read_text()
+            time.sleep(0.05)
+
+    try:
+        wait(lambda: devices(out)["air"] >= 2)
+        site_file(path, (bus.port, [air, tank]))
+        proc.send_signal(signal.SIGHUP)
+        wait(lambda: devices(out)["tank"] >= 2)
+
+        rotated = tmp_path / "readings.jsonl.1"
+        out.rename(rotated)  # what logrotate does, then it sends SIGHUP
+        path.write_text(path.read_text().replace("profile: radar-level", "profile: radarr"))
+        proc.send_signal(signal.SIGHUP)
+        wait(lambda: devices(out)["air"] >= 2 and devices(out)["tank"] >= 2)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=20)
+        err.close()
+    log = [json.loads(line) for line in (tmp_path / "stderr").read_text().splitlines()]
+    assert code == 0, log
+    for file in (rotated, out):  # whole lines only, in both files
+        text = file.read_text()
+        assert text.endswith("\n")
+        assert all(json.loads(line)["status"] for line in text.splitlines())
+    events = [(e.get("event"), e["level"], e["message"]) for e in log]
+    assert ("reload", "info", "reload: added tank (radar-level@4) on " + bus.port) in events
+    refused = [m for ev, lvl, m in events if ev == "reload" and lvl == "error"]
+    assert len(refused) == 1 and f"{path}:6: " in refused[0] and "radarr" in refused[0]
+    assert sum(1 for ev, _, _ in events if ev == "reopen") == 2
+
+
+def test_reopen_starts_a_csv_file_with_its_header(tmp_path: Path) -> None:
+    from rtupoll.cli.poll import RecordWriter
+    from rtupoll.config.site import from_specs
+    from rtupoll.model.interpret import interpret
+
+    dev = from_specs("/dev/null", [("huiwen-aq", 3)], check_serial=False).buses[0].devices[0]
+    field = dev.profile.field("co2")
+    reading = Reading(1.0, dev, field, interpret(field, [500]))
+    path = tmp_path / "readings.csv"
+    with path.open("a", encoding="utf-8", newline="") as fh:
+        writer = RecordWriter(fh, "csv", header=True, path=path)
+        writer.write([reading])
+        path.rename(tmp_path / "readings.csv.1")
+        writer.reopen()
+        writer.write([reading, reading])
+        writer.out.close()
+    old, new = (tmp_path / "readings.csv.1").read_text(), path.read_text()
+    assert old.splitlines()[0].startswith("time,device,") and len(old.splitlines()) == 2
+    assert new.splitlines()[0] == old.splitlines()[0] and len(new.splitlines()) == 3
