@@ -17,7 +17,8 @@ def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.parametrize(("args", "line"), [
     (["read", "huiwen-aq@3"],
-     "rtupoll: Missing option '--port' / '-p'. (see 'rtupoll read --help')"),
+     "rtupoll: which port? give --port PORT (e.g. -p /dev/ttyUSB0, or tcp://HOST:PORT for a "
+     "gateway), or set $RTUPOLL_PORT"),
     (["reed"], "rtupoll: no command 'reed' (did you mean 'read'?) (see 'rtupoll --help')"),
     (["poll", "--simulate", "--bogus"],
      "rtupoll: No such option '--bogus'. Did you mean '--baud'? (see 'rtupoll poll --help')"),

@@ -4,6 +4,7 @@ tool prints works as printed, wrong speeds are named, values agree with each oth
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import io
 import json
 import os
@@ -24,7 +25,7 @@ from rtupoll.cli import cli
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.sim.runner import SimulatedBus, SimulatedLines, simulated_lines
-from rtupoll.sim.scenario import speeds
+from rtupoll.sim.scenario import build, cannot_run, speeds, split_lines
 from rtupoll.ui.live import PollView
 
 BIN = Path(sys.executable).parent
@@ -52,6 +53,17 @@ def test_the_demo_is_two_lines_each_at_a_speed_all_its_devices_run_at(
     for line in demo:
         for d in line.config.devices:
             assert line.config.line_speed in speeds(d.profile), d.name
+
+
+def test_named_devices_go_on_as_few_lines_as_their_speeds_allow() -> None:
+    config = build(["huiwen-aq@3", "co2meter-an117@4", "net-irnet-pro@1"])
+    lines = split_lines(config)
+    assert [(c.speed, [d.name for d in c.devices]) for c in lines] == [
+        (9600, ["net-irnet-pro@1", "huiwen-aq@3"]), (115200, ["co2meter-an117@4"])]
+    timed = split_lines(dataclasses.replace(config, baudrate=19200), 19200)
+    assert [(c.baudrate, c.speed) for c in timed] == [(19200, None), (115200, None)]
+    one = build(["huiwen-aq@3", "co2meter-an117@4"], baudrate=9600)  # --baud: as asked
+    assert cannot_run(one) == ["co2meter-an117@4 runs at 115200 only, not 9600"]
 
 
 def test_simulate_prints_hints_that_work_as_printed() -> None:
@@ -126,6 +138,16 @@ def test_a_line_without_wire_timing_answers_only_at_its_speed_and_the_error_says
     assert right.returncode == 0, right.stderr
 
 
+def test_poll_once_on_a_silent_line_names_its_speed(demo: SimulatedLines) -> None:
+    port = demo.lines[0].port
+    run = rtupoll("poll", "-p", port, "-b", "19200", "--once", "--timeout", "0.1",
+                  "--retries", "0", "radar-level@2")
+    assert run.returncode == 9
+    assert (f"rtupoll: nothing answered on {port} at 19200 8N1; if the devices run at "
+            f"another speed, find it with 'rtupoll scan -p {port}' or give --baudrate"
+            ) in run.stderr
+
+
 def test_scan_of_a_demo_line_lists_each_device_once(demo: SimulatedLines) -> None:
     result = CliRunner().invoke(cli, ["scan", "-p", demo.lines[0].port, "--format", "json",
                                       "--addresses", "1-5", "--baudrate", "4800,9600"])
@@ -172,6 +194,22 @@ def test_configuration_says_the_lines_speed_and_stays_in_its_values(
     line = demo.line_of(2)
     assert line.get(2, "baud_rate").value == 9600
     assert line.get(1, "uart_speed").text == "UART_9600"
+
+
+def test_every_demo_value_is_inside_its_fields_values_and_range(
+        demo: SimulatedLines, sim: Callable[..., SimulatedBus]) -> None:
+    anyspeed = sim("radar-level@2", tick=None)  # no line speed: a value from the list
+    assert anyspeed.get(2, "baud_rate").value in (9600, 19200, 38400, 57600, 115200)
+    for line in demo:
+        line.advance(20)
+        for d in line.device_list():
+            for f in d.fields:
+                v = line.get(d.address, f.name).value
+                if f.values:
+                    assert v in f.values, (d.name, f.name, v)
+                if f.range and isinstance(v, (int, float)):
+                    assert f.minimum is not None and f.maximum is not None
+                    assert f.minimum <= v <= f.maximum, (d.name, f.name, v)
 
 
 # -- the live table ----------------------------------------------------------------------

@@ -195,7 +195,8 @@ def test_usage_mistakes_are_exit_2() -> None:
             "rtupoll: nothing to poll: give --config FILE, or --port PORT and DEVICEs "
             "(PROFILE@ADDRESS), or --simulate to try it without hardware",
         ("--port", "/dev/null"):
-            "rtupoll: name the devices on /dev/null: PROFILE@ADDRESS... (e.g. net-irnet-pro@1)",
+            "rtupoll: name the devices on /dev/null: PROFILE@ADDRESS... (e.g. net-irnet-pro@1), "
+            "or --serve HOST:PORT to be a gateway",
         ("--port", "/dev/null", "--baud", "9600", "radar-level@1"):
             "rtupoll: --baud and --fault are for --simulate (a real bus: --baudrate)",
         ("--port", "/dev/null", "nope@1"):

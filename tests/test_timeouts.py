@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import heapq
 import itertools
 import os
 from collections.abc import Callable
@@ -80,7 +79,16 @@ def test_a_short_learned_timeout_does_not_shorten_the_late_window() -> None:
 def test_the_scheduler_side_keeps_the_profiles_patience() -> None:
     told: dict[int, float] = {}
 
-    class Patient:
+    class Patient:  # a transport that tells reply times, as the buses do
+        def late(self, unit: int) -> int:
+            return 0
+
+        def reply_time(self, unit: int) -> float | None:
+            return None
+
+        def late_reply_time(self, unit: int) -> float | None:
+            return None
+
         def set_patience(self, unit: int, seconds: float) -> None:
             told[unit] = seconds
 
@@ -204,28 +212,7 @@ class Clock:
         self.now += max(0.0, seconds)
 
 
-class TimedBus(VirtualBus):
-    """The virtual bus, telling reply times as ``io.bus.Bus`` does."""
-
-    adapter_latency = 0.0
-
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        # replies due by now reach the line before the next request goes, as bytes would
-        while self._pending and self._pending[0][0] <= self._clock():
-            when, _, data = heapq.heappop(self._pending)
-            self.line.receive(data, when)
-        return await super().read(unit, table, address, count, timeout=timeout,
-                                  retries=retries)
-
-    def reply_time(self, unit: int) -> float | None:
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        return self.line.late_reply_time.get(unit)
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        self.line.patience[unit] = seconds
+TimedBus = VirtualBus  # it tells reply times as ``io.bus.Bus`` does
 
 
 def setup(turnaround: float) -> tuple[Clock, BusPoller, Engine]:

@@ -64,6 +64,7 @@ Exit codes:
   7  garbled reply (CRC error, truncated or malformed frame)
   8  refused before sending (read-only field, value out of range, address taken)
   9  poll --once: one or more devices failed
+  10 poll --mqtt: the broker is unreachable or refused at start-up
   130 interrupted (Ctrl-C or SIGTERM)
 """
 

@@ -18,7 +18,6 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
-from rtupoll.cli.params import check_baudrate
 from rtupoll.cli.target import (
     Target,
     confirm,
@@ -89,7 +88,6 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
     rtupoll set-address -p /dev/ttyUSB0 --plan sensors.csv --yes
     rtupoll set-address -p /dev/ttyUSB0 --interactive radar-level@1 10
     """
-    check_baudrate(baudrate)
     avoid = {} if allow_reserved else shared_reserved(load_library(profile_dirs).profiles.values())
 
     def settings(profile: Profile) -> Any:

@@ -8,17 +8,17 @@ reason a value "makes no sense". Offline, ``--words`` takes the registers as hex
 from __future__ import annotations
 
 import asyncio
-import json
 from collections.abc import Sequence
 
 import click
 
 from rtupoll.cli.options import format_option
-from rtupoll.cli.params import UNIT
+from rtupoll.cli.params import UNIT, Seconds
 from rtupoll.errors import DeviceException, UsageError
 from rtupoll.model.guess import Guess, interpretations, parse_words
 from rtupoll.model.raw import SYNTAX, parse_spec
 from rtupoll.rtu import Table
+from rtupoll.ui.records import to_json
 
 DEFAULT_COUNT = 4  # registers when COUNT is omitted: room for an f64 at START
 
@@ -40,7 +40,7 @@ Examples:
 @click.option("--words", "offline", is_flag=True,
               help="The arguments are 16-bit registers in hex, not a register spec: decode "
                    "them offline.")
-@click.option("--timeout", type=float, default=0.5, show_default=True,
+@click.option("--timeout", type=Seconds(0.01, 30), default=0.5, show_default=True,
               help="Response timeout per request, seconds.")
 @click.option("--top", type=int, default=12, show_default=True,
               help="How many interpretations to list (0: all).")
@@ -82,7 +82,7 @@ def guess(args: tuple[str, ...], port: str | None, unit: int | None, offline: bo
     shown = ranked if top <= 0 else [g for g in ranked if g.score >= 0.1][:top]
     if fmt == "json":
         for g in shown:
-            click.echo(json.dumps(_record(table, g), ensure_ascii=False))
+            click.echo(to_json(_record(table, g)))
         return
     _table(shown, table, first, words, source, start, count)
 

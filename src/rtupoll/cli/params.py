@@ -9,7 +9,6 @@ from typing import Any
 import click
 
 from rtupoll.config.numbers import parse_unit
-from rtupoll.errors import UsageError
 
 
 @dataclass(frozen=True)
@@ -67,12 +66,6 @@ class Seconds(click.FloatRange):
         if not math.isfinite(rv):
             self.fail(f"{value!r} is not a number of seconds", param, ctx)
         return rv
-
-
-def check_baudrate(baudrate: int | None) -> None:
-    """``--baudrate``: a serial speed, or None for the profile's (0 is not "default")."""
-    if baudrate is not None and not 300 <= baudrate <= 4_000_000:
-        raise UsageError(f"--baudrate {baudrate} is outside 300..4000000")
 
 
 DEVICE = DeviceSpecType()

@@ -192,7 +192,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                 buses += [dataclasses.replace(b, name=f"line{i + 1}" if len(lines) > 1
                                               else "simulated") for b in one.buses]
             site = dataclasses.replace(one, buses=tuple(buses))
-            timing = f"{baud or baudrate} baud" if baud or baudrate else "untimed"
+            timing = "wire timing" if baud or baudrate else "untimed"
             title = (f"simulated: {len(buses)} lines" if len(buses) > 1
                      else "simulated bus") + f", {timing}"
             site = _gateway(site, served, services, fmt)
@@ -495,6 +495,12 @@ def _report_failures(site: Site, readings: Sequence[Reading]) -> None:
         where = f"{name}" + (f" ({d.spec})" if name != d.spec else "")
         click.echo(f"rtupoll: {where}: {r.status}: {r.error} "
                    f"({counts[name]} of {len(d.fields)} fields not read)", err=True)
+    for bus in site.buses:  # a silent line: most often the wrong speed
+        if bus.devices and not bus.port.startswith("tcp://") and all(
+                d.name in failed and failed[d.name].status == "timeout" for d in bus.devices):
+            click.echo(f"rtupoll: nothing answered on {bus.name} at {bus.serial_text}; if "
+                       f"the devices run at another speed, find it with 'rtupoll scan -p "
+                       f"{bus.port}' or give --baudrate", err=True)
     if failed:
         total = sum(len(b.devices) for b in site.buses)
         raise ScanIncomplete(f"{len(failed)} of {total} devices failed")

@@ -15,7 +15,6 @@ from typing import Any, TypeVar
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
-from rtupoll.cli.params import check_baudrate
 from rtupoll.cli.target import (
     Target,
     load_target,
@@ -119,7 +118,6 @@ def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | 
     rtupoll read -p /dev/ttyUSB0 --raw --modicon 5 30006:5
     rtupoll read -p /dev/ttyUSB0 --raw --type f32 --order DCBA 1 input:6
     """
-    check_baudrate(baudrate)
     target = load_target(device, profile_dirs, bare_ok=raw)
     port = need_port(port)
     if not raw and target.profile is None:

@@ -17,6 +17,7 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, profiles_option
+from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
 from rtupoll.io.serialport import latency_timer, latency_warning
@@ -40,6 +41,7 @@ from rtupoll.jobs.scan import (
 )
 from rtupoll.model.profile import Profile
 from rtupoll.model.raw import parse_spec
+from rtupoll.ui.records import to_json
 
 EPILOG = """\b
 Examples:
@@ -65,7 +67,7 @@ Examples:
                    "board answers it) and addresses a profile reserves (0xCC).")
 @click.option("--first", is_flag=True,
               help="Stop after the first serial setting at which a device was identified.")
-@click.option("--turnaround", type=float, default=None,
+@click.option("--turnaround", type=Seconds(0, 10), default=None,
               help="Seconds to allow a device (and the adapter) beyond the wire time "
                    "before an address counts as empty (default: the library's slowest "
                    "typical turnaround + 20 ms).")
@@ -188,7 +190,7 @@ async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
 def _report(results: Sequence[Found], fmt: str) -> None:
     if fmt == "json":
         for f in results:
-            click.echo(json.dumps(record(f), ensure_ascii=False))
+            click.echo(to_json(record(f)))
         return
     from rich import box
     from rich.console import Console

@@ -14,7 +14,6 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, port_options, profiles_option
-from rtupoll.cli.params import check_baudrate
 from rtupoll.cli.read import Row, emit, raw_options, specs_of
 from rtupoll.cli.target import (
     Target,
@@ -92,7 +91,6 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
     rtupoll write -p /dev/ttyUSB0 banner-ez-array@1 measurement_1_mode=TBB
     rtupoll write -p /dev/ttyUSB0 --raw --yes 5 holding:0x0010=1,2,3
     """
-    check_baudrate(baudrate)
     target = load_target(device, profile_dirs, bare_ok=raw)
     if not raw and target.profile is None:
         raise UsageError("a bare address needs --raw")

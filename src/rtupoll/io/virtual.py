@@ -51,8 +51,19 @@ class VirtualBus:
     async def close(self) -> None:
         return None
 
+    adapter_latency = 0.0  # no USB adapter between the master and this bus
+
     def late(self, unit: int) -> int:
         return int(self.line.counts.late[unit])
+
+    def reply_time(self, unit: int) -> float | None:
+        return self.line.reply_time.get(unit)
+
+    def late_reply_time(self, unit: int) -> float | None:
+        return self.line.late_reply_time.get(unit)
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        self.line.patience[unit] = seconds
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
@@ -135,7 +146,11 @@ class VirtualBus:
         return self.line.ready_at(drain=False)
 
     async def _until(self, ready: Callable[[], float]) -> None:
-        """Let time pass until ``ready()``, delivering replies that arrive meanwhile."""
+        """Let time pass until ``ready()``, delivering replies that arrive meanwhile
+        (and those already due: they reached the line before anything is sent)."""
+        while self._pending and self._pending[0][0] <= self._clock():
+            when, _, data = heapq.heappop(self._pending)
+            self.line.receive(data, when)
         while (at := ready()) > self._clock():
             nxt = self._pending[0][0] if self._pending else at
             await self._advance(min(at, nxt))

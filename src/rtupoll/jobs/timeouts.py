@@ -121,6 +121,7 @@ class Evidence(Protocol):
     def late(self, unit: int) -> int: ...
     def reply_time(self, unit: int) -> float | None: ...
     def late_reply_time(self, unit: int) -> float | None: ...
+    def set_patience(self, unit: int, seconds: float) -> None: ...
 
 
 def adapter_latency(transport: object) -> float:
@@ -144,6 +145,7 @@ class DeviceTiming:
         self.estimator = TimeoutEstimator(start, floor=FLOOR + silence,
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None
+        self._tells: tuple[object, bool] | None = None  # (transport, tells reply times)
 
     @property
     def timeout(self) -> float:
@@ -163,22 +165,29 @@ class DeviceTiming:
         self.pinned = pinned
         self.estimator.ceiling = CEILING if ceiling is None else ceiling
         self.estimator.set_floor(FLOOR + self.silence + adapter_latency(transport))
-        if isinstance(transport, Evidence):
-            self._take_late(transport, unit)
-        patience = getattr(transport, "set_patience", None)
-        if callable(patience):  # a late reply stays expected as long as the manual allows
-            patience(unit, max(self.estimator.start, self.timeout))
+        evidence = self._evidence(transport)
+        if evidence is not None:
+            self._take_late(evidence, unit)
+            # a late reply stays expected as long as the manual allows
+            evidence.set_patience(unit, max(self.estimator.start, self.timeout))
         return self.timeout
+
+    def _evidence(self, transport: object) -> Evidence | None:
+        """The transport, if it tells reply times (asked once: a Protocol check is slow)."""
+        if self._tells is None or self._tells[0] is not transport:
+            self._tells = (transport, isinstance(transport, Evidence))
+        return transport if self._tells[1] else None  # type: ignore[return-value]
 
     def after(self, transport: object, unit: int, answered: bool) -> None:
         """``answered``: the transaction got a reply (data or an exception reply)."""
-        if not isinstance(transport, Evidence):
+        evidence = self._evidence(transport)
+        if evidence is None:
             return
         if answered:
-            took = transport.reply_time(unit)
+            took = evidence.reply_time(unit)
             if took is not None:
                 self.estimator.answered(took)
-        self._take_late(transport, unit)
+        self._take_late(evidence, unit)
 
     def _take_late(self, transport: Evidence, unit: int) -> None:
         n = transport.late(unit)

@@ -258,8 +258,7 @@ class Line:
         took = self.reply_time[unit] = max(
             0.0, began - oldest - self.framing.wire_time(len(first.request)))
         if att is not None and all(e.request == att.request for e in fits):
-            # an earlier attempt's answer may be it
-            if any(e is not att.entry for e in fits) and gone is not att.entry:
+            if first is not att.entry:  # in order, it is an earlier attempt's late answer
                 self.counts.late[unit] += 1
                 self.late_reply_time[unit] = took
             return True

@@ -129,8 +129,9 @@ def make_consistent(profile: Profile, fields: Sequence[Field],
                 motions[f.name] = Static(rate)
                 changed.append(f.name)
                 continue
-        if f.values and isinstance(motions[f.name], Static) \
-                and motions[f.name].value not in f.values:
+        m = motions[f.name]
+        if f.values and (not isinstance(m, Static) or m.value not in f.values):
+            # a setting with a list of values takes one of them and keeps it
             motions[f.name] = Static(quantize(f, rng.choice(f.values)))
             changed.append(f.name)
     for f in free:
