@@ -106,6 +106,8 @@ def test_scraped_over_http_while_polling_with_a_dead_device(
         assert get(first, "rtupoll_device_info", **live, profile="huiwen-aq", address="3") == 1
         assert get(first, "rtupoll_bus_port_up", bus=bus.port) == 1
         assert (get(first, "rtupoll_request_duration_seconds_count", **live) or 0) > 0
+        assert get(first, "rtupoll_late_replies_total", **live) == 0  # an honest device
+        assert get(first, "rtupoll_device_timeout_seconds", **dead) == pytest.approx(0.1)
         util = get(first, "rtupoll_bus_utilisation_ratio", bus=bus.port)
         assert util is not None and 0 < util <= 1
 
@@ -259,3 +261,24 @@ def test_a_nan_register_is_no_sample_and_no_influx_field(
     out = "\n".join(lines(readings))
     assert "concentration=" not in out and "temperature=296.15" in out
     assert not [f for f in out.replace(" ", ",").split(",") if f.lower().endswith("=nan")]
+
+
+def test_the_gateways_clients_are_on_the_same_metrics_page() -> None:
+    metrics, serve = free_port(), free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rtupoll", "poll", "--simulate", "huiwen-aq@3", "--format",
+         "json", "--serve", f"127.0.0.1:{serve}", "--metrics", f"127.0.0.1:{metrics}"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        samples: Samples = {}
+        deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
+        while time.monotonic() < deadline and not samples:
+            with contextlib.suppress(OSError):
+                samples = parse(scrape(metrics))
+            time.sleep(0.1)
+        gateway = [k for k in samples if k[0] == "rtupoll_gateway_clients"]
+        assert gateway and samples[gateway[0]] == 0  # served, nobody connected yet
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=20)
+    assert proc.returncode == 0

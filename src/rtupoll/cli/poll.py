@@ -343,6 +343,9 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
         services = [*services, *daemon_services(
             site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
             log_format=log_format, reload=reload)]
+        for s in services:  # /metrics also serves what other services count
+            if isinstance(others := getattr(s, "others", None), list):
+                others += [c() for t in services if callable(c := getattr(t, "collector", None))]
         view = PollView(scheduler.buses, title=title, live=not once,
                         footers=[f for s in services if (f := getattr(s, "footer", None))])
         if once:

@@ -63,6 +63,12 @@ class GatewayService:
                  "pending": gw.pending, "clients": [c.record() for c in gw.clients]}
                 for gw in self.gateways]
 
+    def collector(self) -> object:
+        """Its per-client counters for ``/metrics`` (``outputs.metrics`` registers it)."""
+        from rtupoll.gateway.metrics import GatewayCollector
+
+        return GatewayCollector(self)
+
     def footer(self) -> RenderableType | None:
         """The live table's lines about the gateways' clients."""
         from rtupoll.gateway.footer import render

@@ -216,6 +216,12 @@ class SchedulerCollector:
                                          labels=[*dev_labels, "code"])
         cycles = CounterMetricFamily("rtupoll_cycles", "Device cycles (scans)",
                                      labels=dev_labels)
+        late = CounterMetricFamily("rtupoll_late_replies", "Replies that came after their "
+                                   "request had timed out (counted, never decoded)",
+                                   labels=dev_labels)
+        waits = GaugeMetricFamily("rtupoll_device_timeout_seconds", "How long rtupoll waits "
+                                  "for the device's reply now (learned, or pinned)",
+                                  labels=dev_labels)
         age = GaugeMetricFamily("rtupoll_last_good_reading_age_seconds",
                                 "Seconds since the device's last good reading "
                                 "(absent when it never answered)", labels=dev_labels)
@@ -259,6 +265,9 @@ class SchedulerCollector:
                 for code, n in sorted(st.exceptions.items()):
                     exceptions.add_metric([*labels, f"{code:02d}"], n)
                 cycles.add_metric(labels, st.cycles)
+                late.add_metric(labels, st.late)
+                if st.timeout is not None:
+                    waits.add_metric(labels, st.timeout)
                 if st.last_good_time is not None:
                     age.add_metric(labels, max(0.0, wall - st.last_good_time))
                 h = self.histograms.get(d)
@@ -269,7 +278,7 @@ class SchedulerCollector:
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
-        yield from (up, state, info, requests, exceptions, cycles, age, latency,
+        yield from (up, state, info, requests, exceptions, cycles, late, waits, age, latency,
                     util, btx, busy, port_up, losses)
         yield from families.values()
 
@@ -347,6 +356,7 @@ class MetricsService:
             raise UsageError("--metrics needs prometheus_client: pip install "
                              "'rtupoll[metrics]'") from None
         self.collector: SchedulerCollector | None = None
+        self.others: list[Any] = []  # other services' collectors (the gateway's clients)
         self.registry: CollectorRegistry | None = None
         self._server: asyncio.Server | None = None
         self._bus_of: dict[str, BusPoller] = {}
@@ -358,6 +368,8 @@ class MetricsService:
         self.collector = SchedulerCollector(scheduler)
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self.collector)
+        for other in self.others:
+            self.registry.register(other)
         try:
             self._server = await asyncio.start_server(self._serve, self.host, self.port)
         except OSError as exc:
