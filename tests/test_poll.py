@@ -248,3 +248,12 @@ def test_a_device_whose_every_asked_field_is_absent_stays_online(
             await scheduler.close()
     # one probe learns data structure 0; nothing else is ever sent, and it is no failure
     assert asyncio.run(three_scans()) == ("online", 0, 1)
+
+
+def test_an_even_parity_device_polls_on_the_simulators_pty() -> None:
+    """The ABB B23 runs 8E1; a pty has no parity bit (and Linux refuses to set one on
+    it after its first open), so the simulator's port is opened without one."""
+    for _ in range(2):  # the second open is the one Linux refused
+        result = poll("--simulate", "abb-b23@1", "--once", "--format", "json")
+        assert result.exit_code == 0, result.output
+        assert all(r["status"] == "ok" for r in records(result))

@@ -200,7 +200,8 @@ class Bus:
         else:
             s = self.settings
             client = AsyncModbusSerialClient(self._url, baudrate=s.baudrate, bytesize=s.bytesize,
-                                             parity=s.parity, stopbits=s.stopbits, **common)
+                                             parity=serialport.line_parity(s.port, s.parity),
+                                             stopbits=s.stopbits, **common)
         # every received byte goes to the line discipline; pymodbus's framer never sees one
         client.ctx.callback_data = self._received
         return client
@@ -229,7 +230,8 @@ class Bus:
         elif why is None:
             s = self.settings
             why = serialport.diagnose_serial(self._url, baudrate=s.baudrate, bytesize=s.bytesize,
-                                             parity=s.parity, stopbits=s.stopbits)
+                                             parity=serialport.line_parity(s.port, s.parity),
+                                             stopbits=s.stopbits)
         raise PortError(why or f"cannot open {self.settings.port} (it opens now: retry)")
 
     # -- the public transactions ---------------------------------------------

@@ -93,6 +93,13 @@ def device_path(port: str) -> str:
     return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
 
 
+def line_parity(port: str, parity: str) -> str:
+    """The parity to open ``port`` with: a pseudo-terminal (the simulator's) has no wire
+    and no parity bit, and Linux refuses to set one on it after its first open (EINVAL),
+    so a pty is opened without; the framing, and so the timing, keeps ``parity``."""
+    return "N" if os.path.realpath(device_path(port)).startswith("/dev/pts/") else parity
+
+
 def open_error(port: str, exc: BaseException) -> str:
     """One line saying why ``port`` did not open, and what to do about it."""
     path = device_path(port)
