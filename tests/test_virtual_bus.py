@@ -97,3 +97,16 @@ def test_the_scheduler_backs_off_a_dead_device_in_virtual_time() -> None:
     assert live.stats.state is State.ONLINE and live.stats.cycles >= 100
     assert dead.stats.state is State.OFFLINE
     assert dead.stats.timeouts < 15  # backed off: a probe now and then, not every second
+
+
+def test_a_crc_error_is_known_at_once_not_after_the_timeout() -> None:
+    """A complete reply with a bad CRC ends the attempt when it arrives: the retry goes
+    after the silence, and the whole transaction costs far less than one timeout."""
+    bus, clock = virtual(["radar-level@2"], faults=("2:crc@1",))
+
+    async def go() -> tuple[int, ...]:
+        return await bus.read(2, Table.HOLDING, 2, 1, timeout=5.0, retries=1)
+
+    asyncio.run(go())
+    assert len(bus.sent) == 2  # the garbled attempt and its retry
+    assert clock.now < 0.1  # not 5 s: the CRC error was known as it arrived
