@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import fcntl
 import hashlib
 import os
 import pty
@@ -188,7 +189,8 @@ def setup_is_current() -> bool:
     return stamp.exists() and digest in stamp.read_text()
 
 
-NETWORK = threading.Lock()  # examples that bind a fixed port take turns
+NETWORK = threading.Lock()  # examples that bind a fixed port take turns (threads) ...
+NETWORK_FILE = Path(tempfile.gettempdir()) / "rtupoll-docs-examples.lock"  # (processes)
 FIXED_PORT = re.compile(r"(\d{1,3}(\.\d{1,3}){3}|localhost|\[::1?\]):[1-9]\d{1,4}\b")
 
 
@@ -196,7 +198,8 @@ def run(ex: Example, where: Path, docfiles: dict[str, str]) -> str | None:
     """Run one example; None if it did what the document says, else why not."""
     uses = ex.command + "".join(t for n, t in docfiles.items() if n in ex.command)
     if FIXED_PORT.search(uses):
-        with NETWORK:
+        with NETWORK, NETWORK_FILE.open("a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # also across pytest-xdist workers
             return _run(ex, where)
     return _run(ex, where)
 

@@ -165,3 +165,28 @@ def test_sd_notify_ready_watchdog_reload_stopping(tmp_path: Path) -> None:
         until("STOPPING=1")
     assert code == 0
     assert got.index(next(m for m in got if m.startswith("RELOADING=1"))) < len(got) - 1
+
+
+def test_late_replies_are_logged_once_and_counted_in_every_device_line(
+        sim: Callable[..., SimulatedBus], caplog: pytest.LogCaptureFixture) -> None:
+    bus = sim("radar-level@2", faults=["slow=0.3@2", "slow=0.3@5"], tick=None)
+    site = from_specs(bus.port, [("radar-level", 2)], timeout=0.1, retries=0)
+    scheduler = Scheduler(site)
+    states = StateLog()
+
+    async def main() -> None:
+        await scheduler.open()
+        await states.start(scheduler)
+        try:
+            for _ in range(4):
+                await scheduler.scan_once(states.on_readings)
+        finally:
+            await scheduler.close()
+
+    with caplog.at_level(logging.INFO, logger="rtupoll"):
+        asyncio.run(main())
+    late = [r for r in caplog.records if getattr(r, "status", "") == "late"]
+    assert len(late) == 1  # logged once, though two replies came late
+    line = json.loads(JsonFormatter().format(late[0]))
+    assert line["device"] == "radar-level@2" and line["late"] >= 1
+    assert scheduler.pollers()[0].stats.late >= 2

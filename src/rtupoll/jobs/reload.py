@@ -122,13 +122,15 @@ def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table:
     ``/metrics``, SIGHUP (reload and reopen), and systemd's notify protocol last, so
     READY=1 means everything runs.
 
-    Logging is on when asked for (``log_format``) or when stderr is a terminal or the
-    journal; otherwise (a pipe, a file: a script reading the records) only errors."""
+    Logging is on when asked for (``log_format``), when stderr is a terminal or the
+    journal, or when the gateway serves (its refusals and dropped clients are an
+    operator's business); otherwise (a pipe, a file: a script reading the records)
+    only errors."""
     from rtupoll.ui import logs
     from rtupoll.ui.systemd import Notifier
 
     verbose = log_format is not None or sys.stderr.isatty() or \
-        bool(os.environ.get("JOURNAL_STREAM"))
+        bool(os.environ.get("JOURNAL_STREAM")) or any(b.serve for b in site.buses)
     logs.setup(log_format or "text", level=logging.INFO if verbose else logging.ERROR)
     if writer is not None:
         writer.buses.update({d.name: b.name for b, d in site.devices()})

@@ -28,7 +28,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rtupoll")
 FORMATS = ("text", "json")
-_EXTRA = ("event", "bus", "device", "profile", "address", "state", "status", "error", "file")
+_EXTRA = ("event", "bus", "device", "profile", "address", "state", "status", "error", "file",
+          "ok", "timeouts", "late", "garbled", "exceptions")
 
 
 class JsonFormatter(logging.Formatter):
@@ -99,6 +100,7 @@ class StateLog:
         self._wall = wall
         self._seen: dict[str, _Seen] = {}
         self._ports: dict[str, str] = {}  # bus name -> the port error while it is gone
+        self._late: set[str] = set()  # devices whose late replies were logged
         self._bus_of: dict[str, str] = {}
         self._scheduler: Scheduler | None = None
 
@@ -135,9 +137,16 @@ class StateLog:
         condition, first = _condition(dev, readings)
         seen = self._seen.get(name)
         who = name if name == dev.config.spec else f"{name} ({dev.config.spec})"
+        st = dev.stats
         extra = {"event": "device", "bus": bus, "device": name,
                  "profile": dev.config.profile.id, "address": dev.config.address,
-                 "state": dev.stats.state.value}
+                 "state": st.state.value, "ok": st.ok, "timeouts": st.timeouts,
+                 "late": st.late, "garbled": st.garbled, "exceptions": st.exception_count}
+        if st.late and name not in self._late:  # the first late reply: once per device
+            self._late.add(name)
+            log.warning("%s on %s: a reply came after its timeout (counted late, never "
+                        "decoded); the device may need a longer timeout", who, bus,
+                        extra={**extra, "event": "late", "status": "late"})
         if seen is None:
             self._seen[name] = _Seen(condition, now, 0 if condition == "online" else 1)
             if condition != "online" and first is not None:
