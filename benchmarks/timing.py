@@ -46,7 +46,7 @@ from rtupoll.jobs.scan import Found, Setting, default_margin, presence_probes, s
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.device import DeviceConfig as SimConfig
+from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
 

@@ -26,8 +26,8 @@ from rtupoll.jobs.scheduler import Backoff, BusPoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.planner import Block, plan
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.device import DeviceConfig as SimConfig
 from rtupoll.sim.device import SimDevice
+from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import FaultSpecError, parse_fault
 from rtupoll.sim.runner import SimulatedBus

@@ -22,8 +22,8 @@ from rtupoll.model.codec import DataType, EncodeError, Layout, decode, encode
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
 from rtupoll.rtu import Table
-from rtupoll.sim.device import DeviceConfig as SimConfig
 from rtupoll.sim.device import SimDevice
+from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.ui.records import CsvWriter, record, to_json
 
 HEADER = """\

@@ -34,7 +34,7 @@ from rtupoll.jobs.scan import (
 )
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.device import DeviceConfig
+from rtupoll.sim.device import SimDeviceConfig
 from rtupoll.sim.engine import Engine
 
 LIB = sorted(load_library().profiles.values(), key=lambda p: p.id)
@@ -71,7 +71,7 @@ class EngineBus:
 
 
 def engine(*specs: tuple[Profile, int]) -> Engine:
-    return Engine([DeviceConfig(p, a) for p, a in specs], tick=None)
+    return Engine([SimDeviceConfig(p, a) for p, a in specs], tick=None)
 
 
 def run_sweep(eng: Engine, addresses: Sequence[int], settings: Sequence[Setting],

@@ -33,7 +33,7 @@ from rtupoll.jobs.timeouts import (
 )
 from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.rtu.line import Answer, Line
-from rtupoll.sim.device import DeviceConfig as SimConfig
+from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.runner import SimulatedBus
 

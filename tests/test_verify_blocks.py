@@ -22,7 +22,7 @@ from rtupoll.jobs.holes import Mismatch, verify_block
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.model.planner import Block, plan
 from rtupoll.rtu import Framing, Table
-from rtupoll.sim.device import DeviceConfig as SimConfig
+from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
 

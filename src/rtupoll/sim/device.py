@@ -54,7 +54,7 @@ _READ_TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INP
 
 
 @dataclass(frozen=True)
-class DeviceConfig:
+class SimDeviceConfig:
     """Everything that makes one simulated device: profile, address and options."""
 
     profile: Profile
@@ -73,7 +73,7 @@ class DeviceConfig:
 class SimDevice:
     """The live state of one device: image, motions, address, counters and faults."""
 
-    def __init__(self, config: DeviceConfig, *, seed: int = 0, tick: float | None = 1.0,
+    def __init__(self, config: SimDeviceConfig, *, seed: int = 0, tick: float | None = 1.0,
                  start: float = 0.0) -> None:
         p = self.profile = config.profile
         self.config = config

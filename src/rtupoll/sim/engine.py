@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from rtupoll.rtu import crc_ok, exception_response
 from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS, request_length
-from rtupoll.sim.device import DeviceConfig, SimDevice
+from rtupoll.sim.device import SimDevice, SimDeviceConfig
 from rtupoll.sim.faults import SILENT, Fault, FaultSet, mangle
 
 MAX_BUFFER = 512  # bytes kept while looking for a frame; older ones are garbage
@@ -91,7 +91,7 @@ class Transmission:
 class Engine:
     """The devices on one simulated bus and the faults that hit them."""
 
-    def __init__(self, devices: Sequence[DeviceConfig], faults: Sequence[Fault] = (), *,
+    def __init__(self, devices: Sequence[SimDeviceConfig], faults: Sequence[Fault] = (), *,
                  seed: int = 0, tick: float | None = 1.0, start: float = 0.0) -> None:
         self.devices = [SimDevice(c, seed=seed, tick=tick, start=start) for c in devices]
         self.bus_faults = FaultSet([f for f in faults if f.target is None], seed, "bus")

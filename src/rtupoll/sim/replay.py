@@ -133,10 +133,10 @@ def replay_lines(path: Path, *, baud: int | None = None, tcp: bool | str = False
     reply starts its captured reply time after the end of its request.
     """
     from rtupoll.sim.runner import SimulatedBus, SimulatedLines
-    from rtupoll.sim.scenario import BusConfig
+    from rtupoll.sim.scenario import Scenario
 
     engine, line = load_replay(path, framing=Framing(baud) if baud else None, timed=True)
-    config = BusConfig((), baudrate=line.baudrate, tick=None)
+    config = Scenario((), baudrate=line.baudrate, tick=None)
     bus = SimulatedBus(config, tcp=tcp, link=link, tap=tap, engine=engine)
     return SimulatedLines([bus])
 

@@ -28,11 +28,11 @@ from rtupoll.model.codec import Value
 from rtupoll.model.interpret import FieldValue
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.consistent import make_consistent
-from rtupoll.sim.device import DeviceConfig, SimDevice
+from rtupoll.sim.device import SimDevice, SimDeviceConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import (
     DEFAULT_DEVICES,
-    BusConfig,
+    Scenario,
     build,
     parse_device,
     profile,
@@ -79,7 +79,7 @@ class _LineServer(Server):
 class SimulatedBus:
     """A bus of simulated devices served on a pty (or TCP) from a background thread."""
 
-    def __init__(self, config: BusConfig, *, tcp: bool | str = False, link: str | None = None,
+    def __init__(self, config: Scenario, *, tcp: bool | str = False, link: str | None = None,
                  on_wire: Callable[[WireFrame], None] | None = None, tap: str | None = None,
                  engine: Engine | None = None) -> None:
         """``tap``: also offer a pty, linked there, that hears every byte on the line;
@@ -223,7 +223,7 @@ class SimulatedBus:
         """Wire one more device (``PROFILE@ADDRESS``) onto the running bus, as a technician
         plugs in a factory-fresh sensor during commissioning."""
         pid, address = parse_device(device)
-        config = DeviceConfig(profile(pid, profile_dirs), address)
+        config = SimDeviceConfig(profile(pid, profile_dirs), address)
 
         def add() -> SimDevice:
             assert self.engine is not None, "start the bus first"

@@ -40,7 +40,7 @@ from rtupoll.errors import ConfigError, RtupollError, UsageError
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import field_words
 from rtupoll.model.profile import Field, Profile
-from rtupoll.sim.device import WRITE_REPLIES, DeviceConfig
+from rtupoll.sim.device import WRITE_REPLIES, SimDeviceConfig
 from rtupoll.sim.faults import Fault, parse_fault
 
 # One of each bundled profile at distinct addresses; co2meter-an117 also answers 0xFE.
@@ -54,8 +54,8 @@ COMMON_RATES = (9600, 19200, 38400, 115200, 57600, 4800, 2400, 1200)
 
 
 @dataclass(frozen=True)
-class BusConfig:
-    devices: tuple[DeviceConfig, ...]
+class Scenario:
+    devices: tuple[SimDeviceConfig, ...]
     faults: tuple[Fault, ...] = ()  # bus-wide faults (a device's own sit in its config)
     baudrate: int | None = None  # wire timing at this rate (and the line's speed)
     seed: int = 0
@@ -73,7 +73,7 @@ def speeds(p: Profile) -> tuple[int, ...]:
     return p.serial.baudrates or (p.serial.baudrate,)
 
 
-def split_lines(config: BusConfig, prefer: int | None = None) -> tuple[BusConfig, ...]:
+def split_lines(config: Scenario, prefer: int | None = None) -> tuple[Scenario, ...]:
     """The devices on as few lines as could exist, each line at one speed (and parity).
 
     Each round takes the speed most remaining devices run at (``prefer`` when any of
@@ -83,7 +83,7 @@ def split_lines(config: BusConfig, prefer: int | None = None) -> tuple[BusConfig
     only answers clients at its speed (``speed``).
     """
     left = list(config.devices)
-    out: list[BusConfig] = []
+    out: list[Scenario] = []
     while left:
         counts: dict[tuple[int, str, int], tuple[int, int]] = {}
         for d in left:
@@ -108,7 +108,7 @@ def split_lines(config: BusConfig, prefer: int | None = None) -> tuple[BusConfig
     return tuple(out)
 
 
-def cannot_run(config: BusConfig) -> list[str]:
+def cannot_run(config: Scenario) -> list[str]:
     """Devices on a line whose speed their profile does not list: a bus that cannot exist."""
     rate = config.line_speed
     if rate is None:
@@ -160,7 +160,7 @@ def parse_value(field: Field, text: str) -> Value:
     raise UsageError(f"{field.name}: {text!r} is not a number")
 
 
-def _checked(cfg: DeviceConfig, name: str, value: Value) -> Value:
+def _checked(cfg: SimDeviceConfig, name: str, value: Value) -> Value:
     f = cfg.profile.field(name)
     try:
         field_words(f, value)  # raises EncodeError (a RefusedError) if it cannot be encoded
@@ -169,7 +169,7 @@ def _checked(cfg: DeviceConfig, name: str, value: Value) -> Value:
     return value
 
 
-def _option(cfg: DeviceConfig, name: str, value: object) -> DeviceConfig:
+def _option(cfg: SimDeviceConfig, name: str, value: object) -> SimDeviceConfig:
     if name == "variant":
         if cfg.profile.variant is None:
             raise UsageError(f"{cfg.profile.id} has no variants")
@@ -200,9 +200,9 @@ def _split_assignment(text: str, what: str) -> tuple[str, str, str]:
 class _Builder:
     def __init__(self, dirs: Iterable[Path]) -> None:
         self.dirs = tuple(dirs)
-        self.devices: dict[int, DeviceConfig] = {}
+        self.devices: dict[int, SimDeviceConfig] = {}
 
-    def add(self, spec: str, node: Node | None = None) -> DeviceConfig:
+    def add(self, spec: str, node: Node | None = None) -> SimDeviceConfig:
         pid, address = parse_device(spec)
         p = profile(pid, self.dirs)
         have = self.devices.get(address)
@@ -210,10 +210,10 @@ class _Builder:
             msg = f"address {address} is taken by {have.name}"
             raise node.fail(msg) if node else UsageError(msg)
         if have is None:
-            self.devices[address] = DeviceConfig(p, address)
+            self.devices[address] = SimDeviceConfig(p, address)
         return self.devices[address]
 
-    def find(self, spec: str) -> DeviceConfig:
+    def find(self, spec: str) -> SimDeviceConfig:
         pid, address = parse_device(spec)
         cfg = self.devices.get(address)
         if cfg is None or pid not in (cfg.profile.id, cfg.profile.path):
@@ -221,11 +221,11 @@ class _Builder:
             raise UsageError(f"no device {spec} on the simulated bus (devices: {have})")
         return cfg
 
-    def pin(self, cfg: DeviceConfig, name: str, value: Value) -> None:
+    def pin(self, cfg: SimDeviceConfig, name: str, value: Value) -> None:
         value = _checked(cfg, name, value)
         self.devices[cfg.address] = dataclasses.replace(cfg, pins={**cfg.pins, name: value})
 
-    def fault(self, fault: Fault, cfg: DeviceConfig | None = None) -> Fault | None:
+    def fault(self, fault: Fault, cfg: SimDeviceConfig | None = None) -> Fault | None:
         """Attach a device fault to its device; returns bus-wide faults unchanged."""
         if cfg is not None:
             if fault.target not in (None, cfg.address):
@@ -246,8 +246,8 @@ class _Builder:
 def build(devices: Sequence[str] = (), *, scenario: str | Path | None = None,
           sets: Sequence[str] = (), options: Sequence[str] = (), faults: Sequence[str] = (),
           seed: int | None = None, baudrate: int | None = None, turnaround: float | None = None,
-          tick: float | None = 1.0, profile_dirs: Iterable[Path] = ()) -> BusConfig:
-    """Devices, scenario file and command-line settings -> one validated BusConfig."""
+          tick: float | None = 1.0, profile_dirs: Iterable[Path] = ()) -> Scenario:
+    """Devices, scenario file and command-line settings -> one validated Scenario."""
     b = _Builder(profile_dirs)
     bus_faults: list[Fault] = []
     top: dict[str, Node] = {}
@@ -295,7 +295,7 @@ def build(devices: Sequence[str] = (), *, scenario: str | Path | None = None,
         if not 0 <= tick <= 3600:
             raise top["tick"].fail(f"{tick:g} s is outside 0..3600 s (0 freezes values)")
         tick = tick or None
-    return BusConfig(tuple(b.devices[a] for a in sorted(b.devices)), tuple(bus_faults),
+    return Scenario(tuple(b.devices[a] for a in sorted(b.devices)), tuple(bus_faults),
                      baudrate, seed, tick)
 
 
