@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
-from rtupoll.errors import ConfigError, DeviceException
+from rtupoll.errors import ConfigError, DeviceException, FaultSpecError
 from rtupoll.io.virtual import VirtualBus
 from rtupoll.jobs.hole_services import RememberHoles
 from rtupoll.jobs.holes import HoleStore, bisect, gaps, pieces, show
@@ -29,7 +29,7 @@ from rtupoll.rtu import Framing, Table
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
-from rtupoll.sim.faults import FaultSpecError, parse_fault
+from rtupoll.sim.faults import parse_fault
 from rtupoll.sim.runner import SimulatedBus
 
 HOLE = 30011  # wire address (the Huiwen module addresses registers directly)

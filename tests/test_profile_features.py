@@ -15,10 +15,10 @@ from click.testing import CliRunner
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one, load_profile
 from rtupoll.config.site import DeviceConfig
-from rtupoll.errors import ProfileError
+from rtupoll.errors import EncodeError, ProfileError
 from rtupoll.jobs.scheduler import DevicePoller
 from rtupoll.jobs.stats import BusLoad
-from rtupoll.model.codec import DataType, EncodeError, Layout, decode, encode
+from rtupoll.model.codec import DataType, Layout, decode, encode
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
 from rtupoll.rtu import Table

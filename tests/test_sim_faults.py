@@ -13,8 +13,9 @@ import pytest
 from conftest import RawPort
 
 from rtupoll import rtu
+from rtupoll.errors import FaultSpecError
 from rtupoll.rtu import Table
-from rtupoll.sim.faults import FaultSpecError, parse_fault
+from rtupoll.sim.faults import parse_fault
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]

@@ -34,6 +34,10 @@ class ProfileError(RtupollError):
         super().__init__(f"{where}{path + ': ' if path else ''}{message}")
 
 
+class FaultSpecError(UsageError):
+    """A simulator fault spec that does not parse; the message says what was expected."""
+
+
 class ConfigError(ProfileError):
     """A site configuration (buses and devices) that does not validate."""
 
@@ -82,6 +86,14 @@ class VerificationError(RtupollError):
     exit_code = 6
 
 
+class PlanFailed(RtupollError):
+    """A row of an address plan failed: its message, and the exit code of its cause."""
+
+    def __init__(self, row: int, cause: RtupollError) -> None:
+        super().__init__(f"row {row}: {cause}")
+        self.exit_code = cause.exit_code
+
+
 class RefusedError(RtupollError):
     """A request refused before anything was sent, because it would be unsafe or wrong.
 
@@ -89,6 +101,12 @@ class RefusedError(RtupollError):
     """
 
     exit_code = 8
+
+
+class Interrupted(RtupollError):
+    """Ctrl-C or SIGTERM: what was under way stops cleanly (``rtupoll: interrupted``)."""
+
+    exit_code = 130
 
 
 class ScanIncomplete(RtupollError):
@@ -102,3 +120,12 @@ class BrokerError(RtupollError):
     host, connection refused, wrong user or password, TLS handshake refused)."""
 
     exit_code = 10
+
+
+class EncodeError(RefusedError):
+    """A value that cannot be represented in a field's type: refused before sending."""
+
+
+class ClientError(RtupollError):
+    """Something a Modbus TCP client sent that the gateway refuses (a malformed frame, a
+    request it will not pass on): answered or logged, it never ends rtupoll."""

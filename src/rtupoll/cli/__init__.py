@@ -16,12 +16,14 @@ import os
 import sys
 from types import FrameType
 
+from rtupoll.errors import Interrupted
+
 
 def _interrupted_early(signum: int, frame: FrameType | None) -> None:
     """SIGINT/SIGTERM before ``main`` runs (click and the command are being imported)."""
     with contextlib.suppress(OSError):
         os.write(2, b"rtupoll: interrupted\n")
-    raise SystemExit(130)
+    raise SystemExit(Interrupted.exit_code)
 
 
 # The console script imports this module first: from here on an early Ctrl-C or SIGTERM
@@ -79,7 +81,7 @@ class LazyGroup(click.Group):
             raise click.exceptions.Exit(exc.exit_code) from None
         except KeyboardInterrupt:
             click.echo("rtupoll: interrupted", err=True)
-            raise click.exceptions.Exit(130) from None
+            raise click.exceptions.Exit(Interrupted.exit_code) from None
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> Any:
             code = exc.exit_code
         except (click.exceptions.Abort, KeyboardInterrupt):
             click.echo("rtupoll: interrupted", err=True)
-            code = 130
+            code = Interrupted.exit_code
         except BrokenPipeError:  # `rtupoll read ... | head -1`: the reader is done
             code = 0
         except RtupollError as exc:  # an output error outside a command

@@ -28,7 +28,7 @@ from rtupoll.cli.target import (
 )
 from rtupoll.config.library import load_library
 from rtupoll.config.numbers import parse_unit
-from rtupoll.errors import RtupollError, UsageError
+from rtupoll.errors import PlanFailed, RtupollError, UsageError
 from rtupoll.jobs.commission import (
     Change,
     Commissioner,
@@ -44,14 +44,6 @@ from rtupoll.jobs.commission import (
 )
 from rtupoll.model.profile import Profile
 from rtupoll.ui.records import json_safe
-
-
-class PlanFailed(RtupollError):
-    """A plan row failed: its message, and the exit code of its cause."""
-
-    def __init__(self, row: int, cause: RtupollError) -> None:
-        super().__init__(f"row {row}: {cause}")
-        self.exit_code = cause.exit_code
 
 
 @click.command("set-address")

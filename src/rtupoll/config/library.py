@@ -17,8 +17,8 @@ from typing import TypeVar
 import yaml
 
 from rtupoll.config.yamlsrc import Node, load
-from rtupoll.errors import UsageError
-from rtupoll.model.codec import ByteOrder, DataType, EncodeError, Layout, bits_range, encode
+from rtupoll.errors import EncodeError, UsageError
+from rtupoll.model.codec import ByteOrder, DataType, Layout, bits_range, encode
 from rtupoll.model.profile import (
     AddressChange,
     Addresses,

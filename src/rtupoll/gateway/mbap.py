@@ -17,12 +17,13 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from rtupoll.errors import ClientError
 from rtupoll.gateway.pdu import MAX_PDU, exception_pdu, pdu_length
 
 HEADER = 7  # transaction id, protocol id, length, unit id
 
 
-class MbapError(Exception):
+class MbapError(ClientError):
     """A frame that ends the connection; the message says why, for the log."""
 
 

@@ -12,6 +12,7 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import FUNCTIONS, READ_FUNCTIONS, data_bytes, request_length
 
@@ -23,7 +24,7 @@ _TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT,
 _MOST = {1: 2000, 2: 2000, 3: 125, 4: 125, 15: 1968, 16: 123}
 
 
-class BadRequest(Exception):
+class BadRequest(ClientError):
     """A request a server refuses with an exception ``code`` before it reaches the line."""
 
     def __init__(self, code: int, reason: str) -> None:

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from rtupoll import rtu
-from rtupoll.errors import RefusedError, UsageError, VerificationError
+from rtupoll.errors import EncodeError, RefusedError, UsageError, VerificationError
 from rtupoll.jobs.device import Timing
-from rtupoll.model.codec import DataType, EncodeError, Value, decode, words_to_hex
+from rtupoll.model.codec import DataType, Value, decode, words_to_hex
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field
 from rtupoll.model.raw import RegisterSpec, parse_values, words_of

@@ -20,13 +20,9 @@ import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-from rtupoll.errors import RefusedError
+from rtupoll.errors import EncodeError
 
 Value = int | float | str | bool | list[str]
-
-
-class EncodeError(RefusedError):
-    """A value that cannot be represented in a field's type: refused before sending."""
 
 
 class DataType(str, enum.Enum):

@@ -26,7 +26,7 @@ import random
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.errors import UsageError
+from rtupoll.errors import FaultSpecError
 from rtupoll.rtu import with_crc
 
 # kind -> what it does to the reply (also the help text of --fault)
@@ -52,10 +52,6 @@ _FLOAT_ARG = {"slow"}
 _INT_ARG = {"stray": (0, 255), "truncate": (1, 255), "wrong-id": (0, 255),
             "wrong-id-first": (0, 255), "exception": (1, 255), "lose-first": (0, 1000),
             "hole": (0, 0xFFFF), "shift": (0, 0xFFFF)}
-
-
-class FaultSpecError(UsageError):
-    """A fault spec that does not parse; the message says what was expected."""
 
 
 @dataclass(frozen=True)
