@@ -176,10 +176,11 @@ def test_on_a_terminal_the_change_is_shown_and_only_yes_sends_it(sim: Sim) -> No
     code, screen = on_terminal(argv, "n")
     assert code == 8 and "not confirmed: nothing was sent" in screen
     assert "baud_rate = 19200 -> holding 0x03F6 (wire 0x03F6), FC06" in screen
-    assert functions(bus) == []
+    assert "(now: 9600 baud)" in screen  # what the device holds, read before asking
+    assert functions(bus) == [3]  # that read, and no write
     code, screen = on_terminal(argv, "y")
     assert code == 0 and '"value":19200' in screen
-    assert functions(bus) == [6, 3]
+    assert functions(bus) == [3, 3, 6, 3]
 
 
 def test_a_baud_rate_the_device_cannot_run_at_is_refused_before_sending(

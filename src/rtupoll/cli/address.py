@@ -24,6 +24,7 @@ from rtupoll.cli.target import (
     load_target,
     port_settings,
     run_on_bus,
+    speed_note,
     timing_options,
 )
 from rtupoll.config.library import load_library
@@ -116,7 +117,9 @@ def set_address(device: str | None, new: str | None, port: str, baudrate: int | 
         return _dry_run([change])
     refuse(change)
     confirm(f"Change the address of {target.name} to {change.new}?", yes)
-    result = run_on_bus(settings(target.profile), lambda bus: commissioner(bus).apply(change))
+    on = settings(target.profile)
+    result = run_on_bus(on, lambda bus: commissioner(bus).apply(change),
+                        on_timeout=speed_note(on, target.profile, baudrate))
     if fmt == "json":
         _reporter(fmt)(result)
     else:

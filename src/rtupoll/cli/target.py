@@ -101,13 +101,18 @@ def timing_options(f: F) -> F:
     return f
 
 
+def confirm_now(yes: bool) -> None:
+    """Without a terminal, only ``--yes`` lets a change through: refused at once."""
+    if not yes and not sys.stdin.isatty():
+        raise RefusedError("not on a terminal, so nobody can confirm: add --yes to change "
+                           "devices from a script")
+
+
 def confirm(question: str, yes: bool) -> None:
     """Ask on a terminal; without one, only ``--yes`` lets a change through."""
     if yes:
         return
-    if not sys.stdin.isatty():
-        raise RefusedError("not on a terminal, so nobody can confirm: add --yes to change "
-                           "devices from a script")
+    confirm_now(yes)
     if not click.confirm(question, default=False, err=True):
         raise RefusedError("not confirmed: nothing was sent")
 

@@ -18,9 +18,11 @@ from rtupoll.cli.read import Row, emit, raw_options, specs_of
 from rtupoll.cli.target import (
     Target,
     confirm,
+    confirm_now,
     load_target,
     port_settings,
     run_on_bus,
+    speed_note,
     timing_options,
 )
 from rtupoll.errors import BusError, DeviceTimeout, FrameError, RefusedError, UsageError
@@ -38,6 +40,7 @@ from rtupoll.jobs.writes import (
     write_raw,
 )
 from rtupoll.jobs.writes import write as write_field
+from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
 from rtupoll.rtu import Table
 
@@ -110,13 +113,30 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
             check_move(target, raws[-1])
         confirm(_question(target, [r.describe() for r in raws]), yes)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing))
+        rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing),
+                          on_timeout=speed_note(settings, target.profile, baudrate))
     else:
         ops = plan_fields(target, assignments)
-        confirm(_question(target, [op.describe() for op in ops]), yes)
+        confirm_now(yes)  # refused before the port opens when nobody can confirm
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: _fields(bus, target.unit, ops, timing))
+
+        async def job(bus: Any) -> list[Row]:
+            if not yes:  # show what the device holds now, then ask
+                now = [await read_back(bus, target.unit, op.field, timing)
+                       if "R" in op.field.access else None for op in ops]
+                confirm(_question(target, [f"{op.describe()}  (now: {_now(fv)})"
+                                           for op, fv in zip(ops, now, strict=True)]), yes)
+            return await _fields(bus, target.unit, ops, timing)
+
+        rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
+                                                               baudrate))
     emit(target, rows, fmt, False, title=f"{target.name} after writing (read back)")
+
+
+def _now(fv: FieldValue | None) -> str:
+    if fv is None:
+        return "write-only"
+    return f"{fv.text} {fv.field.unit}".strip()
 
 
 def _question(target: Target, lines: list[str]) -> str:
