@@ -10,6 +10,7 @@ adapter), the simulator's engine, ``decode`` and the sniffer.
 - ``timing``: character timing and the 3.5-character silence;
 - ``match``: which bytes answer a request, and why an unanswered attempt failed;
 - ``line``: the master's line discipline (when a frame may go, drains, late replies);
+- ``stream``: a listen-only tap's bytes split into frames and transactions (sniffing);
 - ``capture``: captured byte streams split into frames and decoded.
 """
 
