@@ -41,7 +41,7 @@ from poll_common import seed_site
 
 from rtupoll.config.library import load_library, load_one
 from rtupoll.config.site import BusConfig, from_specs
-from rtupoll.io.virtual import VirtualBus
+from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scan import Found, Setting, default_margin, presence_probes, sweep
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
@@ -51,17 +51,6 @@ from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
 
 BAUD = 9600
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    async def sleep(self, seconds: float) -> None:
-        self.now += max(0.0, seconds)
 
 
 class TimedBus(VirtualBus):
@@ -100,8 +89,8 @@ def pinned(config: BusConfig) -> BusConfig:
 
 
 def poller(specs: Sequence[tuple[str, int]], sims: Sequence[SimConfig], *, fixed: bool,
-           interval: float = 0.0) -> tuple[Clock, BusPoller, Engine]:
-    clock = Clock()
+           interval: float = 0.0) -> tuple[VirtualClock, BusPoller, Engine]:
+    clock = VirtualClock()
     engine = Engine(list(sims), tick=None)
     bus = TimedBus(engine, Framing(BAUD), clock=clock, sleep=clock.sleep)
     config = from_specs("virtual", list(specs), baudrate=BAUD, interval=interval,
@@ -110,7 +99,7 @@ def poller(specs: Sequence[tuple[str, int]], sims: Sequence[SimConfig], *, fixed
                             clock=clock, wall=clock, rand=lambda: 0.5), engine
 
 
-async def run_for(bp: BusPoller, clock: Clock, seconds: float) -> list[tuple[DevicePoller,
+async def run_for(bp: BusPoller, clock: VirtualClock, seconds: float) -> list[tuple[DevicePoller,
                                                                              float, bool]]:
     """Poll for ``seconds`` of virtual time; (device, cycle time, got every field)."""
     end, out = clock.now + seconds, []
@@ -164,7 +153,7 @@ def scan(fixed: bool, listen: bool = True) -> tuple[float, list[int]]:
     profiles = sorted(load_library().profiles.values(), key=lambda p: p.id)
     sims = [SimConfig(load_one(p), a, turnaround=0.12 if a == SLOW else None) for p, a in SCAN]
     engine = Engine(sims, tick=None)
-    clock = Clock()
+    clock = VirtualClock()
     margin = default_margin(profiles)
     if fixed:  # every empty address waits the slowest profile's timeout
         margin = max(p.limits.timeout for p in profiles)

@@ -19,7 +19,7 @@ from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
 from rtupoll.errors import ConfigError, DeviceException, FaultSpecError
-from rtupoll.io.virtual import VirtualBus
+from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.hole_services import RememberHoles
 from rtupoll.jobs.holes import HoleStore, bisect, gaps, pieces, show
 from rtupoll.jobs.scheduler import Backoff, BusPoller, Scheduler
@@ -92,19 +92,8 @@ class Reads(VirtualBus):
             raise
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    async def sleep(self, seconds: float) -> None:
-        self.now += max(0.0, seconds)
-
-
-def holed_bus(fault: str = f"3:hole={HOLE}") -> tuple[Clock, BusPoller, Reads]:
-    clock = Clock()
+def holed_bus(fault: str = f"3:hole={HOLE}") -> tuple[VirtualClock, BusPoller, Reads]:
+    clock = VirtualClock()
     engine = Engine([SimConfig(load_one("huiwen-aq"), 3, faults=(parse_fault(fault),))],
                     tick=None)
     bus = Reads(engine, Framing(9600), clock=clock, sleep=clock.sleep)

@@ -20,7 +20,7 @@ import pytest
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
 from rtupoll.io.serialport import latency_timer, latency_warning
-from rtupoll.io.virtual import VirtualBus
+from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import State
 from rtupoll.jobs.timeouts import (
@@ -201,22 +201,11 @@ def test_latency_timer_from_sysfs_and_the_warning(tmp_path: Path) -> None:
 # -- the whole loop, in virtual time ------------------------------------------------
 
 
-@dataclasses.dataclass
-class Clock:
-    now: float = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    async def sleep(self, seconds: float) -> None:
-        self.now += max(0.0, seconds)
-
-
 TimedBus = VirtualBus  # it tells reply times as ``io.bus.Bus`` does
 
 
-def setup(turnaround: float) -> tuple[Clock, BusPoller, Engine]:
-    clock = Clock()
+def setup(turnaround: float) -> tuple[VirtualClock, BusPoller, Engine]:
+    clock = VirtualClock()
     profile = load_one("huiwen-aq")
     engine = Engine([SimConfig(profile, 3, turnaround=turnaround)], tick=None)
     bus = TimedBus(engine, Framing(9600), clock=clock, sleep=clock.sleep)
@@ -231,7 +220,7 @@ def set_turnaround(engine: Engine, seconds: float) -> None:
     d.config = dataclasses.replace(d.config, turnaround=seconds)
 
 
-async def poll_for(bp: BusPoller, clock: Clock, seconds: float, each: object = None) -> None:
+async def poll_for(bp: BusPoller, clock: VirtualClock, seconds: float, each: object = None) -> None:
     end = clock.now + seconds
     while clock.now < end:
         dev = bp.next_device()
@@ -329,7 +318,7 @@ def test_scan_asks_a_late_address_again_with_a_longer_timeout() -> None:
     profiles = sorted(load_library().profiles.values(), key=lambda p: p.id)
     slow = Engine([SimConfig(load_one("huiwen-aq"), 5, turnaround=0.12),
                    SimConfig(load_one("net-irnet-pro"), 9)], tick=None)
-    clock = Clock()
+    clock = VirtualClock()
 
     @asynccontextmanager
     async def open_bus(s: Setting) -> AsyncIterator[TimedBus]:

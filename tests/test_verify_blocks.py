@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
-from rtupoll.io.virtual import VirtualBus
+from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.hole_services import verify_device
 from rtupoll.jobs.holes import Mismatch, verify_block
 from rtupoll.jobs.scheduler import Backoff, BusPoller
@@ -29,19 +29,8 @@ from rtupoll.sim.faults import parse_fault
 SHIFT = 30011  # inside the 30010..30011 gap the Huiwen profile lets the planner bridge
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    async def sleep(self, seconds: float) -> None:
-        self.now += max(0.0, seconds)
-
-
 def bus(faults: tuple[str, ...] = (), tick: float | None = None) -> tuple[VirtualBus, Engine]:
-    clock = Clock()
+    clock = VirtualClock()
     engine = Engine([SimConfig(load_one("huiwen-aq"), 3,
                                faults=tuple(parse_fault(f) for f in faults))], tick=tick)
     return VirtualBus(engine, Framing(9600), clock=clock, sleep=clock.sleep), engine
@@ -75,7 +64,7 @@ def test_an_honest_device_with_moving_values_is_no_mismatch() -> None:
 def test_a_mismatch_stops_bridging_there_and_the_new_plan_verifies() -> None:
     vbus, _ = bus((f"3:shift={SHIFT}",))
     config = from_specs("virtual", [("huiwen-aq", 3)], baudrate=9600).buses[0]
-    clock = Clock()
+    clock = VirtualClock()
     bp = BusPoller(config, vbus, backoff=Backoff(), clock=clock, wall=clock)
     dev = bp.devices[0]
     said: list[str] = []

@@ -14,24 +14,12 @@ import pytest
 
 from rtupoll.config.site import from_specs
 from rtupoll.errors import DeviceException, DeviceTimeout
-from rtupoll.io.virtual import VirtualBus
+from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.jobs.stats import State
 from rtupoll.rtu import Table
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
-
-
-class VirtualClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-    async def sleep(self, seconds: float) -> None:
-        self.now += max(0.0, seconds)
-        await asyncio.sleep(0)
 
 
 def virtual(devices: list[str], faults: tuple[str, ...] = ()) -> tuple[VirtualBus, VirtualClock]:

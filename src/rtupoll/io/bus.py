@@ -54,6 +54,7 @@ from rtupoll.errors import (
     UsageError,
 )
 from rtupoll.io import serialport
+from rtupoll.io.interface import LineEvidence
 from rtupoll.rtu import FUNCTION_NAMES, Framing, Table
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.functions import (
@@ -121,7 +122,7 @@ class BusStats:
         return min(1.0, self.busy / elapsed) if elapsed > 0 else 0.0
 
 
-class Bus:
+class Bus(LineEvidence):
     """One port, one master, one transaction at a time. See the module docstring.
 
     ``drain``: quiet period required after a timeout before the next request
@@ -149,23 +150,6 @@ class Bus:
     def unsolicited(self) -> int:
         """Frames and bursts of bytes that answered nothing this bus asked."""
         return int(self.line.counts.unsolicited)
-
-    def late(self, unit: int) -> int:
-        """Late replies from ``unit``: answers to requests that had timed out."""
-        return int(self.line.counts.late[unit])
-
-    def reply_time(self, unit: int) -> float | None:
-        """``unit``'s last reply time (request's end to reply's first byte), if any."""
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        """The reply time of ``unit``'s last late reply, if it sent one."""
-        return self.line.late_reply_time.get(unit)
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
-        (``Line.patience``: a learned timeout does not shorten it)."""
-        self.line.patience[unit] = seconds
 
     # -- opening and closing -------------------------------------------------
 

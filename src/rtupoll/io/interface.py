@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from typing import Protocol
 
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.line import Line
 
 
 class BusLike(Protocol):
@@ -45,3 +46,27 @@ class BusLike(Protocol):
     def late(self, unit: int) -> int:
         """Replies from ``unit`` that came after their request had timed out."""
         ...
+
+
+class LineEvidence:
+    """What a bus tells about its line, read from its ``rtu.line.Line``: shared by
+    ``Bus`` and ``VirtualBus`` (the learned timeouts and the statistics use it)."""
+
+    line: Line
+
+    def late(self, unit: int) -> int:
+        """Late replies from ``unit``: answers to requests that had timed out."""
+        return int(self.line.counts.late[unit])
+
+    def reply_time(self, unit: int) -> float | None:
+        """``unit``'s last reply time (request's end to reply's first byte), if any."""
+        return self.line.reply_time.get(unit)
+
+    def late_reply_time(self, unit: int) -> float | None:
+        """The reply time of ``unit``'s last late reply, if it sent one."""
+        return self.line.late_reply_time.get(unit)
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
+        (``Line.patience``: a learned timeout does not shorten it)."""
+        self.line.patience[unit] = seconds

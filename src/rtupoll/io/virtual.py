@@ -17,6 +17,7 @@ import time
 from collections.abc import Awaitable, Callable, Sequence
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError
+from rtupoll.io.interface import LineEvidence
 from rtupoll.rtu import FUNCTION_NAMES, Framing, Table, read_request
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.functions import (
@@ -30,7 +31,23 @@ from rtupoll.rtu.line import Answer, Garbled, Line
 from rtupoll.sim.engine import Engine
 
 
-class VirtualBus:
+class VirtualClock:
+    """Time that passes only when slept through: ``clock()`` and ``await clock.sleep(s)``
+    for a ``VirtualBus`` (and a scheduler's ``clock=``), so a test of timeouts and
+    backoff costs no wall-clock time."""
+
+    def __init__(self, start: float = 0.0) -> None:
+        self.now = start
+
+    def __call__(self) -> float:
+        return self.now
+
+    async def sleep(self, seconds: float) -> None:
+        self.now += max(0.0, seconds)
+        await asyncio.sleep(0)  # let other tasks run, as a real sleep would
+
+
+class VirtualBus(LineEvidence):
     """``BusLike`` over a simulator ``Engine``; ``clock``/``sleep`` may be virtual."""
 
     def __init__(self, engine: Engine, framing: Framing | None = None, *,
@@ -52,18 +69,6 @@ class VirtualBus:
         return None
 
     adapter_latency = 0.0  # no USB adapter between the master and this bus
-
-    def late(self, unit: int) -> int:
-        return int(self.line.counts.late[unit])
-
-    def reply_time(self, unit: int) -> float | None:
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        return self.line.late_reply_time.get(unit)
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        self.line.patience[unit] = seconds
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
