@@ -46,7 +46,7 @@ from rtupoll.errors import (
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.device import probe_variant, read_block
 from rtupoll.jobs.holes import HoleMemory, Register, bisect, gaps
-from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State
+from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
@@ -136,7 +136,7 @@ class DevicePoller:
             silent = await self._probe_variant(transport, 0 if probing else cfg.retry_count)
             if silent:  # gone: one timeout, as for a first block that gets no reply
                 wall = self._wall()
-                readings = [Reading(wall, cfg, f, None, "timeout", silent) for f in cfg.fields]
+                readings = [Reading(wall, cfg, f, None, Status.TIMEOUT, silent) for f in cfg.fields]
                 st.record(readings, answered=False)
                 return readings
             answered = not self.variant_unknown  # the probe had its answer
@@ -152,7 +152,7 @@ class DevicePoller:
             attempted = True
             if stopped is not None:
                 for f in block.fields:
-                    out[f.name] = Reading(self._wall(), cfg, f, None, "skipped", stopped)
+                    out[f.name] = Reading(self._wall(), cfg, f, None, Status.SKIPPED, stopped)
                 continue
             retries = 0 if probing and not answered else cfg.retry_count
             status, error, values = await self._transact(read_block(
@@ -161,14 +161,14 @@ class DevicePoller:
             if status == "exception" and self.refused == 2 and gaps(block):
                 found = await self._find_holes(transport, block, retries)
                 if found is not None:
-                    status, error, values = "ok", "", found
+                    status, error, values = Status.OK, "", found
             if status == "ok":
                 answered = True
                 if block.interval is not None:
                     self.block_read[block.table, block.address, block.count] = started
                 wall = self._wall()
                 for fv in values or ():
-                    out[fv.field.name] = Reading(wall, cfg, fv.field, fv, "ok")
+                    out[fv.field.name] = Reading(wall, cfg, fv.field, fv, Status.OK)
                 continue
             if status == "exception":
                 answered = True
@@ -184,7 +184,7 @@ class DevicePoller:
         self.resume = 0 if first_failed is None else first_failed
         answered = answered or not attempted  # only slow blocks, none due: nothing failed
         for f in self.absent:
-            out[f.name] = Reading(self._wall(), cfg, f, None, "absent", self.absent_why)
+            out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
         st.record(readings, answered)
         return readings
@@ -258,22 +258,22 @@ class DevicePoller:
                                   ceiling=cfg.timeout_ceiling)
 
     async def _transact(self, read: Awaitable[T], *, via: object = None
-                        ) -> tuple[str, str, T | None]:
+                        ) -> tuple[Status, str, T | None]:
         """One read (not yet awaited), timed and counted: (status, error, what it read)."""
         cfg, st = self.config, self.stats
         start = self._clock()
-        status, error, values = "ok", "", None
+        status, error, values = Status.OK, "", None
         self.refused = None
         try:
             values = await read
         except DeviceTimeout as exc:
-            status, error = "timeout", str(exc) or f"no response from {cfg.spec}"
+            status, error = Status.TIMEOUT, str(exc) or f"no response from {cfg.spec}"
             st.timeouts += 1
         except FrameError as exc:
-            status, error = "garbled", str(exc)
+            status, error = Status.GARBLED, str(exc)
             st.garbled += 1
         except DeviceException as exc:
-            status, error = "exception", str(exc)
+            status, error = Status.EXCEPTION, str(exc)
             st.exceptions[exc.code] += 1
             self.refused = exc.code
         now = self._clock()
@@ -356,7 +356,7 @@ class BusPoller:
             # none is backed off; the whole bus pauses briefly and the bus reopens the port
             self.port_error = str(exc)
             self._port_failures += 1
-            readings = [Reading(self._wall(), dev.config, f, None, "port", str(exc))
+            readings = [Reading(self._wall(), dev.config, f, None, Status.PORT, str(exc))
                         for f in dev.config.fields]
             dev.stats.latest.update({r.field.name: r for r in readings})
             pause = min(PORT_RETRY_CAP, 0.5 * 2 ** min(self._port_failures, 10))

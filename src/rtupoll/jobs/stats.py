@@ -32,6 +32,19 @@ class State(str, enum.Enum):
     OFFLINE = "offline"  # many cycles got none; probed now and then
 
 
+class Status(str, enum.Enum):
+    """What became of one field's reading in one cycle (``status`` in the records)."""
+
+    OK = "ok"  # read and decoded
+    TIMEOUT = "timeout"  # no (valid) reply in time
+    GARBLED = "garbled"  # a reply that could not be used: CRC, truncated, malformed
+    EXCEPTION = "exception"  # the device answered with a Modbus exception
+    SKIPPED = "skipped"  # not asked: the device stopped answering earlier in the cycle
+    PORT = "port"  # the port was gone (adapter unplugged, gateway down)
+    ABSENT = "absent"  # this variant of the device has no such field
+
+    def __str__(self) -> str:
+        return self.value
 
 
 @dataclass(frozen=True)
@@ -42,7 +55,7 @@ class Reading:
     device: DeviceConfig
     field: Field
     value: FieldValue | None
-    status: str = "ok"  # ok | timeout | garbled | exception | skipped | port | absent
+    status: Status = Status.OK
     error: str = ""
 
     @property
@@ -57,8 +70,8 @@ class Reading:
             rec.update(status="ok", error="")
         else:
             rec = failed_record(d.name, d.profile.id, d.address, self.field.name,
-                                self.field.unit, self.status, self.error)
-            if self.status == "absent":  # the device's variant lacks it: no failure
+                                self.field.unit, self.status.value, self.error)
+            if self.status is Status.ABSENT:  # the device's variant lacks it: no failure
                 rec["severity"] = "info"
         rec["time"] = iso_time(self.time)
         return rec

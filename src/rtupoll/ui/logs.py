@@ -176,7 +176,7 @@ def _condition(dev: DevicePoller, readings: list[Reading]) -> tuple[str, Reading
     if not problems:
         return "online", None
     first = problems[0]
-    kind = first.status
+    kind = first.status.value
     if kind == "exception":
         kind = "exception " + first.error.split("exception ", 1)[-1][:2]
     return kind, first
