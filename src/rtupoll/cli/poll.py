@@ -351,7 +351,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
         if once:
             readings = asyncio.run(_once(scheduler, writer, services))
             if show_table:
-                console.print(view.render())
+                console.print(view.render(width=console.width))
             _report_failures(site, readings)
         else:
             asyncio.run(_forever(scheduler, writer, view if show_table else None, console,
