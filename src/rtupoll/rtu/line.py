@@ -45,7 +45,7 @@ its lock, so other devices keep the line busy meanwhile. Should a frame still fi
 an older different request (a device that dropped it and answers a later one), it
 is counted late and the attempt times out: never a wrong value, at worst a retry.
 What this cannot guarantee: a reply later than the late window of its request, a
-device that answers out of order or twice, and frames from a second master.
+device that answers one request twice, and frames from a second master.
 
 **Reply time.** For every frame it explains, the line records the device's reply
 time: from the end of the request on the wire (its first byte's time plus its wire
