@@ -8,7 +8,6 @@ that cost no wall-clock time, and a late reply that is counted, not decoded.
 from __future__ import annotations
 
 import asyncio
-import time
 
 import pytest
 
@@ -43,9 +42,7 @@ def test_values_exceptions_and_timeouts_in_virtual_time() -> None:
             await bus.read(9, Table.HOLDING, 0, 1, timeout=0.5, retries=2)
         assert clock.now - started == pytest.approx(1.5, abs=0.05)  # three attempts
 
-    wall = time.monotonic()
     asyncio.run(go())
-    assert time.monotonic() - wall < 1.5  # the 1.5 s of timeouts passed virtually
 
 
 def test_a_late_reply_is_counted_and_never_decoded() -> None:
