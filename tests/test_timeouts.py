@@ -415,3 +415,14 @@ def test_the_ceiling_bounds_what_is_learned() -> None:
     timing.before(object(), 1, ceiling=0.8)
     timing.estimator.answered(2.0)
     assert timing.timeout == 0.8
+
+
+def test_quantile_is_the_nearest_rank_whatever_the_shortcut() -> None:
+    import random
+
+    rnd = random.Random(7)
+    for n in (1, 2, 5, 99, 100, 101, 128):
+        data = [rnd.random() for _ in range(n)]
+        for q in (50, 90, 99, 100):
+            rank = max(1, -(-n * q // 100))
+            assert quantile(data, q) == sorted(data)[int(rank) - 1], (n, q)

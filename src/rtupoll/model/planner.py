@@ -25,6 +25,7 @@ Pure: no I/O, inputs never mutated.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
@@ -55,7 +56,7 @@ class Block:
     def function(self) -> int:
         return self.table.read_function
 
-    @property
+    @functools.cached_property
     def interval(self) -> float | None:
         """Seconds between reads of this block's fields when polled (None: every cycle);
         a plan made with ``by_interval`` never mixes fields of different intervals."""
