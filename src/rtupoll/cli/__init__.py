@@ -16,13 +16,14 @@ import os
 import sys
 from types import FrameType
 
-from rtupoll.errors import Interrupted
-
 
 def _interrupted_early(signum: int, frame: FrameType | None) -> None:
-    """SIGINT/SIGTERM before ``main`` runs (click and the command are being imported)."""
+    """SIGINT/SIGTERM before ``main`` runs (click and the command are being imported).
+    Nothing of rtupoll's is imported before this handler is in place."""
     with contextlib.suppress(OSError):
         os.write(2, b"rtupoll: interrupted\n")
+    from rtupoll.errors import Interrupted
+
     raise SystemExit(Interrupted.exit_code)
 
 
@@ -39,7 +40,7 @@ from typing import Any, TextIO  # noqa: E402
 
 import click  # noqa: E402
 
-from rtupoll.errors import RtupollError, UsageError  # noqa: E402
+from rtupoll.errors import Interrupted, RtupollError, UsageError  # noqa: E402
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
