@@ -107,24 +107,25 @@ def test_a_gateway_that_goes_and_returns_is_logged_once_each_way_and_counted(
     assert sum(1 for m in log if "port back" in m) == 1
 
 
+async def scans_logged(scheduler: Scheduler, scans: int) -> None:
+    """``scans`` scans of every device, each cycle handed to a ``StateLog``."""
+    states = StateLog()
+    await scheduler.open()
+    await states.start(scheduler)
+    try:
+        for _ in range(scans):
+            await scheduler.scan_once(states.on_readings)
+    finally:
+        await scheduler.close()
+
+
 def test_a_device_failing_every_scan_is_logged_on_change_only(
         sim: Callable[..., SimulatedBus], caplog: pytest.LogCaptureFixture) -> None:
     bus = sim("huiwen-aq@3", faults=["3:dead@3-6"])  # one read per cycle: 2 good, 4 dead
     site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["co2"], timeout=0.05, retries=0)
     scheduler = Scheduler(site)
-    states = StateLog()
-
-    async def main() -> None:
-        await scheduler.open()
-        await states.start(scheduler)
-        try:
-            for _ in range(9):
-                await scheduler.scan_once(states.on_readings)
-        finally:
-            await scheduler.close()
-
     with caplog.at_level(logging.INFO, logger="rtupoll"):
-        asyncio.run(main())
+        asyncio.run(scans_logged(scheduler, 9))
     device = [r for r in caplog.records if getattr(r, "event", "") == "device"]
     assert [r.levelname for r in device] == ["WARNING", "INFO"]
     assert device[0].getMessage().startswith(f"huiwen-aq@3 on {bus.port}: timeout: no reply")
@@ -172,19 +173,8 @@ def test_late_replies_are_logged_once_and_counted_in_every_device_line(
     bus = sim("radar-level@2", faults=["slow=0.3@2", "slow=0.3@5"], tick=None)
     site = from_specs(bus.port, [("radar-level", 2)], timeout=0.1, retries=0)
     scheduler = Scheduler(site)
-    states = StateLog()
-
-    async def main() -> None:
-        await scheduler.open()
-        await states.start(scheduler)
-        try:
-            for _ in range(4):
-                await scheduler.scan_once(states.on_readings)
-        finally:
-            await scheduler.close()
-
     with caplog.at_level(logging.INFO, logger="rtupoll"):
-        asyncio.run(main())
+        asyncio.run(scans_logged(scheduler, 4))
     late = [r for r in caplog.records if getattr(r, "status", "") == "late"]
     assert len(late) == 1  # logged once, though two replies came late
     line = json.loads(JsonFormatter().format(late[0]))

@@ -106,7 +106,7 @@ def test_wire_timing_takes_the_real_time_of_both_frames(sim: Sim, raw_port: Raw,
     assert expected - 0.001 <= min(times) <= expected + 0.02, (expected, times)
 
 
-def test_without_a_baud_rate_replies_are_immediate(sim: Sim, raw_port: Raw) -> None:
+def test_without_a_baud_rate_replies_are_not_held_back(sim: Sim, raw_port: Raw) -> None:
     bus = sim("net-irnet-pro@1", tick=None)
     port = raw_port(bus.port)
     times = []

@@ -116,7 +116,6 @@ class BusStats:
     busy: float = 0.0  # seconds the bus was held: silences, requests, replies, timeouts, drains
     wire: float = 0.0  # seconds of frames on the wire at the baud rate (the physical floor)
     outcomes: Counter[str] = field(default_factory=Counter)  # see OUTCOMES
-    hazard_waits: int = 0  # polls spent waiting out a possible late reply (see rtu.line)
 
     def utilisation(self, elapsed: float) -> float:
         return min(1.0, self.busy / elapsed) if elapsed > 0 else 0.0
@@ -329,7 +328,6 @@ class Bus(LineEvidence):
             until = self.line.hazard_until(request, now)
             if until <= now:
                 return
-            self.stats.hazard_waits += 1
             await asyncio.sleep(min(until - now, _HAZARD_POLL))
 
     async def _attempts(self, request: bytes, timeout: float, retries: int,

@@ -44,6 +44,7 @@ from rtupoll.jobs.writes import WriteOp, write
 from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.profile import Field, Profile
+from rtupoll.rtu.functions import WRITE_DATA_AT
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
@@ -165,13 +166,14 @@ def dry_run(change: Change) -> list[tuple[str, str]]:
         out.append((_hex(rtu.read_request(old, cf.table, cf.address, cf.words)),
                     f"identity: {cf.name} must read {change.check[1]}"))
     words = field_words(f, new, (0,))
+    function = p.set_address.function
     unknown: set[int] = set()
     if f.layout.type in (DataType.U8, DataType.I8):
         out.append((_hex(read_old), f"read {f.name}'s register to keep its other byte"))
-        unknown = {7 if f.layout.byte == "low" else 8}  # FC16 data bytes: high at 7, low at 8
-    if p.set_address.function == 6:
+        at = WRITE_DATA_AT[function]  # the register's high byte; its low byte follows
+        unknown = {at if f.layout.byte == "low" else at + 1}  # the byte kept, read first
+    if function == 6:
         frame = rtu.write_single_request(old, f.address, words[0])
-        unknown = {i - 3 for i in unknown}
     else:
         frame = rtu.write_multiple_request(old, f.address, words)
     reply = {"echo": "an echo", "none": "no reply", "malformed": "a malformed reply",

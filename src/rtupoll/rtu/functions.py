@@ -178,13 +178,6 @@ def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
     return 8, 5 + data_bytes(1 if coils else 3, count)
 
 
-def write_frame_sizes(function: int, count: int) -> tuple[int, int]:
-    """Request and normal (echo) reply sizes of a write of ``count`` registers or coils."""
-    if function in (5, 6):
-        return 8, 8
-    return 9 + data_bytes(1 if function == 15 else 3, count), 8
-
-
 # where a write request's data begins: FC06 value at 4, FC16 values after the byte count
 WRITE_DATA_AT = {5: 4, 6: 4, 15: 7, 16: 7}
 

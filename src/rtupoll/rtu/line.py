@@ -114,7 +114,6 @@ class Attempt:
 class LineCounts:
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
-    dropped: int = 0  # outstanding requests given up (horizon passed)
 
 
 def _fits(frame: bytes, exp: Expect) -> bool:
@@ -318,19 +317,11 @@ class Line:
         return max(SETTLE_FACTOR * self._latency.get(unit, 0.0),
                    self.framing.wire_time(MAX_FRAME) + self.framing.silence)
 
-    def abandon(self) -> None:
-        """The attempt ended without an answer for a reason of the port's (closed)."""
-        self.attempt = None
-
-    def outstanding(self, unit: int) -> int:
-        return len(self._outstanding.get(unit, ()))
-
     def _forget(self, now: float) -> None:
         if not self._outstanding:
             return
         for unit, queue in list(self._outstanding.items()):
             for e in [e for e in queue if e.expires < now]:
                 queue.remove(e)
-                self.counts.dropped += 1
             if not queue:
                 del self._outstanding[unit]
