@@ -488,6 +488,23 @@ def test_an_early_signal_never_shows_our_traceback(sig: signal.Signals) -> None:
     assert codes[-1] == 130, codes
 
 
+def test_an_error_raised_while_handling_ctrl_c_counts_as_interrupted() -> None:
+    """Ctrl-C inside an import can come out of importlib as its own KeyError, with the
+    KeyboardInterrupt as its context (CI saw it once): that is an interruption, exit 130."""
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise KeyError(139941734919040) from None
+    except KeyError as exc:
+        assert exc.__context__ is not None
+        assert rtupoll_cli._from_interrupt(exc)
+    assert not rtupoll_cli._from_interrupt(KeyError(1))
+    chained = ValueError("x")
+    chained.__context__ = chained  # a cycle ends the walk
+    assert not rtupoll_cli._from_interrupt(chained)
+
+
 def test_an_interrupted_plan_reports_every_row(sim: Callable[..., SimulatedBus],
                                                tmp_path: Path) -> None:
     """SIGINT while row 1's write is on the wire: row 1 written, unverified; 2 and 3 not run."""

@@ -16,15 +16,16 @@ import os
 import sys
 from types import FrameType
 
+from rtupoll.errors import Interrupted
+
 
 def _interrupted_early(signum: int, frame: FrameType | None) -> None:
-    """SIGINT/SIGTERM before ``main`` runs (click and the command are being imported).
-    Nothing of rtupoll's is imported before this handler is in place."""
+    """SIGINT/SIGTERM before the command runs (click and the command's modules are being
+    imported). Nothing has started, so nothing is lost by leaving at once; raising here
+    instead would interrupt an import half-way, and importlib then shows its own traceback."""
     with contextlib.suppress(OSError):
         os.write(2, b"rtupoll: interrupted\n")
-    from rtupoll.errors import Interrupted
-
-    raise SystemExit(Interrupted.exit_code)
+    os._exit(Interrupted.exit_code)
 
 
 # The console script imports this module first: from here on an early Ctrl-C or SIGTERM
@@ -40,7 +41,7 @@ from typing import Any, TextIO  # noqa: E402
 
 import click  # noqa: E402
 
-from rtupoll.errors import Interrupted, RtupollError, UsageError  # noqa: E402
+from rtupoll.errors import RtupollError, UsageError  # noqa: E402
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -125,6 +126,9 @@ def cli() -> None:
 
 def main(argv: list[str] | None = None) -> Any:
     """The console script: usage mistakes are one line too, like every other error."""
+    args = sys.argv[1:] if argv is None else argv
+    if args and args[0] in COMMANDS:  # imported while a signal still just ends the process
+        cli.get_command(click.Context(cli), args[0])
     with _process():
         try:
             code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
@@ -147,7 +151,21 @@ def main(argv: list[str] | None = None) -> Any:
         except RtupollError as exc:  # an output error outside a command
             click.echo(f"rtupoll: {exc}", err=True)
             code = exc.exit_code
+        except Exception as exc:
+            if not _from_interrupt(exc):
+                raise
+            click.echo("rtupoll: interrupted", err=True)  # Ctrl-C inside an import: importlib
+            code = Interrupted.exit_code  # turns it into its own error, KeyboardInterrupt inside
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _from_interrupt(exc: BaseException | None) -> bool:
+    seen = 0
+    while exc is not None and seen < 20:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc, seen = exc.__context__, seen + 1
+    return False
 
 
 def _as_sigint(signum: int, frame: FrameType | None) -> None:
