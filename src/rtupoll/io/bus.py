@@ -372,7 +372,7 @@ class Bus(LineEvidence):
             raise PortError(f"{self.settings.port} is not open")
         self.line.send(request, time.monotonic())
         self.stats.wire += self.framing.wire_time(len(request))
-        self._client.ctx.send(request)
+        self._send(request)
         if request[0] == 0:
             return b""
         loop = asyncio.get_running_loop()
@@ -384,6 +384,26 @@ class Bus(LineEvidence):
         finally:
             expiry.cancel()
             self._answer = None
+
+    def _send(self, request: bytes) -> None:
+        """Put ``request`` on the wire now. pymodbus's serial transport would only queue
+        it for the event loop's next turn, registering and unregistering the port for
+        writing each time; with nothing queued, the frame is written to its port at once
+        (what does not fit the port's buffer is queued as before, and a port that fails
+        is closed as pymodbus's own writer would). A socket (RTU over TCP) writes at once
+        anyway."""
+        transport = self._client.ctx.transport
+        port = getattr(transport, "sync_serial", None)
+        if port is None or getattr(transport, "intern_write_buffer", None) != []:
+            self._client.ctx.send(request)
+            return
+        try:
+            sent = port.write(request) or 0
+        except Exception as exc:  # pyserial's SerialException: the port went away
+            transport.close(exc=exc)
+            return
+        if sent < len(request):
+            transport.write(request[sent:])
 
     async def _quiet_line(self, *, drain: bool) -> None:
         """Wait until the line discipline lets the next frame go."""

@@ -220,6 +220,10 @@ class Line:
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
+        if n >= len(self._buf):  # all of it: the usual case
+            self._buf.clear()
+            self._marks.clear()
+            return
         del self._buf[:n]
         keep = [(off - n, t) for off, t in self._marks if off > n]
         older = [t for off, t in self._marks if off <= n]
@@ -250,7 +254,10 @@ class Line:
             self.counts.unsolicited += 1
             return False
         gone = min(fits, key=lambda e: e.expires)
-        self._outstanding[unit].remove(gone)
+        queue = self._outstanding[unit]
+        queue.remove(gone)
+        if not queue:  # nothing unanswered: the next request's hazard check is quick
+            del self._outstanding[unit]
         first = min(fits, key=lambda e: e.sent)
         oldest = first.sent
         self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 
 @dataclass(frozen=True)
@@ -18,11 +19,11 @@ class Framing:
     def bits_per_char(self) -> float:
         return 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
 
-    @property
+    @cached_property  # on every transaction's path: computed once per framing
     def char_time(self) -> float:
         return self.bits_per_char / self.baudrate
 
-    @property
+    @cached_property
     def silence(self) -> float:
         """Inter-frame silence t3.5; the spec fixes it at 1.75 ms above 19200 baud."""
         return 0.00175 if self.baudrate > 19200 else 3.5 * self.char_time
