@@ -7,10 +7,10 @@ path (``--profiles`` directories, ``$RTUPOLL_PROFILES``, then the bundled ones).
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import TypeVar
 
@@ -36,6 +36,7 @@ from rtupoll.model.profile import (
 from rtupoll.rtu import Table
 
 T = TypeVar("T")
+V = TypeVar("V", float, str)  # a value a field holds
 PROFILES_ENV = "RTUPOLL_PROFILES"  # extra profile directories, os.pathsep-separated
 MAX_FIELDS = 4096  # fields in one profile (the largest bundled: 40)
 
@@ -208,7 +209,7 @@ def _opt(m: Mapping[str, Node], key: str, get: Callable[[Node], T], default: T) 
     return get(m[key]) if key in m else default
 
 
-def _order(m: dict[str, Node], node: Node | None, default: ByteOrder) -> ByteOrder:
+def _order(m: Mapping[str, Node], node: Node | None, default: ByteOrder) -> ByteOrder:
     if node is not None:
         return node.choice(ByteOrder, _ORDERS)
     if "byteorder" in m or "wordorder" in m:
@@ -314,6 +315,8 @@ def _choices(node: Node, what: str, fit: int) -> tuple[dict[int, Choice], Choice
 
 
 def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits: Limits) -> Field:
+    """One entry of ``fields``: where it is, how it is stored, what its values mean and
+    who may write it, each checked by its own helper below."""
     m = node.mapping(_FIELD_KEYS, {"name", "table", "address", "type"})
     name = m["name"].text()
     if not name.isidentifier() or name != name.lower():
@@ -321,20 +324,55 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     table = m["table"].choice(Table, [t.value for t in Table])
     dtype = m["type"].choice(DataType, _TYPES)
     written, shift, width = _address(m["address"], dtype, table)
+    wire = _wire_address(m["address"], addressing, table, written)
+    layout = _layout(node, m, dtype, table, default_order, limits, shift, width)
+    enum_map, other, flags = _meanings(m, layout)
+    lo, hi = _value_range(m, layout)
+    access = _access(m, table, width)
+    source = m["source"].text() if "source" in m else "manual"
+    if source not in ("manual", "public"):
+        raise m["source"].fail(f"{source!r} is not one of: manual, public")
+    counter = m["counter"].flag() if "counter" in m else False
+    if counter and (enum_map or flags or dtype in (DataType.STRING, DataType.BOOL)):
+        raise m["counter"].fail("only a number can be a counter")
+    return Field(
+        name=name, table=table, address=wire, layout=layout,
+        written=addressing.show(table, wire) + _bits_text(shift, width),
+        unit=m["unit"].text() if "unit" in m else "",
+        description=m["description"].text() if "description" in m else "",
+        access=access, enum=enum_map, other=other, flags=flags, minimum=lo, maximum=hi,
+        values=tuple(_fitting(n, n.number(), layout) for n in
+                     (m["values"].sequence() if "values" in m else [])),
+        poll=m["poll"].choice(Poll, [p.value for p in Poll]) if "poll" in m else Poll.DEFAULT,
+        alone=m["alone"].flag() if "alone" in m else False,
+        since=m["since"].integer(0, 255) if "since" in m else 0,
+        source=source, sentinels=_sentinels(m["sentinels"], layout) if "sentinels" in m else {},
+        precision=m["precision"].integer(-6, 9) if "precision" in m else None,
+        interval=_opt(m, "interval", _interval, None), counter=counter,
+        typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
+    )
+
+
+def _wire_address(node: Node, addressing: Addressing, table: Table, written: int) -> int:
+    """The address on the wire of an address as the profile writes it."""
     if addressing in (Addressing.DIRECT, Addressing.MODICON) and table.is_register:
         base = table.modicon_base
         if not base < written <= base + (9999 if addressing is Addressing.DIRECT else 65536):
-            raise m["address"].fail(
-                f"{written} is not a {table.value} register reference "
-                f"({base + 1}..{base + 9999})")
+            raise node.fail(f"{written} is not a {table.value} register reference "
+                            f"({base + 1}..{base + 9999})")
     wire = addressing.to_wire(table, written)
     if not 0 <= wire <= 0xFFFF:
-        raise m["address"].fail(f"wire address {wire} is outside 0..65535")
+        raise node.fail(f"wire address {wire} is outside 0..65535")
+    return wire
+
+
+def _layout(node: Node, m: Mapping[str, Node], dtype: DataType, table: Table,
+            default_order: ByteOrder, limits: Limits, shift: int, width: int) -> Layout:
+    """How the value is stored: registers, byte and word order, scale and offset."""
     if dtype is DataType.STRING:
         if "length" not in m:
             raise node.fail("a string needs 'length' (bytes)")
-        length = m["length"].integer(1, 250)
-        words = (length + 1) // 2
+        words = (m["length"].integer(1, 250) + 1) // 2
     else:
         if "length" in m:
             raise m["length"].fail("only strings have a length")
@@ -352,46 +390,52 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     scale = m["scale"].number() if "scale" in m else 1.0
     if scale == 0:
         raise m["scale"].fail("scale cannot be 0")
-    layout = Layout(dtype, words, order, scale, m["offset"].number() if "offset" in m else 0.0,
-                    byte, shift, width)
     if words > limits.max_registers:
         raise m["type"].fail(
             f"{words} registers are more than the device reads at once ({limits.max_registers})")
-    fit = (1 << (width or (8 if dtype in (DataType.U8, DataType.I8) else 16 * words))) - 1
-    enum_map: dict[int, Choice] = {}
-    flags: dict[int, Choice] = {}
-    other = None
-    if "enum" in m or "flags" in m:
-        if not dtype.is_integer:
-            raise (m.get("enum") or m["flags"]).fail(f"enum and flags need an integer type, "
-                                                     f"not {dtype.value}")
-        if "enum" in m and "flags" in m:
-            raise m["flags"].fail("a field has enum or flags, not both")
-        if "enum" in m:
-            enum_map, other = _choices(m["enum"], "code", fit)
-        else:
-            flags, _ = _choices(m["flags"], "bit mask", fit)
-    lo = hi = None
-    if "range" in m:
-        seq = m["range"].sequence()
-        if len(seq) != 2:
-            raise m["range"].fail("expected [lowest, highest]")
-        lo, hi = seq[0].number(), seq[1].number()
-        if lo > hi:
-            raise m["range"].fail(f"lowest {lo:g} is above highest {hi:g}")
-        if dtype.is_integer:
-            tlo, thi = bits_range(layout)
-            vlo, vhi = sorted((tlo * scale + layout.offset, thi * scale + layout.offset))
-            if lo < vlo - 1e-9 or hi > vhi + 1e-9:
-                raise m["range"].fail(f"[{lo:g}, {hi:g}] does not fit {dtype.value} "
-                                      f"with this scale and offset ({vlo:g}..{vhi:g})")
-    values: list[float] = []
-    for n in m["values"].sequence() if "values" in m else []:
-        values.append(n.number())
-        try:
-            encode(values[-1], layout)
-        except EncodeError as exc:
-            raise n.fail(f"{n.value()} does not fit the field: {exc}") from None
+    return Layout(dtype, words, order, scale, m["offset"].number() if "offset" in m else 0.0,
+                  byte, shift, width)
+
+
+def _meanings(m: Mapping[str, Node], layout: Layout
+              ) -> tuple[dict[int, Choice], Choice | None, dict[int, Choice]]:
+    """``enum`` (codes and the catch-all) or ``flags`` (bit masks): (enum, other, flags)."""
+    if "enum" not in m and "flags" not in m:
+        return {}, None, {}
+    dtype = layout.type
+    if not dtype.is_integer:
+        raise (m.get("enum") or m["flags"]).fail(f"enum and flags need an integer type, "
+                                                 f"not {dtype.value}")
+    if "enum" in m and "flags" in m:
+        raise m["flags"].fail("a field has enum or flags, not both")
+    fit = (1 << (layout.width or (8 if dtype in (DataType.U8, DataType.I8)
+                                  else 16 * layout.words))) - 1
+    if "enum" in m:
+        enum_map, other = _choices(m["enum"], "code", fit)
+        return enum_map, other, {}
+    return {}, None, _choices(m["flags"], "bit mask", fit)[0]
+
+
+def _value_range(m: Mapping[str, Node], layout: Layout) -> tuple[float | None, float | None]:
+    """``range``: [lowest, highest] a write may set, within what the type can hold."""
+    if "range" not in m:
+        return None, None
+    seq = m["range"].sequence()
+    if len(seq) != 2:
+        raise m["range"].fail("expected [lowest, highest]")
+    lo, hi = seq[0].number(), seq[1].number()
+    if lo > hi:
+        raise m["range"].fail(f"lowest {lo:g} is above highest {hi:g}")
+    if layout.type.is_integer:
+        tlo, thi = bits_range(layout)
+        vlo, vhi = sorted((tlo * layout.scale + layout.offset, thi * layout.scale + layout.offset))
+        if lo < vlo - 1e-9 or hi > vhi + 1e-9:
+            raise m["range"].fail(f"[{lo:g}, {hi:g}] does not fit {layout.type.value} "
+                                  f"with this scale and offset ({vlo:g}..{vhi:g})")
+    return lo, hi
+
+
+def _access(m: Mapping[str, Node], table: Table, width: int) -> str:
     access = m["access"].text().upper() if "access" in m else "R"
     if access not in ("R", "RW", "W"):
         raise m["access"].fail(f"{access!r} is not one of: R, RW, W")
@@ -400,38 +444,23 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     if "W" in access and width:
         raise m["access"].fail("bit fields are read-only (a write would need read-modify-"
                                "write of the register, which 'rtupoll write' does for u8 only)")
-    source = m["source"].text() if "source" in m else "manual"
-    if source not in ("manual", "public"):
-        raise m["source"].fail(f"{source!r} is not one of: manual, public")
-    sentinels = _sentinels(m["sentinels"], layout) if "sentinels" in m else {}
-    counter = m["counter"].flag() if "counter" in m else False
-    if counter and (enum_map or flags or dtype in (DataType.STRING, DataType.BOOL)):
-        raise m["counter"].fail("only a number can be a counter")
-    return Field(
-        name=name, table=table, address=wire, layout=layout,
-        written=addressing.show(table, wire) + _bits_text(shift, width),
-        unit=m["unit"].text() if "unit" in m else "",
-        description=m["description"].text() if "description" in m else "",
-        access=access, enum=enum_map, other=other, flags=flags, minimum=lo, maximum=hi,
-        values=tuple(values),
-        poll=m["poll"].choice(Poll, [p.value for p in Poll]) if "poll" in m else Poll.DEFAULT,
-        alone=m["alone"].flag() if "alone" in m else False,
-        since=m["since"].integer(0, 255) if "since" in m else 0,
-        source=source, sentinels=sentinels,
-        precision=m["precision"].integer(-6, 9) if "precision" in m else None,
-        interval=_opt(m, "interval", _interval, None), counter=counter,
-        typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
-    )
+    return access
 
 
-def _typical(node: Node, layout: Layout) -> float | str:
-    """A field's everyday value (the simulator starts there): it must fit the field."""
-    value: float | str = node.text() if layout.type is DataType.STRING else node.number()
+def _fitting(node: Node, value: V, layout: Layout) -> V:
+    """A value the profile gives for the field (``values``, ``typical``): it must fit."""
     try:
         encode(value, layout)
     except EncodeError as exc:
         raise node.fail(f"{node.value()} does not fit the field: {exc}") from None
     return value
+
+
+def _typical(node: Node, layout: Layout) -> float | str:
+    """A field's everyday value (the simulator starts there): it must fit the field."""
+    if layout.type is DataType.STRING:
+        return _fitting(node, node.text(), layout)
+    return _fitting(node, node.number(), layout)
 
 
 def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
@@ -583,7 +612,10 @@ def _variant(node: Node, by_name: Mapping[str, Field]) -> Variant:
 
 
 def bundled_dir() -> Path:
-    return Path(str(resources.files("rtupoll.profiles")))
+    """The package ``rtupoll.profiles`` (the repository's profiles/, installed as package
+    data): its own directory, without importlib.resources and what that imports."""
+    package = importlib.import_module("rtupoll.profiles")
+    return Path(package.__file__ or ".").parent
 
 
 def search_path(extra: Iterable[Path] = ()) -> list[Path]:
