@@ -196,9 +196,10 @@ def main() -> None:
           f"scheduler's bus {statistics.median(busy):.0%} busy; medians:")
     for name, what in names.items():
         cost = statistics.median(per_tx[name])
+        ratio = statistics.median(c / p for c, p in zip(per_tx[name], per_tx["peer"], strict=True))
         print(f"  {what}: {1e6 * cost:.0f} µs CPU per transaction "
               f"({statistics.median(rates[name]):.0f} transactions/s), "
-              f"x{cost / peer:.2f} the bare pymodbus client")
+              f"x{cost / peer:.2f} the bare pymodbus client (x{ratio:.2f} round by round)")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from collections import Counter, deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from functools import lru_cache
 from typing import Any
 
 from rtupoll.config.site import DeviceConfig
@@ -77,6 +78,7 @@ class Reading:
         return rec
 
 
+@lru_cache(maxsize=64)  # the readings of one block share their time
 def iso_time(t: float) -> str:
     """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
     stamp = datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")

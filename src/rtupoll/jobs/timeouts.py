@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import heapq
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -47,9 +47,8 @@ DOWN = 0.05  # per answer, the share of the way down to a lower target
 LATE_GROWTH = 2.0  # a late reply at least multiplies the timeout by this
 
 
-def quantile(values: Iterable[float], q: float) -> float | None:
+def quantile(data: Collection[float], q: float) -> float | None:
     """Nearest-rank percentile (q in 0..100), None without data."""
-    data = list(values)
     if not data:
         return None
     rank = int(max(1, -(-len(data) * q // 100)))
