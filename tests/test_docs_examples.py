@@ -23,7 +23,8 @@ examples", says the same):
   ``$RTUPOLL_PORT`` is line 1).
 - Each block runs against a fresh demo, so a block that changes addresses affects only
   itself. Commands that run until stopped (``poll`` without ``--once``, ``simulate``,
-  ``scripts/poll``) get SIGINT after a few seconds and must then exit with their status.
+  ``scripts/poll``) get SIGINT once they printed something and ``RUN_FOR`` has passed,
+  and must then exit with their status.
 - ```text blocks (synopses, transcripts that need a person) are not run. Examples that
   name a fixed network port (``127.0.0.1:9464``, also in a ``file:`` block they use)
   never run at the same time as each other.
