@@ -257,8 +257,10 @@ def test_a_broker_restart_does_not_stop_polling(broker: Broker, polls: Callable[
     broker.start()
     after = broker.subscribe("rtupoll/#", "homeassistant/#")
     after.wait(state("rtupoll/huiwen-aq_3"))
-    # what the restarted broker had forgotten is published again, retained
+    # what the restarted broker had forgotten is published again, retained (discovery
+    # first, then each device's availability, then its state)
     after.wait(lambda m: m.topic.endswith("rtupoll_rtupoll_huiwen-aq_3/config"))
+    after.wait(lambda m: m.topic == "rtupoll/huiwen-aq_3/availability")
     assert broker.retained("rtupoll/huiwen-aq_3/availability") == "online"
     assert broker.retained("rtupoll/bridge/state") == "online"
     assert run.stop() == 0
