@@ -151,15 +151,16 @@ def main(argv: list[str] | None = None) -> Any:
         except RtupollError as exc:  # an output error outside a command
             click.echo(f"rtupoll: {exc}", err=True)
             code = exc.exit_code
-        except Exception as exc:
+        except Exception as exc:  # Ctrl-C inside an import comes out as importlib's error
             if not _from_interrupt(exc):
                 raise
-            click.echo("rtupoll: interrupted", err=True)  # Ctrl-C inside an import: importlib
-            code = Interrupted.exit_code  # turns it into its own error, KeyboardInterrupt inside
+            click.echo("rtupoll: interrupted", err=True)
+            code = Interrupted.exit_code
     sys.exit(code if isinstance(code, int) else 0)
 
 
 def _from_interrupt(exc: BaseException | None) -> bool:
+    """``exc`` was raised while a KeyboardInterrupt was being handled."""
     seen = 0
     while exc is not None and seen < 20:
         if isinstance(exc, KeyboardInterrupt):
