@@ -91,7 +91,7 @@ class Terminal:
         os.close(slave)
         self.screen = ""
 
-    def expect(self, text: str, timeout: float = 10.0) -> str:
+    def expect(self, text: str, timeout: float = 60.0) -> str:
         deadline = time.monotonic() + timeout
         while text not in self.screen:
             left = deadline - time.monotonic()
@@ -109,7 +109,7 @@ class Terminal:
         os.write(self.fd, text.encode())
 
     def close(self) -> int:
-        code = self.proc.wait(timeout=10)
+        code = self.proc.wait(timeout=60)
         os.close(self.fd)
         return code
 

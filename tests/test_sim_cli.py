@@ -33,7 +33,7 @@ class Simulator:
         assert found, self.out
         self.port = found.group(1)
 
-    def until(self, text: str, timeout: float = 10) -> str:
+    def until(self, text: str, timeout: float = 60) -> str:
         """Output up to and including ``text`` (raw reads: no buffer hides what arrived)."""
         assert self.proc.stdout is not None
         fd, deadline = self.proc.stdout.fileno(), time.monotonic() + timeout
