@@ -2,12 +2,13 @@
 
 The three seed devices that can run at 115200 baud (radar, Huiwen, CO2Meter) are
 polled as fast as the bus allows (interval 0) against the simulator in its own
-process with wire timing (turnaround 0, so the bus is as busy as it can be). Three
+process with wire timing (turnaround 0, so the bus is as busy as it can be). Four
 measurements, each over the same number of seconds:
 
 - core: the scheduler, bus and pymodbus in this process (readings decoded, not
-  written), CPU from ``os.times`` over the polling only; next to it the same reads
-  as a bare ``Bus.read`` loop, which is the scheduler's own cost by difference;
+  written), CPU from ``getrusage`` over the polling only;
+- bus: the same reads as a bare ``Bus.read`` loop, which is the scheduler's own cost
+  by difference;
 - peer: a bare pymodbus async client (``AsyncModbusSerialClient``) reading the same
   blocks in a loop, no silence, no resynchronisation, no decoding;
 - command: ``rtupoll poll --format json`` as a user runs it, records to a file, CPU of

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import pytest
 
@@ -100,12 +101,7 @@ class Subscriber:
             return [m for m in self.messages if m.topic == topic]
 
     def close(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
+        _end(self.proc)
         if self.proc.stdout is not None:
             self.proc.stdout.close()
 
@@ -182,13 +178,8 @@ class Broker:
         raise RuntimeError(f"mosquitto did not listen on {self.port}")
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            _end(self.proc)
         self.proc = None
 
     def subscribe(self, *topics: str, user: str | None = None, password: str | None = None
@@ -254,3 +245,15 @@ def broker_fixture(tmp_path: Path) -> Iterator[Broker]:
         yield b
     finally:
         b.close()
+
+
+def _end(proc: subprocess.Popen[Any]) -> None:
+    """Terminate ``proc`` (mosquitto, mosquitto_sub) and reap it; killed if it lingers."""
+    if proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()

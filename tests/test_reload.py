@@ -26,6 +26,10 @@ from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.sim.runner import SimulatedBus
 
+# the two devices most tests poll, as site-file entries
+AIR = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
+TANK = "{name: tank, profile: radar-level, address: 4, interval: 0.05, fields: [level_cm]}"
+
 
 def site_file(path: Path, *buses: tuple[str, list[str]]) -> Path:
     """``buses``: (port, device lines in flow style)."""
@@ -81,26 +85,24 @@ def test_add_change_and_remove_devices_keep_the_port_open(
         sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4")
     path = tmp_path / "site.yaml"
-    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
-    tank = "{name: tank, profile: radar-level, address: 4, interval: 0.05, fields: [level_cm]}"
 
     async def main() -> None:
-        scheduler = Scheduler(load_site(site_file(path, (bus.port, [air]))))
+        scheduler = Scheduler(load_site(site_file(path, (bus.port, [AIR]))))
         async with Run(scheduler) as run:
             await run.more("air", 3)
             bp, client = scheduler.buses[0], client_of(scheduler.buses[0])
             poller = bp.devices[0]
             assert client is not None
 
-            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [air, tank]))))
+            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [AIR, TANK]))))
             assert changes == ["added tank (radar-level@4) on " + bus.port]
             await run.more("tank", 3)
             await run.more("air", 3)  # the first device never stopped
             assert scheduler.buses == [bp] and bp.devices[0] is poller  # its state kept
             assert client_of(bp) is client  # the port was not reopened
 
-            slow = air.replace("interval: 0.05", "interval: 30")
-            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [slow, tank]))))
+            slow = AIR.replace("interval: 0.05", "interval: 30")
+            changes = await scheduler.reload(load_site(site_file(path, (bus.port, [slow, TANK]))))
             assert changes == ["air: interval 0.05 s -> 30 s"]
             await run.more("air", 1)  # at most the one already due
             before = run.cycles["air"]
@@ -124,22 +126,20 @@ def test_buses_come_and_go_while_the_others_poll(sim: Callable[..., SimulatedBus
                                                  tmp_path: Path) -> None:
     one, two = sim("huiwen-aq@3"), sim("radar-level@4")
     path = tmp_path / "site.yaml"
-    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
-    tank = "{name: tank, profile: radar-level, address: 4, interval: 0.05, fields: [level_cm]}"
 
     async def main() -> None:
-        scheduler = Scheduler(load_site(site_file(path, (one.port, [air]))))
+        scheduler = Scheduler(load_site(site_file(path, (one.port, [AIR]))))
         async with Run(scheduler) as run:
             await run.more("air", 2)
             first = scheduler.buses[0]
             changes = await scheduler.reload(load_site(site_file(
-                path, (one.port, [air]), (two.port, [tank]))))
+                path, (one.port, [AIR]), (two.port, [TANK]))))
             assert changes == [f"opened bus {two.port} ({two.port}, 9600 8N1): 1 devices"]
             await run.more("tank", 3)
             await run.more("air", 3)
             assert scheduler.buses[0] is first
 
-            changes = await scheduler.reload(load_site(site_file(path, (two.port, [tank]))))
+            changes = await scheduler.reload(load_site(site_file(path, (two.port, [TANK]))))
             assert changes == [f"closed bus {one.port} ({one.port})"]
             assert client_of(first) is None  # closed
             after = run.cycles["air"]
@@ -154,8 +154,7 @@ def test_a_broken_file_keeps_the_running_configuration(
 ) -> None:
     bus = sim("huiwen-aq@3")
     path = tmp_path / "site.yaml"
-    air = "{name: air, profile: huiwen-aq, address: 3, interval: 0.05, fields: [co2]}"
-    site_file(path, (bus.port, [air]))
+    site_file(path, (bus.port, [AIR]))
 
     async def main() -> None:
         scheduler = Scheduler(load_site(path))
