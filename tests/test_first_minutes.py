@@ -173,12 +173,15 @@ def test_scan_of_a_line_that_answers_any_speed_says_so_and_lists_each_once(
 
 def test_the_same_quantity_in_two_units_agrees_as_values_move(demo: SimulatedLines) -> None:
     line = demo.line_of(2)
+    seen: set[tuple[str, int]] = set()
     for _ in range(5):
         line.advance(7)
         for name in ("air_gap", "level"):
             cm, mm = (line.get(2, f"{name}_{u}").value for u in ("cm", "mm"))
             assert isinstance(cm, int) and isinstance(mm, int)
             assert abs(mm - 10 * cm) <= 5, (name, cm, mm)
+            seen.add((name, mm))
+    assert len(seen) > 2  # the values did move
 
 
 @pytest.mark.parametrize(("pm25", "level"), [(12, "EXCELLENT"), (60, "GOOD"),

@@ -138,6 +138,7 @@ def test_silent_devices_answer_0x0B_within_their_timeout(sim: Sim) -> None:
                 if radar.stats.state.value == "offline":
                     break
                 await asyncio.sleep(0.05)
+            assert radar.stats.state.value == "offline"
             turns = h.gateway.turns.granted["clients"]
             r = await c.read_holding_registers(0, count=1, device_id=4)
             out.append((r.exception_code, 0.0))
@@ -294,7 +295,7 @@ def test_cache_answers_covered_reads_without_the_line_and_queue_overflow_is_0x0A
         sim: Sim) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:slow=0.1"], tick=None)
 
-    async def main() -> tuple[int, int, list[int]]:
+    async def main() -> tuple[int, int, list[bytes]]:
         async with served(bus, [("huiwen-aq", 3)], interval=0.05, cache=5.0, queue=1) as h:
             while not h.readings:
                 await asyncio.sleep(0.01)
@@ -313,10 +314,11 @@ def test_cache_answers_covered_reads_without_the_line_and_queue_overflow_is_0x0A
             for _ in range(4):
                 head = await asyncio.wait_for(r.readexactly(7), 3)
                 body = await r.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
-                replies.append(body[0])
+                replies.append(body)
             w.close()
             return stats.cached, stats.answered, replies
 
     cached, answered, replies = asyncio.run(main())
     assert cached == 5 and answered == 6  # the 5-register read went to the line
-    assert sorted(replies) == [0x03, 0x83, 0x83, 0x83]
+    assert sorted(body[0] for body in replies) == [0x03, 0x83, 0x83, 0x83]
+    assert [body[1] for body in replies if body[0] == 0x83] == [0x0A] * 3
