@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from rtupoll.config.site import BusConfig, Site
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.gateway.clients import ClientStats
-from rtupoll.gateway.server import Gateway
+from rtupoll.gateway.server import Gateway, SilentUnits
 from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
@@ -144,3 +144,12 @@ def test_counters_as_prometheus_metrics() -> None:
     assert 'rtupoll_gateway_clients{bus="b"} 1.0' in text
     assert 'rtupoll_gateway_queue_wait_seconds{bus="b",client="127.0.0.1:4000",' \
         'quantile="0.5"}' in text
+
+
+def test_a_unit_silent_for_days_is_held_at_the_cap() -> None:
+    """A client polling a unit nobody answers, for days: the hold stays at the cap (an
+    overflowing power would end that client's requests)."""
+    silent = SilentUnits(after=3, base=1.0, cap=30.0)
+    for _ in range(5000):
+        silent.timed_out(9, 0.0)
+    assert silent.held(9, 29.9) and not silent.held(9, 30.0)

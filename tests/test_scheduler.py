@@ -100,6 +100,13 @@ def test_backoff_doubles_from_the_interval_up_to_the_cap_within_the_jitter() -> 
     assert b.delay(3, 1.0, lambda: 1.0) == pytest.approx(4 * 1.2)
 
 
+def test_a_device_offline_for_days_stays_at_the_cap() -> None:
+    """Thousands of failed cycles in a row (a day at the 60 s cap is 1440): still the cap,
+    never an overflow that would stop the scheduler."""
+    b = Backoff(base=1.0, factor=2.0, cap=60.0, jitter=0.2)
+    assert [b.delay(n, 1.0, lambda: 0.5) for n in (1025, 5000, 10**6)] == [60, 60, 60]
+
+
 def test_a_healthy_cycle_reads_every_block_once_with_the_profiles_retries() -> None:
     clock = Clock()
     bus, dev = FakeBus(clock), poller(radar(), clock)

@@ -72,7 +72,8 @@ class SilentUnits:
     def timed_out(self, unit: int, now: float) -> None:
         n = self._failures[unit] = self._failures.get(unit, 0) + 1
         if n >= self.after:
-            self._until[unit] = now + min(self.cap, self.base * 2 ** (n - self.after))
+            # capped long before 64 doublings; a larger power would overflow a float
+            self._until[unit] = now + min(self.cap, self.base * 2 ** min(n - self.after, 64))
 
     def answered(self, unit: int) -> None:
         self._failures.pop(unit, None)

@@ -77,7 +77,9 @@ class Backoff:
     offline_after: int = 3
 
     def delay(self, failures: int, interval: float, rand: Callable[[], float]) -> float:
-        raw = min(self.cap, max(self.base, interval) * self.factor ** max(0, failures - 1))
+        # past 64 steps the cap was reached long ago, and a larger power overflows a float
+        steps = min(max(0, failures - 1), 64)
+        raw = min(self.cap, max(self.base, interval) * self.factor ** steps)
         return raw * (1 + self.jitter * (2 * rand() - 1))
 
 
