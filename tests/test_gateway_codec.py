@@ -111,6 +111,11 @@ def test_line_settings_are_address_and_baud_rate_registers() -> None:
     assert {f.name for f in line_settings(load_one("radar-level"))} == \
         {"slave_address", "baud_rate"}
     assert {f.name for f in line_settings(load_one("huiwen-aq"))} == {"slave_address"}
+    # one rule with MQTT's: an address register the profile does not readdress through
+    # is still the device's address
+    assert {f.name for f in line_settings(load_one("eastron-sdm630"))} == {"modbus_address"}
+    assert {f.name for f in line_settings(load_one("net-irnet-pro"))} == \
+        {"slave_address", "uart_speed"}
 
 
 def test_access_rules() -> None:

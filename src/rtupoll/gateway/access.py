@@ -16,8 +16,6 @@ from rtupoll.gateway.pdu import ILLEGAL_FUNCTION, PATH_UNAVAILABLE, Ask
 from rtupoll.gateway.settings import ServeConfig
 from rtupoll.model.profile import Field, Profile
 
-_LINE_WORDS = ("baud", "uart", "bitrate")  # a field by these names sets the line speed
-
 
 @dataclass(frozen=True)
 class Refusal:
@@ -26,14 +24,8 @@ class Refusal:
 
 
 def line_settings(profile: Profile) -> tuple[Field, ...]:
-    """The fields that change how the device is reached: its address (the profile's
-    ``set_address.field``) and its baud rate (a field named for it, or in baud)."""
-    out = []
-    for f in profile.fields:
-        if f.name == profile.set_address.field or f.unit.lower() == "baud" or \
-                any(w in f.name.lower() for w in _LINE_WORDS):
-            out.append(f)
-    return tuple(out)
+    """The fields that change how the device is reached (``Profile.line_setting``)."""
+    return tuple(f for f in profile.fields if profile.line_setting(f))
 
 
 class Access:

@@ -16,6 +16,8 @@ from rtupoll.errors import UsageError
 from rtupoll.model.codec import ByteOrder, Layout
 from rtupoll.rtu import Table
 
+_LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
+
 
 class Addressing(str, enum.Enum):
     """How the manual writes register addresses, and so how to get the wire address.
@@ -226,6 +228,18 @@ class Profile:
     kind: str = ""  # what sort of device: energy meter, gas sensor, solar charger, ...
     extends: str = ""  # the id of the profile this one was built on
     path: str = ""
+
+    def line_setting(self, field: Field) -> str:
+        """What writing ``field`` changes about how the device is reached: "address"
+        (the profile's ``set_address.field``, or a field named for an address), "baud"
+        (a field in baud, or named for the line speed) or "". A write to either can cut
+        the device off the bus: the gateway and MQTT refuse them unless allowed."""
+        name = field.name.lower()
+        if field.name == self.set_address.field or "address" in name:
+            return "address"
+        if field.unit.lower() == "baud" or any(w in name for w in _LINE_SPEED_WORDS):
+            return "baud"
+        return ""
 
     def field(self, name: str) -> Field:
         for f in self.fields:

@@ -49,13 +49,12 @@ _STATUS: tuple[tuple[type[RtupollError], str], ...] = (
     (PortError, "port"))
 
 
+_PROTECTED = {"address": "the device's own address", "baud": "the device's baud rate"}
+
+
 def protected(profile: Profile, field: Field) -> str:
     """Why writing ``field`` could cut the device off the bus ('' when it cannot)."""
-    if field.name == profile.set_address.field or "address" in field.name:
-        return "the device's own address"
-    if field.unit.lower() == "baud" or "baud" in field.name or "uart_speed" in field.name:
-        return "the device's baud rate"
-    return ""
+    return _PROTECTED.get(profile.line_setting(field), "")
 
 
 def _object(payload: bytes, what: str) -> Any:
@@ -103,8 +102,7 @@ async def apply_set(bus: BusLike, dev: DeviceConfig, ops: Sequence[WriteOp],
     timing = Timing(dev.response_timeout, dev.retry_count)
     for op in ops:
         sent, _ = await write(bus, dev.address, op, timing)  # an echo is checked by the bus
-        if "R" not in op.field.access or protected(dev.profile, op.field) == \
-                "the device's own address":
+        if "R" not in op.field.access or dev.profile.line_setting(op.field) == "address":
             done[op.field.name] = None  # write-only, or the device has moved: not read back
             continue
         now = await read_back(bus, dev.address, op.field, timing)
