@@ -117,6 +117,19 @@ def test_bit_fields_whose_bits_overlap_are_refused(tmp_path: Path) -> None:
                               f"input table")
 
 
+def test_a_bit_field_and_a_field_of_the_same_name_are_one_line(tmp_path: Path) -> None:
+    path = write(tmp_path, "acme-twice", """\
+        fields:
+          - {name: voltage, table: input, address: 0, type: u16}
+          - {name: a, table: input, address: "1:0:4", type: u16}
+          - {name: a, table: input, address: 2, type: u16}
+        """)
+    with pytest.raises(ProfileError) as exc:
+        load_profile(path)
+    assert str(exc.value) == (f"{path}:12: fields[2]: duplicate field name 'a' "
+                              f"(first at line 11)")
+
+
 # -- sentinels ----------------------------------------------------------------
 
 def test_a_sentinel_is_reported_by_name_with_a_null_value(meter: Path) -> None:

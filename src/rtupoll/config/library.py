@@ -74,8 +74,7 @@ def load_profile(path: Path) -> Profile:
     # bit fields share registers with each other; they are checked here, the rest below
     plain = [i for i, f in enumerate(fields) if not f.layout.width]
     anchor = top.get("fields") or root
-    _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]),
-                  [fields[i] for i in plain], limits)
+    _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]), [fields[i] for i in plain])
     _check_shared(field_nodes, fields)
     by_name = {f.name: f for f in fields}
 
@@ -190,12 +189,11 @@ def _check_shared(nodes: list[Node], fields: list[Field]) -> None:
     for i, f in enumerate(fields):
         for r in range(f.address, f.end):
             by_register.setdefault((f.table, r), []).append(i)
-    names: dict[str, int] = {}
+    first: dict[str, Field] = {}
     for i, f in enumerate(fields):
-        if f.name in names and (f.layout.width or fields[names[f.name]].layout.width):
-            raise nodes[i].fail(
-                f"duplicate field name {f.name!r} (first at line {names[f.name]})")
-        names.setdefault(f.name, f.line)
+        seen = first.setdefault(f.name, f)
+        if seen is not f and (f.layout.width or seen.layout.width):
+            raise nodes[i].fail(f"duplicate field name {f.name!r} (first at line {seen.line})")
         if not f.layout.width:
             continue
         for j in by_register[f.table, f.address]:
@@ -520,7 +518,7 @@ def _sentinels(node: Node, layout: Layout) -> dict[int | float, Choice]:
     return out
 
 
-def _check_fields(node: Node, fields: list[Field], limits: Limits) -> None:
+def _check_fields(node: Node, fields: list[Field]) -> None:
     items = node.sequence()
     seen: dict[str, int] = {}
     for i, f in enumerate(fields):
@@ -539,17 +537,13 @@ def _check_fields(node: Node, fields: list[Field], limits: Limits) -> None:
         open_ = [j for j in open_ if fields[j].table is f.table and fields[j].end > f.address]
         for j in open_:
             g = fields[j]
-            bytes_ok = f.layout.type in (DataType.U8, DataType.I8) and \
-                g.layout.type in (DataType.U8, DataType.I8) and f.layout.byte != g.layout.byte \
-                and f.words == g.words == 1
-            if not bytes_ok:
+            if not f.can_share(g):  # two u8 halves may (bit fields are checked apart)
                 i, first = (k, g) if j < k else (j, f)  # reported at the later one in the file
                 later = fields[i]
                 raise items[i].mapping()["address"].fail(
                     f"{later.name} overlaps {first.name} (line {first.line}) in the "
                     f"{later.table.value} table")
         open_.append(k)
-    _ = limits
 
 
 def _check(node: Node, by_name: Mapping[str, Field]) -> Check:
