@@ -383,6 +383,8 @@ def one_line(proc: subprocess.CompletedProcess[str]) -> str:
      "'--baudrate' / '-b': 0 is not in the range"),
     (["poll", "-p", "/dev/null", "--interval", "nan", "huiwen-aq@3"], "not a number of seconds"),
     (["poll", "-p", "/dev/null", "--timeout", "nan", "huiwen-aq@3"], "not a number of seconds"),
+    (["read", "-p", "/dev/null", "--timeout", "nan", "huiwen-aq@3", "co2"],
+     "not a number of seconds"),
     (["simulate", "--tick", "nan"], "not a number of seconds"),
     (["simulate", "--turnaround", "nan"], "not a number of seconds"),
     (["simulate", "--tcp", "127.0.0.1:99999"], "PORT 0..65535"),

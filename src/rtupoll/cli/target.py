@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import click
 
+from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_one
 from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import DeviceTimeout, RefusedError, UsageError
@@ -94,7 +95,7 @@ def timing_options(f: F) -> F:
                      envvar="RTUPOLL_RETRIES",
                      help="Retries per request (default: the profile's). Also "
                           "$RTUPOLL_RETRIES.")(f)
-    f = click.option("--timeout", type=click.FloatRange(0.01, 30), default=None,
+    f = click.option("--timeout", type=Seconds(0.01, 30), default=None,
                      metavar="SECONDS", envvar="RTUPOLL_TIMEOUT",
                      help="Response timeout (default: the profile's). Also "
                           "$RTUPOLL_TIMEOUT.")(f)
