@@ -57,7 +57,7 @@ def gateway(line: ScriptedLine, **serve: object) -> Gateway:
     site = Site((BusConfig("b", "/dev/null", 9600),))
     bp = Scheduler(site, open_bus=lambda _c: line).buses[0]
     return Gateway(ServeConfig("127.0.0.1", 0, **serve),  # type: ignore[arg-type]
-                   bp, line, Turns())
+                   bp, Turns())
 
 
 READ = bytes.fromhex("03 00 10 00 02")
@@ -106,7 +106,7 @@ def test_an_unpolled_unit_that_stopped_answering_is_held_off_in_virtual_time() -
     line = ScriptedLine([DeviceTimeout("x")] * 4 + [bytes.fromhex("03 04 00 01 00 02")])
     site = Site((BusConfig("b", "/dev/null", 9600),))
     bp = Scheduler(site, open_bus=lambda _c: line).buses[0]
-    gw = Gateway(ServeConfig("127.0.0.1", 0), bp, line, Turns(), clock=lambda: now[0])
+    gw = Gateway(ServeConfig("127.0.0.1", 0), bp, Turns(), clock=lambda: now[0])
     st = ClientStats("c")
 
     def ask(at: float) -> bytes | None:

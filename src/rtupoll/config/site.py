@@ -22,7 +22,7 @@ from typing import TypeVar
 from rtupoll.config.library import load_one
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
-from rtupoll.gateway.settings import ServeConfig
+from rtupoll.gateway.settings import ServeConfig, host_port
 from rtupoll.gateway.settings import from_node as serve_from_node
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
@@ -163,8 +163,7 @@ def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
 def _listen(node: Node) -> str:
     """``metrics: HOST:PORT`` (``:PORT``: every interface)."""
     text = node.text().strip()
-    _host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or int(port) > 65535:
+    if host_port(text, default_host="0.0.0.0", port_zero=True) is None:  # as --metrics
         raise node.fail(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
     return text
 

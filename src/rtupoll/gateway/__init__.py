@@ -7,7 +7,6 @@
 - ``access``: who may ask what (networks, read-only, broadcasts, address/baud registers);
 - ``turns``: fair turns on the line between the poller and the clients;
 - ``cache``: answers reads from what the poller read lately (``--serve-cache``);
-- ``line``: what the gateway needs of the bus (``Bus.transact``);
 - ``clients``: per-client statistics;
 - ``server``: the asyncio listener and the request worker for one bus;
 - ``service``: the ``rtupoll.jobs.services.Service`` that ``rtupoll poll`` runs;

@@ -29,7 +29,7 @@ class ReadCache:
             ) -> tuple[int, ...] | None:
         """All ``count`` values, each read within ``max_age`` of ``now``; else None."""
         regs = self._data.get((unit, table))
-        if regs is None or self.max_age <= 0:
+        if regs is None:
             return None
         out = []
         for a in range(address, address + count):

@@ -6,7 +6,9 @@ from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 import click
+from click.core import ParameterSource
 
+from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
 from rtupoll.gateway.settings import DEFAULT_QUEUE, DEFAULT_TIMEOUT, ServeConfig, serve_config
 
@@ -23,7 +25,7 @@ def serve_options(f: F) -> F:
                      help="--serve: client networks allowed (repeatable; default: any)."),
         click.option("--serve-read-only", "serve_read_only", is_flag=True,
                      help="--serve: refuse every write (exception 01)."),
-        click.option("--serve-cache", "serve_cache", type=click.FloatRange(0, 3600),
+        click.option("--serve-cache", "serve_cache", type=Seconds(0, 3600),
                      default=0.0, metavar="SECONDS",
                      help="--serve: answer reads from data polled at most this long ago."),
         click.option("--serve-broadcast", "serve_broadcast", is_flag=True,
@@ -35,7 +37,7 @@ def serve_options(f: F) -> F:
         click.option("--serve-queue", "serve_queue", type=click.IntRange(1, 1000),
                      default=DEFAULT_QUEUE, show_default=True,
                      help="--serve: requests that may wait for the line; more get 0x0A."),
-        click.option("--serve-timeout", "serve_timeout", type=click.FloatRange(0.01, 30),
+        click.option("--serve-timeout", "serve_timeout", type=Seconds(0.01, 30),
                      default=DEFAULT_TIMEOUT, show_default=True,
                      help="--serve: response timeout for units rtupoll does not poll."),
     )):
@@ -47,10 +49,8 @@ def from_options(opts: Mapping[str, Any]) -> ServeConfig | None:
     """The ``ServeConfig`` of ``--serve``; None without it (other --serve-* then refused)."""
     listen = opts.get("serve")
     if listen is None:
-        given = [k for k, v in opts.items() if k != "serve" and v not in (None, (), False)
-                 and not (k == "serve_cache" and v == 0)
-                 and not (k == "serve_queue" and v == DEFAULT_QUEUE)
-                 and not (k == "serve_timeout" and v == DEFAULT_TIMEOUT)]
+        source = click.get_current_context().get_parameter_source
+        given = [k for k in opts if k != "serve" and source(k) is not ParameterSource.DEFAULT]
         if given:
             raise UsageError(f"--{given[0].replace('_', '-')} is an option of --serve")
         return None

@@ -29,7 +29,6 @@ from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access
 from rtupoll.gateway.cache import ReadCache
 from rtupoll.gateway.clients import ClientStats
-from rtupoll.gateway.line import Line
 from rtupoll.gateway.pdu import (
     ILLEGAL_FUNCTION,
     PATH_UNAVAILABLE,
@@ -81,15 +80,15 @@ class SilentUnits:
 
 
 class Gateway:
-    """Serves ``config`` for the bus ``poller`` polls, through ``line``."""
+    """Serves ``config`` for the bus ``poller`` polls, through the poller's transport."""
 
-    def __init__(self, config: ServeConfig, poller: BusPoller, line: Line, turns: Turns, *,
+    def __init__(self, config: ServeConfig, poller: BusPoller, turns: Turns, *,
                  log: Log | None = None, info: Log | None = None,
                  clock: Clock = time.monotonic) -> None:
-        self.config, self.poller, self.line, self.turns = config, poller, line, turns
+        self.config, self.poller, self.turns = config, poller, turns
         self._devices: object = None
-        self.units: dict[int, DevicePoller] = {}
-        self.access = Access(config, {})
+        self.units: dict[int, DevicePoller]
+        self.access: Access
         self._learn_devices()
         self.cache = ReadCache(config.cache) if config.cache > 0 else None
         self.silent = SilentUnits()  # units not polled that stopped answering
@@ -293,7 +292,8 @@ class Gateway:
                 stats.waits.append(start - queued)
             failed = False
             try:
-                reply = await self.line.transact(unit, ask.pdu, timeout=timeout, retries=0)
+                reply = await self.poller.transport.transact(unit, ask.pdu, timeout=timeout,
+                                                             retries=0)
                 self.silent.answered(unit)
                 if reply[:1] == bytes((ask.function | 0x80,)):
                     stats.exceptions += 1

@@ -43,7 +43,7 @@ class GatewayService:
             if cfg is None:
                 continue
             turns = Turns()
-            gw = Gateway(cfg, bp, bp.transport, turns, log=self._log, info=self._info)
+            gw = Gateway(cfg, bp, turns, log=self._log, info=self._info)
             await gw.start()
             bp.turn = turns.turn
             self.gateways.append(gw)

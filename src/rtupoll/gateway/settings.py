@@ -45,6 +45,19 @@ class ServeConfig:
         return f"{'rtu+tcp' if self.framing == 'rtu' else 'tcp'}://{host}:{self.port}"
 
 
+def host_port(text: str, *, default_host: str, port_zero: bool, bare_port: bool = False
+              ) -> tuple[str, int] | None:
+    """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (``default_host``), and with ``bare_port``
+    ``PORT`` alone -> (host, port); None when ``text`` is none of them or the port is out
+    of range (0 only with ``port_zero``). Shared with ``--metrics`` (and the site file's
+    ``metrics:``), which give their own messages."""
+    host, sep, number = text.rpartition(":")
+    if not (sep or bare_port) or not number.isdigit() or \
+            not (0 if port_zero else 1) <= int(number) <= 65535:
+        return None
+    return host.strip("[]") or default_host, int(number)
+
+
 def parse_listen(text: str) -> tuple[str, str, int]:
     """``[SCHEME://][HOST:]PORT`` -> (framing, host, port); the host defaults to loopback.
 
@@ -57,11 +70,10 @@ def parse_listen(text: str) -> tuple[str, str, int]:
         if scheme.lower() not in SCHEMES:
             raise UsageError(f"{text!r}: the scheme is tcp:// (Modbus TCP) or rtu+tcp://")
         framing = SCHEMES[scheme.lower()]
-    host, _, number = rest.rstrip("/").rpartition(":")
-    host = host.strip("[]") or LOOPBACK
-    if not number.isdigit() or not 0 < int(number) < 65536:
+    got = host_port(rest.rstrip("/"), default_host=LOOPBACK, port_zero=False, bare_port=True)
+    if got is None:
         raise UsageError(f"{text!r}: expected [HOST:]PORT, e.g. 127.0.0.1:5020")
-    return framing, host, int(number)
+    return framing, *got
 
 
 def parse_networks(texts: Sequence[str]) -> tuple[Network, ...]:
@@ -78,12 +90,8 @@ def parse_networks(texts: Sequence[str]) -> tuple[Network, ...]:
 def serve_config(listen: str, *, allow: Sequence[str] = (), read_only: bool = False,
                  cache: float = 0.0, broadcast: bool = False, setup_writes: Sequence[int] = (),
                  queue: int = DEFAULT_QUEUE, timeout: float = DEFAULT_TIMEOUT) -> ServeConfig:
+    """The numbers come checked: by click's ranges (``gateway.options``) or ``from_node``."""
     framing, host, port = parse_listen(listen)
-    if cache < 0 or queue < 1 or not 0.01 <= timeout <= 30:
-        raise UsageError("serve: cache must be >= 0 s, queue >= 1, timeout 0.01..30 s")
-    for unit in setup_writes:
-        if not 1 <= unit <= 255:
-            raise UsageError(f"serve: unit {unit} is outside 1..255")
     return ServeConfig(host, port, framing, parse_networks(allow), read_only, cache, broadcast,
                        frozenset(setup_writes), queue, timeout)
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.errors import UsageError
+from rtupoll.gateway.settings import host_port
 from rtupoll.jobs.stats import State
 
 if TYPE_CHECKING:
@@ -79,11 +80,10 @@ RESERVED = frozenset({
 
 def parse_listen(text: str) -> tuple[str, int]:
     """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (every interface) -> (host, port)."""
-    host, sep, port = text.strip().rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+    got = host_port(text.strip(), default_host="0.0.0.0", port_zero=True)
+    if got is None:
         raise UsageError(f"metrics address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
-    host = host.strip("[]") or "0.0.0.0"
-    return host, int(port)
+    return got
 
 
 # ---------------------------------------------------------------------------

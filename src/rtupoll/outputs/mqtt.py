@@ -153,6 +153,7 @@ class MqttService:
         self.site = site
         self.once = once  # poll --once: publish one scan; take no commands
         self.topics = device_topics(site)
+        self._by_topic = {t: name for name, t in self.topics.items()}  # commands' device
         self.outbox = Outbox()
         self.published = 0  # messages the broker took
         self._base = settings.base
@@ -398,7 +399,6 @@ class MqttService:
         s, base = self.settings, self._base
         status = f"{s.discovery_prefix}/status"
         configs = f"{s.discovery_prefix}/device/"
-        by_topic = {t: name for name, t in self.topics.items()}
         async for message in client.messages:
             topic = message.topic.value
             payload = message.payload if isinstance(message.payload, bytes) else \
@@ -412,12 +412,9 @@ class MqttService:
                 self._check_config(topic, payload)
             elif topic.startswith(f"{base}/"):
                 t, _, verb = topic[len(base) + 1:].rpartition("/")
-                by_topic.update({t2: n for n, t2 in self.topics.items()})
-                name = by_topic.get(t)
+                name = self._by_topic.get(t)
                 if name is not None and verb in ("set", "get"):
-                    task = asyncio.create_task(
-                        self._set(name, t, payload) if verb == "set" else
-                        self._get(name, t, payload))
+                    task = asyncio.create_task(self._command(verb, name, t, payload))
                     self._commands.add(task)
                     task.add_done_callback(self._commands.discard)
 
@@ -459,6 +456,7 @@ class MqttService:
                 self._avail.pop(t, None)
                 self._state.pop(t, None)
         self.topics = topics
+        self._by_topic = {t: name for name, t in topics.items()}
         if self.settings.discovery:
             self._queue_discovery()
 
@@ -518,46 +516,48 @@ class MqttService:
                     return bp, d
         return None
 
-    async def _set(self, name: str, t: str, payload: bytes) -> None:
+    async def _command(self, verb: str, name: str, t: str, payload: bytes) -> None:
+        """``BASE/DEVICE/set`` or ``.../get``: run it, publish its result on ``.../result``."""
         found = self._find(name)
         if found is None:
             return
         bp, dev = found
-        cfg = dev.config
-        done: dict[str, Any] = {}
+        done: dict[str, Any] = {}  # what a set wrote and read back before a failure
         try:
-            ops = cmd.plan_set(cfg, payload, writes_on=self.settings.allow_writes,
-                               allow=self.settings.options(name).allow)
-            await bp.submit(lambda transport: cmd.apply_set(transport, cfg, ops, done))
-            result = cmd.ok(done)
-            self._forced.add(t)
-            bp.poll_now(dev)
-        except RtupollError as exc:
-            result = cmd.failed(exc, done)
-        self._log(logging.INFO, "mqtt: %s: set %s: %s", name,
-                  payload.decode("utf-8", "replace")[:200], result.get("error") or "ok",
-                  device=name)
-        self.outbox.put(f"{self._base}/{t}/set/result", to_json(result), retain=False,
-                        qos=self.settings.qos)
-
-    async def _get(self, name: str, t: str, payload: bytes) -> None:
-        found = self._find(name)
-        if found is None:
-            return
-        bp, dev = found
-        cfg = dev.config
-        try:
-            fields = cmd.plan_get(cfg, payload)
-            if fields is None:
-                self._forced.add(t)
-                bp.poll_now(dev)
+            values = await (self._set(bp, dev, t, payload, done) if verb == "set" else
+                            self._get(bp, dev, t, payload))
+            if values is None:  # a get of everything: the next state answers it
                 return
-            values = await bp.submit(lambda transport: cmd.apply_get(transport, cfg, fields))
             result = cmd.ok(values)
         except RtupollError as exc:
-            result = cmd.failed(exc)
-        self.outbox.put(f"{self._base}/{t}/get/result", to_json(result), retain=False,
+            result = cmd.failed(exc, done)
+        if verb == "set":
+            self._log(logging.INFO, "mqtt: %s: set %s: %s", name,
+                      payload.decode("utf-8", "replace")[:200], result.get("error") or "ok",
+                      device=name)
+        self.outbox.put(f"{self._base}/{t}/{verb}/result", to_json(result), retain=False,
                         qos=self.settings.qos)
+
+    async def _set(self, bp: BusPoller, dev: DevicePoller, t: str, payload: bytes,
+                   done: dict[str, Any]) -> dict[str, Any]:
+        cfg = dev.config
+        ops = cmd.plan_set(cfg, payload, writes_on=self.settings.allow_writes,
+                           allow=self.settings.options(cfg.name).allow)
+        await bp.submit(lambda transport: cmd.apply_set(transport, cfg, ops, done))
+        self._forced.add(t)
+        bp.poll_now(dev)
+        return done
+
+    async def _get(self, bp: BusPoller, dev: DevicePoller, t: str, payload: bytes
+                   ) -> dict[str, Any] | None:
+        """The fields asked for, read now; None for all of them (the next state)."""
+        cfg = dev.config
+        fields = cmd.plan_get(cfg, payload)
+        if fields is None:
+            self._forced.add(t)
+            bp.poll_now(dev)
+            return None
+        return await bp.submit(lambda transport: cmd.apply_get(transport, cfg, fields))
 
 
 def plain(value: Any) -> str:

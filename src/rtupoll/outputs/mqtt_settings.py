@@ -205,8 +205,7 @@ def _device_options(m: Mapping[str, Node], base: DeviceOptions, devices: Mapping
             raise m["max_silence"].fail(f"{silence:g} s is outside 1..86400 s")
     allow: tuple[str, ...] = ()
     if "allow" in m:
-        if name is None:  # pragma: no cover - the top level has no 'allow' key
-            raise m["allow"].fail("allow is set per device")
+        assert name is not None  # the top level's keys (_KEYS) have no 'allow'
         profile = devices[name].profile
         names = []
         for n in m["allow"].sequence():
