@@ -17,7 +17,8 @@ import pytest
 from rtupoll.config.site import BusConfig, DeviceConfig, from_specs
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
-from rtupoll.jobs.stats import BusLoad, Reading, State, percentile
+from rtupoll.jobs.stats import BusLoad, Reading, State
+from rtupoll.jobs.timeouts import quantile
 from rtupoll.rtu import Table
 
 OK_COST, TIMEOUT_COST = 0.02, 0.5
@@ -268,9 +269,9 @@ def test_due_devices_take_turns_and_slow_ones_wait_for_their_interval() -> None:
 
 
 def test_latency_percentiles_and_bus_utilisation() -> None:
-    assert percentile([], 50) is None
-    assert percentile([0.01 * i for i in range(1, 101)], 50) == pytest.approx(0.50)
-    assert percentile([0.01 * i for i in range(1, 101)], 95) == pytest.approx(0.95)
+    assert quantile([], 50) is None
+    assert quantile([0.01 * i for i in range(1, 101)], 50) == pytest.approx(0.50)
+    assert quantile([0.01 * i for i in range(1, 101)], 95) == pytest.approx(0.95)
     load = BusLoad(started=0.0)
     for i in range(10):
         load.add(end=i + 1.0, duration=0.25)

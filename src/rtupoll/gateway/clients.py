@@ -6,7 +6,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from rtupoll.jobs.stats import percentile
+from rtupoll.jobs.timeouts import quantile
 
 WAIT_WINDOW = 1000  # queue waits kept for the percentiles
 
@@ -26,10 +26,10 @@ class ClientStats:
     logged: set[str] = field(default_factory=set)  # refusal reasons already logged
 
     def wait_p50(self) -> float | None:
-        return percentile(self.waits, 50)
+        return quantile(self.waits, 50)
 
     def wait_p95(self) -> float | None:
-        return percentile(self.waits, 95)
+        return quantile(self.waits, 95)
 
     def summary(self) -> str:
         """The counters in one line, for the log."""

@@ -291,10 +291,10 @@ class Bus(LineEvidence):
             raise UsageError(f"timeout {timeout} s / retries {retries} make no sense")
         frames = len(request) + (answer_length(request) or 0)
         while True:
-            if self.line.hazard_until(request, time.monotonic()) > time.monotonic():
-                await self._hazard_clear(request)
+            await self._hazard_clear(request)  # returns at once when there is none
             await self._lock.acquire()
-            if self.line.hazard_until(request, time.monotonic()) <= time.monotonic():
+            now = time.monotonic()
+            if self.line.hazard_until(request, now) <= now:
                 break
             self._lock.release()  # another task's request made one: wait again
         started = time.monotonic()

@@ -114,14 +114,15 @@ class VirtualBus(LineEvidence):
         async with self._lock:
             await self._until(lambda: self.line.hazard_until(request, self._clock()))
             failure: Exception = DeviceTimeout(f"no reply from unit {unit}")
+            sending = self.framing.wire_time(len(request))
+            wire = sending + self.framing.wire_time(answer_length(request) or 0)
             for attempt in range(retries + 1):
                 await self._until(self.line.ready_at if attempt == 0 else self._no_drain)
                 now = self._clock()
                 self.line.send(request, now)
                 self.sent.append(request)
-                wire = self.framing.wire_time(len(request) + (answer_length(request) or 0))
                 for tx in self.engine.handle(request, now):
-                    at = now + self.framing.wire_time(len(request)) + tx.turnaround + \
+                    at = now + sending + tx.turnaround + \
                         tx.delay + self.framing.wire_time(len(tx.data))
                     self._seq += 1
                     heapq.heappush(self._pending, (at, self._seq, tx.data))
@@ -153,15 +154,16 @@ class VirtualBus(LineEvidence):
     async def _until(self, ready: Callable[[], float]) -> None:
         """Let time pass until ``ready()``, delivering replies that arrive meanwhile
         (and those already due: they reached the line before anything is sent)."""
-        while self._pending and self._pending[0][0] <= self._clock():
-            when, _, data = heapq.heappop(self._pending)
-            self.line.receive(data, when)
+        self._deliver_due()
         while (at := ready()) > self._clock():
             nxt = self._pending[0][0] if self._pending else at
             await self._advance(min(at, nxt))
-            while self._pending and self._pending[0][0] <= self._clock():
-                when, _, data = heapq.heappop(self._pending)
-                self.line.receive(data, when)
+            self._deliver_due()
+
+    def _deliver_due(self) -> None:
+        while self._pending and self._pending[0][0] <= self._clock():
+            when, _, data = heapq.heappop(self._pending)
+            self.line.receive(data, when)
 
     async def _advance(self, to: float) -> None:
         delay = to - self._clock()

@@ -28,7 +28,7 @@ import json
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 from rtupoll.errors import ConfigError, DeviceException
 from rtupoll.model.interpret import FieldValue
@@ -36,13 +36,11 @@ from rtupoll.model.planner import Block, decode_block
 from rtupoll.model.profile import Field
 from rtupoll.rtu import Table
 
+if TYPE_CHECKING:
+    from rtupoll.io.interface import BusLike
+
 Register = tuple[Table, int]
 STORE_VERSION = 1
-
-
-class Reader(Protocol):
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]: ...
 
 
 def gaps(block: Block) -> list[range]:
@@ -103,19 +101,16 @@ class Bisection:
 
     values: list[FieldValue]
     holes: frozenset[Register]
-    reads: int  # requests it took
 
 
-async def bisect(bus: Reader, unit: int, block: Block, *, timeout: float,
+async def bisect(bus: BusLike, unit: int, block: Block, *, timeout: float,
                  retries: int) -> Bisection | None:
     """``block`` got exception 02: find the registers in its gaps the device refuses.
 
     None when a field's own registers are refused too (then it is no hole in a gap,
     and the exception stands). Timeouts and garbled replies propagate."""
-    reads = 0
     values: list[FieldValue] = []
     for piece in pieces(block):
-        reads += 1
         try:
             words = await bus.read(unit, piece.table, piece.address, piece.count,
                                    timeout=timeout, retries=retries)
@@ -124,29 +119,26 @@ async def bisect(bus: Reader, unit: int, block: Block, *, timeout: float,
         values += decode_block(piece, words)
     holes: set[int] = set()
     for gap in gaps(block):
-        found, n = await _halve(bus, unit, block.table, gap, timeout=timeout, retries=retries)
-        reads += n
-        holes |= found
+        holes |= await _halve(bus, unit, block.table, gap, timeout=timeout, retries=retries)
     if not holes:  # each gap reads by itself: what it refused was bridging them at all
         holes = {r for g in gaps(block) for r in g}
-    return Bisection(values, frozenset((block.table, r) for r in holes), reads)
+    return Bisection(values, frozenset((block.table, r) for r in holes))
 
 
-async def _halve(bus: Reader, unit: int, table: Table, span: range, *, timeout: float,
-                 retries: int) -> tuple[set[int], int]:
-    """The registers of ``span`` the device refuses, by halving; and the reads it took."""
+async def _halve(bus: BusLike, unit: int, table: Table, span: range, *, timeout: float,
+                 retries: int) -> set[int]:
+    """The registers of ``span`` the device refuses, by halving."""
     try:
         await bus.read(unit, table, span.start, len(span), timeout=timeout, retries=retries)
-        return set(), 1
+        return set()
     except DeviceException:
         if len(span) == 1:
-            return {span.start}, 1
+            return {span.start}
     mid = span.start + len(span) // 2
-    lo, n1 = await _halve(bus, unit, table, range(span.start, mid), timeout=timeout,
-                          retries=retries)
-    hi, n2 = await _halve(bus, unit, table, range(mid, span.stop), timeout=timeout,
-                          retries=retries)
-    return lo | hi, 1 + n1 + n2
+    lo = await _halve(bus, unit, table, range(span.start, mid), timeout=timeout,
+                      retries=retries)
+    return lo | await _halve(bus, unit, table, range(mid, span.stop), timeout=timeout,
+                             retries=retries)
 
 
 @dataclass(frozen=True)
@@ -174,7 +166,7 @@ class Mismatch:
         return frozenset((self.block.table, r) for g in chosen for r in g)
 
 
-async def verify_block(bus: Reader, unit: int, block: Block, *, timeout: float,
+async def verify_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
                        retries: int, tries: int = 3) -> Mismatch | None:
     """Read ``block``, each field alone, and ``block`` again; a field whose registers
     agree between the two block reads but not with its own read is a mismatch. A value

@@ -19,7 +19,7 @@ to what it costs instead of setting everyone's pace. A port that goes away pause
 its bus briefly without blaming any device; the bus reopens it.
 
 Statistics per device (requests, ok, timeouts, garbled, exceptions by code, latency
-percentiles, last good values, state) live in ``pollstats``; rendering elsewhere.
+percentiles, last good values, state) live in ``jobs.stats``; rendering elsewhere.
 """
 
 from __future__ import annotations
@@ -215,7 +215,6 @@ class DevicePoller:
         self.absent = tuple(f for f in cfg.fields if f.since > variant)
         assert cfg.profile.variant is not None
         self.absent_why = f"not in {cfg.profile.variant.name} {variant}"
-        self.resume = 0
         return ""
 
     def replan(self) -> None:

@@ -9,15 +9,15 @@ each field is kept separately, with its time, for the display.
 from __future__ import annotations
 
 import enum
-import math
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import lru_cache
 from typing import Any
 
 from rtupoll.config.site import DeviceConfig
+from rtupoll.jobs.timeouts import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
 from rtupoll.ui.records import failed_record, record
@@ -85,15 +85,6 @@ def iso_time(t: float) -> str:
     return stamp.replace("+00:00", "Z")
 
 
-def percentile(values: Iterable[float], q: float) -> float | None:
-    """Nearest-rank percentile (q in 0..100); None without data."""
-    data = sorted(values)
-    if not data:
-        return None
-    rank = max(1, math.ceil(q / 100 * len(data)))
-    return data[rank - 1]
-
-
 @dataclass
 class DeviceStats:
     """Health of one device since polling started."""
@@ -129,10 +120,10 @@ class DeviceStats:
         return sum(self.exceptions.values())
 
     def p50(self) -> float | None:
-        return percentile(self.latencies, 50)
+        return quantile(self.latencies, 50)
 
     def p95(self) -> float | None:
-        return percentile(self.latencies, 95)
+        return quantile(self.latencies, 95)
 
 
 class BusLoad:

@@ -102,10 +102,8 @@ class Garbled:
 
 @dataclass
 class Attempt:
-    """The request in flight and what has arrived for it."""
+    """The request in flight (its outstanding entry) and what has arrived for it."""
 
-    request: bytes
-    expect: Expect
     entry: Outstanding
     rx: bytearray = field(default_factory=bytearray)  # every byte received during it
 
@@ -178,7 +176,7 @@ class Line:
             return
         entry = Outstanding(request, exp, now, now + self._settle(exp.unit))
         self._outstanding.setdefault(exp.unit, deque()).append(entry)
-        self.attempt = Attempt(request, exp, entry)
+        self.attempt = Attempt(entry)
 
     def after_broadcast(self, turnaround: float) -> None:
         """Give the devices time to act on a broadcast before the next request."""
@@ -263,18 +261,17 @@ class Line:
         self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))
         took = self.reply_time[unit] = max(
             0.0, began - oldest - self.framing.wire_time(len(first.request)))
-        if att is not None and all(e.request == att.request for e in fits):
-            if first is not att.entry:  # in order, it is an earlier attempt's late answer
-                self.counts.late[unit] += 1
-                self.late_reply_time[unit] = took
-            return True
-        self.counts.late[unit] += 1
-        self.late_reply_time[unit] = took
-        return False
+        in_flight = att.entry if att is not None else None
+        answers = in_flight is not None and all(e.request == in_flight.request for e in fits)
+        # late: another request's reply, or (in order) an earlier attempt's of this one
+        if not answers or first is not in_flight:
+            self.counts.late[unit] += 1
+            self.late_reply_time[unit] = took
+        return answers
 
     def _garbled(self, att: Attempt) -> str | None:
         """A complete frame from the unit with the request's function and a bad CRC."""
-        exp, buf = att.expect, bytes(self._buf)
+        exp, buf = att.entry.expect, bytes(self._buf)
         for head in (bytes((exp.unit, exp.function)), bytes((exp.unit, exp.function | 0x80))):
             i = buf.find(head)
             if i >= 0:
@@ -295,11 +292,11 @@ class Line:
         self.drain_for = self._drain if self._drain is not None else timeout
         if att is None:
             return None
-        unit = att.expect.unit
+        unit = att.entry.expect.unit
         late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
                    SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
-        return diagnose(bytes(att.rx), att.expect)
+        return diagnose(bytes(att.rx), att.entry.expect)
 
     def hazard_until(self, request: bytes, now: float) -> float:
         """Until when ``request`` must not be sent: while an earlier, different request

@@ -33,7 +33,6 @@ class Expect:
     function: int
     prefix: bytes  # a normal reply starts with these: unit, function, byte count / echo
     length: int  # of a normal reply, CRC included
-    request: int  # length of the request itself
 
 
 def expect_for(request: bytes) -> Expect | None:
@@ -43,8 +42,8 @@ def expect_for(request: bytes) -> Expect | None:
         return None
     length = answer_length(request) or EXCEPTION_LENGTH
     if fn in READ_FUNCTIONS:
-        return Expect(unit, fn, bytes((unit, fn, length - 5)), length, len(request))
-    return Expect(unit, fn, request[:6], length, len(request))  # 5/6/15/16 echo address and value
+        return Expect(unit, fn, bytes((unit, fn, length - 5)), length)
+    return Expect(unit, fn, request[:6], length)  # 5/6/15/16 echo address and value
 
 
 def find_reply(buf: bytes, exp: Expect) -> bytes | None:

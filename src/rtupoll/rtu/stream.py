@@ -47,8 +47,6 @@ from rtupoll.rtu.timing import Framing
 HOLD = 0.1  # seconds an incomplete frame waits for its rest before it is called broken
 TIMEOUT = 1.0  # seconds after which an unanswered request counts as timed out
 
-STATUSES = ("ok", "exception", "timeout", "garbled", "broadcast", "orphan", "noise", "broken")
-
 
 @dataclass(frozen=True)
 class WireFrame:
@@ -111,7 +109,7 @@ class Stream:
 
     def __init__(self, framing: Framing, *, timeout: float = TIMEOUT, hold: float = HOLD
                  ) -> None:
-        self.framing, self.timeout = framing, timeout
+        self.timeout = timeout
         self.hold = max(hold, 2 * framing.silence)
         self.char = framing.char_time
         self.gap = framing.silence * 0.9  # a little slack for the time estimates
