@@ -7,8 +7,9 @@ from rtupoll.rtu import Framing, exception_response, read_request, read_response
 from rtupoll.rtu.functions import Table, write_single_request
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.sim.scenario import profile
+from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
-from rtupoll.sniff.render import frame_line, render
+from rtupoll.sniff.render import render
 from rtupoll.ui.records import POLL_KEYS
 
 F = Framing(9600)

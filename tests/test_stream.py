@@ -65,6 +65,18 @@ def test_byte_by_byte_arrival_gives_the_same_transactions() -> None:
     assert [t.status for t in out] == ["ok"]
 
 
+def test_a_request_whose_first_bytes_make_a_valid_reply_is_still_a_request() -> None:
+    """Unit 0x51, read 10 holding registers at 0x02B8: its first seven bytes happen to
+    be a CRC-valid reply (byte count 2). Arriving byte by byte, it must not be cut there
+    (found by the chunking property below)."""
+    req = read_request(0x51, Table.HOLDING, 0x02B8, 10)
+    assert req == bytes.fromhex("51 03 02 b8 00 0a 48 00")
+    wire = req + read_response(0x51, 3, [0] * 10)
+    out = run([(wire[i : i + 1], (i + 1) * CHAR) for i in range(len(wire))])
+    assert [t.status for t in out] == ["ok"]
+    assert out[0].request is not None and out[0].request.data == req
+
+
 def test_a_stray_byte_before_the_reply_is_noise_and_the_reply_still_counts() -> None:
     out = run([on_wire(REQ, 0.0), on_wire(b"\x00" + REPLY, 0.03)])
     assert [t.status for t in out] == ["noise", "ok"]

@@ -7,8 +7,6 @@ the per-device view) and prints transactions, records or the live table.
 
 from __future__ import annotations
 
-import contextlib
-import os
 import signal
 import sys
 import time
@@ -26,8 +24,8 @@ from rtupoll.errors import UsageError
 from rtupoll.rtu.stream import TIMEOUT, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sniff.capfile import Capture, CaptureWriter, describe_framing, read_capture
+from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
-from rtupoll.sniff.render import frame_line, render
 from rtupoll.sniff.session import Session, Sink
 from rtupoll.ui.records import to_json
 
@@ -119,10 +117,11 @@ def sniff(devices: tuple[DeviceSpec, ...], port: str | None, config: Path | None
             session.close()
             out.flush()
         except BrokenPipeError:  # `rtupoll sniff --read ... | head`: the reader is done
-            _stdout_gone()
-            return
+            return  # (cli's guard has pointed fd 1 at /dev/null; click would exit 1)
         if fmt == "table":
             from rich.console import Console
+
+            from rtupoll.sniff.render import render
 
             Console().print(render(view, view.last, title))
         return
@@ -163,7 +162,7 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
         session.close()
         sys.stdout.flush()
     except BrokenPipeError:  # `rtupoll sniff ... | head`: the reader is done
-        _stdout_gone()
+        pass  # (cli's guard has pointed fd 1 at /dev/null; click would exit 1)
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -172,16 +171,12 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
         tap.close()
 
 
-def _stdout_gone() -> None:
-    """Whoever read our output has gone: stop writing there, quietly."""
-    with contextlib.suppress(OSError):
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-
-
 def _live(chunks: Iterator[tuple[bytes, float]], session: Session, view: BusView,
           title: str) -> None:
     from rich.console import Console
     from rich.live import Live
+
+    from rtupoll.sniff.render import render
 
     painted = 0.0
     with Live(render(view, time.time(), title), console=Console(), auto_refresh=False) as live:

@@ -18,7 +18,8 @@ import struct
 from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
-from rtupoll.gateway.pdu import MAX_PDU, exception_pdu, pdu_length
+from rtupoll.gateway.pdu import exception_pdu, pdu_length
+from rtupoll.rtu.functions import MAX_PDU
 
 HEADER = 7  # transaction id, protocol id, length, unit id
 

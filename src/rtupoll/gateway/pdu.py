@@ -14,14 +14,20 @@ from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
-from rtupoll.rtu.functions import FUNCTIONS, READ_FUNCTIONS, data_bytes, request_length
+from rtupoll.rtu.functions import (
+    FUNCTIONS,
+    MAX_QUANTITY,
+    READ_FUNCTIONS,
+    TABLES,
+    bits,
+    data_bytes,
+    pack_bits,
+    request_length,
+    words,
+)
 
-MAX_PDU = 253  # the Modbus limit (256-byte RTU frame minus unit and CRC)
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 0x01, 0x02, 0x03
 PATH_UNAVAILABLE, TARGET_FAILED = 0x0A, 0x0B
-_TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT,
-           5: Table.COIL, 6: Table.HOLDING, 15: Table.COIL, 16: Table.HOLDING}
-_MOST = {1: 2000, 2: 2000, 3: 125, 4: 125, 15: 1968, 16: 123}
 
 
 class BadRequest(ClientError):
@@ -77,17 +83,17 @@ def parse(pdu: bytes) -> Ask:
     if want is not None and want != len(pdu):
         raise BadRequest(ILLEGAL_VALUE, f"{FUNCTIONS[fc].name}: {len(pdu)} bytes, the "
                          f"function takes {want}")
-    if fc not in _TABLES:
+    if fc not in TABLES:
         return Ask(pdu, fc)
     address, n = struct.unpack_from(">HH", pdu, 1)
-    table = _TABLES[fc]
+    table = TABLES[fc]
     if fc in (5, 6):
         if fc == 5 and n not in (0x0000, 0xFF00):
             raise BadRequest(ILLEGAL_VALUE, f"coil value 0x{n:04X} is neither ON nor OFF")
         return Ask(pdu, fc, table, address, 1, (int(n == 0xFF00) if fc == 5 else n,))
-    if not 1 <= n <= _MOST[fc]:
+    if not 1 <= n <= MAX_QUANTITY[fc]:
         raise BadRequest(ILLEGAL_VALUE, f"{FUNCTIONS[fc].name}: quantity {n} is outside "
-                         f"1..{_MOST[fc]}")
+                         f"1..{MAX_QUANTITY[fc]}")
     if address + n > 0x10000:
         raise BadRequest(ILLEGAL_ADDRESS, f"0x{address:04X} + {n} runs past 0xFFFF")
     if fc in READ_FUNCTIONS:
@@ -95,12 +101,8 @@ def parse(pdu: bytes) -> Ask:
     size = pdu[5]
     if size != data_bytes(1 if fc == 15 else 3, n):
         raise BadRequest(ILLEGAL_VALUE, f"byte count {size} does not fit quantity {n}")
-    data = pdu[6:]
-    if fc == 16:
-        values = struct.unpack(f">{n}H", data)
-    else:
-        values = tuple((data[i // 8] >> (i % 8)) & 1 for i in range(n))
-    return Ask(pdu, fc, table, address, n, tuple(values))
+    values = words(pdu[6:]) if fc == 16 else bits(pdu[6:], n)
+    return Ask(pdu, fc, table, address, n, values)
 
 
 def read_reply(function: int, values: Sequence[int]) -> bytes:
@@ -108,11 +110,7 @@ def read_reply(function: int, values: Sequence[int]) -> bytes:
     if function in (3, 4):
         data = b"".join(struct.pack(">H", v & 0xFFFF) for v in values)
     else:
-        packed = bytearray(data_bytes(1, len(values)))
-        for i, bit in enumerate(values):
-            if bit:
-                packed[i // 8] |= 1 << (i % 8)
-        data = bytes(packed)
+        data = pack_bits(values)
     return bytes((function, len(data))) + data
 
 

@@ -9,9 +9,8 @@ with a malformed MBAP frame, the connection is closed (``MbapError``).
 from __future__ import annotations
 
 from rtupoll.gateway.mbap import Frame, MbapError
-from rtupoll.gateway.pdu import MAX_PDU
 from rtupoll.rtu import crc_ok, with_crc
-from rtupoll.rtu.functions import FUNCTIONS, request_length
+from rtupoll.rtu.functions import FUNCTIONS, MAX_PDU, request_length
 
 
 class RtuDecoder:

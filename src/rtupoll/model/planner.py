@@ -33,8 +33,8 @@ from rtupoll.errors import FrameError, RefusedError
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.rtu import Table
+from rtupoll.rtu.functions import MAX_BITS
 
-MAX_BITS = 2000  # the Modbus limit for one coil/discrete-input read
 _TABLE_ORDER = {t: i for i, t in enumerate(Table)}
 
 

@@ -26,14 +26,17 @@ from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
     FUNCTION_NAMES,
     MAX_FRAME,
+    MAX_QUANTITY,
+    READS,
     WRITE_FUNCTIONS,
+    WRITES,
     Table,
+    bits,
     exception_name,
     reply_length,
     request_length,
+    words,
 )
-
-READS = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
 
 
 @dataclass(frozen=True)
@@ -222,7 +225,7 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
         if len(raw) != 8:
             notes.append(_odd_write_reply(raw, fc))
             return replace(base, kind="response" if pending else "unknown", notes=tuple(notes),
-                           values=_words(body[1:]) if len(body) >= 1 else ())
+                           values=words(body[1:]) if len(body) >= 1 else ())
         address, value = struct.unpack(">HH", body)
         echo = pending is not None and pending.raw == raw
         if echo:
@@ -231,14 +234,14 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
             notes.append("a write request, or its echo (the reply repeats the request)")
         else:
             notes.append("not an echo of the request before it")
-        table = Table.COIL if fc == 5 else Table.HOLDING
+        table = WRITES[fc]
         vals = ((1 if value == 0xFF00 else 0),) if fc == 5 else (value,)
         if fc == 5 and value not in (0x0000, 0xFF00):
             notes.append(f"coil value {value:#06x} is neither 0xFF00 (on) nor 0x0000 (off)")
         return replace(base, kind="response" if pending else "request", table=table, start=address,
                        count=1, values=vals, notes=tuple(notes))
     if fc in (15, 16):
-        table = Table.COIL if fc == 15 else Table.HOLDING
+        table = WRITES[fc]
         address, qty = struct.unpack(">HH", body[:4]) if len(body) >= 4 else (None, None)
         if len(raw) == 8:
             return replace(base, kind="response", table=table, start=address, count=qty,
@@ -246,7 +249,7 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
         data = body[5:]
         if len(body) >= 5 and body[4] != len(data):
             notes.append(f"byte count says {body[4]}, {len(data)} data bytes follow")
-        data_values = _bits(data, qty or 0) if fc == 15 else _words(data)
+        data_values = bits(data, qty or 0) if fc == 15 else words(data)
         return replace(base, kind="request", table=table, start=address, count=qty,
                        values=data_values,
                      notes=tuple(notes))
@@ -261,7 +264,7 @@ def _read(raw: bytes, kind: str | None, pending: Frame | None, notes: list[str],
     as_request = len(raw) == 8 and (kind == "request" or (kind is None and pending is None))
     if as_request:
         address, qty = struct.unpack(">HH", body)
-        limit = 125 if table.is_register else 2000
+        limit = MAX_QUANTITY[fc]
         if not 1 <= qty <= limit:
             notes.append(f"quantity {qty} is outside 1..{limit}")
         if not table.is_register and kind == "request" and pending is None and 5 + raw[2] == 8:
@@ -279,11 +282,11 @@ def _read(raw: bytes, kind: str | None, pending: Frame | None, notes: list[str],
     if table.is_register:
         if len(data) % 2:
             notes.append("an odd number of data bytes cannot be registers")
-        values = _words(data)
+        values = words(data)
         count: int | None = len(values)
     else:
         count = pending.count if pending is not None else None
-        values = _bits(data, count if count is not None else 8 * len(data))
+        values = bits(data, count if count is not None else 8 * len(data))
     return replace(base, kind="response", table=table, start=start, count=count, values=values,
                    notes=tuple(notes))
 
@@ -313,14 +316,6 @@ def _crc_hints(raw: bytes, expected: bytes) -> list[str]:
                              f"table?")
                 break
     return hints
-
-
-def _words(data: bytes) -> tuple[int, ...]:
-    return tuple(struct.unpack(f">{len(data) // 2}H", data[: len(data) // 2 * 2]))
-
-
-def _bits(data: bytes, count: int) -> tuple[int, ...]:
-    return tuple((data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data))))
 
 
 @dataclass(frozen=True)
@@ -359,8 +354,8 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
         if not has_data or f.end - lo > len(frame.values):
             out.append(Carried(f.name, written, f.unit))
             continue
-        words = frame.values[f.address - lo : f.end - lo]
-        fv = interpret(f, words)
+        raw = frame.values[f.address - lo : f.end - lo]
+        fv = interpret(f, raw)
         text = fv.text + (f" {f.unit}" if f.unit else "")
-        out.append(Carried(f.name, written, f.unit, words, fv.value, text, fv.severity.value))
+        out.append(Carried(f.name, written, f.unit, raw, fv.value, text, fv.severity.value))
     return out

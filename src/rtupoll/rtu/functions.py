@@ -18,7 +18,10 @@ from dataclasses import dataclass
 from rtupoll.rtu.crc import with_crc
 
 MAX_FRAME = 256  # the RTU maximum, address to CRC
+MAX_PDU = MAX_FRAME - 3  # function and data: the frame without unit and CRC
 EXCEPTION_LENGTH = 5  # unit, function | 0x80, code, CRC
+MAX_BITS = 2000  # coils or discrete inputs in one read (FC01/02)
+MAX_REGISTERS = 125  # registers in one read (FC03/04)
 
 
 class Table(str, enum.Enum):
@@ -111,6 +114,13 @@ FUNCTIONS: dict[int, Function] = {f.code: f for f in (
 FUNCTION_NAMES: dict[int, str] = {f.code: f.name for f in FUNCTIONS.values()}
 READ_FUNCTIONS = (1, 2, 3, 4)
 WRITE_FUNCTIONS = (5, 6, 15, 16)
+# the table each read, and each write, function addresses
+READS: dict[int, Table] = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
+WRITES: dict[int, Table] = {5: Table.COIL, 6: Table.HOLDING, 15: Table.COIL, 16: Table.HOLDING}
+TABLES: dict[int, Table] = {**READS, **WRITES}
+# the largest quantity one request of each function may ask for
+MAX_QUANTITY: dict[int, int] = {1: MAX_BITS, 2: MAX_BITS, 3: MAX_REGISTERS, 4: MAX_REGISTERS,
+                                15: 1968, 16: 123}
 
 
 def request_length(head: bytes) -> int | None:
@@ -182,9 +192,26 @@ def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
 WRITE_DATA_AT = {5: 4, 6: 4, 15: 7, 16: 7}
 
 
+def words(data: bytes) -> tuple[int, ...]:
+    """Big-endian 16-bit registers; an odd last byte is left out."""
+    return tuple(struct.unpack(f">{len(data) // 2}H", data[: len(data) // 2 * 2]))
+
+
+def bits(data: bytes, count: int) -> tuple[int, ...]:
+    """The first ``count`` bits (as many as ``data`` holds), least significant bit first."""
+    return tuple((data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data))))
+
+
+def pack_bits(values: Sequence[int]) -> bytes:
+    """Bits (any true value is 1) packed least significant bit first, as coils travel."""
+    packed = bytearray(data_bytes(1, len(values)))
+    for i, bit in enumerate(values):
+        if bit:
+            packed[i // 8] |= 1 << (i % 8)
+    return bytes(packed)
+
+
 def reply_values(frame: bytes, count: int) -> tuple[int, ...]:
     """The registers (FC03/04) or the first ``count`` bits (FC01/02) a read reply carries."""
     data = frame[3:-2]
-    if frame[1] in (3, 4):
-        return struct.unpack(f">{len(data) // 2}H", data[: len(data) // 2 * 2])
-    return tuple((data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data))))
+    return words(data) if frame[1] in (3, 4) else bits(data, count)

@@ -170,10 +170,16 @@ class Stream:
             out += [n for n in (request_length(head), reply_length(head)) if n is not None]
         return [n for i, n in enumerate(out) if 4 <= n <= MAX_FRAME and n not in out[:i]]
 
-    def _valid_at(self, at: int) -> int | None:
-        """Length of a complete, CRC-valid frame starting at ``buf[at]``, else None."""
+    def _valid_at(self, at: int, *, wait: bool = False) -> int | None:
+        """Length of a complete, CRC-valid frame starting at ``buf[at]``, else None.
+        ``wait``: None while a likelier length is still arriving (a request whose first
+        bytes happen to make a CRC-valid reply must not be cut there)."""
         for n in self._lengths(at):
-            if at + n <= len(self.buf) and crc_ok(bytes(self.buf[at : at + n])):
+            if at + n > len(self.buf):
+                if wait:
+                    return None
+                continue
+            if crc_ok(bytes(self.buf[at : at + n])):
                 return n
         if at == 0 and self._free_length():  # the standard leaves its length to the data
             return next((n for n in range(5, min(len(self.buf), MAX_FRAME) + 1)
@@ -192,7 +198,7 @@ class Stream:
     def _split(self, *, final: bool) -> list[Transaction]:
         out: list[Transaction] = []
         while self.buf:
-            n = self._valid_at(0)
+            n = self._valid_at(0, wait=not final)
             if n is not None:
                 out += self._frame(self._cut(n))
                 continue

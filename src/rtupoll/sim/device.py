@@ -46,11 +46,11 @@ from rtupoll.model.codec import Value, decode
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu import Table, exception_response, read_response, with_crc
+from rtupoll.rtu.functions import MAX_QUANTITY, READS, pack_bits
 from rtupoll.sim.faults import Fault, FaultSet
 from rtupoll.sim.values import Motion, Static, motion_for
 
 WRITE_REPLIES = ("echo", "short", "none")
-_READ_TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
 
 
 @dataclass(frozen=True)
@@ -214,7 +214,7 @@ class SimDevice:
         unit, fc, body = frame[0], frame[1], frame[2:-2]
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
             return self._refuse(unit, fc, 1)
-        if fc in _READ_TABLES:
+        if fc in READS:
             return self._read(unit, fc, body)
         if fc == 5:
             return self._write_coil(frame, body)
@@ -234,9 +234,10 @@ class SimDevice:
         return exception_response(unit, fc, code)
 
     def _read(self, unit: int, fc: int, body: bytes) -> bytes | None:
-        table = _READ_TABLES[fc]
+        table = READS[fc]
         address, count = struct.unpack(">HH", body)
-        limit = 2000 if fc in (1, 2) else min(125, self.profile.limits.max_registers)
+        limit = MAX_QUANTITY[fc] if fc in (1, 2) else \
+            min(MAX_QUANTITY[fc], self.profile.limits.max_registers)
         if not 1 <= count <= limit:
             return self._refuse(unit, fc, 3)
         regs = range(address, address + count)
@@ -258,10 +259,8 @@ class SimDevice:
             if self.motions[f.name].on_read():  # e.g. a peak that reading resets
                 self._render(f)
         if fc in (1, 2):
-            data = bytearray((count + 7) // 8)
-            for i, w in enumerate(words):
-                data[i // 8] |= (1 if w else 0) << (i % 8)
-            return with_crc(bytes([unit, fc, len(data)]) + bytes(data))
+            data = pack_bits(words)
+            return with_crc(bytes([unit, fc, len(data)]) + data)
         return read_response(unit, fc, words)
 
     def _write_coil(self, frame: bytes, body: bytes) -> bytes | None:

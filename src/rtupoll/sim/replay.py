@@ -20,17 +20,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
-from rtupoll.rtu.functions import Table, exception_response, read_response
+from rtupoll.rtu.functions import READS, Table, exception_response, read_response
 from rtupoll.rtu.stream import Stream
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
 from rtupoll.sniff.capfile import read_capture
-from rtupoll.sniff.model import carried_words
+from rtupoll.sniff.model import carried_words, parse_request
 
 if TYPE_CHECKING:
     from rtupoll.sim.runner import SimulatedLines
-
-_TABLES = {3: Table.HOLDING, 4: Table.INPUT}
 
 
 @dataclass(frozen=True)
@@ -81,8 +79,8 @@ class ReplayEngine(Engine):
 
     def _from_image(self, frame: bytes) -> bytes:
         unit, fc = frame[0], frame[1]
-        table = _TABLES.get(fc)
-        if table is None or len(frame) != 8:
+        table = READS.get(fc)
+        if table is None or not table.is_register or len(frame) != 8:  # registers only
             return exception_response(unit, fc, 1)
         start, count = int.from_bytes(frame[2:4], "big"), int.from_bytes(frame[4:6], "big")
         regs = self.image[unit]
@@ -115,12 +113,10 @@ def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = Fal
         regs = image.setdefault(unit, {})
         reply = tx.reply.data if tx.reply is not None else None
         answers.setdefault(req, []).append(Answer(reply, tx.reply_time or 0.0, tx.status))
-        got = carried_words(tx)
-        if got is not None:
-            r, words = got
-            table = r.table
-            if table is not None:
-                regs.update(((table, r.start + i), w) for i, w in enumerate(words))
+        r = parse_request(req)
+        words = carried_words(tx, r)
+        if words is not None and (table := r.table) is not None:
+            regs.update(((table, r.start + i), w) for i, w in enumerate(words))
     if not answers:
         raise UsageError(f"{path}: no request in this capture to replay")
     return ReplayEngine(answers, image, silence=line.silence if timed else 0.0), line

@@ -19,14 +19,14 @@ from typing import Any
 
 from rtupoll.errors import DeviceException
 from rtupoll.jobs.scan import check_passes
-from rtupoll.jobs.stats import iso_time, percentile
+from rtupoll.jobs.stats import iso_time
+from rtupoll.jobs.timeouts import quantile
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
-from rtupoll.rtu.functions import READ_FUNCTIONS, Table
+from rtupoll.rtu.functions import READ_FUNCTIONS, TABLES, Table, reply_values, words
 from rtupoll.rtu.stream import Transaction
 from rtupoll.ui.records import POLL_KEYS, failed_record, record
 
-TABLES = {1: Table.COIL, 2: Table.DISCRETE, 3: Table.HOLDING, 4: Table.INPUT}
 RATE_WINDOW = 10.0  # seconds over which the request rate is measured
 REPLY_WINDOW = 1000  # reply times kept for the percentiles
 
@@ -61,34 +61,27 @@ def parse_request(data: bytes) -> Request:
     fc = data[1] & 0x7F
     if fc in READ_FUNCTIONS or fc in (15, 16):
         start, count = struct.unpack(">HH", data[2:6]) if len(data) >= 6 else (0, 0)
-        table = TABLES.get(fc, Table.COIL if fc == 15 else Table.HOLDING)
-        return Request(fc, table, start, count)
+        return Request(fc, TABLES[fc], start, count)
     if fc in (5, 6) and len(data) >= 6:
-        return Request(fc, Table.COIL if fc == 5 else Table.HOLDING,
-                       struct.unpack(">H", data[2:4])[0], 1)
+        return Request(fc, TABLES[fc], struct.unpack(">H", data[2:4])[0], 1)
     return Request(fc, None, 0, 0)
 
 
-def carried_words(tx: Transaction) -> tuple[Request, tuple[int, ...]] | None:
-    """The registers (or bits) a successful transaction carried: read or written."""
-    if tx.status != "ok" or tx.request is None or tx.reply is None:
+def carried_words(tx: Transaction, req: Request) -> tuple[int, ...] | None:
+    """The registers (or bits) a successful transaction carried: read or written.
+
+    ``req`` is ``parse_request`` of the transaction's request (the caller has it already).
+    """
+    if tx.status != "ok" or tx.request is None or tx.reply is None or req.table is None:
         return None
-    req, data = parse_request(tx.request.data), tx.reply.data
-    if req.table is None:
-        return None
-    if req.function in (3, 4):
-        body = data[3:-2]
-        return req, struct.unpack(f">{len(body) // 2}H", body)
-    if req.function in (1, 2):
-        body = data[3:-2]
-        return req, tuple((body[i // 8] >> (i % 8)) & 1 for i in range(req.count))
+    if req.function in READ_FUNCTIONS:
+        return reply_values(tx.reply.data, req.count)
     if req.function == 6:
-        return req, (struct.unpack(">H", tx.request.data[4:6])[0],)
+        return words(tx.request.data[4:6])
     if req.function == 5:
-        return req, (1 if tx.request.data[4] == 0xFF else 0,)
+        return (1 if tx.request.data[4] == 0xFF else 0,)
     if req.function == 16:
-        body = tx.request.data[7:-2]
-        return req, struct.unpack(f">{len(body) // 2}H", body)
+        return words(tx.request.data[7:-2])
     return None
 
 
@@ -113,6 +106,7 @@ class Unit:
     answered: set[int] = field(default_factory=set)  # functions answered normally
     reads: set[tuple[Table, int, int]] = field(default_factory=set)
     hints: list[str] = field(default_factory=list)
+    hints_stale: bool = False  # answered, reads, image or refused changed since the hints
 
     @property
     def name(self) -> str:
@@ -124,10 +118,10 @@ class Unit:
         return len(self.recent) / RATE_WINDOW
 
     def p50(self) -> float | None:
-        return percentile(self.reply_times, 50)
+        return quantile(self.reply_times, 50)
 
     def p95(self) -> float | None:
-        return percentile(self.reply_times, 95)
+        return quantile(self.reply_times, 95)
 
 
 class BusView:
@@ -178,33 +172,41 @@ class BusView:
             u.ok += 1
             if tx.reply_time is not None:
                 u.reply_times.append(tx.reply_time)
-            u.answered.add(req.function)
+            if req.function not in u.answered:
+                u.answered.add(req.function)
+                u.hints_stale = True
         elif tx.status == "exception":
-            u.exceptions[tx.exception or 0] += 1
-            if req.table is not None:
-                u.refused[req.table, req.start] = tx.exception or 0
+            code = tx.exception or 0
+            u.exceptions[code] += 1
+            if req.table is not None and u.refused.get((req.table, req.start)) != code:
+                u.refused[req.table, req.start] = code
+                u.hints_stale = True
         elif tx.status == "timeout":
             u.timeouts += 1
         elif tx.status == "garbled":
             u.garbled += 1
-        got = carried_words(tx)
+        got = carried_words(tx, req)
         if got is not None:
-            r, words = got
-            assert r.table is not None
-            if r.function in READ_FUNCTIONS:
-                u.reads.add((r.table, r.start, r.count))
-            for i, w in enumerate(words):
-                u.image[r.table, r.start + i] = w
+            assert req.table is not None
+            block = (req.table, req.start, req.count)
+            if req.function in READ_FUNCTIONS and block not in u.reads:
+                u.reads.add(block)
+                u.hints_stale = True
+            for i, w in enumerate(got):
+                if u.image.get((req.table, req.start + i)) != w:
+                    u.image[req.table, req.start + i] = w
+                    u.hints_stale = True
         if u.known is None:
-            if got is not None or tx.status == "exception":
+            # the hints follow from answered, reads, image and refused alone
+            if (got is not None or tx.status == "exception") and u.hints_stale:
                 u.hints = self.looks_like(u)
-            return self._raw_records(u, tx, got, end)
+                u.hints_stale = False
+            return self._raw_records(u, tx, req, got, end)
         return self._records(u, tx, req, got, end)
 
     # -- records --------------------------------------------------------------
     def _records(self, u: Unit, tx: Transaction, req: Request,
-                 got: tuple[Request, tuple[int, ...]] | None, end: float
-                 ) -> list[dict[str, Any]]:
+                 got: tuple[int, ...] | None, end: float) -> list[dict[str, Any]]:
         k = u.known
         assert k is not None
         if req.table is None or req.function not in READ_FUNCTIONS:
@@ -216,8 +218,7 @@ class BusView:
         for f in fields:
             inside = f.address >= req.start and f.end <= req.start + req.count
             if got is not None and inside:
-                _, words = got
-                fv = interpret(f, words[f.address - req.start : f.end - req.start])
+                fv = interpret(f, got[f.address - req.start : f.end - req.start])
                 u.latest[f.name] = (end, fv)
                 u.failed.pop(f.name, None)
                 rec = record(k.name, k.profile.id, k.address, fv)
@@ -232,19 +233,17 @@ class BusView:
             out.append({key: rec.get(key) for key in POLL_KEYS})
         return out
 
-    def _raw_records(self, u: Unit, tx: Transaction,
-                     got: tuple[Request, tuple[int, ...]] | None, end: float
-                     ) -> list[dict[str, Any]]:
+    def _raw_records(self, u: Unit, tx: Transaction, req: Request,
+                     got: tuple[int, ...] | None, end: float) -> list[dict[str, Any]]:
         """A unit with no profile: one record per register read, ``TABLE:ADDRESS``."""
-        if got is None or got[0].function not in READ_FUNCTIONS:
+        if got is None or req.function not in READ_FUNCTIONS:
             return []
-        r, words = got
-        assert r.table is not None
+        assert req.table is not None
         stamp = iso_time(end)
         return [{"time": stamp, "device": u.name, "profile": None, "address": u.unit,
-                 "field": f"{r.table.value}:{r.start + i}", "value": w, "unit": "",
+                 "field": f"{req.table.value}:{req.start + i}", "value": w, "unit": "",
                  "raw": [w], "severity": "ok", "text": f"0x{w:04X}", "status": "ok",
-                 "error": ""} for i, w in enumerate(words)]
+                 "error": ""} for i, w in enumerate(got)]
 
     # -- "looks like" ----------------------------------------------------------
     def looks_like(self, u: Unit) -> list[str]:
