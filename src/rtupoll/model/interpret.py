@@ -108,12 +108,14 @@ def _rounded(field: Field, words: tuple[int, ...]) -> Value:
     """The decoded value; a float at the precision its type carries (an f32 296.15 is
     296.15, not 296.1499938964844), then at the field's ``precision`` when it has one."""
     layout = field.layout
-    value = decode(words, layout)
+    if layout.type is DataType.F32:  # decoded once: the stored float, at its own precision
+        stored = short_f32(float(decode_raw(words, layout)))
+        value: Value = round(stored * layout.scale + layout.offset, 9) if layout.scaled \
+            else stored
+    else:
+        value = decode(words, layout)
     if not isinstance(value, float) or not math.isfinite(value):
         return value
-    if layout.type is DataType.F32:
-        stored = short_f32(float(decode_raw(words, layout)))
-        value = round(stored * layout.scale + layout.offset, 9) if layout.scaled else stored
     if field.precision is not None and math.isfinite(value):
         value = round(value, field.precision)
         if field.precision <= 0:
