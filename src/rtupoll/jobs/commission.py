@@ -34,6 +34,7 @@ from rtupoll.errors import (
     DeviceException,
     DeviceTimeout,
     FrameError,
+    Interrupted,
     RefusedError,
     RtupollError,
     VerificationError,
@@ -86,7 +87,7 @@ class Status(str, enum.Enum):
     NOT_RUN = "not run"
 
 
-INTERRUPTED = 130  # the exit code of a row an interruption cut short
+INTERRUPTED = Interrupted.exit_code  # the exit code of a row an interruption cut short
 
 
 class PlanInterrupted(KeyboardInterrupt):
