@@ -214,8 +214,6 @@ def table(target: Target, rows: list[Row], hex_: bool, title: str = "") -> None:
 
     p = target.profile
     raw = (bool(rows) and ":" in rows[0][0].written) or p is None
-    if p is None and title.startswith(f"{target.name} "):  # "1 after writing" -> "unit 1 ..."
-        title = f"unit {title}"
     heading = title or (f"{target.name} — {p.vendor} {p.model}" if p else
                         f"unit {target.unit} (no profile)")
     if raw and not title:

@@ -130,7 +130,8 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
 
         rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
                                                                baudrate))
-    emit(target, rows, fmt, False, title=f"{target.name} after writing (read back)")
+    who = target.name if target.profile else f"unit {target.unit}"
+    emit(target, rows, fmt, False, title=f"{who} after writing (read back)")
 
 
 def _now(fv: FieldValue | None) -> str:
