@@ -11,9 +11,7 @@ a port that goes away is logged once, and again when it returns.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -21,13 +19,13 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rtupoll.jobs.stats import iso_time
+from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
 
 log = logging.getLogger("rtupoll")
-FORMATS = ("text", "json")
 _EXTRA = ("event", "bus", "device", "profile", "address", "state", "status", "error", "file",
           "ok", "timeouts", "late", "garbled", "exceptions")
 
@@ -42,10 +40,10 @@ class JsonFormatter(logging.Formatter):
         for k in _EXTRA:
             v = getattr(record, k, None)
             if v is not None:
-                out[k] = v if not isinstance(v, float) or math.isfinite(v) else None
+                out[k] = v
         if record.exc_info:
             out["traceback"] = self.formatException(record.exc_info)
-        return json.dumps(out, ensure_ascii=False, separators=(",", ":"))
+        return to_json(out)  # NaN and infinities as null
 
 
 class TextFormatter(logging.Formatter):
