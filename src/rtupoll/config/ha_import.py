@@ -27,6 +27,7 @@ import yaml
 
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError
+from rtupoll.model.codec import DataType
 
 _TYPES = {"int16": "i16", "uint16": "u16", "int32": "i32", "uint32": "u32", "int64": "i64",
           "uint64": "u64", "float32": "f32", "float64": "f64", "string": "string",
@@ -34,8 +35,6 @@ _TYPES = {"int16": "i16", "uint16": "u16", "int32": "i32", "uint32": "u32", "int
 _LEGACY = {("int", 1): "i16", ("int", 2): "i32", ("int", 4): "i64", ("uint", 1): "u16",
            ("uint", 2): "u32", ("uint", 4): "u64", ("float", 2): "f32", ("float", 4): "f64"}
 _SWAP = {"none": "ABCD", "byte": "BADC", "word": "CDAB", "word_byte": "DCBA"}
-_WIDE = {"i32", "u32", "f32", "i64", "u64", "f64"}
-_WORDS = {"i32": 2, "u32": 2, "f32": 2, "i64": 4, "u64": 4, "f64": 4}
 _PLATFORMS = ("sensors", "binary_sensors")
 _UNSUPPORTED = ("switches", "climates", "covers", "lights", "fans")
 DEFAULT_SCAN = 15.0  # Home Assistant's default scan_interval, seconds
@@ -49,7 +48,6 @@ class Device:
     slave: int
     fields: list[dict[str, Any]] = field(default_factory=list)
     intervals: list[float] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
 
     prefix: str = "ha"
 
@@ -187,19 +185,18 @@ def _sensor(hub: Hub, node: Node, platform: str, report: list[str]) -> int:
             return skip("data_type", f"{dtype}: Home Assistant's 8-bit types read a whole "
                                      f"register; rtupoll needs to know which byte")
         f["type"] = t
+        wide = DataType(t).words > 1  # a number over several registers (not a string)
+        words = count if t == "string" else DataType(t).words
         if t == "string":
             f["length"] = 2 * count
-            words = count
-        else:
-            words = _WORDS.get(t, 1)
         swap = _text(m, "swap", "none")
         if swap not in _SWAP:
             return skip("swap", f"swap {swap}")
-        if swap in ("word", "word_byte") and t not in _WIDE:
+        if swap in ("word", "word_byte") and not wide:
             return skip("swap", f"swap {swap} on a one-register {dtype}")
         if swap != "none":
             f["order"] = _SWAP[swap]
-        elif t in _WIDE:
+        elif wide:
             f["order"] = "ABCD"
         for key, out in (("scale", "scale"), ("offset", "offset")):
             if key in m:

@@ -28,11 +28,11 @@ from rtupoll.config.ha_import import (
     unique,
 )
 from rtupoll.errors import ConfigError, UsageError
+from rtupoll.model.codec import DataType
 
 _TYPES = {"INT16": "i16", "UINT16": "u16", "INT32": "i32", "UINT32": "u32", "INT64": "i64",
           "UINT64": "u64", "FLOAT32": "f32", "FLOAT64": "f64", "STRING": "string",
           "INT8L": "i8", "INT8H": "i8", "UINT8L": "u8", "UINT8H": "u8", "BIT": "u16"}
-_WORDS = {"i32": 2, "u32": 2, "f32": 2, "i64": 4, "u64": 4, "f64": 4}
 _TABLES = {"holding": "holding", "input": "input", "coil": "coil", "discrete": "discrete"}
 ORIGIN = "Telegraf"
 
@@ -187,7 +187,7 @@ def _request(hub: Hub, request: dict[str, Any], lines: _Lines, line: int, where:
                 words = int(fld.get("length", 1))
                 f["length"] = 2 * words
             else:
-                words = _WORDS.get(t, 1)
+                words = DataType(t).words
                 if words > 1 or order != "ABCD":
                     f["order"] = order
             scale = float(fld.get("scale", 1.0))
