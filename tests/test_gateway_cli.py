@@ -17,15 +17,10 @@ import pytest
 
 from rtupoll.rtu import crc_ok, with_crc
 from rtupoll.sim.runner import SimulatedBus
+from tests.brokers import free_port
 
 Sim = Callable[..., SimulatedBus]
 MBPOLL = shutil.which("mbpoll")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @contextmanager

@@ -29,12 +29,7 @@ from rtupoll.jobs.stats import Reading
 from rtupoll.outputs.metrics import SchedulerCollector
 from rtupoll.sim.runner import SimulatedBus, simulated_bus
 from rtupoll.ui.logs import JsonFormatter, StateLog
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.brokers import free_port
 
 
 def messages(caplog: pytest.LogCaptureFixture) -> list[str]:
