@@ -67,8 +67,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 
 from rtupoll.rtu.crc import crc_ok
-from rtupoll.rtu.functions import EXCEPTION_LENGTH, MAX_FRAME, reply_length
-from rtupoll.rtu.match import Expect, diagnose, expect_for
+from rtupoll.rtu.functions import MAX_FRAME, reply_length
+from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
 from rtupoll.rtu.timing import Framing
 
 HORIZON = 60.0  # seconds after which no late reply is expected, whatever the evidence
@@ -112,12 +112,6 @@ class Attempt:
 class LineCounts:
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
-
-
-def _fits(frame: bytes, exp: Expect) -> bool:
-    if frame[1] == exp.function | 0x80:
-        return len(frame) == EXCEPTION_LENGTH
-    return len(frame) == exp.length and frame.startswith(exp.prefix)
 
 
 class Line:
@@ -247,7 +241,7 @@ class Line:
         expired first is taken off (the others, and so the longest late window, stay)."""
         unit, att = frame[0], self.attempt
         fits = [e for e in self._outstanding.get(unit, ()) if e.sent <= began
-                and _fits(frame, e.expect)]
+                and answers(frame, e.expect)]
         if not fits:
             self.counts.unsolicited += 1
             return False
@@ -262,12 +256,12 @@ class Line:
         took = self.reply_time[unit] = max(
             0.0, began - oldest - self.framing.wire_time(len(first.request)))
         in_flight = att.entry if att is not None else None
-        answers = in_flight is not None and all(e.request == in_flight.request for e in fits)
+        taken = in_flight is not None and all(e.request == in_flight.request for e in fits)
         # late: another request's reply, or (in order) an earlier attempt's of this one
-        if not answers or first is not in_flight:
+        if not taken or first is not in_flight:
             self.counts.late[unit] += 1
             self.late_reply_time[unit] = took
-        return answers
+        return taken
 
     def _garbled(self, att: Attempt) -> str | None:
         """A complete frame from the unit with the request's function and a bad CRC."""

@@ -46,6 +46,16 @@ def expect_for(request: bytes) -> Expect | None:
     return Expect(unit, fn, request[:6], length)  # 5/6/15/16 echo address and value
 
 
+def answers(frame: bytes, exp: Expect) -> bool:
+    """A complete frame (CRC checked by the caller) has the shape of ``exp``'s answer:
+    the normal reply, or the function's exception reply."""
+    if frame[0] != exp.unit:
+        return False
+    if frame[1] == exp.function | 0x80:
+        return len(frame) == EXCEPTION_LENGTH
+    return len(frame) == exp.length and frame.startswith(exp.prefix)
+
+
 def find_reply(buf: bytes, exp: Expect) -> bytes | None:
     """The first CRC-valid frame in ``buf`` that answers ``exp``, wherever it starts."""
     heads = ((exp.prefix, exp.length), (bytes((exp.unit, exp.function | 0x80)), EXCEPTION_LENGTH))
