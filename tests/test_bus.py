@@ -404,6 +404,24 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
     assert min(gaps) >= bus.framing.silence  # never before the silence, never overlapping
 
 
+def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Responder) -> None:
+    """The frame is written when the silence (here a drain) is over: a caller that gave
+    up before then has sent nothing, and the bus goes on."""
+    async def go() -> tuple[int, ...]:
+        async with fast(peer.path) as bus:
+            with pytest.raises(DeviceTimeout):  # unit 5 is silent: 0.3 s of drain follow
+                await bus.read(5, Table.HOLDING, 0, 1, timeout=0.3)
+            waiting = asyncio.create_task(bus.read(1, Table.HOLDING, 7, 1, timeout=0.2))
+            await asyncio.sleep(0.05)
+            waiting.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await waiting
+            await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
+            assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
+            return await bus.read(1, Table.HOLDING, 8, 1, timeout=0.2)
+    assert run(go()) == values(8, 1)
+
+
 def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
     async def go() -> tuple[float, float]:
         async with fast(peer.path, broadcast_turnaround=0.1) as bus:

@@ -1,7 +1,7 @@
 """SIGHUP: the site file reloaded while polling goes on, and the output file reopened.
 
 In-process tests drive ``Scheduler.reload`` and the ``ReloadService`` against
-simulated buses (the ports that do not change must stay open: the same client
+simulated buses (the ports that do not change must stay open: the same port
 object before and after); the last test sends real SIGHUPs to ``rtupoll poll``.
 """
 
@@ -41,9 +41,10 @@ def site_file(path: Path, *buses: tuple[str, list[str]]) -> Path:
     return path
 
 
-def client_of(bp: BusPoller) -> object:
-    """The bus's pymodbus client: the same object means the port was never reopened."""
-    return vars(bp.transport).get("_client")
+def port_of(bp: BusPoller) -> object:
+    """The bus's open port (pymodbus's transport): the same object means the port was
+    never reopened."""
+    return vars(bp.transport).get("_port")
 
 
 class Run:
@@ -90,16 +91,16 @@ def test_add_change_and_remove_devices_keep_the_port_open(
         scheduler = Scheduler(load_site(site_file(path, (bus.port, [AIR]))))
         async with Run(scheduler) as run:
             await run.more("air", 3)
-            bp, client = scheduler.buses[0], client_of(scheduler.buses[0])
+            bp, port = scheduler.buses[0], port_of(scheduler.buses[0])
             poller = bp.devices[0]
-            assert client is not None
+            assert port is not None
 
             changes = await scheduler.reload(load_site(site_file(path, (bus.port, [AIR, TANK]))))
             assert changes == ["added tank (radar-level@4) on " + bus.port]
             await run.more("tank", 3)
             await run.more("air", 3)  # the first device never stopped
             assert scheduler.buses == [bp] and bp.devices[0] is poller  # its state kept
-            assert client_of(bp) is client  # the port was not reopened
+            assert port_of(bp) is port  # the port was not reopened
 
             slow = AIR.replace("interval: 0.05", "interval: 30")
             changes = await scheduler.reload(load_site(site_file(path, (bus.port, [slow, TANK]))))
@@ -117,7 +118,7 @@ def test_add_change_and_remove_devices_keep_the_port_open(
             await asyncio.sleep(0.3)
             assert run.cycles["tank"] == after
             assert [d.config.name for d in scheduler.pollers()] == ["air"]
-            assert client_of(bp) is client
+            assert port_of(bp) is port
 
     asyncio.run(main())
 
@@ -141,7 +142,7 @@ def test_buses_come_and_go_while_the_others_poll(sim: Callable[..., SimulatedBus
 
             changes = await scheduler.reload(load_site(site_file(path, (two.port, [TANK]))))
             assert changes == [f"closed bus {one.port} ({one.port})"]
-            assert client_of(first) is None  # closed
+            assert port_of(first) is None  # closed
             after = run.cycles["air"]
             await run.more("tank", 5)
             assert run.cycles["air"] == after

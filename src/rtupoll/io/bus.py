@@ -1,7 +1,7 @@
 """One RS-485 bus: pymodbus carries the bytes, the sans-IO line discipline decides.
 
 The only module that imports pymodbus (it renames things between minor releases),
-and a thin one. pymodbus's async client opens the port (serial, ``nodtr://``, or an
+and a thin one. pymodbus's transport opens the port (serial, ``nodtr://``, or an
 RTU-over-TCP gateway), writes frames and delivers what arrives; frames are built
 and parsed by ``rtupoll.rtu.functions`` (the one function table), and every rule of
 the shared line -- the 3.5-character silence, the drain after a timeout, which
@@ -14,15 +14,16 @@ frames, the late-reply accounting), garbled replies known at once -- is
   retries, so devices polled from several tasks never interleave on the wire. A
   request whose answer could be confused with an earlier request's late reply waits
   (``Line.hazard_until``) *before* taking the lock: other devices go on meanwhile.
-- **Silence**: each request waits until ``Line.ready_at``; asyncio times in whole
+- **Silence**: each request goes at ``Line.ready_at``, written by a timer callback
+  (the waiting task is woken only by the answer); asyncio times in whole
   milliseconds, so the last fraction of a millisecond is slept with ``time.sleep``
   (at most 1 ms, no CPU).
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
-- **Receiving**: pymodbus's receive callback hands every byte to the line; its own
-  framer and PDU decoder are not used (they drop a buffer on one stray byte, and
-  cost CPU the line has already spent).
+- **Receiving**: the transport hands every byte to the line; pymodbus's client, its
+  receive buffer, framer and PDU decoder are not used (they drop a buffer on one
+  stray byte, and cost CPU the line has already spent).
 - **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.io.serialport``).
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
@@ -37,12 +38,11 @@ import asyncio
 import logging
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
-from pymodbus.framer import FramerType
+from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import (
     BusError,
@@ -139,7 +139,7 @@ class Bus(LineEvidence):
         self._connect_timeout = connect_timeout
         self._broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
-        self._client: Any = None
+        self._port: _Port | None = None
         self.line = Line(self.framing, drain=drain)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
@@ -159,9 +159,9 @@ class Bus(LineEvidence):
 
     async def close(self) -> None:
         async with self._lock:
-            if self._client is not None:
-                self._client.close()
-                self._client = None
+            if self._port is not None:
+                self._port.close()
+                self._port = None
 
     async def __aenter__(self) -> Bus:
         await self.open()
@@ -172,31 +172,29 @@ class Bus(LineEvidence):
 
     @property
     def connected(self) -> bool:
-        return bool(self._client and self._client.connected)
+        return self._port is not None and self._port.is_active()
 
-    def _make_client(self) -> Any:
-        common: dict[str, Any] = dict(framer=FramerType.RTU, timeout=_BACKSTOP, retries=0,
-                                      reconnect_delay=0, name=self.settings.port)
+    def _make_port(self) -> _Port:
+        s = self.settings
+        common: dict[str, Any] = dict(comm_name=s.port, reconnect_delay=0,
+                                      timeout_connect=_BACKSTOP)
         if self._gateway:
-            client: Any = AsyncModbusTcpClient(self._gateway[0], port=self._gateway[1],
-                                               **common)
+            params = CommParams(comm_type=CommType.TCP, host=self._gateway[0],
+                                port=self._gateway[1], **common)
         else:
-            s = self.settings
-            client = AsyncModbusSerialClient(self._url, baudrate=s.baudrate, bytesize=s.bytesize,
-                                             parity=serialport.line_parity(s.port, s.parity),
-                                             stopbits=s.stopbits, **common)
-        # every received byte goes to the line discipline; pymodbus's framer never sees one
-        client.ctx.callback_data = self._received
-        return client
+            params = CommParams(comm_type=CommType.SERIAL, host=self._url, baudrate=s.baudrate,
+                                bytesize=s.bytesize, stopbits=s.stopbits,
+                                parity=serialport.line_parity(s.port, s.parity), **common)
+        return _Port(params, self._received)
 
     async def _connect(self) -> None:
         if self.connected:
             return
-        if self._client is None:
-            self._client = self._make_client()
+        if self._port is None:
+            self._port = self._make_port()
         why: str | None = None
         try:
-            ok = await asyncio.wait_for(self._client.connect(), self._connect_timeout)
+            ok = await asyncio.wait_for(self._port.connect(), self._connect_timeout)
         except asyncio.TimeoutError as exc:
             ok = False
             if self._gateway:  # it does not answer: trying again would only wait again
@@ -206,8 +204,8 @@ class Bus(LineEvidence):
         if ok and self.connected:
             self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
-        self._client.close()
-        self._client = None
+        self._port.close()
+        self._port = None
         if why is None and self._gateway:
             why = await serialport.diagnose_gateway(*self._gateway, self._connect_timeout)
         elif why is None:
@@ -337,13 +335,12 @@ class Bus(LineEvidence):
         what = FUNCTION_NAMES.get(function, f"function {function}")
         for attempt in range(retries + 1):
             await self._connect()
-            await self._quiet_line(drain=attempt == 0)
             if attempt:
                 self.stats.retries += 1
             self.stats.attempts += 1
             tries = f" ({attempt + 1} tries)" if attempt else ""
             try:
-                frame = await self._attempt(request, limit)
+                frame = await self._attempt(request, limit, drain=attempt == 0)
             except _Garbled as exc:
                 failure = FrameError(f"unit {unit}, {what}: {exc}{tries}")
                 continue
@@ -365,24 +362,49 @@ class Bus(LineEvidence):
             return frame
         raise failure
 
-    async def _attempt(self, request: bytes, limit: float) -> bytes:
-        """Send ``request``; its answer frame (b"" for a broadcast), ``_Garbled`` as soon
-        as the line knows the reply is garbled, ``asyncio.TimeoutError`` after ``limit``."""
+    async def _attempt(self, request: bytes, limit: float, *, drain: bool) -> bytes:
+        """Send ``request`` once the line lets it go (``drain``: honour a drain); its
+        answer frame (b"" for a broadcast), ``_Garbled`` as soon as the line knows the
+        reply is garbled, ``asyncio.TimeoutError`` ``limit`` after it went out.
+
+        The frame is written by a timer callback when the silence is over, not by this
+        task waking up first: one turn of the event loop less per transaction."""
         if not self.connected:
             raise PortError(f"{self.settings.port} is not open")
-        self.line.send(request, time.monotonic())
-        self.stats.wire += self.framing.wire_time(len(request))
-        self._send(request)
-        if request[0] == 0:
-            return b""
         loop = asyncio.get_running_loop()
         answer: asyncio.Future[bytes] = loop.create_future()
-        self._answer = answer
-        expiry = loop.call_later(limit, _expire, answer)
+        timer: asyncio.TimerHandle | None = None
+
+        def send() -> None:
+            nonlocal timer
+            delay = self.line.ready_at(drain=drain) - time.monotonic()
+            if delay > _TICK:  # whole ticks: asyncio rounds its timeouts up to the millisecond
+                timer = loop.call_later(delay // _TICK * _TICK, send)
+                return
+            if delay > 0:  # the last fraction of a tick, which asyncio would overshoot
+                time.sleep(delay)
+            if not self.connected:
+                answer.set_exception(PortError(f"{self.settings.port} went away"))
+                return
+            try:
+                self.line.send(request, time.monotonic())
+                self.stats.wire += self.framing.wire_time(len(request))
+                self._send(request)
+            except Exception as exc:  # a callback's error would reach no one: the caller's
+                answer.set_exception(exc)
+                return
+            if request[0] == 0:
+                answer.set_result(b"")
+            else:
+                self._answer = answer
+                timer = loop.call_later(limit, _expire, answer)
+
+        send()
         try:
             return await answer
         finally:
-            expiry.cancel()
+            if timer is not None:
+                timer.cancel()
             self._answer = None
 
     def _send(self, request: bytes) -> None:
@@ -392,10 +414,11 @@ class Bus(LineEvidence):
         (what does not fit the port's buffer is queued as before, and a port that fails
         is closed as pymodbus's own writer would). A socket (RTU over TCP) writes at once
         anyway."""
-        transport = self._client.ctx.transport
+        assert self._port is not None  # _attempt checked
+        transport: Any = self._port.transport
         port = getattr(transport, "sync_serial", None)
         if port is None or getattr(transport, "intern_write_buffer", None) != []:
-            self._client.ctx.send(request)
+            transport.write(request)
             return
         try:
             sent = port.write(request) or 0
@@ -405,20 +428,8 @@ class Bus(LineEvidence):
         if sent < len(request):
             transport.write(request[sent:])
 
-    async def _quiet_line(self, *, drain: bool) -> None:
-        """Wait until the line discipline lets the next frame go."""
-        while True:
-            delay = self.line.ready_at(drain=drain) - time.monotonic()
-            if delay <= 0:
-                break
-            if delay > _TICK:  # whole ticks: asyncio rounds its timeouts up to the millisecond
-                await asyncio.sleep(delay // _TICK * _TICK)
-            else:  # the last fraction of a tick, which asyncio would overshoot by up to 1 ms
-                time.sleep(delay)
-
-    def _received(self, data: bytes, addr: object = None) -> int:
-        """pymodbus's receive callback: every byte goes to the line, none to its framer
-        (it returns how much of pymodbus's buffer was used: all of it)."""
+    def _received(self, data: bytes) -> None:
+        """What the port received: every byte goes to the line."""
         event = self.line.receive(data, time.monotonic())
         waiter = self._answer
         if event is not None and waiter is not None and not waiter.done():
@@ -427,7 +438,31 @@ class Bus(LineEvidence):
                 waiter.set_result(event.frame)
             else:
                 waiter.set_exception(_Garbled(event.why))
-        return len(data)
+
+
+class _Port(ModbusProtocol):
+    """pymodbus's transport (a serial port, or a socket to a gateway) handing every
+    received byte to the bus: pymodbus's receive buffer, framer and transaction manager
+    are not in the way (they drop a buffer on one stray byte, and cost CPU)."""
+
+    def __init__(self, params: CommParams, received: Callable[[bytes], None]) -> None:
+        super().__init__(params, False)
+        self._received = received
+
+    def data_received(self, data: bytes) -> None:
+        self._received(data)
+
+    def callback_new_connection(self) -> ModbusProtocol:  # only servers accept connections
+        raise NotImplementedError
+
+    def callback_connected(self) -> None:
+        pass
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        pass
+
+    def callback_data(self, data: bytes, addr: tuple[str, int] | None = None) -> int:
+        return len(data)  # not called: data_received goes to the bus
 
 
 def _expire(answer: asyncio.Future[bytes]) -> None:
