@@ -78,8 +78,7 @@ class RecordWriter:
             if self._csv is not None:
                 self._csv.write(r.record())
             else:
-                rec = r.record()
-                self._buf.write(to_json({k: rec.get(k) for k in POLL_KEYS}) + "\n")
+                self._buf.write(to_json(r.record()) + "\n")
         text = self._buf.getvalue()
         self._buf.seek(0)
         self._buf.truncate()

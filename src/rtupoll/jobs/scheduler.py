@@ -385,9 +385,11 @@ class BusPoller:
                 continue
             if dev in self._urgent:
                 self._urgent.remove(dev)
+            asked = dev.stats.requests
             async with self.turn():
                 await self.run_one(dev, sink)
-            await asyncio.sleep(0)  # let the other buses and the display run
+            if dev.stats.requests == asked:  # it waited for no reply: let the others run
+                await asyncio.sleep(0)
 
     async def scan_once(self, sink: Sink) -> None:
         for dev in self.devices:

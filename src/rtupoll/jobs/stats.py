@@ -20,7 +20,7 @@ from rtupoll.config.site import DeviceConfig
 from rtupoll.jobs.timeouts import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
-from rtupoll.ui.records import failed_record, record
+from rtupoll.ui.records import failed_record, poll_record, record
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured
@@ -67,14 +67,13 @@ class Reading:
         """The ``output.POLL_KEYS`` record for JSON and CSV."""
         d = self.device
         if self.value is not None:
-            rec = record(d.name, d.profile.id, d.address, self.value)
-            rec.update(status="ok", error="")
-        else:
-            rec = failed_record(d.name, d.profile.id, d.address, self.field.name,
-                                self.field.unit, self.status.value, self.error)
-            if self.status is Status.ABSENT:  # the device's variant lacks it: no failure
-                rec["severity"] = "info"
-        rec["time"] = iso_time(self.time)
+            return poll_record(iso_time(self.time),
+                               record(d.name, d.profile.id, d.address, self.value))
+        rec = poll_record(iso_time(self.time), failed_record(
+            d.name, d.profile.id, d.address, self.field.name, self.field.unit),
+            self.status.value, self.error)
+        if self.status is Status.ABSENT:  # the device's variant lacks it: no failure
+            rec["severity"] = "info"
         return rec
 
 

@@ -25,7 +25,7 @@ from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu.functions import READ_FUNCTIONS, TABLES, Table, reply_values, words
 from rtupoll.rtu.stream import Transaction
-from rtupoll.ui.records import POLL_KEYS, failed_record, record
+from rtupoll.ui.records import failed_record, poll_record, record
 
 RATE_WINDOW = 10.0  # seconds over which the request rate is measured
 REPLY_WINDOW = 1000  # reply times kept for the percentiles
@@ -221,16 +221,12 @@ class BusView:
                 fv = interpret(f, got[f.address - req.start : f.end - req.start])
                 u.latest[f.name] = (end, fv)
                 u.failed.pop(f.name, None)
-                rec = record(k.name, k.profile.id, k.address, fv)
-                rec.update(status="ok", error="")
+                out.append(poll_record(stamp, record(k.name, k.profile.id, k.address, fv)))
             elif got is None:
                 u.failed[f.name] = (end, tx.status)
-                rec = failed_record(k.name, k.profile.id, k.address, f.name, f.unit,
-                                    tx.status, tx.note)
-            else:
-                continue  # only part of the field was read: nothing to say about it
-            rec["time"] = stamp
-            out.append({key: rec.get(key) for key in POLL_KEYS})
+                out.append(poll_record(stamp, failed_record(
+                    k.name, k.profile.id, k.address, f.name, f.unit), tx.status, tx.note))
+            # else only part of the field was read: nothing to say about it
         return out
 
     def _raw_records(self, u: Unit, tx: Transaction, req: Request,

@@ -65,11 +65,16 @@ def record(device: str, profile: str, address: int, fv: FieldValue) -> dict[str,
 
 
 def failed_record(device: str, profile: str, address: int, field: str, unit: str,
-                  status: str, error: str) -> dict[str, Any]:
-    """A reading that did not happen: no value, and why."""
+                  ) -> dict[str, Any]:
+    """A reading that did not happen: no value (why: ``poll_record``'s status and error)."""
     return {"device": device, "profile": profile, "address": address, "field": field,
-            "value": None, "unit": unit, "raw": None, "severity": "error", "text": "",
-            "status": status, "error": error}
+            "value": None, "unit": unit, "raw": None, "severity": "error", "text": ""}
+
+
+def poll_record(time: str, rec: Mapping[str, Any], status: str = "ok", error: str = ""
+                ) -> dict[str, Any]:
+    """``rec`` (``record`` or ``failed_record``) as ``poll`` writes it: POLL_KEYS, in order."""
+    return {"time": time, **rec, "status": status, "error": error}
 
 
 def to_json(rec: Any) -> str:
