@@ -7,13 +7,20 @@ would answer the next test's requests.
 
 ``raw_port(path)`` opens a pty path (or ``tcp://HOST:PORT``) without any Modbus library,
 so a test can send exact bytes and see exactly what came back.
+
+The compiled profile cache (``rtupoll.config.compiled``) of a test run lives in a
+directory of its own, set before any test module loads a profile and inherited by the
+CLI subprocesses tests start: no test reads or writes the user's ~/.cache.
 """
 
 from __future__ import annotations
 
+import atexit
 import os
 import select
+import shutil
 import socket
+import tempfile
 import termios
 import time
 import tty
@@ -25,6 +32,10 @@ import pytest
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 pytest_plugins = ("pytester",)
+
+_CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
+os.environ["XDG_CACHE_HOME"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 
 
 @pytest.fixture

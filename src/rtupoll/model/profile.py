@@ -1,8 +1,8 @@
 """Device profiles: the model of one vendor's register map and quirks.
 
 A profile is one YAML file (format: docs/profiles.md), read and validated by
-``rtupoll.config.library`` into these frozen dataclasses. Everything vendor-specific lives
-in the YAML; no code here names a device.
+``rtupoll.config.profile_file`` into these frozen dataclasses. Everything
+vendor-specific lives in the YAML; no code here names a device.
 """
 
 from __future__ import annotations

@@ -1,0 +1,163 @@
+"""The compiled profile cache: validated profiles kept pickled, so that the next command
+that needs the same unchanged profile neither imports the YAML parser nor validates it.
+
+One file per profile path, in ``$XDG_CACHE_HOME/rtupoll/profiles`` (``~/.cache/...``
+when that is unset). ``load`` takes a cached profile only when
+
+- the code that built it is this code: the stamp is the path, mtime and size of each
+  module whose classes or rules make a ``Profile``, so a changed rtupoll never takes
+  objects an older one made;
+- every file it was read from (the profile and each one it ``extends``) still holds the
+  very bytes parsed (bytes, not mtimes: an edit in the same second is seen), and
+- each ``extends`` still finds the same file (the search path, or a new file next to the
+  profile, can change which parent is found).
+
+Anything else (no file, a corrupt, truncated, foreign or oversized one, an unwritable
+directory) means "not cached": the caller reads the profile, which also gives every
+error as ``file:line``; a failure is never cached. ``$RTUPOLL_NO_PROFILE_CACHE`` (any
+non-empty value) switches the cache off; deleting the directory is always safe.
+
+Loading a pickle can run code. Only the user's own cache directory is read, and whoever
+can write there can already run code as the user; besides, the unpickler here builds
+nothing but the model's own classes, so a planted file cannot call anything else.
+"""
+
+from __future__ import annotations
+
+import binascii
+import dataclasses
+import io
+import os
+import pickle
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from rtupoll.config.library import find_parent
+from rtupoll.model import codec, profile
+from rtupoll.model.profile import Profile
+from rtupoll.rtu import functions
+
+OFF_ENV = "RTUPOLL_NO_PROFILE_CACHE"  # set and not empty: no cache
+MAX_BYTES = 8 << 20  # a larger cache file is not read (the largest bundled one: 19 kB)
+
+# the modules whose classes a Profile is made of, and (below) those whose rules build it
+_MODEL = {m.__name__: m for m in (profile, codec, functions)}
+_HERE = os.path.dirname(__file__)
+_CODE = (*(str(m.__file__) for m in _MODEL.values()),
+         *(os.path.join(_HERE, name) for name in ("profile_file.py", "yamlsrc.py", "compiled.py")))
+
+
+class Source(NamedTuple):
+    """A file a profile was read from: the profile's own, or one it extends."""
+
+    path: Path  # as it was opened
+    data: bytes  # what was parsed
+    extends: str  # the id of the profile it extends, "" for none
+
+
+def directory() -> Path:
+    """Where the cache lives (XDG: an unset, empty or relative variable is ignored)."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    if not os.path.isabs(base):
+        base = os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base, "rtupoll", "profiles")
+
+
+def load(path: Path) -> Profile | None:
+    """``path``'s profile as reading the file would give it, or None: not cached, or not
+    any more (then read the file)."""
+    if os.environ.get(OFF_ENV):
+        return None
+    try:
+        return _load(path)
+    except Exception:  # whatever is wrong with the cache, reading the file is right
+        return None
+
+
+def store(path: Path, built: Profile, sources: Sequence[Source]) -> None:
+    """Keep ``built``, just read from ``sources``, for the next ``load(path)``."""
+    if os.environ.get(OFF_ENV):
+        return
+    key = os.path.abspath(path)
+    try:
+        chain = tuple((str(s.path.resolve()), s.data, s.extends) for s in sources)
+        payload = pickle.dumps(built, pickle.HIGHEST_PROTOCOL)
+        data = pickle.dumps((_stamp(), key, chain, payload), pickle.HIGHEST_PROTOCOL)
+        if len(data) <= MAX_BYTES:
+            _write(_file(key), data)
+    except OSError:  # no home, a read-only cache, a full disk: read the file next time
+        pass
+
+
+def _load(path: Path) -> Profile | None:
+    key = os.path.abspath(path)  # not resolved: the id must match the name as given
+    with _file(key).open("rb") as fh:
+        data = fh.read(MAX_BYTES + 1)
+    if len(data) > MAX_BYTES:
+        return None
+    # the profile is pickled apart, and unpickled only once its files are known unchanged
+    stamp, stored_key, chain, payload = _unpickle(data)
+    if stamp != _stamp() or stored_key != key or not _unchanged(path, chain):
+        return None
+    cached = _unpickle(payload)
+    if not isinstance(cached, Profile):
+        return None
+    # the same file named another way (relative, absolute) keeps the name it was given
+    return cached if cached.path == str(path) else dataclasses.replace(cached, path=str(path))
+
+
+def _unchanged(path: Path, chain: Sequence[tuple[str, bytes, str]]) -> bool:
+    """Whether each file of ``chain`` holds the bytes parsed, each ``extends`` finding the
+    same file again the way ``profile_file`` finds it (from the path as given). Only
+    regular files are compared: reading a pipe would take bytes the parser then misses."""
+    current: Path | None = path
+    for resolved, data, parent in chain:
+        if current is None or not current.is_file() or str(current.resolve()) != resolved:
+            return False
+        with current.open("rb") as fh:
+            if fh.read(len(data) + 1) != data:
+                return False
+        current = find_parent(parent, current) if parent else None
+    return bool(chain) and current is None
+
+
+def _stamp() -> tuple[tuple[str, int, int], ...]:
+    return tuple((f, st.st_mtime_ns, st.st_size) for f in _CODE for st in [os.stat(f)])
+
+
+def _file(key: str) -> Path:
+    """A profile path's cache file: its name, for people, and a CRC of the whole path
+    (hashlib would cost 8 ms to import); two paths with one CRC only take turns."""
+    crc = binascii.crc32(os.fsencode(key))
+    return directory() / f"{os.path.basename(key)[:64]}-{crc:08x}.pickle"
+
+
+def _write(target: Path, data: bytes) -> None:
+    """Atomically: a process reading at the same time sees the old file or the new one."""
+    import tempfile  # only after a profile was read, which costs far more
+
+    target.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, target)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+class _Unpickler(pickle.Unpickler):
+    """Builds only the classes defined in ``_MODEL``'s modules: whoever wrote a cache file,
+    loading it calls nothing else."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        found = getattr(_MODEL.get(module), name, None)
+        if isinstance(found, type) and found.__module__ == module:
+            return found
+        raise pickle.UnpicklingError(f"{module}.{name} is not part of a profile")
+
+
+def _unpickle(data: bytes) -> Any:
+    return _Unpickler(io.BytesIO(data)).load()
