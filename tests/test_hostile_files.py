@@ -26,7 +26,8 @@ from click.testing import CliRunner
 import rtupoll.cli as rtupoll_cli
 from rtupoll.cli import cli
 from rtupoll.config.address_plan import load_plan
-from rtupoll.config.library import MAX_FIELDS, load_profile
+from rtupoll.config.library import load_profile
+from rtupoll.config.profile_file import MAX_FIELDS
 from rtupoll.config.site import load_site
 from rtupoll.config.yamlsrc import MAX_BYTES
 from rtupoll.errors import ProfileError
@@ -454,24 +455,36 @@ def after_our_handler(err: str) -> list[str]:
             and not (f == "rtupoll/cli/__init__.py" and int(n) <= handler)]
 
 
+def reading(pid: int) -> None:
+    """Wait until process ``pid`` is blocked reading a pipe (a guard of 60 s against a
+    hang, not a timing claim)."""
+    deadline = time.monotonic() + 60
+    while "pipe" not in Path(f"/proc/{pid}/wchan").read_text():
+        assert time.monotonic() < deadline, "the command never waited for its input"
+        time.sleep(0.02)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_an_early_signal_never_shows_our_traceback(sig: signal.Signals) -> None:
     """Signals while Python starts and imports: from the first line of rtupoll's code on,
     one line and exit 130. (The interpreter's own start-up, before any of it runs, can
     still print its KeyboardInterrupt; that is not in the package's hands.)"""
     codes = []
-    for delay in (0.0, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, 1.5):
+    for delay in (0.0, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, None):
         # 'decode -' reads stdin, which stays open: it waits until the signal
         proc = subprocess.Popen([RTUPOLL, "decode", "-"], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        time.sleep(delay)
+        if delay is None:  # the last one once the command waits for its input, however
+            reading(proc.pid)  # long start-up takes on a loaded machine
+        else:
+            time.sleep(delay)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
         assert not after_our_handler(err), err
         if proc.returncode == 130:
             assert err.strip().splitlines()[-1] == "rtupoll: interrupted", err
         codes.append(proc.returncode)
-    # long after start: one line, exit 130, also for SIGTERM; before that the signal may
+    # once it runs: one line, exit 130, also for SIGTERM; before that the signal may
     # land in Python's own start-up (how early depends on the machine's load), which
     # ends the process its own way, but never with a traceback through rtupoll's code
     assert codes[-1] == 130, codes
