@@ -2,7 +2,7 @@
 
 The three seed devices that can run at 115200 baud (radar, Huiwen, CO2Meter) are
 polled as fast as the bus allows (interval 0) against the simulator in its own
-process with wire timing (turnaround 0, so the bus is as busy as it can be). Four
+process with wire timing (turnaround 0, so the bus is as busy as it can be). Five
 measurements, each over the same number of seconds:
 
 - core: the scheduler, bus and pymodbus in this process (readings decoded, not
@@ -11,11 +11,15 @@ measurements, each over the same number of seconds:
   by difference;
 - peer: a bare pymodbus async client (``AsyncModbusSerialClient``) reading the same
   blocks in a loop, no silence, no resynchronisation, no decoding;
+- quiet: the same client keeping the spec's 3.5-character silence before each request
+  (``asyncio.sleep``), as rtupoll does. Waiting costs CPU: on a virtual machine each
+  sleep and wake-up costs about as much as a transaction's own work, so this is the
+  peer that does what rtupoll's bus must do;
 - command: ``rtupoll poll --format json`` as a user runs it, records to a file, CPU of
   the child process in steady state (from its 100th record on; start-up is paid once
   per process) from /proc, as a ratio to the peer.
 
-The four run in rounds against one simulator, in a different order each round, and
+The five run in rounds against one simulator, in a different order each round, and
 the figures are the medians over the rounds: CPU time on a shared virtual machine
 drifts by tens of percent from one minute to the next, and interleaving keeps that
 drift out of the ratios.
@@ -42,6 +46,7 @@ from poll_common import cpu_seconds, seed_site, simulator
 
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
+from rtupoll.rtu import Framing
 
 DEVICES = ("radar-level@2", "huiwen-aq@3", "co2meter-an117@4")
 
@@ -89,9 +94,11 @@ async def bare(port: str, baud: int, seconds: float) -> tuple[float, float, int]
         await scheduler.close()
 
 
-async def bare_pymodbus(port: str, baud: int, seconds: float) -> tuple[float, float, int]:
+async def bare_pymodbus(port: str, baud: int, seconds: float, silence: float = 0.0
+                        ) -> tuple[float, float, int]:
     """The peer: a plain pymodbus async RTU client reading the same blocks in a loop
-    (no inter-frame silence, no resync, no decoding): (cpu, wall, transactions)."""
+    (no resync, no decoding; ``silence``: sleep that long before each request, as the
+    spec's inter-frame silence asks and pymodbus does not): (cpu, wall, transactions)."""
     from pymodbus.client import AsyncModbusSerialClient
 
     site = seed_site(port, baud, DEVICES)
@@ -105,6 +112,8 @@ async def bare_pymodbus(port: str, baud: int, seconds: float) -> tuple[float, fl
         cpu0, wall0, tx = cpu_seconds(), time.monotonic(), 0
         while time.monotonic() - wall0 < seconds:
             for unit, b in reads:
+                if silence:
+                    await asyncio.sleep(silence)
                 reply = await calls[b.table.value](b.address, count=b.count, device_id=unit)
                 assert not reply.isError()
                 tx += 1
@@ -169,6 +178,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     args = ap.parse_args()
     names = {"peer": "peer: a bare pymodbus async client over the same blocks",
+             "quiet": "peer keeping the silence: the same, asyncio.sleep(t3.5) before each",
              "bus": "bare Bus.read loop (line discipline + pymodbus as transport)",
              "core": "scheduler + bus (readings decoded, not written)",
              "command": "command 'rtupoll poll --format json', steady state"}
@@ -177,30 +187,36 @@ def main() -> None:
     busy: list[float] = []
     with simulator(args.baud, DEVICES) as port:
         for r in range(args.rounds):
-            order = list(names)[r % 4:] + list(names)[:r % 4]
+            order = list(names)[r % len(names):] + list(names)[:r % len(names)]
             for name in order:
                 if name == "core":
                     cpu, wall, tx, used = asyncio.run(core(port, args.baud, args.seconds))
                     busy.append(used)
                 elif name == "bus":
                     cpu, wall, tx = asyncio.run(bare(port, args.baud, args.seconds))
-                elif name == "peer":
-                    cpu, wall, tx = asyncio.run(bare_pymodbus(port, args.baud, args.seconds))
+                elif name in ("peer", "quiet"):
+                    silence = Framing(args.baud).silence if name == "quiet" else 0.0
+                    cpu, wall, tx = asyncio.run(bare_pymodbus(port, args.baud, args.seconds,
+                                                              silence))
                 else:
                     cpu, wall, tx = command(port, args.baud, args.seconds)
                 per_tx[name].append(cpu / tx)
                 rates[name].append(tx / wall)
             print(f"round {r + 1}: " + ", ".join(
                 f"{name} {1e6 * per_tx[name][-1]:.0f} µs" for name in names), flush=True)
-    peer = statistics.median(per_tx["peer"])
     print(f"\n{args.baud} baud, {args.rounds} rounds of {args.seconds:g} s each; the "
-          f"scheduler's bus {statistics.median(busy):.0%} busy; medians:")
+          f"scheduler's bus {statistics.median(busy):.0%} busy; medians, and the ratios to "
+          "the two peers (the median of the rounds' ratios in brackets):")
     for name, what in names.items():
         cost = statistics.median(per_tx[name])
-        ratio = statistics.median(c / p for c, p in zip(per_tx[name], per_tx["peer"], strict=True))
+        ratios = []
+        for peer in ("peer", "quiet"):
+            by_round = statistics.median(c / q for c, q in zip(per_tx[name], per_tx[peer],
+                                                               strict=True))
+            ratios.append(f"x{cost / statistics.median(per_tx[peer]):.2f} (x{by_round:.2f})")
         print(f"  {what}: {1e6 * cost:.0f} µs CPU per transaction "
               f"({statistics.median(rates[name]):.0f} transactions/s), "
-              f"x{cost / peer:.2f} the bare pymodbus client (x{ratio:.2f} round by round)")
+              f"{ratios[0]} the bare pymodbus client, {ratios[1]} the one keeping the silence")
 
 
 if __name__ == "__main__":

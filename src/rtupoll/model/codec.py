@@ -109,10 +109,10 @@ class Layout:
 
 def _to_bytes(words: Sequence[int], order: ByteOrder) -> bytes:
     """Wire words -> the value's bytes in big-endian order."""
-    ws = list(words)
+    ws = [w & 0xFFFF for w in words]
     if order.swap_words:
         ws.reverse()
-    raw = b"".join(struct.pack(">H", w & 0xFFFF) for w in ws)
+    raw = struct.pack(f">{len(ws)}H", *ws)
     if order.swap_bytes:
         raw = b"".join(raw[i + 1 : i + 2] + raw[i : i + 1] for i in range(0, len(raw), 2))
     return raw
@@ -133,6 +133,8 @@ def decode_raw(words: Sequence[int], layout: Layout) -> int | float | str | bool
     if len(words) != layout.words:
         raise ValueError(f"{layout.type.value} needs {layout.words} registers, got {len(words)}")
     t = layout.type
+    if t is DataType.U16 and not layout.width and not layout.order.swap_bytes:
+        return words[0] & 0xFFFF  # the most common register of all, without struct
     if t is DataType.BOOL:
         return bool(words[0])
     if t is DataType.STRING:
