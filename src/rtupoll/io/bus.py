@@ -14,10 +14,11 @@ frames, the late-reply accounting), garbled replies known at once -- is
   retries, so devices polled from several tasks never interleave on the wire. A
   request whose answer could be confused with an earlier request's late reply waits
   (``Line.hazard_until``) *before* taking the lock: other devices go on meanwhile.
-- **Silence**: each request goes at ``Line.ready_at``, written by a timer callback
-  (the waiting task is woken only by the answer); asyncio times in whole
-  milliseconds, so the last fraction of a millisecond is slept with ``time.sleep``
-  (at most 1 ms, no CPU).
+- **Silence**: each request goes at ``Line.ready_at``, after a long wait written by a
+  timer callback (the waiting task is woken only by the answer). asyncio times in whole
+  milliseconds and would overshoot, so the last 2 ms at most are slept with
+  ``time.sleep``: no CPU, one wake-up, and the event loop held for that long (the
+  3.5-character silence itself above 19200 baud, 1.75 ms).
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
@@ -70,7 +71,10 @@ from rtupoll.rtu.line import Answer, Line
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
-_TICK = 0.001  # the event loop's timer resolution (epoll waits in whole milliseconds)
+# a wait for the line this short (at most 1-2 ms) is slept at once: the event loop's timer
+# (epoll waits in whole milliseconds) would overshoot it, and wake the process twice where
+# once is enough (each wake costs about as much CPU as the transaction's own work)
+_SLEEP_MAX = 0.002
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 _REPLY_MODES = ("echo", "none", "malformed", "any")
@@ -367,8 +371,9 @@ class Bus(LineEvidence):
         answer frame (b"" for a broadcast), ``_Garbled`` as soon as the line knows the
         reply is garbled, ``asyncio.TimeoutError`` ``limit`` after it went out.
 
-        The frame is written by a timer callback when the silence is over, not by this
-        task waking up first: one turn of the event loop less per transaction."""
+        The frame goes as soon as the silence is over: written here after a short sleep,
+        or by a timer callback after a long wait, never by this task waking up first (a
+        turn of the event loop less per transaction)."""
         if not self.connected:
             raise PortError(f"{self.settings.port} is not open")
         loop = asyncio.get_running_loop()
@@ -378,10 +383,10 @@ class Bus(LineEvidence):
         def send() -> None:
             nonlocal timer
             delay = self.line.ready_at(drain=drain) - time.monotonic()
-            if delay > _TICK:  # whole ticks: asyncio rounds its timeouts up to the millisecond
-                timer = loop.call_later(delay // _TICK * _TICK, send)
+            if delay > _SLEEP_MAX:  # the event loop's timer, which fires up to 1 ms late,
+                timer = loop.call_later(delay - _SLEEP_MAX, send)  # for all but the end
                 return
-            if delay > 0:  # the last fraction of a tick, which asyncio would overshoot
+            if delay > 0:
                 time.sleep(delay)
             if not self.connected:
                 answer.set_exception(PortError(f"{self.settings.port} went away"))
