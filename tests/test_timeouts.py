@@ -427,3 +427,23 @@ def test_quantile_is_the_nearest_rank_whatever_the_shortcut() -> None:
         for q in (50, 90, 99, 100):
             rank = max(1, -(-n * q // 100))
             assert quantile(data, q) == sorted(data)[int(rank) - 1], (n, q)
+
+
+def test_the_estimators_sorted_window_gives_the_percentile_of_its_last_samples() -> None:
+    """The slow end is kept sorted as samples come and go; it must stay what the
+    percentile of the window says, through answers and late replies, past the window."""
+    import random
+
+    from rtupoll.jobs.timeouts import QUANTILE, WINDOW
+
+    rnd = random.Random(11)
+    est = TimeoutEstimator(0.5, floor=0.001)
+    for i in range(3 * WINDOW + 7):
+        if i % 17 == 5:
+            est.late(rnd.choice([None, rnd.uniform(0.0, 0.4)]))
+        else:
+            est.answered(rnd.choice([rnd.uniform(-0.01, 0.3), 0.05]))  # ties too
+        slow = quantile(est.samples, QUANTILE)
+        assert slow is not None
+        assert est.target() == min(est.ceiling, max(est.floor, MARGIN * slow)), i
+    assert len(est.samples) == WINDOW

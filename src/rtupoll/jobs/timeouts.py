@@ -30,6 +30,7 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
 
 from __future__ import annotations
 
+import bisect
 import heapq
 from collections import deque
 from collections.abc import Collection
@@ -51,11 +52,16 @@ def quantile(data: Collection[float], q: float) -> float | None:
     """Nearest-rank percentile (q in 0..100), None without data."""
     if not data:
         return None
-    rank = int(max(1, -(-len(data) * q // 100)))
+    rank = _rank(len(data), q)
     top = len(data) - rank + 1  # it is the top-th largest: for the slow end, 1 or 2
     if top <= 4:
         return heapq.nlargest(top, data)[-1]
     return sorted(data)[rank - 1]
+
+
+def _rank(n: int, q: float) -> int:
+    """The nearest rank (1-based, in ascending order) of the q-th percentile of n values."""
+    return int(max(1, -(-n * q // 100)))
 
 
 @dataclass
@@ -66,6 +72,7 @@ class TimeoutEstimator:
     floor: float = FLOOR
     ceiling: float = CEILING
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    _sorted: list[float] = field(default_factory=list, init=False, repr=False)  # samples, sorted
     learned: bool = False  # some evidence has moved it from the start
     late_replies: int = 0
     current: float = 0.0
@@ -85,12 +92,21 @@ class TimeoutEstimator:
 
     def target(self) -> float | None:
         """What the reply times alone call for (None before any)."""
-        slow = quantile(self.samples, QUANTILE)
-        return None if slow is None else self._clamp(MARGIN * slow)
+        if not self._sorted:
+            return None
+        slow = self._sorted[_rank(len(self._sorted), QUANTILE) - 1]  # = quantile(samples)
+        return self._clamp(MARGIN * slow)
+
+    def _sample(self, reply_time: float) -> None:
+        """Into the window; kept sorted as well, so the slow end is a lookup per answer."""
+        if len(self.samples) == self.samples.maxlen:
+            del self._sorted[bisect.bisect_left(self._sorted, self.samples[0])]
+        self.samples.append(reply_time)
+        bisect.insort(self._sorted, reply_time)
 
     def answered(self, reply_time: float) -> None:
         """An answer (or an exception reply) came ``reply_time`` s after the request."""
-        self.samples.append(max(0.0, reply_time))
+        self._sample(max(0.0, reply_time))
         self.learned = True
         target = self.target()
         assert target is not None
@@ -107,7 +123,7 @@ class TimeoutEstimator:
         self.learned = True
         grown = self.current * LATE_GROWTH
         if reply_time is not None:
-            self.samples.append(reply_time)
+            self._sample(reply_time)
             grown = max(grown, MARGIN * reply_time)
         self.current = self._clamp(max(self.current, grown))
 
