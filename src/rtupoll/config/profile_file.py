@@ -16,8 +16,8 @@ import yaml
 
 from rtupoll.config.compiled import Source
 from rtupoll.config.library import find_parent
-from rtupoll.config.yamlsrc import Node, parse, read_bytes
-from rtupoll.errors import EncodeError, ProfileError
+from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
+from rtupoll.errors import EncodeError
 from rtupoll.model.codec import ByteOrder, DataType, Layout, bits_range, encode
 from rtupoll.model.profile import (
     AddressChange,
@@ -133,13 +133,12 @@ def _merged(path: Path, seen: tuple[Path, ...], sources: list[Source]
     field of the same name replaces the parent's in place, and ``without`` drops some.
     """
     data = read_bytes(path)
-    root = Node(parse(data, str(path)), str(path), "", ProfileError)
+    root = from_bytes(data, str(path))
     top = root.mapping(_TOP_KEYS)
     own = top["fields"].sequence() if "fields" in top else []
     if "extends" not in top:
-        for key in ("without",):
-            if key in top:
-                raise top[key].fail("only a profile that 'extends' another drops fields")
+        if "without" in top:
+            raise top["without"].fail("only a profile that 'extends' another drops fields")
         sources.append(Source(path, data, ""))
         return root, top, own
     parent_id = top["extends"].text()

@@ -198,10 +198,13 @@ def _closest(key: str, allowed: set[str]) -> str | None:
 
 def load(path: Path, error: type[ProfileError] = ProfileError) -> Node:
     """Parse a YAML file into a ``Node``; every problem carries the file and a line."""
-    name = str(path)
-    data = read_bytes(path, error)
-    root = parse(data, name, error)
-    return Node(root, name, "", error)
+    return from_bytes(read_bytes(path, error), str(path), error)
+
+
+def from_bytes(data: bytes, name: str, error: type[ProfileError] = ProfileError) -> Node:
+    """The root ``Node`` of the file ``name`` that held ``data`` (``load`` once the bytes
+    are read: for a reader that keeps them)."""
+    return Node(parse(data, name, error), name, "", error)
 
 
 def read_bytes(path: Path, error: type[ProfileError] = ProfileError) -> bytes:

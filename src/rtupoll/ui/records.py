@@ -64,7 +64,7 @@ def record(device: str, profile: str, address: int, fv: FieldValue) -> dict[str,
     }
 
 
-def failed_record(device: str, profile: str, address: int, field: str, unit: str,
+def failed_record(device: str, profile: str, address: int, field: str, unit: str
                   ) -> dict[str, Any]:
     """A reading that did not happen: no value (why: ``poll_record``'s status and error)."""
     return {"device": device, "profile": profile, "address": address, "field": field,
