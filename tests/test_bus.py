@@ -28,6 +28,7 @@ import pytest
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import (
+    Framing,
     Table,
     exception_response,
     read_request,
@@ -402,6 +403,22 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
     assert len(peer.requests) == len(peer.replies) == 24
     gaps = [req[0] - rep[0] for req, rep in zip(peer.requests[1:], peer.replies, strict=False)]
     assert min(gaps) >= bus.framing.silence  # never before the silence, never overlapping
+
+
+def test_a_byte_during_the_silence_starts_it_again(peer: Responder) -> None:
+    """A stray byte 0.8 ms after each reply, while the bus sleeps the rest of the 1.75 ms
+    silence: the next request still waits a whole silence after the last byte."""
+    n = 20
+    peer.scripts = [lambda req, normal: [(0.0, normal), (0.0008, b"\x00")]] * n
+
+    async def go() -> list[tuple[int, ...]]:
+        async with fast(peer.path) as bus:
+            return [await bus.read(1, Table.HOLDING, a, 2, timeout=0.2) for a in range(n)]
+    assert run(go()) == [values(a, 2) for a in range(n)]
+    heard = [t for t, _ in peer.replies]
+    for sent, _ in peer.requests[1:]:
+        last = max(t for t in heard if t < sent)
+        assert sent - last >= Framing(115200).silence
 
 
 def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Responder) -> None:

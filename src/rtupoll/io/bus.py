@@ -18,7 +18,8 @@ frames, the late-reply accounting), garbled replies known at once -- is
   timer callback (the waiting task is woken only by the answer). asyncio times in whole
   milliseconds and would overshoot, so the last 2 ms at most are slept with
   ``time.sleep``: no CPU, one wake-up, and the event loop held for that long (the
-  3.5-character silence itself above 19200 baud, 1.75 ms).
+  3.5-character silence itself above 19200 baud, 1.75 ms). Bytes that arrived
+  meanwhile are taken in before the frame goes, and the silence starts again.
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
@@ -378,7 +379,7 @@ class Bus(LineEvidence):
             raise PortError(f"{self.settings.port} is not open")
         loop = asyncio.get_running_loop()
         answer: asyncio.Future[bytes] = loop.create_future()
-        timer: asyncio.TimerHandle | None = None
+        timer: asyncio.Handle | None = None
 
         def send() -> None:
             nonlocal timer
@@ -388,6 +389,9 @@ class Bus(LineEvidence):
                 return
             if delay > 0:
                 time.sleep(delay)
+                if self._took_input():  # bytes came meanwhile: the silence starts again
+                    timer = loop.call_soon(send)
+                    return
             if not self.connected:
                 answer.set_exception(PortError(f"{self.settings.port} went away"))
                 return
@@ -411,6 +415,20 @@ class Bus(LineEvidence):
             if timer is not None:
                 timer.cancel()
             self._answer = None
+
+    def _took_input(self) -> bool:
+        """Whether bytes arrived while the event loop slept; they go to the line now, so
+        the silence is counted from them. (Serial ports: a gateway keeps the silence on
+        its own line.)"""
+        transport: Any = self._port.transport if self._port is not None else None
+        port = getattr(transport, "sync_serial", None)
+        try:
+            if port is None or not port.in_waiting:
+                return False
+        except Exception:  # pyserial's SerialException: the write that follows fails too
+            return False
+        transport.intern_read_ready()
+        return True
 
     def _send(self, request: bytes) -> None:
         """Put ``request`` on the wire now. pymodbus's serial transport would only queue
