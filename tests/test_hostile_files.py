@@ -30,7 +30,7 @@ from rtupoll.config.library import load_profile
 from rtupoll.config.profile_file import MAX_FIELDS
 from rtupoll.config.site import load_site
 from rtupoll.config.yamlsrc import MAX_BYTES
-from rtupoll.errors import ProfileError
+from rtupoll.errors import Interrupted, ProfileError
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
 from rtupoll.ui.records import CsvWriter, finite, json_safe, nonfinite_text, to_json
@@ -488,6 +488,11 @@ def test_an_early_signal_never_shows_our_traceback(sig: signal.Signals) -> None:
     # land in Python's own start-up (how early depends on the machine's load), which
     # ends the process its own way, but never with a traceback through rtupoll's code
     assert codes[-1] == 130, codes
+
+
+def test_the_early_handler_exits_as_interrupted_does() -> None:
+    """The early handler runs before errors.py is imported, so it has its own copy."""
+    assert Interrupted.exit_code == rtupoll_cli.EARLY_EXIT
 
 
 def test_an_error_raised_while_handling_ctrl_c_counts_as_interrupted() -> None:

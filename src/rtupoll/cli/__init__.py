@@ -16,7 +16,9 @@ import os
 import sys
 from types import FrameType
 
-from rtupoll.errors import Interrupted
+# errors.Interrupted.exit_code, for the handler below: it is in place before rtupoll's own
+# modules are imported, errors.py among them (tests/test_hostile_files.py checks the two)
+EARLY_EXIT = 130
 
 
 def _interrupted_early(signum: int, frame: FrameType | None) -> None:
@@ -25,7 +27,7 @@ def _interrupted_early(signum: int, frame: FrameType | None) -> None:
     instead would interrupt an import half-way, and importlib then shows its own traceback."""
     with contextlib.suppress(OSError):
         os.write(2, b"rtupoll: interrupted\n")
-    os._exit(Interrupted.exit_code)
+    os._exit(EARLY_EXIT)
 
 
 # The console script imports this module first: from here on an early Ctrl-C or SIGTERM
@@ -41,7 +43,7 @@ from typing import Any, TextIO  # noqa: E402
 
 import click  # noqa: E402
 
-from rtupoll.errors import RtupollError, UsageError  # noqa: E402
+from rtupoll.errors import Interrupted, RtupollError, UsageError  # noqa: E402
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
