@@ -81,15 +81,40 @@ def import_(file: Path, out: Path) -> None:
         click.echo(line, err=True)
     if not result.profiles:
         raise UsageError(f"{file}: nothing could be converted")
-    out.mkdir(parents=True, exist_ok=True)
-    for pid, text in result.profiles.items():
-        (out / f"{pid}.yaml").write_text(text, encoding="utf-8")
-    (out / "site.yaml").write_text(result.site, encoding="utf-8")
-    for pid in result.profiles:
-        load_profile(out / f"{pid}.yaml")  # what was written must load
+    _write_checked(file, result.profiles, result.site, out)
     click.echo(f"{len(result.profiles)} profile(s), {result.converted} field(s) written to "
                f"{out}/; {len(result.report)} note(s) above; poll with: rtupoll poll "
                f"--config {out / 'site.yaml'}")
+
+
+def _write_checked(source: Path, profiles: dict[str, str], site: str, out: Path) -> None:
+    """Write the import where it is meant to go only once every file of it loads: a
+    profile the import got wrong is its bug, reported against the source, never left
+    behind half-written."""
+    import shutil
+    import tempfile
+
+    from rtupoll.config.site import load_site
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".rtupoll-import-", dir=out.parent))
+    try:
+        for pid, text in profiles.items():
+            (tmp / f"{pid}.yaml").write_text(text, encoding="utf-8")
+        (tmp / "site.yaml").write_text(site, encoding="utf-8")
+        try:
+            for pid in profiles:
+                load_profile(tmp / f"{pid}.yaml")
+            load_site(tmp / "site.yaml")
+        except ProfileError as exc:
+            what = f"{exc.path}: {exc.message}" if exc.path else exc.message
+            raise ProfileError(f"the import of this file made a profile rtupoll cannot load "
+                               f"({what}); nothing was written", file=str(source)) from None
+        out.mkdir(parents=True, exist_ok=True)
+        for item in tmp.iterdir():
+            shutil.move(str(item), out / item.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def matches(p: Profile, text: str) -> str:
@@ -255,7 +280,9 @@ def _describe(f: Field) -> str:
     tags += [f"variant {f.since}+"] if f.since else []
     tags += ["public source"] if f.source == "public" else []
     tags += ["counter"] if f.counter else []
-    tags += [f"every {f.interval:g} s"] if f.interval else []
+    if f.interval:
+        tags += ["read once at start" if f.interval == float("inf") else
+                 f"every {f.interval:g} s"]
     tags += [f"{f.precision} decimals"] if f.precision is not None else []
     tags += [f"{_code(k, f)} = {c.name}" for k, c in f.sentinels.items()]
     return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()

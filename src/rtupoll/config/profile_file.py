@@ -8,6 +8,7 @@ parsed, so ``compiled`` can tell later whether the result still holds. Only
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TypeVar
@@ -485,6 +486,8 @@ def _bits_text(shift: int, width: int) -> str:
 
 
 def _interval(node: Node) -> float:
+    if node.value() == "once":  # read at start, then never again (an import's scan_interval 0)
+        return math.inf
     seconds = node.number()
     if not 0.05 <= seconds <= 86400:
         raise node.fail(f"{seconds:g} s is outside 0.05..86400 s")

@@ -91,33 +91,104 @@ def import_telegraf(path: Path) -> Imported:
     if not isinstance(plugins, list) or not plugins:
         raise ConfigError("no [[inputs.modbus]] section", file=str(path), line=1)
     lines = _Lines(path)
-    interval = _duration(str(data.get("agent", {}).get("interval", "10s")))
+    agent = _duration(str(data.get("agent", {}).get("interval", "10s")))
     report: list[str] = []
     hubs: list[Hub] = []
     converted = 0
-    nreq = 0
+    seen = {"request": 0, "metric": 0}  # headers of each kind met so far, for their lines
     for k, plugin in enumerate(plugins):
         where = f"inputs.modbus[{k}]"
         line = lines.header("inputs.modbus", k)
-        requests = plugin.get("request", [])
         hub = _hub(plugin, lines, line, where, report)
-        if plugin.get("configuration_type", "register") != "request":
-            report.append(lines.at(line, where, "not converted: configuration_type "
-                                                "\"register\" (convert it to request style)"))
+        interval = agent
+        if "interval" in plugin:  # the plugin's own collection interval wins over [agent]'s
+            interval = _duration(str(plugin["interval"]))
+        style = str(plugin.get("configuration_type", "register"))
+        if style not in _STYLES:
+            report.append(lines.at(line, where, f"not converted: configuration_type "
+                                                f"{style!r} (Telegraf knows register, "
+                                                f"request and metric)"))
             hub = None
-        for r, request in enumerate(requests):
-            rline = lines.header("inputs.modbus.request", nreq)
-            nreq += 1
-            if hub is not None:
-                converted += _request(hub, request, lines, rline,
-                                      f"{where}.request[{r}]", report, interval)
+        groups: list[tuple[dict[str, Any], int, str]] = []
+        if style in seen:
+            for r, group in enumerate(plugin.get(style, [])):
+                groups.append((group, lines.header(f"inputs.modbus.{style}", seen[style]),
+                               f"{where}.{style}[{r}]"))
+                seen[style] += 1
+        elif style == "register":
+            groups.append((_register_style(plugin), line, where))
         if hub is not None:
+            for group, gline, gwhere in groups:
+                converted += _group(hub, group, style, lines, gline, gwhere, report, interval)
             hubs.append(hub)
+            _rest(plugin, _PLUGIN_KEYS | {style}, _PLUGIN_NOTES, lines, line, where, report)
     profiles = {dev.id: profile_text(dev, hub, path, ORIGIN)
                 for hub in hubs for dev in hub.devices.values() if dev.fields}
-    prefix = len(str(path)) + 1
-    report.sort(key=lambda text: int(text[prefix:].split(":", 1)[0]))
+    report.sort(key=_file_order)
     return Imported(profiles, site_text(hubs, path, ORIGIN), report, converted)
+
+
+_STYLES = ("register", "request", "metric")
+_PLUGIN_KEYS = {"name", "controller", "transmission_mode", "baud_rate", "data_bits",
+                "parity", "stop_bits", "configuration_type", "interval", "timeout",
+                "slave_id", "coils", "discrete_inputs", "holding_registers",
+                "input_registers"}
+_PLUGIN_NOTES = {
+    "busy_retries": "rtupoll retries every unanswered request (the device's retries)",
+    "busy_retries_wait": "rtupoll waits the line's silence between tries",
+    "pause_between_requests": "rtupoll keeps the 3.5-character silence between frames and "
+                              "learns each device's timing; a device that needs more gets "
+                              "limits.turnaround in its profile",
+    "pause_after_connect": "rtupoll needs no pause after opening the port",
+    "close_connection_after_gather": "rtupoll keeps the port open",
+    "optimization": "rtupoll plans its own block reads from the profile's limits",
+    "optimization_max_register_fill": "rtupoll plans its own block reads",
+    "debug_connection": "rtupoll's -v logs every frame",
+    "workarounds": "Telegraf's device workarounds have no rtupoll counterpart",
+    "tags": "rtupoll tags every record with the device's name, profile and address",
+    "fieldpass": "Telegraf drops fields after reading; rtupoll polls every imported field "
+                 "(remove the ones you do not want from the profile or the site file)",
+    "fielddrop": "Telegraf drops fields after reading; rtupoll polls every imported field",
+    "fieldinclude": "Telegraf drops fields after reading; rtupoll polls every imported "
+                    "field",
+    "fieldexclude": "Telegraf drops fields after reading; rtupoll polls every imported "
+                    "field",
+    "name_override": "rtupoll's records name the device, not a measurement",
+    "name_prefix": "rtupoll's records name the device, not a measurement",
+    "name_suffix": "rtupoll's records name the device, not a measurement",
+    "measurement": "rtupoll's records name the device, not a measurement",
+}
+_GROUP_KEYS = {"slave_id", "byte_order", "register", "fields"}
+_FIELD_KEYS = {"address", "name", "type", "scale", "omit", "length", "bit", "register",
+               "output", "byte_order", "data_type"}
+
+
+def _file_order(note: str) -> tuple[str, int]:
+    m = re.match(r"(.*?):(\d+): ", note)
+    return (m[1], int(m[2])) if m else (note, 0)
+
+
+def _rest(table: dict[str, Any], known: set[str], why: dict[str, str], lines: _Lines,
+          line: int, where: str, report: list[str], name: str = "") -> None:
+    """List every key of a table that did not carry over (nothing dropped silently)."""
+    for key in table:
+        if key in known:
+            continue
+        kline = lines.after(line, r"^\s*" + re.escape(key) + r"\s*=") if name == "" else line
+        who = f"{name!r}: " if name else ""
+        reason = why.get(key, "rtupoll has no such setting")
+        report.append(lines.at(kline, f"{where}.{key}", f"not carried over: {who}{key} "
+                                                         f"({reason})"))
+
+
+def _register_style(plugin: dict[str, Any]) -> dict[str, Any]:
+    """The original style's four lists as one group of fields, each with its table."""
+    fields = []
+    for key, table in (("coils", "coil"), ("discrete_inputs", "discrete"),
+                       ("holding_registers", "holding"), ("input_registers", "input")):
+        for fld in plugin.get(key, []):
+            fields.append({**fld, "register": table, "_list": key})
+    return {"slave_id": plugin.get("slave_id", 1), "fields": fields, "_style": "register"}
 
 
 def _hub(plugin: dict[str, Any], lines: _Lines, line: int, where: str,
@@ -129,14 +200,19 @@ def _hub(plugin: dict[str, Any], lines: _Lines, line: int, where: str,
               "parity": str(plugin.get("parity", "N")).upper(),
               "bytesize": int(plugin.get("data_bits", 8)),
               "stopbits": int(plugin.get("stop_bits", 1))}
+    hub = None
     if controller.startswith("file://") and mode in ("RTU", "AUTO"):
-        return Hub(name, controller[len("file://"):], serial)
-    if controller.startswith("tcp://") and mode == "RTUOVERTCP":
-        return Hub(name, controller, serial)
-    report.append(lines.at(line, where, f"not converted: {name!r} uses {controller} in "
-                                        f"{mode} mode; rtupoll speaks RTU, on a serial "
-                                        f"port or an RTU-over-TCP gateway"))
-    return None
+        hub = Hub(name, controller[len("file://"):], serial)
+    elif controller.startswith("tcp://") and mode == "RTUOVERTCP":
+        hub = Hub(name, controller, serial)
+    if hub is None:
+        report.append(lines.at(line, where, f"not converted: {name!r} uses {controller} in "
+                                            f"{mode} mode; rtupoll speaks RTU, on a serial "
+                                            f"port or an RTU-over-TCP gateway"))
+        return None
+    if "timeout" in plugin:  # Telegraf's wait for each reply: rtupoll's longest wait
+        hub.device_settings["timeout_ceiling"] = _duration(str(plugin["timeout"]))
+    return hub
 
 
 def _duration(text: str) -> float:
@@ -148,58 +224,114 @@ def _duration(text: str) -> float:
     return int(value) if value.is_integer() else value
 
 
-def _request(hub: Hub, request: dict[str, Any], lines: _Lines, line: int, where: str,
-             report: list[str], interval: float) -> int:
-    slave = int(request.get("slave_id", 1))
-    table = _TABLES.get(str(request.get("register", "holding")))
-    order = str(request.get("byte_order", "ABCD")).upper()
-    if table is None or order not in ("ABCD", "BADC", "CDAB", "DCBA"):
+# the original style's byte orders: two letters for one register, eight for four
+_ORDERS = {"AB": "ABCD", "BA": "BADC", "ABCDEFGH": "ABCD", "HGFEDCBA": "DCBA",
+           "BADCFEHG": "BADC", "GHEFCDAB": "CDAB"}
+_REGISTER_TYPES = {"FLOAT32-IEEE": "f32", "FLOAT64-IEEE": "f64", "FLOAT16-IEEE": "FLOAT16"}
+_FIXED = {("FIXED", 1): "i16", ("FIXED", 2): "i32", ("FIXED", 4): "i64",
+          ("UFIXED", 1): "u16", ("UFIXED", 2): "u32", ("UFIXED", 4): "u64"}
+
+
+def _group(hub: Hub, group: dict[str, Any], style: str, lines: _Lines, line: int,
+           where: str, report: list[str], interval: float) -> int:
+    """One request (or metric, or the original style's lists) of one slave."""
+    slave = int(group.get("slave_id", 1))
+    order = _ORDERS.get(str(group.get("byte_order", "ABCD")).upper(),
+                        str(group.get("byte_order", "ABCD")).upper())
+    default_table = _TABLES.get(str(group.get("register", "holding")))
+    if default_table is None or order not in ("ABCD", "BADC", "CDAB", "DCBA"):
         report.append(lines.at(line, where, f"not converted: register "
-                                            f"{request.get('register')!r} / byte_order "
-                                            f"{order!r}"))
+                                            f"{group.get('register')!r} / byte_order "
+                                            f"{group.get('byte_order')!r}"))
         return 0
     dev = hub.devices.setdefault(slave, Device(hub.name, slave, prefix="telegraf"))
     made = 0
-    for i, fld in enumerate(request.get("fields", [])):
+    for i, fld in enumerate(group.get("fields", [])):
         name = str(fld.get("name", f"field_{i}"))
         fline = lines.after(line, r"name\s*=\s*\"" + re.escape(name) + "\"")
-        fwhere = f"{where}.fields[{i}]"
+        fwhere = (f"{where}.{fld['_list']}" if "_list" in fld else f"{where}.fields") + f"[{i}]"
         if fld.get("omit"):
             continue
-        f: dict[str, Any] = {"name": unique(slug(name, "_"), dev), "table": table,
-                             "address": int(fld.get("address", 0))}
-        words = 1
-        if table in ("coil", "discrete"):
-            f["type"] = "bool"
-        else:
-            dtype = str(fld.get("type", "INT16")).upper()
-            t = _TYPES.get(dtype)
-            if t is None:
-                report.append(lines.at(fline, fwhere, f"not converted: {name!r}: type "
-                                                      f"{dtype} has no rtupoll equivalent"))
-                continue
-            f["type"] = t
-            if dtype == "BIT":
-                f["address"] = f"{f['address']}:{int(fld.get('bit', 0))}:1"
-            elif t in ("i8", "u8"):
-                f["byte"] = "low" if dtype.endswith("L") else "high"
-            elif t == "string":
-                words = int(fld.get("length", 1))
-                f["length"] = 2 * words
-            else:
-                words = DataType(t).words
-                if words > 1 or order != "ABCD":
-                    f["order"] = order
-            scale = float(fld.get("scale", 1.0))
-            if scale != 1:
-                f["scale"] = int(scale) if scale.is_integer() else scale
+        table = _TABLES.get(str(fld.get("register", default_table)), default_table)
+        forder = _ORDERS.get(str(fld.get("byte_order", order)).upper(),
+                             str(fld.get("byte_order", order)).upper())
+        done = _field(fld, name, table, forder, style, dev, lines, fline, fwhere, report)
+        if done is None:
+            continue
+        f, words = done
         clash = overlap(f, words, dev)
         if clash:
             report.append(lines.at(fline, fwhere, f"not converted: {name!r} reads the "
                                                   f"registers of {clash!r}"))
             continue
+        _rest({k: v for k, v in fld.items() if not k.startswith("_")}, _FIELD_KEYS,
+              _PLUGIN_NOTES, lines, fline, fwhere, report, name)
         f["_words"] = words
         dev.fields.append(f)
-        dev.intervals.append(interval)  # the agent's collection interval
+        dev.intervals.append(interval)
         made += 1
+    _rest({k: v for k, v in group.items() if not k.startswith("_")}, _GROUP_KEYS,
+          _PLUGIN_NOTES, lines, line, where, report)
     return made
+
+
+def _field(fld: dict[str, Any], name: str, table: str, order: str, style: str, dev: Device,
+           lines: _Lines, line: int, where: str,
+           report: list[str]) -> tuple[dict[str, Any], int] | None:
+    """One Telegraf field as a profile field and its register count (None: reported)."""
+    address = fld.get("address", 0)
+    if isinstance(address, list):  # the original style lists the registers it reads
+        if not address or address != list(range(address[0], address[0] + len(address))):
+            report.append(lines.at(line, where, f"not converted: {name!r}: registers "
+                                                f"{address} are not consecutive"))
+            return None
+        count, address = len(address), address[0]
+    else:
+        count = 0
+    f: dict[str, Any] = {"name": unique(slug(name, "_"), dev), "table": table,
+                         "address": int(address)}
+    if slug(name, "_") != name:
+        f["description"] = name
+    if table in ("coil", "discrete"):
+        f["type"] = "bool"
+        return f, 1
+    dtype = str(fld.get("data_type" if style == "register" else "type",
+                        "INT16")).upper()
+    t = _FIXED.get((dtype if dtype != "FLOAT32" else "UFIXED", count or 1)) \
+        if style == "register" and dtype in ("FIXED", "UFIXED", "FLOAT32") else \
+        _REGISTER_TYPES.get(dtype) or _TYPES.get(dtype)
+    if t is None or t == "FLOAT16":
+        report.append(lines.at(line, where, f"not converted: {name!r}: type {dtype} has "
+                                            f"no rtupoll equivalent"))
+        return None
+    f["type"] = t
+    words = 1
+    if dtype == "BIT":
+        f["address"] = f"{f['address']}:{int(fld.get('bit', 0))}:1"
+    elif t in ("i8", "u8"):
+        f["byte"] = "low" if dtype.endswith("L") else "high"
+    elif t == "string":
+        words = int(fld.get("length", count or 1))
+        f["length"] = 2 * words
+        if order in ("BADC", "DCBA"):
+            f["order"] = "BADC"
+    else:
+        words = DataType(t).words
+        if words > 1 or order != "ABCD":
+            f["order"] = order if words > 1 else ("BADC" if order in ("BADC", "DCBA")
+                                                  else "ABCD")
+    if count and count != words:
+        report.append(lines.at(line, where, f"not converted: {name!r}: {dtype} takes "
+                                            f"{words} register(s), the address lists "
+                                            f"{count}"))
+        return None
+    scale = float(fld.get("scale", 1.0))
+    if scale not in (0.0, 1.0):  # Telegraf treats a scale of 0 as no scaling
+        f["scale"] = int(scale) if scale.is_integer() else scale
+    output = str(fld.get("output", "")).upper()
+    if output in ("INT64", "UINT64") and t != "string":
+        f["precision"] = 0
+        report.append(lines.at(line, where, f"{name!r}: output {output}: Telegraf stores "
+                                            f"a whole number; the profile shows the value "
+                                            f"with precision 0"))
+    return f, words

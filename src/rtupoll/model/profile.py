@@ -105,7 +105,8 @@ class Field:
     # stored values (before scale) that mean "no reading": "not available", "sensor error"
     sentinels: Mapping[int | float, Choice] = dataclasses.field(default_factory=dict)
     precision: int | None = None  # decimal places the value is rounded to
-    interval: float | None = None  # seconds between reads when polled (None: the device's)
+    interval: float | None = None  # seconds between reads when polled (None: the device's;
+    #                                inf: read once at start, ``interval: once``)
     # a total that only grows (energy, operating hours): outputs may mark it
     # ``total_increasing`` (Home Assistant) or as a counter (Prometheus)
     counter: bool = False
