@@ -144,8 +144,7 @@ def test_a_telegraf_request_style_configuration_converts_too(tmp_path: Path) -> 
         [f"{TELEGRAF}:23", "inputs.modbus[0].request[0].fields[3]"],  # overlaps a u32
         [f"{TELEGRAF}:33", "inputs.modbus[0].request[1].fields[3]"],  # FLOAT16
         [f"{TELEGRAF}:46", "inputs.modbus[1]"],                       # Modbus TCP
-        [f"{TELEGRAF}:56", "inputs.modbus[2]"],                       # register style
-    ]
+    ]                                                   # (the register style converts)
     meter = load_profile(tmp_path / "telegraf-plant-bus-1.yaml")
     assert meter.names() == ["voltage", "current", "energy_import"]
     assert meter.field("voltage").layout.order is ByteOrder.CDAB
@@ -158,4 +157,5 @@ def test_a_telegraf_request_style_configuration_converts_too(tmp_path: Path) -> 
     site = load_site(tmp_path / "site.yaml")
     assert {(b.port, b.baudrate, b.parity, d.address, d.interval)
             for b, d in site.devices()} == {("/dev/ttyUSB0", 19200, "E", 1, 30),
-                                            ("/dev/ttyUSB0", 19200, "E", 2, 30)}
+                                            ("/dev/ttyUSB0", 19200, "E", 2, 30),
+                                            ("/dev/ttyUSB1", 9600, "N", 1, 30)}

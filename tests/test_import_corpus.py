@@ -19,7 +19,6 @@ from typing import Any
 
 import pytest
 import yaml
-
 from import_peers import (
     TG_FORMATS,
     Responder,
@@ -95,7 +94,7 @@ def ha_entities() -> list[dict[str, Any]]:
     out.append({"conf": {"name": "Счётчик ГВС", "slave": 2, "address": 2,
                          "input_type": "input", "data_type": "uint32",
                          "unit_of_measurement": "m³"}, "raw": 123456})
-    out.append({"conf": {"name": "Счётчик ХВС", "slave": 2, "address": 4,
+    out.append({"conf": {"name": "Счётчик ХВС", "slave": 2, "address": 4,  # noqa: RUF001
                          "input_type": "input", "data_type": "uint32",
                          "unit_of_measurement": "m³"}, "raw": 654321})
     out.append({"conf": {"name": "Serial number", "slave": 2, "address": 10,
@@ -216,7 +215,7 @@ def test_the_form_before_2021_converts_with_the_same_meaning(tmp_path: Path) -> 
             device.set(3, fc, address, ha_encode(raw, dtype, swap, conf["count"]))
         device.set(3, 1, 7, [1])
         got = poll_site(out, device)
-    for name, (conf, fc, address, raw) in confs.items():
+    for name, (conf, _fc, _address, raw) in confs.items():
         dtype = {"float": "float32", "uint": "uint32", "int": "int16"}[conf["data_type"]]
         regs = ha_encode(raw, dtype, "word" if conf.get("reverse_order") else "none",
                          conf["count"])
