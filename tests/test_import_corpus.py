@@ -290,7 +290,12 @@ def tg_config(tmp: Path) -> Path:
                  '      { address = 1, name = "flag", type = "BIT", bit = 5 },\n'
                  '      { address = 2, name = "plain", type = "UINT16", scale = 0.0 },\n'
                  '      { address = 3, name = "whole", type = "UINT16", scale = 0.5, '
-                 'output = "INT64" },\n    ]\n')
+                 'output = "INT64" },\n'
+                 '      { address = 4, name = "serial", type = "STRING", length = 4 },\n'
+                 '    ]\n')
+    lines.append('  [[inputs.modbus.request]]\n    slave_id = 18\n    register = "holding"\n'
+                 '    byte_order = "DCBA"\n    fields = [\n'
+                 '      { address = 0, name = "model", type = "STRING", length = 3 },\n    ]\n')
     lines.append('[[inputs.modbus]]\n  name = "Probe"\n  controller = "file:///dev/ttyUSB1"\n'
                  '  configuration_type = "metric"\n'
                  '  [[inputs.modbus.metric]]\n    slave_id = 16\n    byte_order = "CDAB"\n'
@@ -315,6 +320,12 @@ def tg_config(tmp: Path) -> Path:
     return path
 
 
+def _string_regs(text: bytes, order: str) -> list[int]:
+    """Telegraf's strings: each register in the request's 16-bit byte order."""
+    pairs = [text[i:i + 2] for i in range(0, len(text), 2)]
+    return [int.from_bytes(p if order == "AB" else p[::-1], "big") for p in pairs]
+
+
 def test_a_telegraf_corpus_reads_what_telegraf_shows(tmp_path: Path) -> None:
     config = tg_config(tmp_path)
     out = tmp_path / "out"
@@ -334,10 +345,12 @@ def test_a_telegraf_corpus_reads_what_telegraf_shows(tmp_path: Path) -> None:
             device.set(f["slave"], 3, f["address"], regs)
             shown = tg_decode(regs, fmt, f["order"]) * (f["scale"] or 1)
             expected[f"meters-{f['slave']}", f["name"].replace(" ", "_")] = shown
-        device.set(15, 4, 0, [0xF2A5, 1 << 5, 321, 7])
+        device.set(15, 4, 0, [0xF2A5, 1 << 5, 321, 7, *_string_regs(b"SN-0042\0", "AB")])
+        device.set(18, 3, 0, _string_regs(b"EM24X\0", "BA"))
         expected.update({("meters-15", "hi"): 0xF2, ("meters-15", "lo"): -0x5B,
                          ("meters-15", "flag"): 1, ("meters-15", "plain"): 321,
-                         ("meters-15", "whole"): 3.5})
+                         ("meters-15", "whole"): 3.5, ("meters-15", "serial"): "SN-0042",
+                         ("meters-18", "model"): "EM24X"})
         device.set(16, 4, 0, tg_encode(-3.25, "f", "CDAB"))
         device.set(16, 3, 4, tg_encode(-1234, "h", "CDAB"))
         expected.update({("probe-16", "temp"): -3.25, ("probe-16", "level"): -12.34})
