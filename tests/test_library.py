@@ -136,6 +136,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
       "battery_temperature": 10, "battery_temperature_below_zero": "YES"}),
     # DTSU666: floats in table units: 2307.0 x 0.1 = 230.7 V
     ("chint-dtsu666", Table.HOLDING, 0x2006, _reply(1, 3, _f32(2307.0)), {"voltage_l1": 230.7}),
+    ("chint-dtsu666-e4000", Table.HOLDING, 0x401E, _reply(1, 3, _f32(9182.5)),
+     {"import_active_energy": 9182.5}),
     # iEM3155: Int64 energy "not available" is 0x8000000000000000
     ("schneider-iem3155", Table.HOLDING, 3203, _reply(1, 3, [0x8000, 0, 0, 0]),
      {"import_active_energy": "NOT_AVAILABLE"}),
