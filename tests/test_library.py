@@ -97,6 +97,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # the XY-MD02 sheet's own example: 01 04 00 01 00 02 -> 30.5 °C, 54.6 %RH
     ("xy-md02", Table.INPUT, 1, bytes.fromhex("01 04 04 01 31 02 22 2A CE"),
      {"temperature": 30.5, "humidity": 54.6}),
+    ("md02", Table.HOLDING, 0x0100, _reply(1, 3, [7, 2]),
+     {"slave_address": 7, "baud_code": "BAUD_9600"}),
     # the PZEM manual's read example (01 04 00 00 00 0A 70 0D): 220.0 V, 1.000 A, 220.0 W,
     # 0 Wh, 50.0 Hz, PF 1.00, no alarm (32-bit values low word first)
     ("peacefair-pzem016", Table.INPUT, 0,
