@@ -66,6 +66,8 @@ def _decoded(pid: str, stream: str) -> tuple[dict[str, Any], set[str]]:
             if f["value"] is not None:
                 values[f["field"]] = f["text"] if isinstance(f["value"], str) or \
                     (f["text"] and not _is_number(f["text"])) else f["value"]
+            elif f["text"] and f["raw"]:  # a sentinel: no value, its name
+                values[f["field"]] = f["text"]
     return values, named
 
 
