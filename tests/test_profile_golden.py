@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -114,3 +115,13 @@ def test_every_library_profile_names_its_documents(pid: str) -> None:
     assert p.provenance.given, f"{pid} has no provenance"
     if p.provenance.verified:
         assert p.provenance.sources
+
+
+def test_the_docs_list_every_profiles_level_as_its_file_says() -> None:
+    text = (Path(__file__).parents[1] / "docs" / "profiles.md").read_text(encoding="utf-8")
+    section = text.split("### Verification level of every bundled profile", 1)[1]
+    section = section.split("\n#", 1)[0]
+    rows = dict(re.findall(r"^\| `([a-z0-9-]+)` \| ([a-z ]+) \|", section, re.M))
+    assert set(rows) == set(LIBRARY)
+    for pid, level in rows.items():
+        assert load_one(pid).provenance.level.value == level, pid
