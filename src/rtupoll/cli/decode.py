@@ -124,7 +124,7 @@ def describe(frame: Frame, fields: list[Carried], profile: Profile | None) -> li
     for c in fields:
         if c.partial:
             lines.append(f"      {c.name} ({c.written}): only partly in this frame")
-        elif c.value is None:
+        elif c.value is None and not c.raw:  # a request: the field is asked for
             lines.append(f"      {c.name} ({c.written})")
         else:
             lines.append(f"      {c.name} ({c.written}) = {c.text}"

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table as RichTable
 from rich.text import Text
 
@@ -121,7 +122,8 @@ def matches(p: Profile, text: str) -> str:
     """Why a profile matches a search (empty: it does not)."""
     needle = text.lower()
     for what, value in (("id", p.id), ("vendor", p.vendor), ("kind", p.kind),
-                        ("model", p.model), ("manual", p.manual)):
+                        ("model", p.model), ("manual", p.manual),
+                        ("source", " ".join(d.title for d in p.provenance.sources))):
         if needle in value.lower():
             return what
     names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()]
@@ -134,7 +136,8 @@ def _print_profiles(rows: list[Profile], fmt: str, title: str,
     if fmt == "json":
         for p in rows:
             rec = {"id": p.id, "vendor": p.vendor, "model": p.model, "kind": p.kind,
-                   "manual": p.manual, "path": p.path,
+                   "manual": p.manual, "verification": p.provenance.level.value,
+                   "sources": [str(d) for d in p.provenance.sources], "path": p.path,
                    "bundled": Path(p.path).parent == bundled_dir()}
             if why is not None:
                 rec["match"] = why[p.id]
@@ -145,6 +148,7 @@ def _print_profiles(rows: list[Profile], fmt: str, title: str,
     t.add_column("device", ratio=1)
     t.add_column("serial", no_wrap=True)
     t.add_column("fields", justify="right")
+    t.add_column("verified", no_wrap=True)
     user = [p for p in rows if Path(p.path).parent != bundled_dir()]
     if why is not None or user:
         t.add_column("matches" if why is not None else "from", ratio=1 if why else None)
@@ -154,8 +158,9 @@ def _print_profiles(rows: list[Profile], fmt: str, title: str,
             kind = p.kind
             t.add_row(Text(kind or "other", style="bold underline"))
         s = p.serial
-        cells = ["  " + p.id, f"{p.vendor} {p.model}",
-                 f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}", str(len(p.fields))]
+        cells: list[str | Text] = ["  " + p.id, f"{p.vendor} {p.model}",
+                 f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}", str(len(p.fields)),
+                 level_text(p)]
         if why is not None:
             cells.append(why[p.id])
         elif user:
@@ -248,11 +253,31 @@ def _summary(p: Profile) -> str:
             f"{p.set_address.field} via FC{p.set_address.function:02d}" if p.set_address.field
             else f"not supported: {p.set_address.unsupported}"),
     ]
+    v = p.provenance
+    style = "green" if v.level.value == "vendor document" else "yellow" if v.verified \
+        else "bold red"
+    lines.append(f"verified    [{style}]{v.label}[/]"
+                 + ("" if v.verified else ": its values may be wrong"))
+    lines += [f"source      {escape(str(d))}" for d in v.sources]
+    if v.notes:
+        lines.append(f"provenance  {escape(v.notes)}")
     if p.extends:
         lines.append(f"extends     {p.extends}")
     if p.notes:
         lines.append(f"notes       {p.notes}")
     return "\n".join(lines)
+
+
+_LEVEL_SHORT = {"vendor document": "vendor doc", "two independent implementations": "2 impls",
+                "unverified": "UNVERIFIED"}
+
+
+def level_text(p: Profile, short: bool = True) -> Text:
+    """A profile's verification level, coloured: unverified stands out."""
+    v = p.provenance
+    text = _LEVEL_SHORT[v.level.value] if short else v.label
+    return Text(text, style="green" if v.level.value == "vendor document"
+                else "yellow" if v.verified else "bold red")
 
 
 def _type(f: Field) -> str:

@@ -178,7 +178,8 @@ async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
         def progress(s: Setting, unit: int) -> None:
             nonlocal seen
             for f in found[seen:]:
-                what = f.profile.id if f.profile else f.status
+                what = (f.profile.id + ("" if f.profile.provenance.verified else
+                                        " (profile unverified)")) if f.profile else f.status
                 console.print(f"  {f.address:>3} at {f.setting}: {what}", highlight=False)
             seen = len(found)
             bar.update(task, advance=1, found=len(found), description=f"{s} address {unit:>3}")
@@ -207,7 +208,9 @@ def _report(results: Sequence[Found], fmt: str) -> None:
     t.add_column("evidence / answers", ratio=3)
     for f in results:
         p = f.profile
-        what = Text(p.id, style="bold") + Text(f"\n{p.vendor} {p.model}", style="dim") if p \
+        what = Text(p.id, style="bold") + Text(f"\n{p.vendor} {p.model}", style="dim") \
+            + Text("\nprofile " + p.provenance.label,
+                   style="dim" if p.provenance.verified else "bold red") if p \
             else Text(f.status, style="yellow") + Text(
                 "\nwrong speed, or two devices answering?" if f.garbled
                 else "\nno profile matches", style="dim")
@@ -222,6 +225,7 @@ def record(f: Found) -> dict[str, Any]:
     return {"address": f.address, "baudrate": f.setting.baudrate, "parity": f.setting.parity,
             "status": f.status, "profile": p.id if p else None,
             "vendor": p.vendor if p else None, "model": p.model if p else None,
+            "verification": p.provenance.level.value if p else None,
             "evidence": f.evidence, "answers": f.answers}
 
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, TypeVar
 import click
 
 from rtupoll.cli.params import Seconds
-from rtupoll.config.library import load_one
+from rtupoll.config.library import load_one, note_use
 from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import DeviceTimeout, RefusedError, UsageError
 from rtupoll.model.profile import Profile
@@ -54,7 +54,7 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
         raise UsageError(f"{exc} in {text!r}") from None
     if sep and not pid:
         raise UsageError(f"{text!r} names no profile before '@'")
-    return Target(load_one(pid, profile_dirs) if pid else None, unit)
+    return Target(note_use(load_one(pid, profile_dirs)) if pid else None, unit)
 
 
 def port_optional(command: click.Command) -> click.Command:

@@ -35,6 +35,23 @@ def load_profile(path: Path) -> Profile:
     return profile
 
 
+_WARNED: set[str] = set()
+
+
+def note_use(profile: Profile) -> Profile:
+    """Say once per run, in one log line, that a profile about to read a device is
+    unverified (its values may be wrong); returns the profile."""
+    if not profile.provenance.verified and profile.id not in _WARNED:
+        _WARNED.add(profile.id)
+        import logging
+
+        logging.getLogger("rtupoll.profiles").warning(
+            "warning: profile %s is %s: nobody checked its register map against the vendor's "
+            "document, so its values may be wrong ('rtupoll profiles show %s')",
+            profile.id, profile.provenance.label, profile.id)
+    return profile
+
+
 def find_parent(pid: str, child: Path) -> Path | None:
     """The file of the profile ``pid`` that the profile file ``child`` extends: next to
     ``child`` first, then on the search path."""

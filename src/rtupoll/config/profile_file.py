@@ -26,13 +26,16 @@ from rtupoll.model.profile import (
     Addressing,
     Check,
     Choice,
+    Document,
     Field,
     Limits,
     Poll,
     Profile,
+    Provenance,
     Serial,
     Severity,
     Variant,
+    Verification,
 )
 from rtupoll.rtu import Table
 
@@ -44,7 +47,8 @@ _TYPES = [t.value for t in DataType]
 _ORDERS = [o.value for o in ByteOrder]
 _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing", "addresses",
              "limits", "byte_order", "byteorder", "wordorder", "fields", "identify",
-             "set_address", "variant", "kind", "extends", "without"}
+             "set_address", "variant", "kind", "extends", "without",
+             "provenance"}
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
@@ -98,6 +102,7 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         set_address=_address_change(top["set_address"], by_name, limits)
         if "set_address" in top else AddressChange(unsupported="the profile does not say"),
         variant=_variant(top["variant"], by_name) if "variant" in top else None,
+        provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
     )
     if path.stem != pid:
@@ -604,3 +609,24 @@ def _variant(node: Node, by_name: Mapping[str, Field]) -> Variant:
 
 def _identity(text: str) -> str:
     return text
+
+
+def _provenance(node: Node) -> Provenance:
+    """``provenance``: the documents the profile was written from and how far it is
+    verified; a verified profile names at least one document."""
+    m = node.mapping({"level", "sources", "notes"}, {"level"})
+    level = m["level"].choice(Verification, [v.value for v in Verification])
+    docs: list[Document] = []
+    for n in m["sources"].sequence() if "sources" in m else []:
+        d = n.mapping({"title", "version", "where"}, {"title", "where"})
+        for key in ("title", "where"):
+            if not d[key].text().strip():
+                raise d[key].fail(f"an empty {key}")
+        docs.append(Document(d["title"].text(), d["where"].text(),
+                             d["version"].text() if "version" in d else ""))
+    if level is not Verification.UNVERIFIED and not docs:
+        raise (m.get("sources") or m["level"]).fail(
+            f"a profile verified by {level.value!r} names its sources (title, where)")
+    if level is Verification.TWO and len(docs) < 2:
+        raise m["sources"].fail(f"'{level.value}' names two sources, not {len(docs)}")
+    return Provenance(level, tuple(docs), m["notes"].text() if "notes" in m else "", True)

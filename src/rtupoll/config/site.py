@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
-from rtupoll.config.library import load_one
+from rtupoll.config.library import load_one, note_use
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
 from rtupoll.gateway.settings import ServeConfig, host_port
@@ -223,7 +223,7 @@ def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
             raise pnode.fail(f"no profile file {file}")
         pid = str(file)
     try:
-        profile = load_one(pid, extra)
+        profile = note_use(load_one(pid, extra))
     except UsageError as exc:  # unknown id; a broken profile file keeps its own file:line
         raise pnode.fail(str(exc)) from None
     address = m["address"].integer(0, 255)
@@ -370,7 +370,7 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
     """
     if not specs:
         raise UsageError("name at least one device, PROFILE@ADDRESS (e.g. net-irnet-pro@1)")
-    profiles = [load_one(pid, profile_dirs) for pid, _ in specs]
+    profiles = [note_use(load_one(pid, profile_dirs)) for pid, _ in specs]
     names = [f"{p.id}@{a}" for p, (_, a) in zip(profiles, specs, strict=True)]
     wanted = list(dict.fromkeys(fields))
     known = sorted({n for p in profiles for n in p.names()})

@@ -210,6 +210,45 @@ class Variant:
     on_exception: Mapping[int, int] = dataclasses.field(default_factory=dict)
 
 
+class Verification(str, enum.Enum):
+    """How far a profile's register map is verified (``provenance.level``)."""
+
+    VENDOR = "vendor document"  # written from, and checked against, the vendor's own document
+    TWO = "two independent implementations"  # no vendor document: two public sources agree
+    UNVERIFIED = "unverified"  # nobody could check it: values may be wrong
+
+
+@dataclass(frozen=True)
+class Document:
+    """One document a profile was written from."""
+
+    title: str
+    where: str  # a URL, or a repository and path
+    version: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.title}" + (f" ({self.version})" if self.version else "") \
+            + f" <{self.where}>"
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Where a profile's facts come from, and how far they are verified."""
+
+    level: Verification = Verification.UNVERIFIED
+    sources: tuple[Document, ...] = ()
+    notes: str = ""
+    given: bool = False  # False: the profile has no provenance block at all
+
+    @property
+    def verified(self) -> bool:
+        return self.level is not Verification.UNVERIFIED
+
+    @property
+    def label(self) -> str:
+        return self.level.value if self.given else "unverified (no provenance)"
+
+
 @dataclass(frozen=True)
 class Profile:
     id: str
@@ -228,6 +267,7 @@ class Profile:
     notes: str = ""
     kind: str = ""  # what sort of device: energy meter, gas sensor, solar charger, ...
     extends: str = ""  # the id of the profile this one was built on
+    provenance: Provenance = Provenance()
     path: str = ""
 
     def line_setting(self, field: Field) -> str:

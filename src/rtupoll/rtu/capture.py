@@ -356,6 +356,7 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
             continue
         raw = frame.values[f.address - lo : f.end - lo]
         fv = interpret(f, raw)
-        text = fv.text + (f" {f.unit}" if f.unit else "")
-        out.append(Carried(f.name, written, f.unit, raw, fv.value, text, fv.severity.value))
+        # a sentinel ("not available") is its name, never the number its registers spell
+        text = fv.text + (f" {f.unit}" if f.unit and fv.present else "")
+        out.append(Carried(f.name, written, f.unit, raw, fv.output, text, fv.severity.value))
     return out
