@@ -53,8 +53,8 @@ class Poll:
         return self.err_path.read_text()
 
 
-@pytest.fixture
-def polls(tmp_path: Path) -> Iterator[Callable[..., Poll]]:
+@pytest.fixture(name="polls")
+def polls_fixture(tmp_path: Path) -> Iterator[Callable[..., Poll]]:
     started: list[Poll] = []
 
     def start(*args: str) -> Poll:
@@ -102,8 +102,8 @@ mqtt:
 """
 
 
-@pytest.fixture
-def plant(sim: Callable[..., SimulatedBus]) -> SimulatedBus:
+@pytest.fixture(name="plant")
+def plant_fixture(sim: Callable[..., SimulatedBus]) -> SimulatedBus:
     return sim("huiwen-aq@3", "net-irnet-pro@1", "banner-ez-array@5", tcp=True, tick=None,
                sets=["huiwen-aq@3.co2=800", "huiwen-aq@3.temperature=21",
                      "huiwen-aq@3.humidity=40", "huiwen-aq@3.pm25=12",
