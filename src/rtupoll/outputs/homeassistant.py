@@ -16,9 +16,13 @@ retained payload. Per polled field:
   ``number``, both sending ``{"FIELD": value}`` to ``BASE/DEVICE/set``.
 
 Every entity reads ``BASE/DEVICE`` (``value_json``; a failed read is null, which HA
-shows as unknown) and is available only when both ``BASE/bridge/state`` and
-``BASE/DEVICE/availability`` say ``online``. Identifiers are built from the base topic
-and the device's topic name only, so they are the same on every run.
+shows as unknown; every polled field is in every message, ``outputs.mqtt_state``) and
+is available only when both ``BASE/bridge/state`` and ``BASE/DEVICE/availability`` say
+``online``. Identifiers are ``rtupoll_<gateway_id>_<device>[_<entity>]``: the same on
+every run, and distinct between gateways on one broker. Names are the profile's labels
+(``outputs.fleet.label``); an enum code the manual does not list is ``unknown`` in the
+enum sensor and no option in a select; a number box spans what the profile allows.
+Each device also has two diagnostic entities from ``_rtupoll`` and ``last_seen``.
 """
 
 from __future__ import annotations
