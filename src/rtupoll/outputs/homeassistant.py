@@ -154,7 +154,8 @@ def number_bounds(field: Field) -> tuple[float, float, float]:
         step = 10.0 ** -field.precision if field.precision is not None else MIN_STEP
     else:
         step = abs(layout.scale) or 1.0
-    return lo, hi, max(MIN_STEP, round(step, 9))
+    step = max(MIN_STEP, round(step, 9))
+    return lo, max(hi, lo + step), step  # HA wants max > min, even for one allowed value
 
 
 def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
