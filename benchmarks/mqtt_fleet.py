@@ -74,7 +74,7 @@ def gateways(n: int, baud: int, url: str | None, out: Path) -> list[subprocess.P
         cmd = [sys.executable, "-m", "rtupoll", "poll", "--simulate", "--baud", str(baud),
                "--interval", "0", "--format", "json", "-o", str(out / f"gw{i}.jsonl"), *SEEDS]
         if url:
-            cmd += ["--mqtt", f"{url}/gw{i}"]
+            cmd += ["--mqtt", f"{url}/gw{i}", "--mqtt-id", f"gw{i}"]
         procs.append(subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
     return procs
 

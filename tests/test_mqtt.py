@@ -43,8 +43,9 @@ def test_url_gives_broker_credentials_and_base() -> None:
     assert (s.host, s.port, s.tls, s.username, s.password, s.base) == \
         ("broker.lan", 8883, True, "gw", "p@ss", "site/north")
     plain_url = parse_url("mqtt://10.0.0.2:1884")
-    assert (plain_url.port, plain_url.tls, plain_url.base, plain_url.username) == \
-        (1884, False, "rtupoll", None)
+    assert (plain_url.port, plain_url.tls, plain_url.base_topic, plain_url.username) == \
+        (1884, False, None, None)
+    assert plain_url.base == f"rtupoll/{plain_url.gateway_id}"  # the default
 
 
 def test_url_user_without_password_takes_it_from_the_environment(
@@ -136,8 +137,8 @@ def test_topic_collisions_are_refused(tmp_path: Path) -> None:
 def discovery(spec: tuple[str, int], *, controls: dict[str, bool] | None = None) -> dict:
     site = from_specs("/dev/null", [spec], check_serial=False)
     bus, dev = next(site.devices())
-    return ha.device_config(dev, bus, base="plant", topic=topic_name(dev.name),
-                            controls=controls or {}, qos=0)
+    return ha.device_config(dev, bus, gateway_id="gw1", base="plant",
+                            topic=topic_name(dev.name), controls=controls or {}, qos=0)
 
 
 def test_units_give_device_and_state_classes() -> None:
@@ -150,7 +151,7 @@ def test_units_give_device_and_state_classes() -> None:
         assert (c["p"], c["unit_of_measurement"], c["device_class"], c["state_class"]) == \
             ("sensor", unit, cls, "measurement"), name
         assert c["value_template"] == f"{{{{ value_json['{name}'] }}}}"
-        assert c["unique_id"] == f"rtupoll_plant_huiwen-aq_3_{name}"
+        assert c["unique_id"] == f"rtupoll_gw1_huiwen-aq_3_{name}"
     level = cmps["co2_level"]
     assert level["device_class"] == "enum" and "unit_of_measurement" not in level
     assert level["options"][-1] == "unknown" and "GOOD" in level["options"]
@@ -167,21 +168,23 @@ def test_flags_are_binary_sensors_and_errors_are_problems() -> None:
 
 def test_device_availability_and_via_bus() -> None:
     cfg = discovery(("radar-level", 4))
-    assert cfg["dev"]["ids"] == ["rtupoll_plant_radar-level_4"]
-    assert cfg["dev"]["via_device"] == ha.bus_object_id("plant", "/dev/null")
+    assert cfg["dev"]["ids"] == ["rtupoll_gw1_radar-level_4"]
+    assert cfg["dev"]["via_device"] == ha.bus_object_id("gw1", "/dev/null")
     assert cfg["availability"] == [{"topic": "plant/bridge/state"},
                                    {"topic": "plant/radar-level_4/availability"}]
     assert cfg["availability_mode"] == "all" and cfg["state_topic"] == "plant/radar-level_4"
-    assert ha.is_ours(cfg, "plant") and not ha.is_ours(cfg, "plant2")
-    assert not ha.is_ours(cfg, "pla")
+    assert ha.is_ours(cfg, "gw1", "plant") and not ha.is_ours(cfg, "gw1", "plant2")
+    assert not ha.is_ours(cfg, "gw1", "pla") and not ha.is_ours(cfg, "gw2", "plant")
+    assert not ha.is_ours(cfg, "gw", "plant")
 
 
 def test_writable_fields_become_controls_only_when_allowed() -> None:
     site = from_specs("/dev/null", [("banner-ez-array", 5)], fields=["measurement_1_mode"])
     bus, dev = next(site.devices())
-    off = ha.device_config(dev, bus, base="b", topic="c", controls={}, qos=0)["cmps"]
+    off = ha.device_config(dev, bus, gateway_id="g", base="b", topic="c", controls={},
+                           qos=0)["cmps"]
     assert "measurement_1_mode_set" not in off
-    on = ha.device_config(dev, bus, base="b", topic="c",
+    on = ha.device_config(dev, bus, gateway_id="g", base="b", topic="c",
                           controls={"measurement_1_mode": True}, qos=0)["cmps"]
     select = on["measurement_1_mode_set"]
     assert (select["p"], select["command_topic"]) == ("select", "b/c/set")

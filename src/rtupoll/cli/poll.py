@@ -141,6 +141,9 @@ class RecordWriter:
               help="Take BASE/DEVICE/set commands from the broker (checked like 'write').")
 @click.option("--mqtt-remove-discovery", is_flag=True,
               help="Remove this gateway's Home Assistant discovery from the broker, and exit.")
+@click.option("--mqtt-id", "mqtt_id", metavar="ID", default=None,
+              help="This gateway's id on the broker (default: the host name): its base "
+                   "topic rtupoll/ID and Home Assistant ids (docs/mqtt.md).")
 def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
          baudrate: int | None, parity: str | None, stopbits: str | None,
          interval: float | None, timeout: float | None, retries: int | None,
@@ -149,7 +152,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
          profile_dirs: tuple[Path, ...], metrics: str | None, log_format: str | None,
          mqtt: str | None, mqtt_allow_writes: bool, mqtt_remove_discovery: bool,
          timeout_ceiling: float | None = None, verify_blocks: bool = False,
-         remember_holes: bool = False, **serve: Any) -> None:
+         remember_holes: bool = False, mqtt_id: str | None = None, **serve: Any) -> None:
     """Poll devices and show their decoded readings live.
 
     \b
@@ -196,7 +199,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                      else "simulated bus") + f", {timing}"
             site = _gateway(site, served, services, fmt)
             if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services,
-                     fmt):
+                     fmt, mqtt_id):
                 return
             _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
                  metrics=metrics, log_format=log_format)
@@ -237,7 +240,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               fields=_split(fields), timeout=timeout, retries=retries,
                               profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
     site = _gateway(site, served, services, fmt)
-    if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt):
+    if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt,
+             mqtt_id):
         return
     _run(site, once=once, fmt=fmt, output=output,
          title=config.name if config else str(port), services=services,
@@ -265,17 +269,18 @@ def _gateway(site: Site, served: ServeConfig | None, services: list[Service], fm
 
 
 def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: bool,
-          services: list[Service], fmt: str) -> bool:
+          services: list[Service], fmt: str, gateway_id: str | None = None) -> bool:
     """``--mqtt`` or the site file's ``mqtt:``: the MQTT service (rtupoll.outputs.mqtt).
     True when ``--mqtt-remove-discovery`` did its job: nothing is polled then."""
     if site.mqtt is None and not url:
-        if allow_writes or remove:
-            raise UsageError("--mqtt-allow-writes and --mqtt-remove-discovery need --mqtt URL "
-                             "(or mqtt: in the site file)")
+        if allow_writes or remove or gateway_id is not None:
+            raise UsageError("--mqtt-allow-writes, --mqtt-id and --mqtt-remove-discovery need "
+                             "--mqtt URL (or mqtt: in the site file)")
         return False
     from rtupoll.outputs import mqtt as mqtt_out
 
-    settings = mqtt_out.from_options(site, url, allow_writes=allow_writes)
+    settings = mqtt_out.from_options(site, url, allow_writes=allow_writes,
+                                     gateway_id=gateway_id)
     assert settings is not None
     if remove:
         gone = mqtt_out.remove_discovery_now(settings, site)

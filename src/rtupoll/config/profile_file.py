@@ -322,6 +322,9 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     name = m["name"].text()
     if not name.isidentifier() or name != name.lower():
         raise m["name"].fail(f"{name!r} is not a lower_snake_case name")
+    if name.startswith("_") or name == "last_seen":  # rtupoll's own keys in MQTT state
+        raise m["name"].fail(f"{name!r} is reserved (a name may not start with '_', and "
+                             "last_seen is the time of the last reading)")
     table = m["table"].choice(Table, [t.value for t in Table])
     dtype = m["type"].choice(DataType, _TYPES)
     written, shift, width = _address(m["address"], dtype, table)

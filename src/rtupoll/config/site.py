@@ -250,6 +250,9 @@ def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
         fields = profile.default_fields()
     _plannable(profile, fields, (m.get("fields") or pnode).fail)
     name = m["name"].text() if "name" in m else f"{profile.id}@{address}"
+    if not name.strip():  # its MQTT topics would have an empty level (plant//availability)
+        raise m["name"].fail("the device name is empty: give it a name, or leave 'name' out "
+                             "for PROFILE@ADDRESS")
     return DeviceConfig(name, profile, address, fields, interval, timeout, retries, node.line,
                         ceiling)
 

@@ -16,24 +16,41 @@ retained payload. Per polled field:
   ``number``, both sending ``{"FIELD": value}`` to ``BASE/DEVICE/set``.
 
 Every entity reads ``BASE/DEVICE`` (``value_json``; a failed read is null, which HA
-shows as unknown) and is available only when both ``BASE/bridge/state`` and
-``BASE/DEVICE/availability`` say ``online``. Identifiers are built from the base topic
-and the device's topic name only, so they are the same on every run.
+shows as unknown; every polled field is in every message, ``outputs.mqtt_state``) and
+is available only when both ``BASE/bridge/state`` and ``BASE/DEVICE/availability`` say
+``online``. Identifiers are ``rtupoll_<gateway_id>_<device>[_<entity>]``: the same on
+every run, and distinct between gateways on one broker. Names are the profile's labels
+(``outputs.fleet.label``); an enum code the manual does not list is ``unknown`` in the
+enum sensor and no option in a select; a number box spans what the profile allows.
+Each device also has two diagnostic entities from ``_rtupoll`` and ``last_seen``.
 """
 
 from __future__ import annotations
 
+import json
 import re
+import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.model.codec import DataType
+from rtupoll.model.codec import DataType, bits_range
 from rtupoll.model.profile import Field, Severity
+from rtupoll.outputs.fleet import (
+    LAST_SEEN,
+    STATUS_KEY,
+    choice_label,
+    label,
+    precision,
+    version,
+)
 
 if TYPE_CHECKING:
     from rtupoll.config.site import BusConfig, DeviceConfig
 
-ORIGIN = {"name": "rtupoll", "url": "https://github.com/rtupoll/rtupoll"}
+ORIGIN_NAME = "rtupoll"
+STATUSES = ("ok", "partial", "failed")  # _rtupoll.status in a state message
+MIN_STEP = 0.001  # the smallest step Home Assistant accepts for a number
+_F32_MAX = 3.4028234663852886e38
 # profile unit -> (Home Assistant unit, device class); ppm and µg/m³ depend on the field
 _UNITS: dict[str, tuple[str, str | None]] = {
     "°C": ("°C", "temperature"), "°F": ("°F", "temperature"), "K": ("K", "temperature"),
@@ -65,12 +82,19 @@ def safe_id(text: str) -> str:
     return _UNSAFE.sub("_", text)
 
 
-def object_id(base: str, name: str) -> str:
-    return safe_id(f"rtupoll_{base}_{name}")
+def object_id(gateway_id: str, name: str) -> str:
+    """``rtupoll_<gateway_id>_<device>``: unique on a broker shared by several gateways."""
+    return safe_id(f"rtupoll_{gateway_id}_{name}")
 
 
-def bus_object_id(base: str, bus: str) -> str:
-    return safe_id(f"rtupoll_{base}_bus_{bus}")
+def bus_object_id(gateway_id: str, bus: str) -> str:
+    return safe_id(f"rtupoll_{gateway_id}_bus_{bus}")
+
+
+def origin() -> dict[str, str]:
+    """Who published the discovery (HA shows it in the device's MQTT info). No ``url``:
+    rtupoll has no public home page to point to yet."""
+    return {"name": ORIGIN_NAME, "sw": version()}
 
 
 def config_topic(prefix: str, oid: str) -> str:
@@ -98,89 +122,148 @@ def _value(field: Field) -> str:
     return f"value_json[{field.name!r}]"
 
 
+def _options(names: list[str]) -> str:
+    """A list of names as a Jinja literal (JSON's list syntax is Jinja's)."""
+    return json.dumps(names, ensure_ascii=False)
+
+
+def type_bounds(field: Field) -> tuple[float, float]:
+    """The values the field's register type holds at its scale and offset."""
+    layout = field.layout
+    if layout.type.is_float:
+        big = _F32_MAX if layout.type is DataType.F32 else sys.float_info.max
+        return -big, big
+    a, b = bits_range(layout)
+    lo, hi = sorted((a * layout.scale + layout.offset, b * layout.scale + layout.offset))
+    return lo, hi
+
+
+def number_bounds(field: Field) -> tuple[float, float, float]:
+    """(min, max, step) of a writable number, so that Home Assistant's box admits every
+    value the profile allows: its ``values:``, else its ``range``, else what the register
+    type holds at the field's scale; the step is the scale's (or the precision's)."""
+    layout = field.layout
+    lo, hi = type_bounds(field)
+    if field.values:
+        lo, hi = min(field.values), max(field.values)
+    if field.minimum is not None:
+        lo = field.minimum
+    if field.maximum is not None:
+        hi = field.maximum
+    if layout.type.is_float:
+        step = 10.0 ** -field.precision if field.precision is not None else MIN_STEP
+    else:
+        step = abs(layout.scale) or 1.0
+    step = max(MIN_STEP, round(step, 9))
+    return lo, max(hi, lo + step), step  # HA wants max > min, even for one allowed value
+
+
 def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
     """The HA entities of one field, by component id (``field`` or ``field_FLAG``)."""
     uid_base = field.name
     v = _value(field)
     out: dict[str, dict[str, Any]] = {}
     t = field.layout.type
+    name = label(field)
     if field.enum:
-        options = [c.name for c in field.enum.values()]
+        documented = [c.name for c in field.enum.values()]
+        options = list(documented)
         if field.other is not None:
             options.append(field.other.name)
         options.append("unknown")
-        out[uid_base] = {"p": "sensor", "name": _name(field), "device_class": "enum",
-                         "options": list(dict.fromkeys(options)),
-                         # "unknown (9)" / "OTHER (9)": the code goes, the name stays
-                         "value_template": f"{{{{ {v}.split(' (')[0] if {v} is not none "
-                                           "else none }}"}
+        options = list(dict.fromkeys(options))
+        # "unknown (9)" / "OTHER (9)": the code goes, the name stays; a name the options do
+        # not hold (never expected) is "unknown" rather than a value HA would reject
+        out[uid_base] = {"p": "sensor", "name": name, "device_class": "enum",
+                         "options": options,
+                         "value_template": f"{{% set v = {v} %}}{{% if v is none %}}None"
+                                           f"{{% else %}}{{% set n = v.split(' (')[0] %}}"
+                                           f"{{{{ n if n in {_options(options)} else "
+                                           "'unknown' }}{% endif %}"}
         if controls and field.writable:
+            # an undocumented code is no option of the select: it shows no option (None)
             out[f"{uid_base}_set"] = {
-                "p": "select", "name": f"{_name(field)} setting",
-                "options": [c.name for c in field.enum.values()],
-                "value_template": f"{{{{ {v} if {v} is not none else none }}}}",
+                "p": "select", "name": f"{name} setting", "options": documented,
+                "value_template": f"{{% set v = {v} %}}{{{{ v if v in "
+                                  f"{_options(documented)} else None }}}}",
                 "command_template": f'{{"{field.name}": "{{{{ value }}}}"}}'}
     elif field.flags:
         for choice in field.flags.values():
             out[f"{uid_base}_{safe_id(choice.name)}"] = {
-                "p": "binary_sensor", "name": f"{_name(field)} {choice.name}",
+                "p": "binary_sensor", "name": f"{name}: {choice_label(choice)}",
                 **({"device_class": "problem"}
                    if choice.severity in (Severity.WARNING, Severity.ERROR) else {}),
                 "value_template": f"{{% if {v} is none %}}None{{% elif {choice.name!r} in "
                                   f"{v} %}}ON{{% else %}}OFF{{% endif %}}"}
     elif t is DataType.BOOL:
-        out[uid_base] = {"p": "binary_sensor", "name": _name(field),
+        out[uid_base] = {"p": "binary_sensor", "name": name,
                          "value_template": f"{{% if {v} is none %}}None{{% elif {v} %}}ON"
                                            "{% else %}OFF{% endif %}"}
     elif t is DataType.STRING:
-        out[uid_base] = {"p": "sensor", "name": _name(field), "value_template": f"{{{{ {v} }}}}"}
+        out[uid_base] = {"p": "sensor", "name": name, "value_template": f"{{{{ {v} }}}}"}
     else:
         unit, cls, state_class = classify(field)
-        entity: dict[str, Any] = {"p": "sensor", "name": _name(field),
+        entity: dict[str, Any] = {"p": "sensor", "name": name,
                                   "value_template": f"{{{{ {v} }}}}", "state_class": state_class}
         if unit:
             entity["unit_of_measurement"] = unit
         if cls:
             entity["device_class"] = cls
+        places = precision(field)
+        if places is not None:
+            entity["suggested_display_precision"] = places
         out[uid_base] = entity
         if controls and field.writable:
+            lo, hi, step = number_bounds(field)
             control: dict[str, Any] = {
-                "p": "number", "name": f"{_name(field)} setting", "mode": "box",
+                "p": "number", "name": f"{name} setting", "mode": "box",
+                "min": lo, "max": hi, "step": step,
                 "value_template": f"{{{{ {v} }}}}",
                 "command_template": f'{{"{field.name}": {{{{ value }}}}}}'}
-            if field.minimum is not None:
-                control["min"] = field.minimum
-            if field.maximum is not None:
-                control["max"] = field.maximum
             if unit:
                 control["unit_of_measurement"] = unit
             out[f"{uid_base}_set"] = control
     return out
 
 
-def _name(field: Field) -> str:
-    return field.name.replace("_", " ")
+def status_components(state_topic: str) -> dict[str, dict[str, Any]]:
+    """rtupoll's own view of the device (``_rtupoll`` and ``last_seen`` in each state
+    message), as two diagnostic entities; ids that no field can have (``_``)."""
+    key = STATUS_KEY
+    return {
+        "_status": {"p": "sensor", "name": "Polling status", "entity_category": "diagnostic",
+                    "device_class": "enum", "options": list(STATUSES),
+                    "value_template": f"{{{{ value_json[{key!r}].status }}}}",
+                    "json_attributes_topic": state_topic,
+                    "json_attributes_template": f"{{{{ value_json[{key!r}] | tojson }}}}"},
+        "_last_seen": {"p": "sensor", "name": "Last seen", "entity_category": "diagnostic",
+                       "device_class": "timestamp",
+                       "value_template": f"{{{{ value_json[{LAST_SEEN!r}] }}}}"},
+    }
 
 
-def device_config(dev: DeviceConfig, bus: BusConfig, *, base: str, topic: str,
-                  controls: Mapping[str, bool], qos: int) -> dict[str, Any]:
+def device_config(dev: DeviceConfig, bus: BusConfig, *, gateway_id: str, base: str,
+                  topic: str, controls: Mapping[str, bool], qos: int) -> dict[str, Any]:
     """The discovery payload of one Modbus device; ``topic`` is its topic name,
     ``controls`` which fields get a select/number (writes on, field allowed)."""
-    oid = object_id(base, topic)
+    oid = object_id(gateway_id, topic)
+    state_topic = f"{base}/{topic}"
     cmps: dict[str, dict[str, Any]] = {}
     for f in dev.fields:
         for cid, entity in components(f, controls=controls.get(f.name, False)).items():
-            entity["unique_id"] = f"{oid}_{cid}"
             if entity["p"] in ("select", "number"):
                 entity["command_topic"] = f"{base}/{topic}/set"
             cmps[cid] = entity
+    cmps.update(status_components(state_topic))
+    for cid, entity in cmps.items():
+        entity["unique_id"] = f"{oid}_{cid}"
     p = dev.profile
     return {
         "dev": {"ids": [oid], "name": dev.name, "mf": p.vendor, "mdl": p.model,
-                "mdl_id": p.id, "via_device": bus_object_id(base, bus.name)},
-        "o": ORIGIN,
+                "mdl_id": p.id, "via_device": bus_object_id(gateway_id, bus.name)},
+        "o": origin(),
         "cmps": cmps,
-        "state_topic": f"{base}/{topic}",
+        "state_topic": state_topic,
         "availability": [{"topic": f"{base}/bridge/state"},
                          {"topic": f"{base}/{topic}/availability"}],
         "availability_mode": "all",
@@ -188,15 +271,15 @@ def device_config(dev: DeviceConfig, bus: BusConfig, *, base: str, topic: str,
     }
 
 
-def bus_config(bus: BusConfig, *, base: str, qos: int) -> dict[str, Any]:
+def bus_config(bus: BusConfig, *, gateway_id: str, base: str, qos: int) -> dict[str, Any]:
     """The bus as an HA device: its devices hang off it (``via_device``); its one entity
     says whether the gateway polling it is connected."""
-    oid = bus_object_id(base, bus.name)
+    oid = bus_object_id(gateway_id, bus.name)
     return {
-        "dev": {"ids": [oid], "name": f"RS-485 {bus.name}", "mf": "rtupoll",
+        "dev": {"ids": [oid], "name": f"RS-485 {bus.name} ({gateway_id})", "mf": "rtupoll",
                 "mdl": f"RS-485 bus ({bus.serial_text})"},
-        "o": ORIGIN,
-        "cmps": {"gateway": {"p": "binary_sensor", "name": "gateway",
+        "o": origin(),
+        "cmps": {"gateway": {"p": "binary_sensor", "name": "Gateway",
                              "device_class": "connectivity", "unique_id": f"{oid}_gateway",
                              "state_topic": f"{base}/bridge/state",
                              "payload_on": "online", "payload_off": "offline"}},
@@ -204,13 +287,13 @@ def bus_config(bus: BusConfig, *, base: str, qos: int) -> dict[str, Any]:
     }
 
 
-def is_ours(payload: Mapping[str, Any], base: str) -> bool:
-    """A discovery payload this gateway (this base topic) published."""
-    origin = payload.get("o")
-    if not isinstance(origin, Mapping) or origin.get("name") != ORIGIN["name"]:
+def is_ours(payload: Mapping[str, Any], gateway_id: str, base: str) -> bool:
+    """A discovery payload this gateway (this id, this base topic) published."""
+    who = payload.get("o")
+    if not isinstance(who, Mapping) or who.get("name") != ORIGIN_NAME:
         return False
     ids = payload.get("dev", {}).get("ids") if isinstance(payload.get("dev"), Mapping) else None
-    prefix = safe_id(f"rtupoll_{base}_")
+    prefix = safe_id(f"rtupoll_{gateway_id}_")
     if not (isinstance(ids, list) and any(isinstance(i, str) and i.startswith(prefix)
                                           for i in ids)):
         return False

@@ -2,15 +2,21 @@
 
 A service (``rtupoll.jobs.services``) beside the scheduler, in Zigbee2MQTT's layout:
 
-    BASE/DEVICE                 {"co2": 1175, "co2_level": "GOOD", ..., "last_seen": "..."}
+    BASE/DEVICE                 {"co2": 1175, ..., "last_seen": "...", "_rtupoll": {...}}
     BASE/DEVICE/availability    online | offline   (retained; offline while backed off)
     BASE/bridge/state           online | offline   (retained; the last will, and a clean stop)
+    BASE/bridge/info            who this gateway is, its devices and fields (retained)
     BASE/DEVICE/FIELD           plain values, when field_topics is on
     BASE/DEVICE/set[/result]    writes (``outputs.mqtt_commands``)
     BASE/DEVICE/get[/result]    reads now, ahead of the schedule
 
 DEVICE is the device's name with every character other than letters, digits, ``_``,
-``-`` and ``.`` replaced by ``_`` (``radar-level@4`` -> ``radar-level_4``).
+``-`` and ``.`` replaced by ``_`` (``radar-level@4`` -> ``radar-level_4``). BASE is
+``rtupoll/<gateway_id>`` unless given (``outputs.fleet``).
+
+The rooms: ``mqtt_state`` turns readings into messages (pure), ``homeassistant`` the
+site into discovery (pure), ``mqtt_commands`` checks and runs commands,
+``mqtt_client`` is the connection; this module is the service that joins them.
 
 The broker never holds up polling: ``on_readings`` only puts the message in an
 outbox that keeps the latest message per topic, and one task publishes from it.
@@ -29,9 +35,6 @@ import dataclasses
 import json
 import logging
 import random
-import re
-import socket
-import ssl
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -39,10 +42,19 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.errors import BrokerError, RtupollError, UsageError
-from rtupoll.jobs.stats import State, iso_time
+from rtupoll.jobs.stats import State
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.outputs import mqtt_commands as cmd
+from rtupoll.outputs.fleet import bridge_info, version
+from rtupoll.outputs.mqtt_client import (
+    CONNECT_TIMEOUT,
+    aiomqtt_module,
+    connect,
+    describe,
+    make_client,
+)
 from rtupoll.outputs.mqtt_settings import MqttSettings
+from rtupoll.outputs.mqtt_state import Out, StatePublisher, plain, topic_name
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
@@ -53,23 +65,14 @@ if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
 
+__all__ = ["MqttService", "Outbox", "backoff", "describe", "device_topics", "from_options",
+           "plain", "remove_discovery_now", "topic_name"]
+
 log = logging.getLogger("rtupoll.mqtt")
-CONNECT_TIMEOUT = 10.0  # seconds for the first connection before giving up
 STOP_FLUSH = 5.0  # seconds a clean stop waits for the last messages to go out
 RECONNECT_MIN, RECONNECT_MAX = 0.5, 30.0  # backoff between reconnection attempts
 MAX_PENDING = 20_000  # topics the outbox holds at most while the broker is away
 MAX_INFLIGHT = 20  # QoS 1/2 messages awaiting their acknowledgement (paho's default)
-_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
-# paho's own messages ("failed to receive on socket ...") are not for the operator: the
-# service says what happened, once, in its own words
-_PAHO_LOG = logging.getLogger("rtupoll.mqtt.paho")
-_PAHO_LOG.propagate = False
-_PAHO_LOG.addHandler(logging.NullHandler())
-
-
-def topic_name(device: str) -> str:
-    """A device's topic level: its name, with anything but ``[A-Za-z0-9_.-]`` as ``_``."""
-    return _UNSAFE.sub("_", device)
 
 
 def device_topics(site: Site) -> dict[str, str]:
@@ -86,16 +89,6 @@ def device_topics(site: Site) -> dict[str, str]:
                              f"topic level {t!r}: rename one")
         seen[t], out[dev.name] = dev.name, t
     return out
-
-
-def aiomqtt_module() -> Any:
-    """The ``aiomqtt`` library, or one line saying how to install it."""
-    try:
-        import aiomqtt
-    except ImportError:
-        raise UsageError("MQTT (--mqtt, or mqtt: in the site file) needs the aiomqtt "
-                         "library: pip install 'rtupoll[mqtt]'") from None
-    return aiomqtt
 
 
 @dataclass(frozen=True)
@@ -154,6 +147,7 @@ class MqttService:
         self.once = once  # poll --once: publish one scan; take no commands
         self.topics = device_topics(site)
         self._by_topic = {t: name for name, t in self.topics.items()}  # commands' device
+        self.publisher = StatePublisher(settings, self.topics)
         self.outbox = Outbox()
         self.published = 0  # messages the broker took
         self._base = settings.base
@@ -162,75 +156,34 @@ class MqttService:
         self._commands: set[asyncio.Task[None]] = set()
         self._connected = asyncio.Event()
         self._flushed = asyncio.Event()
-        self._state: dict[str, str] = {}  # topic level -> its latest state payload
-        self._avail: dict[str, str] = {}  # topic level -> online/offline
-        self._values: dict[str, dict[str, Any]] = {}  # for on_change: values last published
-        self._sent_at: dict[str, float] = {}
-        self._forced: set[str] = set()  # a get asked for the next state, changed or not
         self._discovered: dict[str, str] = {}  # object id -> config topic, published
+        self._retained_said = False  # a retained command was ignored, and the log said so
 
     # -- the Service protocol ------------------------------------------------
 
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
         client = self._client()
+        await connect(client, self.settings)
         try:
-            await asyncio.wait_for(client.__aenter__(), CONNECT_TIMEOUT)
-        except asyncio.TimeoutError:
-            raise BrokerError(f"{self.settings.where}: no answer from the MQTT broker "
-                              f"within {CONNECT_TIMEOUT:g} s") from None
-        except Exception as exc:  # aiomqtt.MqttError and what it lets through
-            raise BrokerError(f"{self.settings.where}: {describe(exc, self.settings)}"
-                              ) from None
-        self._log(logging.INFO, "mqtt: connected to %s, publishing under %s/",
-                  self.settings.where, self._base)
+            await self._check_alone(client)
+        except BaseException:
+            with contextlib.suppress(Exception):
+                await client.__aexit__(None, None, None)
+            raise
+        self._log(logging.INFO, "mqtt: connected to %s as gateway %s, publishing under %s/",
+                  self.settings.where, self.settings.gateway_id, self._base)
         self._task = asyncio.create_task(self._run(client))
         # subscribed and announced; a session that broke at once goes on reconnecting
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._connected.wait(), CONNECT_TIMEOUT)
 
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
-        cfg = dev.config
         if self._scheduler is not None and self._scheduler.site is not self.site:
             self._reloaded(self._scheduler.site)
-        t = self.topics.get(cfg.name) or topic_name(cfg.name)
-        s, base = self.settings, self._base
-        avail = "online" if dev.stats.state is State.ONLINE else "offline"
-        if self._avail.get(t) != avail:
-            self._avail[t] = avail
-            self.outbox.put(f"{base}/{t}/availability", avail, retain=True, qos=s.qos)
-        values: dict[str, Any] = {}
-        error = ""
-        for r in readings:
-            if r.status == "absent":  # this generation of the device has no such field
-                continue
-            if r.value is not None:
-                values[r.field.name] = cmd.value_of(r.value)
-            else:
-                values[r.field.name] = None
-                if not error or error.startswith("skipped"):
-                    error = f"{r.status}: {r.error}"
-        opts = s.options(cfg.name)
-        now = time.monotonic()
-        forced = t in self._forced
-        if opts.publish == "on_change" and not forced and self._values.get(t) == values \
-                and now - self._sent_at.get(t, -1e18) < opts.max_silence:
-            return
-        self._forced.discard(t)
-        self._values[t], self._sent_at[t] = values, now
-        state = dict(values)
-        last = dev.stats.last_good_time
-        state["last_seen"] = iso_time(last) if last is not None else None
-        if error:
-            state["error"] = error
-        payload = to_json(state)
-        self._state[t] = payload
-        self.outbox.put(f"{base}/{t}", payload, retain=s.retain, qos=s.qos)
-        if opts.field_topics:
-            for name, value in values.items():
-                if value is not None:
-                    self.outbox.put(f"{base}/{t}/{name}", plain(value), retain=s.retain,
-                                    qos=s.qos)
+        for out in self.publisher.readings(dev.config, dev.stats.state is State.ONLINE,
+                                           dev.stats.last_good_time, readings):
+            self._put(out)
 
     async def stop(self) -> None:
         """Flush what is waiting, say offline (retained), disconnect cleanly."""
@@ -240,11 +193,10 @@ class MqttService:
         if self._task is None:
             return
         if self._connected.is_set():
-            s = self.settings
-            for t in self.topics.values():
-                self.outbox.put(f"{self._base}/{t}/availability", "offline", retain=True,
-                                qos=max(1, s.qos))
-            self.outbox.put(self._bridge, "offline", retain=True, qos=max(1, s.qos))
+            qos = max(1, self.settings.qos)
+            for out in self.publisher.offline():
+                self._put(out, qos)
+            self.outbox.put(self._bridge, "offline", retain=True, qos=qos)
             self._flushed.clear()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._flushed.wait(), STOP_FLUSH)
@@ -272,6 +224,10 @@ class MqttService:
             extra = {"event": "mqtt", **({"device": device} if device else {})}
             log.log(level, msg, *args, extra=extra)
 
+    def _put(self, out: Out, qos: int | None = None) -> None:
+        self.outbox.put(out.topic, out.payload, retain=out.retain,
+                        qos=self.settings.qos if qos is None else qos)
+
     # -- the connection ------------------------------------------------------
 
     @property
@@ -280,6 +236,40 @@ class MqttService:
 
     def _client(self) -> aiomqtt.Client:
         return make_client(self.settings, will=True)
+
+    async def _check_alone(self, client: aiomqtt.Client) -> None:
+        """Refuse to start when another live gateway holds this base topic: its
+        ``bridge/state`` retained ``online`` and its ``bridge/info`` naming another id.
+        (The same id online is this gateway's own previous run, whose last will the
+        broker has not published yet.)"""
+        base, me = self._base, self.settings.gateway_id
+        marker = f"{base}/bridge/sync/{uuid.uuid4().hex}"
+        got: dict[str, bytes] = {}
+        await client.subscribe([(f"{base}/bridge/state", 1), (f"{base}/bridge/info", 1),
+                                (marker, 1)])
+        await client.publish(marker, b"1", qos=1)
+
+        async def collect() -> None:
+            async for message in client.messages:
+                topic = message.topic.value
+                if topic == marker:
+                    return
+                if message.retain and isinstance(message.payload, bytes):
+                    got[topic] = message.payload
+
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(collect(), CONNECT_TIMEOUT)
+        await client.unsubscribe([f"{base}/bridge/state", f"{base}/bridge/info", marker])
+        if got.get(f"{base}/bridge/state", b"").strip() != b"online":
+            return
+        other = ""
+        with contextlib.suppress(ValueError, AttributeError):
+            other = str(json.loads(got.get(f"{base}/bridge/info", b"{}")).get("gateway", ""))
+        if other and other != me:
+            raise BrokerError(
+                f"{self.settings.where}: gateway {other!r} is online under the base topic "
+                f"{base!r}; give this one ({me!r}) its own (--mqtt-id, or a base in the URL), "
+                f"or if {other!r} is gone for good: mosquitto_pub -r -n -t {base}/bridge/state")
 
     async def _run(self, client: aiomqtt.Client | None) -> None:
         """Sessions until cancelled; after a lost connection, reconnect with backoff."""
@@ -300,7 +290,7 @@ class MqttService:
                 self.lost_at = None
                 self._log(logging.WARNING, "mqtt: back on %s after %.0f s: republishing the "
                           "latest state of %d devices (%d older messages were replaced "
-                          "meanwhile)", self.settings.where, gone, len(self._state),
+                          "meanwhile)", self.settings.where, gone, len(self.publisher.state),
                           self.outbox.dropped)
             attempts = 0
             reason = "disconnected"
@@ -329,9 +319,11 @@ class MqttService:
             subs.append((f"{s.discovery_prefix}/device/+/config", s.qos))
         await client.subscribe(subs)
         await client.publish(self._bridge, "online", qos=max(1, s.qos), retain=True)
+        self._queue_info()
         if s.discovery:
             self._queue_discovery()
-        self._queue_latest()
+        for out in self.publisher.latest():
+            self._put(out)
         self._connected.set()
         reader = asyncio.create_task(self._read(client))
         writer = asyncio.create_task(self._write(client))
@@ -407,25 +399,38 @@ class MqttService:
                 if payload.strip() == b"online":  # Home Assistant (re)started
                     if s.discovery:
                         self._queue_discovery()
-                    self._queue_latest()
+                    for out in self.publisher.latest():
+                        self._put(out)
             elif topic.startswith(configs):
                 self._check_config(topic, payload)
             elif topic.startswith(f"{base}/"):
                 t, _, verb = topic[len(base) + 1:].rpartition("/")
                 name = self._by_topic.get(t)
-                if name is not None and verb in ("set", "get"):
-                    task = asyncio.create_task(self._command(verb, name, t, payload))
-                    self._commands.add(task)
-                    task.add_done_callback(self._commands.discard)
+                if name is None or verb not in ("set", "get"):
+                    continue
+                if message.retain:  # left on the broker, maybe long ago: not a command now
+                    self._ignored_retained(topic)
+                    continue
+                task = asyncio.create_task(self._command(verb, name, t, payload))
+                self._commands.add(task)
+                task.add_done_callback(self._commands.discard)
+
+    def _ignored_retained(self, topic: str) -> None:
+        if self._retained_said:
+            return
+        self._retained_said = True
+        self._log(logging.WARNING, "mqtt: ignoring the retained command on %s (and any "
+                  "other): commands must come from now, not from the broker's memory; clear "
+                  "it with: mosquitto_pub -r -n -t '%s'", topic, topic)
 
     # -- what is published ---------------------------------------------------
 
-    def _queue_latest(self) -> None:
-        s = self.settings
-        for t, avail in self._avail.items():
-            self.outbox.put(f"{self._base}/{t}/availability", avail, retain=True, qos=s.qos)
-        for t, payload in self._state.items():
-            self.outbox.put(f"{self._base}/{t}", payload, retain=s.retain, qos=s.qos)
+    def _queue_info(self) -> None:
+        """``BASE/bridge/info``: who this gateway is and what it polls (retained)."""
+        info = bridge_info(self.settings.gateway_id, self._base, self._devices(),
+                           self.topics, version())
+        self.outbox.put(f"{self._base}/bridge/info", to_json(info), retain=True,
+                        qos=max(1, self.settings.qos))
 
     def _queue_discovery(self) -> None:
         """Every config of the site; those of devices no longer in it are removed."""
@@ -448,42 +453,40 @@ class MqttService:
             return
         for name, t in self.topics.items():
             if name not in topics:
-                self.outbox.put(f"{self._base}/{t}/availability", "", retain=True,
-                                qos=self.settings.qos)
-                if self.settings.retain:
-                    self.outbox.put(f"{self._base}/{t}", "", retain=True,
-                                    qos=self.settings.qos)
-                self._avail.pop(t, None)
-                self._state.pop(t, None)
-        self.topics = topics
+                for out in self.publisher.forget(t):
+                    self._put(out)
+        self.topics = self.publisher.topics = topics
         self._by_topic = {t: name for name, t in topics.items()}
+        if self._connected.is_set():
+            self._queue_info()
         if self.settings.discovery:
             self._queue_discovery()
 
     def _discovery(self) -> dict[str, str]:
         """Every discovery message of the site, by config topic."""
         s = self.settings
+        gid = s.gateway_id
         out: dict[str, str] = {}
-        buses = self._scheduler.buses if self._scheduler is not None else []
-        for bus, dev in self._devices(buses):
+        for bus, dev in self._devices():
             t = self.topics.get(dev.name) or topic_name(dev.name)
             opts = s.options(dev.name)
             controls = {f.name: s.allow_writes and not self.once and (
                 not cmd.protected(dev.profile, f) or f.name in opts.allow)
                 for f in dev.fields if f.writable}
-            oid = ha.object_id(self._base, t)
+            oid = ha.object_id(gid, t)
             topic = ha.config_topic(s.discovery_prefix, oid)
-            out[topic] = to_json(ha.device_config(dev, bus, base=self._base, topic=t,
-                                                  controls=controls, qos=s.qos))
+            out[topic] = to_json(ha.device_config(dev, bus, gateway_id=gid, base=self._base,
+                                                  topic=t, controls=controls, qos=s.qos))
             self._discovered[oid] = topic
-        for bus in {bus.name: bus for bus, _ in self._devices(buses)}.values():
-            oid = ha.bus_object_id(self._base, bus.name)
+        for bus in {bus.name: bus for bus, _ in self._devices()}.values():
+            oid = ha.bus_object_id(gid, bus.name)
             topic = ha.config_topic(s.discovery_prefix, oid)
-            out[topic] = to_json(ha.bus_config(bus, base=self._base, qos=s.qos))
+            out[topic] = to_json(ha.bus_config(bus, gateway_id=gid, base=self._base, qos=s.qos))
             self._discovered[oid] = topic
         return out
 
-    def _devices(self, buses: list[BusPoller]) -> Iterator[tuple[BusConfig, DeviceConfig]]:
+    def _devices(self) -> Iterator[tuple[BusConfig, DeviceConfig]]:
+        buses = self._scheduler.buses if self._scheduler is not None else []
         if buses:
             for bp in buses:
                 for d in bp.devices:
@@ -498,9 +501,9 @@ class MqttService:
             return
         try:
             obj = json.loads(payload)
-        except ValueError:
+        except (ValueError, RecursionError):
             return
-        if isinstance(obj, dict) and ha.is_ours(obj, self._base):
+        if isinstance(obj, dict) and ha.is_ours(obj, self.settings.gateway_id, self._base):
             self.outbox.put(topic, "", retain=True, qos=self.settings.qos)
             self._log(logging.INFO, "mqtt: removed the Home Assistant discovery of %s (no "
                       "longer in the site)", oid)
@@ -517,13 +520,14 @@ class MqttService:
         return None
 
     async def _command(self, verb: str, name: str, t: str, payload: bytes) -> None:
-        """``BASE/DEVICE/set`` or ``.../get``: run it, publish its result on ``.../result``."""
-        found = self._find(name)
-        if found is None:
-            return
-        bp, dev = found
+        """``BASE/DEVICE/set`` or ``.../get``: run it, publish its one result on
+        ``.../result``, whatever the payload holds."""
         done: dict[str, Any] = {}  # what a set wrote and read back before a failure
         try:
+            found = self._find(name)
+            if found is None:
+                raise UsageError(f"{name} is not polled now (the site file was reloaded)")
+            bp, dev = found
             values = await (self._set(bp, dev, t, payload, done) if verb == "set" else
                             self._get(bp, dev, t, payload))
             if values is None:  # a get of everything: the next state answers it
@@ -531,9 +535,14 @@ class MqttService:
             result = cmd.ok(values)
         except RtupollError as exc:
             result = cmd.failed(exc, done)
+        except Exception as exc:  # a bug: still one result, and one line, no traceback
+            result = cmd.failed(RtupollError(f"{verb} failed: {type(exc).__name__}: {exc}"),
+                                done)
+            self._log(logging.ERROR, "mqtt: %s: %s: %s", name, verb, result["error"],
+                      device=name)
         if verb == "set":
             self._log(logging.INFO, "mqtt: %s: set %s: %s", name,
-                      payload.decode("utf-8", "replace")[:200], result.get("error") or "ok",
+                      payload[:200].decode("utf-8", "replace"), result.get("error") or "ok",
                       device=name)
         self.outbox.put(f"{self._base}/{t}/{verb}/result", to_json(result), retain=False,
                         qos=self.settings.qos)
@@ -544,7 +553,7 @@ class MqttService:
         ops = cmd.plan_set(cfg, payload, writes_on=self.settings.allow_writes,
                            allow=self.settings.options(cfg.name).allow)
         await bp.submit(lambda transport: cmd.apply_set(transport, cfg, ops, done))
-        self._forced.add(t)
+        self.publisher.forced.add(t)
         bp.poll_now(dev)
         return done
 
@@ -554,19 +563,10 @@ class MqttService:
         cfg = dev.config
         fields = cmd.plan_get(cfg, payload)
         if fields is None:
-            self._forced.add(t)
+            self.publisher.forced.add(t)
             bp.poll_now(dev)
             return None
         return await bp.submit(lambda transport: cmd.apply_get(transport, cfg, fields))
-
-
-def plain(value: Any) -> str:
-    """A value on its own topic: numbers and names as text, flag lists as JSON."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, dict)):
-        return to_json(value)
-    return str(value)
 
 
 def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:
@@ -575,64 +575,14 @@ def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:
     return float(raw * (0.8 + 0.4 * rand()))
 
 
-def make_client(settings: MqttSettings, *, will: bool) -> aiomqtt.Client:
-    lib = aiomqtt_module()
-    s = settings
-    tls = None
-    if s.tls:
-        tls = lib.TLSParameters(ca_certs=s.ca, certfile=s.cert, keyfile=s.key,
-                                    cert_reqs=ssl.CERT_REQUIRED)
-    last_will = lib.Will(f"{s.base}/bridge/state", "offline", qos=max(1, s.qos),
-                             retain=True) if will else None
-    client: aiomqtt.Client = lib.Client(
-        s.host, s.port, username=s.username, password=s.password,
-        identifier=s.client_id or f"rtupoll-{uuid.uuid4().hex[:12]}", will=last_will,
-        tls_params=tls, keepalive=30, timeout=CONNECT_TIMEOUT, logger=_PAHO_LOG)
-    return client
-
-
-def describe(exc: BaseException, settings: MqttSettings) -> str:
-    """Why a connection failed, in one line an operator can act on."""
-    rc = getattr(exc, "rc", None)
-    code = getattr(rc, "value", rc)
-    text = str(exc)
-    refused = type(exc).__name__ == "MqttConnectError"  # the CONNACK said no
-    if (refused and code in (4, 5, 134, 135)) or "authori" in text.lower() \
-            or "password" in text.lower():
-        who = f"user {settings.username!r}" if settings.username else "no user name"
-        return f"the broker refused the credentials ({who}): {text}"
-    cause = exc.__cause__ or exc.__context__
-    for e in (exc, cause):
-        if isinstance(e, socket.gaierror) or "Name or service not known" in str(e) or \
-                "nodename nor servname" in str(e):
-            return f"unknown host {settings.host!r}"
-        if isinstance(e, ssl.SSLError) or "SSL" in str(e) or "certificate" in str(e):
-            return f"TLS handshake refused: {e}"
-        if settings.tls and (isinstance(e, ConnectionResetError) or "reset by peer" in str(e)):
-            return (f"TLS handshake refused: the connection was reset (is port "
-                    f"{settings.port} a TLS listener?)")
-        if isinstance(e, ConnectionRefusedError) or "Connection refused" in str(e):
-            return f"connection refused (is the broker running on port {settings.port}?)"
-    if "not currently connected" in text or "Disconnected" in text or "connection was lost" \
-            in text.lower():
-        return "the connection was lost"
-    return text or type(exc).__name__
-
-
 async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
     """``--mqtt-remove-discovery``: empty retained payloads for every Home Assistant config
-    this gateway (this base topic) published, the site's devices and any it had before;
-    returns the object ids removed."""
+    this gateway (this id and base topic) published, the site's devices and any it had
+    before; returns the object ids removed."""
     lib = aiomqtt_module()
     s = settings
     client = make_client(s, will=False)
-    try:
-        await asyncio.wait_for(client.__aenter__(), CONNECT_TIMEOUT)
-    except asyncio.TimeoutError:
-        raise BrokerError(f"{s.where}: no answer from the MQTT broker within "
-                          f"{CONNECT_TIMEOUT:g} s") from None
-    except Exception as exc:
-        raise BrokerError(f"{s.where}: {describe(exc, s)}") from None
+    await connect(client, s)
     removed: list[str] = []
     try:
         service = MqttService(s, site)
@@ -653,9 +603,9 @@ async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
                 body = message.payload
                 if not isinstance(body, bytes) or not body:
                     continue
-                with contextlib.suppress(ValueError):
+                with contextlib.suppress(ValueError, RecursionError):
                     obj = json.loads(body)
-                    if isinstance(obj, dict) and ha.is_ours(obj, s.base) and \
+                    if isinstance(obj, dict) and ha.is_ours(obj, s.gateway_id, s.base) and \
                             topic.split("/")[-2] not in removed:
                         await client.publish(topic, b"", qos=1, retain=True)
                         removed.append(topic.split("/")[-2])
@@ -670,8 +620,10 @@ async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
     return removed
 
 
-def from_options(site: Site, url: str | None, *, allow_writes: bool) -> MqttSettings | None:
-    """``--mqtt URL`` over the site file's ``mqtt:`` section (None: no MQTT at all)."""
+def from_options(site: Site, url: str | None, *, allow_writes: bool,
+                 gateway_id: str | None = None) -> MqttSettings | None:
+    """``--mqtt URL`` (and ``--mqtt-id``) over the site file's ``mqtt:`` section (None:
+    no MQTT at all)."""
     settings = site.mqtt
     if url:
         from rtupoll.outputs.mqtt_settings import parse_url
@@ -680,10 +632,16 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool) -> MqttSett
     if settings is None:
         if allow_writes:
             raise UsageError("--mqtt-allow-writes needs --mqtt URL (or mqtt: in the site file)")
+        if gateway_id is not None:
+            raise UsageError("--mqtt-id needs --mqtt URL (or mqtt: in the site file)")
         return None
     aiomqtt_module()  # missing: say so now, before any port is opened
     if allow_writes:
         settings = dataclasses.replace(settings, allow_writes=True)
+    if gateway_id is not None:
+        from rtupoll.outputs.fleet import check_gateway_id
+
+        settings = dataclasses.replace(settings, gateway_id=check_gateway_id(gateway_id))
     return settings
 
 

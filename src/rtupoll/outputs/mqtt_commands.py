@@ -13,11 +13,18 @@ code, read back and compared (``jobs.writes.verify``). The answer on
 ``BASE/DEVICE/get``: empty (or ``{}``) reads the whole device now, ahead of the
 schedule; a list of field names (or ``{"fields": [...]}``) reads those fields, polled
 or not, and answers on ``BASE/DEVICE/get/result`` like ``set``.
+
+Whatever a payload holds, it is bounded before it is parsed (``MAX_PAYLOAD`` bytes,
+``MAX_DEPTH`` levels of nesting), and a number is a JSON number or a plain decimal
+string (``"12.5"``): not ``true``, ``"1_0"``, ``"0x10"`` or full-width digits. A number
+the field cannot hold (``1e39`` for an f32) is refused like any value out of range.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +40,7 @@ from rtupoll.errors import (
 )
 from rtupoll.jobs.device import Timing, read_fields
 from rtupoll.jobs.writes import WriteOp, plan_write, read_back, verify, write
+from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.ui.records import finite
@@ -49,6 +57,10 @@ _STATUS: tuple[tuple[type[RtupollError], str], ...] = (
     (PortError, "port"))
 
 
+MAX_PAYLOAD = 16_384  # bytes of a command's payload
+MAX_DEPTH = 4  # nesting of a command's JSON ({"fields": [...]} is 2)
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+_F32_MAX = 3.4028234663852886e38
 _PROTECTED = {"address": "the device's own address", "baud": "the device's baud rate"}
 
 
@@ -58,10 +70,40 @@ def protected(profile: Profile, field: Field) -> str:
 
 
 def _object(payload: bytes, what: str) -> Any:
+    """The command's JSON, bounded in size and depth before it is parsed."""
+    if len(payload) > MAX_PAYLOAD:
+        raise UsageError(f"{what}: the payload is {len(payload)} bytes; at most "
+                         f"{MAX_PAYLOAD} are taken")
+    if not payload.strip():
+        return None
+    if depth(payload) > MAX_DEPTH:
+        raise UsageError(f"{what}: the payload nests deeper than {MAX_DEPTH} levels")
     try:
-        return json.loads(payload.decode("utf-8")) if payload.strip() else None
-    except (UnicodeDecodeError, ValueError):
+        return json.loads(payload.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
         raise UsageError(f"{what}: the payload is not JSON") from None
+
+
+def depth(payload: bytes) -> int:
+    """How deep ``[`` and ``{`` nest in a JSON text (outside strings), without parsing it."""
+    deepest = level = 0
+    in_string = escaped = False
+    for byte in payload:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif byte == 0x5C:  # backslash
+                escaped = True
+            elif byte == 0x22:  # quote
+                in_string = False
+        elif byte == 0x22:
+            in_string = True
+        elif byte in (0x5B, 0x7B):
+            level += 1
+            deepest = max(deepest, level)
+        elif byte in (0x5D, 0x7D):
+            level -= 1
+    return deepest
 
 
 def plan_set(dev: DeviceConfig, payload: bytes, *, writes_on: bool,
@@ -80,19 +122,54 @@ def plan_set(dev: DeviceConfig, payload: bytes, *, writes_on: bool,
         if why and field.name not in allow:
             raise RefusedError(f"{field.name} is {why}: MQTT writes it only when the site file "
                                f"allows it (mqtt.devices.{dev.name}.allow: [{field.name}])")
-        ops.append(plan_write(field, _text(field, value), p.limits.functions))
+        text = _text(field, value)
+        try:
+            ops.append(plan_write(field, text, p.limits.functions))
+        except (OverflowError, ValueError) as exc:  # what no check above foresaw
+            raise RefusedError(f"{field.name}: {text} cannot be written: {exc}") from None
     return ops
 
 
 def _text(field: Field, value: Any) -> str:
-    """A JSON value as the text ``rtupoll write FIELD=TEXT`` would take."""
+    """A JSON value as the text ``rtupoll write FIELD=TEXT`` would take: a number is a
+    JSON number or a plain decimal string, and one the field can hold."""
+    shown = json.dumps(value)[:60]
+    named = bool(field.enum or field.flags) or field.layout.type is DataType.STRING
     if isinstance(value, bool):
-        return "1" if value else "0"
-    if isinstance(value, (int, float, str)):
-        return str(value) if not isinstance(value, float) else repr(value)
-    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        if field.layout.type is DataType.BOOL:
+            return "1" if value else "0"
+        raise UsageError(f"{field.name}: {shown} is not a value for it (a number is a JSON "
+                         "number or a decimal string)")
+    if isinstance(value, str) and (named or field.layout.type is DataType.BOOL):
+        return value
+    if isinstance(value, str):
+        if not _DECIMAL.fullmatch(value):
+            raise UsageError(f"{field.name}: {shown} is not a number (a JSON number, or a "
+                             "plain decimal string such as \"12.5\")")
+        number = float(value)
+        _holds(field, number, value)
+        return value
+    if isinstance(value, int):
+        _holds(field, float(value) if abs(value) < 1e300 else math.inf, str(value))
+        return str(value)
+    if isinstance(value, float):
+        _holds(field, value, repr(value))
+        return repr(value)
+    if isinstance(value, list) and all(isinstance(v, str) for v in value) and field.flags:
         return "|".join(value) if value else "none"
-    raise UsageError(f"{field.name}: {json.dumps(value)} is not a value for it")
+    raise UsageError(f"{field.name}: {shown} is not a value for it")
+
+
+def _holds(field: Field, number: float, text: str) -> None:
+    """Refuse a number no register of the field could carry (before encoding it)."""
+    from rtupoll.outputs.homeassistant import type_bounds
+
+    if field.enum or field.flags or field.layout.type in (DataType.STRING, DataType.BOOL):
+        return
+    lo, hi = type_bounds(field)
+    if not math.isfinite(number) or not lo <= number <= hi:
+        raise RefusedError(f"{field.name}: {text[:40]} is outside what the field can hold "
+                           f"({lo:g}..{hi:g})")
 
 
 async def apply_set(bus: BusLike, dev: DeviceConfig, ops: Sequence[WriteOp],

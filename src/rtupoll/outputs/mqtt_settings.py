@@ -17,11 +17,11 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from rtupoll.errors import UsageError
+from rtupoll.outputs.fleet import check_gateway_id, default_base, default_gateway_id
 
 if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node
 
-DEFAULT_BASE = "rtupoll"
 DEFAULT_PREFIX = "homeassistant"
 PASSWORD_ENV = "RTUPOLL_MQTT_PASSWORD"  # a password for a URL that names only the user
 PUBLISH_MODES = ("every_scan", "on_change")
@@ -45,7 +45,8 @@ class MqttSettings:
     tls: bool = False
     username: str | None = None
     password: str | None = None
-    base: str = DEFAULT_BASE
+    base_topic: str | None = None  # as given (URL, site file); None: rtupoll/<gateway_id>
+    gateway_id: str = field(default_factory=default_gateway_id)  # docs/mqtt.md "Identity"
     client_id: str | None = None
     ca: str | None = None  # TLS: CA bundle (None: the system's)
     cert: str | None = None  # TLS client certificate and key
@@ -57,6 +58,11 @@ class MqttSettings:
     allow_writes: bool = False
     defaults: DeviceOptions = DeviceOptions()
     devices: Mapping[str, DeviceOptions] = field(default_factory=dict)
+
+    @property
+    def base(self) -> str:
+        """The base topic: as given, else ``rtupoll/<gateway_id>``."""
+        return self.base_topic if self.base_topic is not None else default_base(self.gateway_id)
 
     @property
     def where(self) -> str:
@@ -72,7 +78,7 @@ class MqttSettings:
         return replace(self, host=u.host, port=u.port, tls=u.tls,
                        username=u.username if u.username is not None else self.username,
                        password=u.password if u.username is not None else self.password,
-                       base=u.base if _has_base(url) else self.base)
+                       base_topic=u.base_topic if u.base_topic is not None else self.base_topic)
 
 
 def parse_url(url: str) -> MqttSettings:
@@ -90,18 +96,15 @@ def parse_url(url: str) -> MqttSettings:
     if parts.query or parts.fragment:
         raise UsageError(f"--mqtt {url}: no '?' or '#' parts (options go in the site file)")
     tls = parts.scheme == "mqtts"
-    base = unquote(parts.path.strip("/")) or DEFAULT_BASE
-    check_topic(base, f"--mqtt {url}: base topic")
+    base = unquote(parts.path.strip("/")) or None
+    if base is not None:
+        check_topic(base, f"--mqtt {url}: base topic")
     user = unquote(parts.username) if parts.username else None
     password = unquote(parts.password) if parts.password is not None else None
     if user is not None and password is None:
         password = os.environ.get(PASSWORD_ENV)
     return MqttSettings(host=parts.hostname, port=port or (8883 if tls else 1883), tls=tls,
-                        username=user, password=password, base=base)
-
-
-def _has_base(url: str) -> bool:
-    return bool(urlsplit(url.strip()).path.strip("/"))
+                        username=user, password=password, base_topic=base)
 
 
 def check_topic(text: str, what: str) -> None:
@@ -115,8 +118,8 @@ def check_topic(text: str, what: str) -> None:
 # ---------------------------------------------------------------------------
 # the site file's mqtt: section
 
-_KEYS = {"url", "client_id", "username", "password_env", "password_file", "tls", "qos",
-         "retain", "base", "discovery", "discovery_prefix", "allow_writes", "publish",
+_KEYS = {"url", "gateway_id", "client_id", "username", "password_env", "password_file", "tls",
+         "qos", "retain", "base", "discovery", "discovery_prefix", "allow_writes", "publish",
          "max_silence", "field_topics", "devices"}
 _TLS_KEYS = {"ca", "cert", "key"}
 _DEVICE_KEYS = {"publish", "max_silence", "field_topics", "allow"}
@@ -171,6 +174,12 @@ def parse_section(node: Node, site_file: Path, devices: Mapping[str, Any]) -> Mq
             raise m["tls"].fail("TLS files need an mqtts:// url")
     if (tls["cert"] is None) != (tls["key"] is None):
         raise m["tls"].fail("a client certificate needs both cert and key")
+    gateway_id = s.gateway_id
+    if "gateway_id" in m:
+        try:
+            gateway_id = check_gateway_id(m["gateway_id"].text(), "")
+        except UsageError as exc:
+            raise m["gateway_id"].fail(str(exc).strip()) from None
     defaults = _device_options(m, DeviceOptions(), devices, None)
     per_device: dict[str, DeviceOptions] = {}
     if "devices" in m:
@@ -186,7 +195,8 @@ def parse_section(node: Node, site_file: Path, devices: Mapping[str, Any]) -> Mq
         ca=tls["ca"], cert=tls["cert"], key=tls["key"],
         qos=m["qos"].integer(0, 2) if "qos" in m else 0,
         retain=m["retain"].flag() if "retain" in m else False,
-        base=text("base", "base") if "base" in m else s.base,
+        base_topic=text("base", "base") if "base" in m else s.base_topic,
+        gateway_id=gateway_id,
         discovery=m["discovery"].flag() if "discovery" in m else True,
         discovery_prefix=text("discovery_prefix", "discovery_prefix")
         if "discovery_prefix" in m else DEFAULT_PREFIX,

@@ -1,0 +1,129 @@
+"""A gateway's identity on a shared broker, and what it tells a fleet viewer about itself.
+
+Several rtupoll gateways may publish to one broker. Each has a stable ``gateway_id``
+(``--mqtt-id``, site file ``mqtt.gateway_id``, default: the machine's host name,
+lower-cased, every character other than ``[a-z0-9_-]`` as ``_``), which names its
+default base topic (``rtupoll/<gateway_id>``) and its Home Assistant ids
+(``rtupoll_<gateway_id>_<device>``). ``BASE/bridge/info`` (retained) says who it is
+and what its devices and fields are, with each field's label, unit, kind and
+precision: what a fleet viewer (``rtupoll web --mqtt``) needs to show it.
+
+Pure: no MQTT library, no I/O but the host name.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+from collections.abc import Iterable
+from decimal import Decimal
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.errors import UsageError
+from rtupoll.model.codec import DataType
+
+if TYPE_CHECKING:
+    from rtupoll.config.site import BusConfig, DeviceConfig
+    from rtupoll.model.profile import Choice, Field
+
+ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+_NOT_ID = re.compile(r"[^a-z0-9_-]")
+DEFAULT_PREFIX = "rtupoll"  # the default base is rtupoll/<gateway_id>
+# the key of rtupoll's own status in a state message: no profile field can take it
+# (field names are lower_snake_case identifiers that do not start with "_")
+STATUS_KEY = "_rtupoll"
+LAST_SEEN = "last_seen"
+RESERVED = (STATUS_KEY, LAST_SEEN)  # keys of a state message that are not fields
+
+
+def default_gateway_id(hostname: str | None = None) -> str:
+    """The host name, lower-cased, with anything but ``[a-z0-9_-]`` as ``_`` (``rtupoll``
+    for a host with no usable name)."""
+    name = (hostname if hostname is not None else socket.gethostname()).strip().lower()
+    return _NOT_ID.sub("_", name).strip("_")[:64] or "rtupoll"
+
+
+def check_gateway_id(text: str, what: str = "--mqtt-id") -> str:
+    if not ID_PATTERN.match(text):
+        raise UsageError(f"{what} {text!r}: a gateway id is 1 to 64 of a-z, 0-9, '_' and "
+                         "'-', starting with a letter or digit")
+    return text
+
+
+def default_base(gateway_id: str) -> str:
+    return f"{DEFAULT_PREFIX}/{gateway_id}"
+
+
+def label(field: Field) -> str:
+    """The field's name for people: the profile's description up to its first aside
+    (``"Target gas concentration (ppm or %vol, ...)"`` -> ``"Target gas concentration"``),
+    else the field name in words (``import_active_energy`` -> ``"Import active energy"``)."""
+    text = re.split(r" \(|; ", field.description, maxsplit=1)[0].strip().rstrip(".:,")
+    if not text:
+        text = field.name.replace("_", " ")
+    return text[:1].upper() + text[1:]
+
+
+def choice_label(choice: Choice) -> str:
+    """A flag's or enum value's name for people: its description, else its name."""
+    text = re.split(r" \(|; ", choice.description, maxsplit=1)[0].strip().rstrip(".:,")
+    if not text:
+        return choice.name
+    return text[:1].upper() + text[1:]
+
+
+def kind(field: Field) -> str:
+    """``number``, ``enum``, ``flags`` or ``text`` (a bool, JSON true/false, is ``text``)."""
+    if field.enum:
+        return "enum"
+    if field.flags:
+        return "flags"
+    if field.layout.type in (DataType.STRING, DataType.BOOL):
+        return "text"
+    return "number"
+
+
+def precision(field: Field) -> int | None:
+    """Decimal places a number is shown with: the profile's ``precision``, else what its
+    scale carries (0.001 -> 3; an integer register unscaled -> 0); None for a float
+    register with neither."""
+    if kind(field) != "number":
+        return None
+    if field.precision is not None:
+        return max(field.precision, 0)
+    layout = field.layout
+    if layout.type is DataType.F32:
+        return None
+    places = 0
+    for step in (layout.scale, layout.offset):
+        exponent = Decimal(repr(float(step))).normalize().as_tuple().exponent
+        places = max(places, -exponent if isinstance(exponent, int) else 0)
+    return min(places, 9)
+
+
+def field_info(field: Field) -> dict[str, Any]:
+    return {"label": label(field), "unit": field.unit, "kind": kind(field),
+            "precision": precision(field)}
+
+
+def bridge_info(gateway_id: str, base: str, devices: Iterable[tuple[BusConfig, DeviceConfig]],
+                topics: dict[str, str], version: str) -> dict[str, Any]:
+    """The retained ``BASE/bridge/info`` payload. Devices are keyed by their topic level
+    (``BASE/<key>`` is their state), with the site's name under ``name``."""
+    out: dict[str, Any] = {}
+    for bus, dev in devices:
+        t = topics.get(dev.name, dev.name)
+        out[t] = {"name": dev.name, "profile": dev.profile.id, "address": dev.address,
+                  "bus": bus.name,
+                  "fields": {f.name: field_info(f) for f in dev.fields}}
+    return {"gateway": gateway_id, "version": version, "base": base, "devices": out}
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("rtupoll")
+    except PackageNotFoundError:
+        return "unknown"

@@ -1,0 +1,171 @@
+"""The thin connection: the aiomqtt client rtupoll uses, and why a connection failed.
+
+aiomqtt (2.x, on paho-mqtt 2.x) is an optional extra, imported only here and only
+when MQTT is used.
+
+**The socket race** (``SafeClient``). paho calls ``on_socket_open`` and
+``on_socket_register_write`` with its socket; aiomqtt 2.5 answers by scheduling
+``loop.add_reader(sock.fileno(), ...)`` / ``loop.add_writer(sock.fileno(), ...)`` with
+``call_soon_threadsafe``, the descriptor's *number* taken at once. When the broker goes
+away, paho closes that socket before the loop runs the scheduled call, which then
+registers a closed descriptor: on Python 3.13 the loop logs "Exception in callback
+BaseSelectorEventLoop.add_writer() ... OSError: [Errno 9] Bad file descriptor" with a
+traceback; on any version, had the number been reused by a new socket meanwhile (the
+reconnection's), the dead client's callback would be registered on it. ``SafeClient``
+schedules the same registration but decides when it runs: only if that socket is still
+the client's and still open. The read and write callbacks themselves are aiomqtt's
+(the same bodies), so what happens on a live socket does not change.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import ssl
+import uuid
+from functools import cache
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.errors import UsageError
+
+if TYPE_CHECKING:
+    import aiomqtt
+
+    from rtupoll.outputs.mqtt_settings import MqttSettings
+
+CONNECT_TIMEOUT = 10.0  # seconds for a connection before giving up
+KEEPALIVE = 30
+# paho's own messages ("failed to receive on socket ...") are not for the operator: the
+# service says what happened, once, in its own words
+PAHO_LOG = logging.getLogger("rtupoll.mqtt.paho")
+PAHO_LOG.propagate = False
+PAHO_LOG.addHandler(logging.NullHandler())
+
+
+def aiomqtt_module() -> Any:
+    """The ``aiomqtt`` library, or one line saying how to install it."""
+    try:
+        import aiomqtt
+    except ImportError:
+        raise UsageError("MQTT (--mqtt, or mqtt: in the site file) needs the aiomqtt "
+                         "library: pip install 'rtupoll[mqtt]'") from None
+    return aiomqtt
+
+
+def _open(sock: Any) -> bool:
+    with contextlib.suppress(OSError, ValueError):
+        return bool(sock.fileno() >= 0)
+    return False
+
+
+@cache
+def client_class() -> Any:
+    """``aiomqtt.Client`` with the socket registrations made safe (module docstring)."""
+    lib = aiomqtt_module()
+
+    class SafeClient(lib.Client):  # type: ignore[misc,name-defined]
+        def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
+            def callback() -> None:  # aiomqtt's reader: read until nothing is pending
+                try:
+                    while True:
+                        client.loop_read()
+                        pending = getattr(client._sock, "pending", None)
+                        if pending is not None and pending() > 0:
+                            continue
+                        break
+                except Exception as exc:  # the connection broke: aiomqtt's way to say so
+                    if not self._disconnected.done():
+                        self._disconnected.set_exception(exc)
+
+            def register() -> None:
+                if client.socket() is sock and _open(sock):
+                    self._loop.add_reader(sock.fileno(), callback)
+
+            def create_misc_task() -> None:
+                self._misc_task = self._loop.create_task(self._misc_loop())
+
+            self._loop.call_soon_threadsafe(register)
+            self._loop.call_soon_threadsafe(create_misc_task)
+
+        def _on_socket_register_write(self, client: Any, userdata: Any, sock: Any) -> None:
+            def callback() -> None:  # aiomqtt's writer
+                try:
+                    client.loop_write()
+                except Exception as exc:
+                    if not self._disconnected.done():
+                        self._disconnected.set_exception(exc)
+
+            def register() -> None:
+                # paho may have unregistered it meanwhile (the data went out at once):
+                # a writer on an idle socket would run on every turn of the loop
+                if client.socket() is sock and _open(sock) and \
+                        getattr(client, "_registered_write", True):
+                    self._loop.add_writer(sock.fileno(), callback)
+
+            self._loop.call_soon_threadsafe(register)
+
+        def _on_socket_unregister_write(self, client: Any, userdata: Any, sock: Any) -> None:
+            if _open(sock):
+                self._loop.remove_writer(sock.fileno())
+
+    return SafeClient
+
+
+def make_client(settings: MqttSettings, *, will: bool) -> aiomqtt.Client:
+    """A client for ``settings``; ``will``: the last will ``BASE/bridge/state`` = offline."""
+    lib = aiomqtt_module()
+    s = settings
+    tls = None
+    if s.tls:
+        tls = lib.TLSParameters(ca_certs=s.ca, certfile=s.cert, keyfile=s.key,
+                                cert_reqs=ssl.CERT_REQUIRED)
+    last_will = lib.Will(f"{s.base}/bridge/state", "offline", qos=max(1, s.qos),
+                         retain=True) if will else None
+    client: aiomqtt.Client = client_class()(
+        s.host, s.port, username=s.username, password=s.password,
+        identifier=s.client_id or f"rtupoll-{uuid.uuid4().hex[:12]}", will=last_will,
+        tls_params=tls, keepalive=KEEPALIVE, timeout=CONNECT_TIMEOUT, logger=PAHO_LOG)
+    return client
+
+
+async def connect(client: aiomqtt.Client, settings: MqttSettings) -> None:
+    """Enter the client's session, or a one-line ``BrokerError``."""
+    from rtupoll.errors import BrokerError
+
+    try:
+        await asyncio.wait_for(client.__aenter__(), CONNECT_TIMEOUT)
+    except asyncio.TimeoutError:
+        raise BrokerError(f"{settings.where}: no answer from the MQTT broker within "
+                          f"{CONNECT_TIMEOUT:g} s") from None
+    except Exception as exc:  # aiomqtt.MqttError and what it lets through
+        raise BrokerError(f"{settings.where}: {describe(exc, settings)}") from None
+
+
+def describe(exc: BaseException, settings: MqttSettings) -> str:
+    """Why a connection failed, in one line an operator can act on."""
+    rc = getattr(exc, "rc", None)
+    code = getattr(rc, "value", rc)
+    text = str(exc)
+    refused = type(exc).__name__ == "MqttConnectError"  # the CONNACK said no
+    if (refused and code in (4, 5, 134, 135)) or "authori" in text.lower() \
+            or "password" in text.lower():
+        who = f"user {settings.username!r}" if settings.username else "no user name"
+        return f"the broker refused the credentials ({who}): {text}"
+    cause = exc.__cause__ or exc.__context__
+    for e in (exc, cause):
+        if isinstance(e, socket.gaierror) or "Name or service not known" in str(e) or \
+                "nodename nor servname" in str(e):
+            return f"unknown host {settings.host!r}"
+        if isinstance(e, ssl.SSLError) or "SSL" in str(e) or "certificate" in str(e):
+            return f"TLS handshake refused: {e}"
+        if settings.tls and (isinstance(e, ConnectionResetError) or "reset by peer" in str(e)):
+            return (f"TLS handshake refused: the connection was reset (is port "
+                    f"{settings.port} a TLS listener?)")
+        if isinstance(e, ConnectionRefusedError) or "Connection refused" in str(e):
+            return f"connection refused (is the broker running on port {settings.port}?)"
+    if "not currently connected" in text or "Disconnected" in text or "connection was lost" \
+            in text.lower():
+        return "the connection was lost"
+    return text or type(exc).__name__
