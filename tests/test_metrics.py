@@ -181,8 +181,10 @@ def test_names_follow_the_base_units() -> None:
 
 def test_listen_addresses() -> None:
     assert parse_listen("127.0.0.1:9100") == ("127.0.0.1", 9100)
-    assert parse_listen(":9100") == ("0.0.0.0", 9100)
+    assert parse_listen(":9100") == ("127.0.0.1", 9100)  # loopback, as --serve
+    assert parse_listen("0.0.0.0:9100") == ("0.0.0.0", 9100)
     assert parse_listen("[::1]:9100") == ("::1", 9100)
+    assert parse_listen("[::]:9100") == ("::", 9100)
 
 
 def poll(*args: str) -> Any:
