@@ -187,3 +187,51 @@ def test_promtool_passes_on_every_profile_the_gateway_and_slow_fields(
     noisy = [(s.name, s.value) for s in field_values if math.isfinite(s.value)
              and len(re.sub(r"[-.]|e.*", "", repr(s.value)).strip("0")) > 12]
     assert not noisy, noisy[:5]
+
+
+def test_gateway_counters_per_host_survive_connections_leaving_the_list() -> None:
+    """More connections than the gateway keeps (32), one of them open all along: the
+    host's counters count every request, never go down, and stay one series each."""
+    from rtupoll.gateway.metrics import host_of
+    from rtupoll.gateway.server import KEEP_CLIENTS
+
+    assert host_of("[::1]:40000") == "::1" and host_of("10.0.0.7:502") == "10.0.0.7"
+    metrics, serve = free_port(), free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rtupoll", "poll", "--simulate", "huiwen-aq@3", "--format",
+         "json", "-o", "/dev/null", "--serve", f"127.0.0.1:{serve}", "--metrics",
+         f"127.0.0.1:{metrics}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    fc, address = register("huiwen-aq")
+    request = struct.pack(">HHHBBHH", 1, 0, 6, 3, fc, address, 1)
+
+    def answered(text: str) -> float:
+        (fam,) = [f for f in text_string_to_metric_families(text)
+                  if f.name == "rtupoll_gateway_requests"]
+        assert len(fam.samples) == 6, fam.samples  # one host: one series per outcome
+        return sum(s.value for s in fam.samples if s.labels["outcome"] == "answered")
+
+    try:
+        deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
+        while time.monotonic() < deadline:
+            with contextlib.suppress(OSError):
+                raw_read(serve, 3, fc, address)
+                break
+            time.sleep(0.2)
+        seen = [answered(scrape(metrics))]
+        with socket.create_connection(("127.0.0.1", serve), timeout=10) as long:
+            long.sendall(request)
+            assert len(long.recv(260)) == 11
+            for n in range(KEEP_CLIENTS + 8):
+                assert len(raw_read(serve, 3, fc, address)) == 11
+                if n % 10 == 0:
+                    seen.append(answered(scrape(metrics)))
+            long.sendall(request)  # out of the gateway's list by now, still counting
+            assert len(long.recv(260)) == 11
+            seen.append(answered(scrape(metrics)))
+        time.sleep(0.5)  # the gateway sees the close
+        seen.append(answered(scrape(metrics)))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    assert seen == sorted(seen), seen  # a counter never goes down
+    assert seen[-1] == 1 + 2 + KEEP_CLIENTS + 8
