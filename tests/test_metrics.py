@@ -179,6 +179,27 @@ def test_names_follow_the_base_units() -> None:
     assert field_metric(irnet.field("warning")).kind == "flags"
 
 
+def test_base_units_counters_precision_and_help() -> None:
+    irnet, huiwen, sdm120, rover = (load_one(p) for p in (
+        "net-irnet-pro", "huiwen-aq", "eastron-sdm120", "renogy-rover"))
+    kelvin = field_metric(irnet.field("temperature"))
+    assert kelvin.convert(296.67) == 23.52  # exactly: no 23.52000000000004
+    assert kelvin.help == field_metric(huiwen.field("temperature")).help == \
+        "Field temperature, in celsius"  # the family's unit, not one profile's K
+    pm25 = field_metric(huiwen.field("pm25"))
+    assert (pm25.name, pm25.convert(18)) == ("rtupoll_pm25_grams_per_cubic_meter", 1.8e-05)
+    energy = field_metric(sdm120.field("import_active_energy"))
+    assert (energy.name, energy.kind) == ("rtupoll_import_active_energy_joules", "counter")
+    assert energy.convert(1532.251) == 5516103600.0
+    assert field_metric(sdm120.field("import_reactive_energy")).kind == "counter"
+    assert field_metric(sdm120.field("voltage")).kind == "gauge"
+    amp_hours = [f for f in rover.fields if f.unit == "Ah"]
+    assert amp_hours and all("hours" not in field_metric(f).name and
+                             field_metric(f).name.endswith("_coulombs") for f in amp_hours)
+    assert field_metric(amp_hours[0]).name == "rtupoll_charging_today_coulombs"
+    assert field_metric(amp_hours[0]).convert(12) == 43200.0
+
+
 def test_listen_addresses() -> None:
     assert parse_listen("127.0.0.1:9100") == ("127.0.0.1", 9100)
     assert parse_listen(":9100") == ("127.0.0.1", 9100)  # loopback, as --serve
