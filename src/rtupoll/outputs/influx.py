@@ -4,8 +4,8 @@ One line per block read (the fields a reply carried share its arrival time) and 
 status line per device cycle, so telegraf (``inputs.execd``), ``influx write`` and
 VictoriaMetrics take the stream as it is::
 
-    rtupoll_reading,address=3,bus=line1,device=air,profile=huiwen-aq co2=1175,\
-co2_level=1,co2_level.text="GOOD" 1763803502517000000
+    rtupoll_reading,address=3,bus=line1,device=air,profile=huiwen-aq co2=1175.0,\
+co2_level=1.0,co2_level.text="GOOD" 1763803502517000000
     rtupoll_status,address=3,bus=line1,device=air,profile=huiwen-aq up=1i,ok=15i,failed=0i,\
 state="online" 1763803502517000000
 
