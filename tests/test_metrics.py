@@ -300,3 +300,54 @@ def test_the_gateways_clients_are_on_the_same_metrics_page() -> None:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=20)
     assert proc.returncode == 0
+
+
+def _non_loopback_ipv4() -> str | None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s, contextlib.suppress(OSError):
+        s.connect(("192.0.2.1", 9))  # no packet is sent: only a route is chosen
+        host = str(s.getsockname()[0])
+        return None if host.startswith("127.") or host == "0.0.0.0" else host
+    return None
+
+
+def test_where_metrics_listen() -> None:
+    """``:PORT`` is loopback only (as ``--serve``); ``[::]:PORT`` takes IPv6 and IPv4."""
+    from rtupoll.outputs.metrics import MetricsService
+
+    site = from_specs("/dev/null", [("huiwen-aq", 3)], check_serial=False)
+
+    def get(host: str, port: int, family: int) -> bytes:
+        with socket.socket(family) as s:
+            s.settimeout(5)
+            s.connect((host, port))
+            s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+            return s.recv(100)
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        port = free_port()
+        svc = MetricsService(f":{port}")
+        await svc.start(Scheduler(site))
+        try:
+            assert svc.address == f"http://127.0.0.1:{port}/metrics"
+            assert (await loop.run_in_executor(None, get, "127.0.0.1", port, socket.AF_INET)
+                    ).startswith(b"HTTP/1.1 200")
+            other = _non_loopback_ipv4()
+            if other is not None:  # the machine has another address: it is not served
+                with pytest.raises(OSError):
+                    await loop.run_in_executor(None, get, other, port, socket.AF_INET)
+            body, ctype = svc.render()  # the exposition without HTTP
+            assert ctype.startswith("text/plain") and b"rtupoll_device_up" in body
+        finally:
+            await svc.stop()
+        port = free_port()
+        svc = MetricsService(f"[::]:{port}")
+        await svc.start(Scheduler(site))
+        try:
+            for host, family in (("127.0.0.1", socket.AF_INET), ("::1", socket.AF_INET6)):
+                got = await loop.run_in_executor(None, get, host, port, family)
+                assert got.startswith(b"HTTP/1.1 200"), host
+        finally:
+            await svc.stop()
+
+    asyncio.run(main())
