@@ -22,6 +22,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from rtupoll.jobs.histogram import Histogram, appended
+
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
 
@@ -50,16 +52,7 @@ class HostTotals:
     """One client host's requests and queue waits, over all its connections."""
 
     closed: list[int] = field(default_factory=lambda: [0] * len(OUTCOMES))  # closed ones'
-    buckets: list[int] = field(default_factory=lambda: [0] * len(BUCKETS))
-    waits: int = 0
-    wait_sum: float = 0.0
-
-    def observe(self, seconds: float) -> None:
-        for i, bound in enumerate(BUCKETS):
-            if seconds <= bound:
-                self.buckets[i] += 1
-        self.waits += 1
-        self.wait_sum += seconds
+    waits: Histogram = field(default_factory=lambda: Histogram(BUCKETS))
 
 
 @dataclass
@@ -71,16 +64,10 @@ class _Connection:
 
     def catch_up(self) -> None:
         """Observe the waits appended to the connection's window since last time."""
-        waits = self.stats.waits
-        new: list[float] = []
-        for x in reversed(waits):
-            if x is self.last_wait:
-                break
-            new.append(x)
-        for x in reversed(new):
-            self.totals.observe(x)
-        if waits:
-            self.last_wait = waits[-1]
+        for x in appended(self.stats.waits, self.last_wait):
+            self.totals.waits.observe(x)
+        if self.stats.waits:
+            self.last_wait = self.stats.waits[-1]
 
 
 class GatewayCollector:
@@ -138,7 +125,6 @@ class GatewayCollector:
         for (bus, host), row in sorted(counting.items()):
             for outcome, n in zip(OUTCOMES, row, strict=True):
                 requests.add_metric([bus, host, outcome], n)
-            t = self.hosts[bus, host]
-            cum = [(repr(float(b)), float(n)) for b, n in zip(BUCKETS, t.buckets, strict=True)]
-            waits.add_metric([bus, host], [*cum, ("+Inf", float(t.waits))], t.wait_sum)
+            h = self.hosts[bus, host].waits
+            waits.add_metric([bus, host], h.buckets(), h.sum)
         yield from (requests, waits, clients)

@@ -41,11 +41,12 @@ import os
 import re
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.errors import UsageError
 from rtupoll.gateway.settings import host_port
+from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.stats import State
 
 if TYPE_CHECKING:
@@ -188,36 +189,6 @@ def field_metric(f: Field) -> FieldMetric:
 
 
 @dataclass
-class Histogram:
-    """Cumulative transaction times of one device (Prometheus buckets)."""
-
-    counts: list[int] = field(default_factory=lambda: [0] * len(BUCKETS))
-    total: int = 0
-    sum: float = 0.0
-    last: object = None  # the last latency seen in DeviceStats.latencies (by identity)
-
-    def observe(self, seconds: float) -> None:
-        for i, bound in enumerate(BUCKETS):
-            if seconds <= bound:
-                self.counts[i] += 1
-        self.total += 1
-        self.sum += seconds
-
-    def catch_up(self, latencies: Any) -> None:
-        """Observe what was appended to a ``DeviceStats.latencies`` deque since last time
-        (recognised by object identity, so a full, rolling window is read correctly)."""
-        new: list[float] = []
-        for x in reversed(latencies):
-            if x is self.last:
-                break
-            new.append(x)
-        for x in reversed(new):
-            self.observe(x)
-        if latencies:
-            self.last = latencies[-1]
-
-
-@dataclass
 class BusCounters:
     port_losses: int = 0
     port_down: bool = False
@@ -241,7 +212,8 @@ class SchedulerCollector:
     # called by the service per device cycle --------------------------------
 
     def observe(self, bus: BusPoller, dev: DevicePoller, readings: list[Reading]) -> None:
-        self.histograms.setdefault(dev.config.name, Histogram()).catch_up(dev.stats.latencies)
+        self.histograms.setdefault(dev.config.name, Histogram(BUCKETS)).catch_up(
+            dev.stats.latencies)
         bc = self.bus_counters.setdefault(bus.config.name, BusCounters())
         down = bool(readings) and all(r.status == "port" for r in readings)
         if down and not bc.port_down:
@@ -326,9 +298,7 @@ class SchedulerCollector:
                     age.add_metric(labels, max(0.0, wall - st.last_good_time))
                 h = self.histograms.get(d)
                 if h is not None:
-                    cum = [(_le(bound), float(n)) for bound, n in zip(BUCKETS, h.counts,
-                                                                       strict=True)]
-                    latency.add_metric(labels, [*cum, ("+Inf", float(h.total))], h.sum)
+                    latency.add_metric(labels, h.buckets(), h.sum)
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
@@ -397,10 +367,6 @@ class SchedulerCollector:
 
 def _add(fam: Metric, labels: list[str], value: float) -> None:
     fam.add_metric(labels, value)  # type: ignore[attr-defined]
-
-
-def _le(bound: float) -> str:
-    return repr(float(bound))
 
 
 # ---------------------------------------------------------------------------
