@@ -101,7 +101,11 @@ def test_scraped_over_http_while_polling_with_a_dead_device(
         assert get(first, "rtupoll_device_info", **live, profile="huiwen-aq", address="3") == 1
         assert get(first, "rtupoll_bus_port_up", bus=bus.port) == 1
         assert (get(first, "rtupoll_request_duration_seconds_count", **live) or 0) > 0
-        assert get(first, "rtupoll_late_replies_total", **live) == 0  # an honest device
+        # an honest device's reply is late only after its request timed out (a loaded
+        # machine can delay the simulator past the pinned 0.1 s): never more late replies
+        late = get(first, "rtupoll_late_replies_total", **live)
+        assert late is not None and late <= (
+            get(first, "rtupoll_requests_total", **live, outcome="timeout") or 0)
         assert get(first, "rtupoll_device_timeout_seconds", **dead) == pytest.approx(0.1)
         util = get(first, "rtupoll_bus_utilisation_ratio", bus=bus.port)
         assert util is not None and 0 < util <= 1
