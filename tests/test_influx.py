@@ -123,12 +123,15 @@ def test_escaping_of_tags_fields_and_strings_round_trips() -> None:
     readings.append(Reading(t + 0.5, dev, p.field("tvoc"), None, "timeout", 'no reply, "x"'))
     out = lines(readings, bus="line 1,a=b", state="online")
     parsed = [parse_line(x) for x in out]
-    assert [m for m, *_ in parsed] == ["rtupoll", "rtupoll_status"]
+    assert [m for m, *_ in parsed] == ["rtupoll_reading", "rtupoll_status"]
     _, tags, fields, ts = parsed[0]
     assert tags == {"address": "3", "bus": "line 1,a=b", "device": 'air, "north" = 1',
                     "profile": "huiwen-aq"}
-    assert fields == {"co2": 1175, "co2_level": "GOOD", "co2_level_code": 1,
-                      "temperature": -4.5, "pm25": 'say "hi"\\ there, now'}
+    assert fields == {"co2": 1175.0, "co2_level": 1.0, "co2_level.text": "GOOD",
+                      "temperature": -4.5, "pm25.text": 'say "hi"\\ there, now'}
+    # one type per key, whatever the profile decodes: a float, or a string under .text
+    assert all(isinstance(v, str) if k.endswith(".text") else isinstance(v, float)
+               for k, v in fields.items())
     assert "humidity" not in fields  # NaN: no value at all, never a bare NaN
     assert ts == 1_700_000_000_123_000_000
     _, stags, status, sts = parsed[1]
@@ -154,16 +157,20 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     text = out.read_text()
     assert text.endswith("\n")
     parsed = [parse_line(x) for x in text.splitlines()]
-    data = [p for p in parsed if p[0] == "rtupoll"]
+    data = [p for p in parsed if p[0] == "rtupoll_reading"]
     status = {p[1]["device"]: p[2] for p in parsed if p[0] == "rtupoll_status"}
     assert {p[1]["device"] for p in data} == {"huiwen-aq@3"}  # nothing from the dead one
     merged = {k: v for p in data for k, v in p[2].items()}
     assert merged["co2"] == 777 and merged["temperature"] == -3
-    assert len([k for k in merged if not k.endswith("_code")]) == 15
+    assert len([k for k in merged if not k.endswith(".text")]) == 15
+    assert all(isinstance(v, float) for k, v in merged.items() if not k.endswith(".text"))
     assert all(before <= p[3] <= after for p in parsed)
     assert all(p[1]["bus"] == bus.port for p in parsed)
     assert status["huiwen-aq@3"]["up"] == 1 and status["radar-level@4"]["up"] == 0
     assert status["radar-level@4"]["status"] == "timeout"
+    # --once writes each device's state as the service does (docs/service.md's example)
+    assert status["huiwen-aq@3"]["state"] == "online"
+    assert status["radar-level@4"]["state"] in ("retrying", "offline", "starting")
 
     again = poll("-p", bus.port, "--once", "--format", "influx", "--timeout", "0.1",
                  "-o", str(out), "huiwen-aq@3", "radar-level@4")
@@ -178,5 +185,6 @@ def test_formatter_splits_several_devices_and_keeps_state() -> None:
     text = InfluxFormatter({"a": "one", "b": "two"}).format([ra, rb], "online")
     parsed = [parse_line(x) for x in text.splitlines()]
     assert [(m, t["device"], t["bus"]) for m, t, _, _ in parsed] == [
-        ("rtupoll", "a", "one"), ("rtupoll_status", "a", "one"), ("rtupoll_status", "b", "two")]
+        ("rtupoll_reading", "a", "one"), ("rtupoll_status", "a", "one"),
+        ("rtupoll_status", "b", "two")]
     assert parsed[2][2]["up"] == 0 and parsed[2][2]["error"] == "bad CRC"

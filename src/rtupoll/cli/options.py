@@ -44,6 +44,7 @@ def service_options(f: F) -> F:
                           "object per line (journald, Loki). Default: text when stderr is a "
                           "terminal or the journal, else errors only.")(f)
     f = click.option("--metrics", "metrics", metavar="HOST:PORT", default=None,
-                     help="Serve Prometheus metrics at http://HOST:PORT/metrics (also "
-                          "'metrics:' in the site file).")(f)
+                     help="Serve Prometheus metrics at http://HOST:PORT/metrics; ':PORT' "
+                          "listens on 127.0.0.1 only, 0.0.0.0:PORT or [::]:PORT on every "
+                          "interface (also 'metrics:' in the site file).")(f)
     return f

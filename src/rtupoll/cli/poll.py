@@ -435,8 +435,10 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
             raise KeyboardInterrupt
         scan.result()
     readings = [r for d in scheduler.pollers() for r in got.get(d.config.name, [])]
-    if writer is not None:
-        writer.write(readings)
+    if writer is not None:  # one device at a time, with its state (influx's ``state``)
+        for d in scheduler.pollers():
+            if got.get(d.config.name):
+                writer.write(got[d.config.name], d.stats.state.value)
     return readings
 
 

@@ -161,7 +161,7 @@ def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
 
 
 def _listen(node: Node) -> str:
-    """``metrics: HOST:PORT`` (``:PORT``: every interface)."""
+    """``metrics: HOST:PORT`` (``:PORT``: loopback, as ``--metrics``)."""
     text = node.text().strip()
     if host_port(text, default_host="0.0.0.0", port_zero=True) is None:  # as --metrics
         raise node.fail(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")

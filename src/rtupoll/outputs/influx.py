@@ -4,22 +4,29 @@ One line per block read (the fields a reply carried share its arrival time) and 
 status line per device cycle, so telegraf (``inputs.execd``), ``influx write`` and
 VictoriaMetrics take the stream as it is::
 
-    rtupoll,address=3,bus=line1,device=air,profile=huiwen-aq co2=1175i,co2_level="GOOD",\
-co2_level_code=1i 1763803502517000000
+    rtupoll_reading,address=3,bus=line1,device=air,profile=huiwen-aq co2=1175.0,\
+co2_level=1.0,co2_level.text="GOOD" 1763803502517000000
     rtupoll_status,address=3,bus=line1,device=air,profile=huiwen-aq up=1i,ok=15i,failed=0i,\
 state="online" 1763803502517000000
 
 (each line broken here only to fit).
 
-- measurement ``rtupoll``: tags ``address``, ``bus``, ``device``, ``profile`` (sorted, as
-  InfluxDB prefers); one field per field read: integers with ``i``, floats as they
-  are, enum fields as their name (string) plus ``NAME_code`` (integer), flag fields as
-  the active flag names joined with ``|`` plus ``NAME_code`` (the register's bits),
-  strings as strings. A failed reading is left out: never a stale value, never a
-  zero. NaN and infinities (which line protocol cannot carry) are left out too.
-- measurement ``rtupoll_status``: ``up`` (1 when the cycle got a valid reply),
-  ``ok`` and ``failed`` field counts, ``state`` and, when something failed, ``status``
-  and ``error`` (the first failure's).
+**A field key has one type for ever**, whatever device, profile, profile version or
+value writes it: InfluxDB (1.x, 2.x and 3.x alike) refuses a whole line whose field
+has another type than the one already stored, so a type that depended on the profile
+lost whole devices' data. The type is therefore a function of the key alone:
+
+- measurement ``rtupoll_reading``: tags ``address``, ``bus``, ``device``, ``profile``
+  (sorted, as InfluxDB prefers). A key without a dot is always a **float**: a number
+  (integers too: a profile may scale it tomorrow), an enum's code, a bit field's bits,
+  a coil as 1 or 0. A key ending ``.text`` is always a **string**: an enum's name, a
+  bit field's active flags joined with ``|``, a text field's text. Profile field names
+  are identifiers, so no field can take a ``.text`` key. A failed reading is left
+  out: never a stale value, never a zero. NaN and infinities (which line protocol
+  cannot carry) are left out too.
+- measurement ``rtupoll_status`` (rtupoll's own, fixed fields): ``up`` (1 when the
+  cycle got a valid reply), ``ok`` and ``failed`` field counts (integers), ``state``
+  and, when something failed, ``status`` and ``error`` (the first failure's).
 - timestamps: nanoseconds since the epoch (to the microsecond), from the time the
   reply arrived.
 
@@ -39,9 +46,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from rtupoll.jobs.stats import Reading
 
-MEASUREMENT = "rtupoll"
+MEASUREMENT = "rtupoll_reading"
+TEXT = ".text"  # the suffix of every string key (no field name holds a dot)
 STATUS_MEASUREMENT = "rtupoll_status"
-INT64_MAX = (1 << 63) - 1
 _MEASUREMENT_ESC = str.maketrans({",": "\\,", " ": "\\ ", "\n": " ", "\r": " "})
 _KEY_ESC = str.maketrans({",": "\\,", "=": "\\=", " ": "\\ ", "\n": " ", "\r": " "})
 _STRING_ESC = str.maketrans({'"': '\\"', "\\": "\\\\", "\n": " ", "\r": " "})
@@ -62,16 +69,15 @@ def string(text: str) -> str:
 
 
 def number(value: object) -> str | None:
-    """A field value for a number or bool; None when line protocol cannot carry it."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        if -INT64_MAX - 1 <= value <= INT64_MAX:
-            return f"{value}i"
-        return repr(float(value))
-    if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else None
-    return None
+    """A number, bool or int as a float field value (every number key is a float); None
+    when line protocol cannot carry it (NaN, infinities, beyond a float)."""
+    if not isinstance(value, (bool, int, float)):
+        return None
+    try:
+        f = float(value)
+    except OverflowError:
+        return None
+    return repr(f) if math.isfinite(f) else None
 
 
 def tags(reading: Reading, bus: str) -> str:
@@ -85,21 +91,22 @@ def field_values(reading: Reading) -> list[tuple[str, str]]:
     fv = reading.value
     if fv is None:
         return []
-    name = key(fv.field.name)
     value = fv.output  # None: a sentinel ("not available"), which is no reading
-    out: list[tuple[str, str]] = []
     if value is None:
-        return out
-    if isinstance(value, list):  # flags: the active names, and the bits behind them
-        out.append((name, string("|".join(value))))
-    elif isinstance(value, str):
-        out.append((name, string(value)))
-    else:
+        return []
+    name = fv.field.name
+    out: list[tuple[str, str]] = []
+    code = fv.code if fv.field.enum or fv.field.flags else None
+    if code is not None:
+        out.append((key(name), f"{float(code)!r}"))
+    elif not isinstance(value, (str, list)):
         text = number(value)
         if text is not None:
-            out.append((name, text))
-    if fv.code is not None and (fv.field.enum or fv.field.flags):
-        out.append((key(fv.field.name + "_code"), f"{fv.code}i"))
+            out.append((key(name), text))
+    if isinstance(value, list):  # flags: the active names
+        out.append((key(name + TEXT), string("|".join(value))))
+    elif isinstance(value, str):
+        out.append((key(name + TEXT), string(value)))
     return out
 
 

@@ -9,8 +9,14 @@ imported only when this runs.
 
 Names (docs/service.md has the list): one gauge per numeric field, named from the
 profile's field and unit in base units (``rtupoll_co2_ppm``,
-``rtupoll_temperature_celsius`` from kelvin or degrees Celsius alike), labelled
-``bus`` and ``device``. A generic ``rtupoll_reading{field,unit}`` would put
+``rtupoll_temperature_celsius`` from kelvin or degrees Celsius alike,
+``rtupoll_pm25_grams_per_cubic_meter`` from µg/m³), labelled ``bus`` and ``device``;
+a total that only grows (``counter: true`` in the profile: energy) is a counter
+(``rtupoll_import_active_energy_joules_total``). Values are rounded to the decimals
+the field really has (its precision or scale, and the conversion's), so a K -> °C
+conversion gives 23.52, not 23.52000000000004. The HELP text says the field and the
+unit of the family, never one profile's description: a family is shared by every
+profile with that field. A generic ``rtupoll_reading{field,unit}`` would put
 different units under one name, so ``sum`` and ``avg`` over it would mean nothing,
 against Prometheus's naming practice; per-field names also make the queries read
 as what they measure. A field whose name already carries its unit (the radar's
@@ -18,7 +24,11 @@ as what they measure. A field whose name already carries its unit (the radar's
 Enums: ``_code`` (the number) and ``_state{state}`` (1 for the current name, 0 for
 the other documented ones); flags: ``_flag{flag}``, one series per flag; strings:
 ``_info{value}``. A reading that failed in the device's latest cycle is not
-exported: the series disappears, it never keeps its last value as if fresh.
+exported: the series disappears, it never keeps its last value as if fresh. A field
+on a slower interval (``interval: 60``) keeps its last good reading between its reads.
+
+``exposition`` renders the text from the state; ``MetricsService`` only carries it over
+HTTP (``--metrics``: loopback unless a host is given, as ``--serve``).
 """
 
 from __future__ import annotations
@@ -31,11 +41,12 @@ import os
 import re
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.errors import UsageError
 from rtupoll.gateway.settings import host_port
+from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.stats import State
 
 if TYPE_CHECKING:
@@ -64,9 +75,20 @@ UNITS: dict[str, tuple[str, float, float]] = {
     "Wh": ("joules", 3600.0, 0.0), "kWh": ("joules", 3.6e6, 0.0),
     "Pa": ("pascals", 1.0, 0.0), "hPa": ("pascals", 100.0, 0.0), "kPa": ("pascals", 1e3, 0.0),
     "bar": ("pascals", 1e5, 0.0), "Hz": ("hertz", 1.0, 0.0),
-    "µg/m³": ("micrograms_per_cubic_meter", 1.0, 0.0),
-    "ug/m3": ("micrograms_per_cubic_meter", 1.0, 0.0),
+    "µg/m³": ("grams_per_cubic_meter", 1e-6, 0.0),
+    "ug/m3": ("grams_per_cubic_meter", 1e-6, 0.0),
+    "mg/m³": ("grams_per_cubic_meter", 1e-3, 0.0),
+    "mg/m3": ("grams_per_cubic_meter", 1e-3, 0.0),
+    "Ah": ("coulombs", 3600.0, 0.0), "mAh": ("coulombs", 3.6, 0.0),
+    "°": ("degrees", 1.0, 0.0),
 }
+# a unit a field's name spells out (charging_amp_hours_today): dropped from the metric's
+# name when the value is converted, which then ends in the base unit instead
+SPELLED = {"Ah": "amp_hours", "mAh": "milliamp_hours", "Wh": "watt_hours",
+           "kWh": "kilowatt_hours", "h": "hours", "min": "minutes", "d": "days",
+           "ms": "milliseconds"}
+LOOPBACK = "127.0.0.1"
+SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): no float noise
 
 
 # the collector's own families (and their sample names): no field may take these names
@@ -79,8 +101,9 @@ RESERVED = frozenset({
 
 
 def parse_listen(text: str) -> tuple[str, int]:
-    """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (every interface) -> (host, port)."""
-    got = host_port(text.strip(), default_host="0.0.0.0", port_zero=True)
+    """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (loopback, as ``--serve``) -> (host, port).
+    Every interface: ``0.0.0.0:PORT`` (IPv4) or ``[::]:PORT`` (IPv6 and IPv4)."""
+    got = host_port(text.strip(), default_host=LOOPBACK, port_zero=True)
     if got is None:
         raise UsageError(f"metrics address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
     return got
@@ -98,69 +121,71 @@ def _word(text: str) -> str:
 class FieldMetric:
     """How one profile field is exported: its family name, kind and unit conversion."""
 
-    name: str  # without the kind's suffix (_code, _state, _flag, _info)
-    kind: str  # "gauge" | "enum" | "flags" | "info"
+    name: str  # without the kind's suffix (_code, _state, _flag, _info; _total: counters)
+    kind: str  # "gauge" | "counter" | "enum" | "flags" | "info"
     help: str
     scale: float = 1.0
     offset: float = 0.0
+    decimals: int | None = None  # of the converted value; None: SIGNIFICANT digits
 
     def convert(self, value: float) -> float:
-        return value * self.scale + self.offset if (self.scale, self.offset) != (1, 0) \
+        x = value * self.scale + self.offset if (self.scale, self.offset) != (1, 0) \
             else float(value)
+        if not math.isfinite(x) or x == 0:
+            return x
+        if self.decimals is not None:
+            return round(x, self.decimals)
+        return round(x, SIGNIFICANT - 1 - math.floor(math.log10(abs(x))))
+
+
+def _decimals(x: float) -> int:
+    """Decimal places of a number as written (0.01 -> 2, 273.15 -> 2, 3600 -> 0)."""
+    text = repr(float(x))
+    if "e" in text:
+        mantissa, _, exp = text.partition("e")
+        return max(0, _decimals(float(mantissa)) - int(exp))
+    return len(text.partition(".")[2].rstrip("0"))
+
+
+def field_decimals(f: Field) -> int | None:
+    """The decimals a field's value really has: its precision, else its scale's and
+    offset's; None for floats on the wire (their digits are their own)."""
+    if f.precision is not None:
+        return max(f.precision, 0)
+    if f.layout.type.value in ("f32", "f64"):
+        return None
+    return max(_decimals(f.layout.scale), _decimals(f.layout.offset))
 
 
 def field_metric(f: Field) -> FieldMetric:
     """The metric a profile field becomes (see the module docstring)."""
     base = _word(f.name) or "field"
-    help_text = (f.description or f.name).splitlines()[0] if (f.description or f.name) else ""
+    what = f"Field {f.name}"
     if f.enum:
-        return FieldMetric(PREFIX + base, "enum", help_text)
+        return FieldMetric(PREFIX + base, "enum", what)
     if f.flags:
-        return FieldMetric(PREFIX + base, "flags", help_text)
+        return FieldMetric(PREFIX + base, "flags", what)
     if f.layout.type.value == "string":
-        return FieldMetric(PREFIX + base, "info", help_text)
+        return FieldMetric(PREFIX + base, "info", what)
+    kind = "counter" if f.counter else "gauge"
     unit = f.unit.strip()
+    known = field_decimals(f)
     if unit and base.endswith("_" + _word(unit)):  # level_cm: the name says the unit
-        return FieldMetric(PREFIX + base, "gauge", f"{help_text} ({unit})")
+        return FieldMetric(PREFIX + base, kind, f"{what}, in {unit}", decimals=known)
     word, scale, offset = UNITS.get(unit, (_word(unit), 1.0, 0.0))
+    spelled = SPELLED.get(unit)
+    if spelled and (scale, offset) != (1, 0) and f"_{spelled}_" in f"_{base}_":
+        base = f"_{base}_".replace(f"_{spelled}_", "_").strip("_") or "field"
     name = base if not word or base.endswith("_" + word) else f"{base}_{word}"
-    note = f" ({unit}" + (f", as {word}" if word and word != _word(unit) else "") + ")" \
-        if unit else ""
-    return FieldMetric(PREFIX + name, "gauge", help_text + note, scale, offset)
+    decimals = None if known is None else \
+        max(known + (_decimals(scale) if scale < 1 else 0), _decimals(offset))
+    # the family's unit only: profiles with other units share the family (K and °C)
+    note = f", in {word.replace('_', ' ')}" if word else ""
+    return FieldMetric(PREFIX + name, kind, what + note, scale, offset, decimals)
 
 
 # ---------------------------------------------------------------------------
 # what is counted between scrapes
-
-
-@dataclass
-class Histogram:
-    """Cumulative transaction times of one device (Prometheus buckets)."""
-
-    counts: list[int] = field(default_factory=lambda: [0] * len(BUCKETS))
-    total: int = 0
-    sum: float = 0.0
-    last: object = None  # the last latency seen in DeviceStats.latencies (by identity)
-
-    def observe(self, seconds: float) -> None:
-        for i, bound in enumerate(BUCKETS):
-            if seconds <= bound:
-                self.counts[i] += 1
-        self.total += 1
-        self.sum += seconds
-
-    def catch_up(self, latencies: Any) -> None:
-        """Observe what was appended to a ``DeviceStats.latencies`` deque since last time
-        (recognised by object identity, so a full, rolling window is read correctly)."""
-        new: list[float] = []
-        for x in reversed(latencies):
-            if x is self.last:
-                break
-            new.append(x)
-        for x in reversed(new):
-            self.observe(x)
-        if latencies:
-            self.last = latencies[-1]
 
 
 @dataclass
@@ -187,7 +212,8 @@ class SchedulerCollector:
     # called by the service per device cycle --------------------------------
 
     def observe(self, bus: BusPoller, dev: DevicePoller, readings: list[Reading]) -> None:
-        self.histograms.setdefault(dev.config.name, Histogram()).catch_up(dev.stats.latencies)
+        self.histograms.setdefault(dev.config.name, Histogram(BUCKETS)).catch_up(
+            dev.stats.latencies)
         bc = self.bus_counters.setdefault(bus.config.name, BusCounters())
         down = bool(readings) and all(r.status == "port" for r in readings)
         if down and not bc.port_down:
@@ -272,9 +298,7 @@ class SchedulerCollector:
                     age.add_metric(labels, max(0.0, wall - st.last_good_time))
                 h = self.histograms.get(d)
                 if h is not None:
-                    cum = [(_le(bound), float(n)) for bound, n in zip(BUCKETS, h.counts,
-                                                                       strict=True)]
-                    latency.add_metric(labels, [*cum, ("+Inf", float(h.total))], h.sum)
+                    latency.add_metric(labels, h.buckets(), h.sum)
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
@@ -291,54 +315,72 @@ class SchedulerCollector:
 
     def _reading(self, families: dict[str, Metric], labels: list[str], dev: DevicePoller,
                  r: Reading) -> None:
-        from prometheus_client.core import GaugeMetricFamily
+        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         fv = r.value
         assert fv is not None
         fm = self._metric(dev, r.field)
 
-        def family(suffix: str, extra: tuple[str, ...] = ()) -> GaugeMetricFamily:
+        def family(suffix: str, extra: tuple[str, ...] = (), help_text: str = "",
+                   counter: bool = False) -> Metric:
             name = fm.name + suffix
-            if name in RESERVED:  # a field called device_up must not shadow the real one
-                name += "_value"
-            fam = families.get(name)
+            if name in RESERVED or name + "_total" in RESERVED:  # a field called device_up
+                name += "_value"                                  # must not shadow the real one
+            kind = "counter" if counter else "gauge"
             want = ["bus", "device", *extra]
-            if fam is not None and isinstance(fam, GaugeMetricFamily) and \
-                    fam.samples and list(fam.samples[0].labels) != want:
+            fam = families.get(name)
+            if fam is not None and (fam.type != kind or
+                                    (fam.samples and list(fam.samples[0].labels) != want)):
                 name = f"{name}_{_word(dev.config.profile.id)}"  # a clash across profiles
                 fam = families.get(name)
             if fam is None:
-                fam = families[name] = GaugeMetricFamily(name, fm.help, labels=want)
-            assert isinstance(fam, GaugeMetricFamily)
+                cls = CounterMetricFamily if counter else GaugeMetricFamily
+                fam = families[name] = cls(name, help_text or fm.help, labels=want)
             return fam
 
         value = fv.output  # None: a sentinel ("not available"), which is no reading
         if value is None:
             return
         if fm.kind == "enum" and fv.code is not None:
-            family("_code").add_metric(labels, float(fv.code))
+            _add(family("_code", help_text=f"{fm.help}: the enum's code"), labels,
+                 float(fv.code))
             names = [c.name for c in r.field.enum.values()]
             if isinstance(value, str) and value not in names:
                 names.append(value)
-            fam = family("_state", ("state",))
+            fam = family("_state", ("state",), f"{fm.help}: 1 for the enum's current name")
             for n in names:
-                fam.add_metric([*labels, n], 1.0 if n == value else 0.0)
+                _add(fam, [*labels, n], 1.0 if n == value else 0.0)
         elif fm.kind == "flags" and isinstance(value, list):
             names = [c.name for c in r.field.flags.values()]
             names += [n for n in value if n not in names]
-            fam = family("_flag", ("flag",))
+            fam = family("_flag", ("flag",), f"{fm.help}: 1 for each flag set")
             for n in names:
-                fam.add_metric([*labels, n], 1.0 if n in value else 0.0)
+                _add(fam, [*labels, n], 1.0 if n in value else 0.0)
         elif isinstance(value, str):
-            family("_info", ("value",)).add_metric([*labels, value], 1.0)
+            _add(family("_info", ("value",), f"{fm.help}: its text, as the value label"),
+                 [*labels, value], 1.0)
         elif isinstance(value, (int, float)):
             converted = fm.convert(float(value))
             if math.isfinite(converted):  # a NaN register is no reading
-                family("").add_metric(labels, converted)
+                _add(family("", counter=fm.kind == "counter"), labels, converted)
 
 
-def _le(bound: float) -> str:
-    return repr(float(bound))
+def _add(fam: Metric, labels: list[str], value: float) -> None:
+    fam.add_metric(labels, value)  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------
+# the exposition text: state in, text out (no HTTP)
+
+
+def exposition(registry: CollectorRegistry, accept: str = "") -> tuple[bytes, str]:
+    """The ``/metrics`` body for a registry, in the format an ``Accept`` header asks for
+    (the text format when it asks for none): ``(body, content type)``. Any HTTP server
+    can serve it; ``MetricsService`` is the one ``poll --metrics`` runs."""
+    from prometheus_client.exposition import choose_encoder
+
+    encoder, ctype = choose_encoder(accept)
+    return encoder(registry), ctype
 
 
 # ---------------------------------------------------------------------------
@@ -362,6 +404,12 @@ class MetricsService:
         self._bus_of: dict[str, BusPoller] = {}
         self.address = ""  # http://HOST:PORT/metrics once listening
 
+    def render(self, accept: str = "") -> tuple[bytes, str]:
+        """The exposition now: ``(body, content type)`` (see ``exposition``)."""
+        if self.registry is None:
+            raise RuntimeError("the metrics service has not started")
+        return exposition(self.registry, accept)
+
     async def start(self, scheduler: Scheduler) -> None:
         from prometheus_client import CollectorRegistry
 
@@ -371,7 +419,9 @@ class MetricsService:
         for other in self.others:
             self.registry.register(other)
         try:
-            self._server = await asyncio.start_server(self._serve, self.host, self.port)
+            # [::]: IPv6 and IPv4 (asyncio binds "::" IPv6-only)
+            hosts = ["::", "0.0.0.0"] if self.host == "::" else self.host
+            self._server = await asyncio.start_server(self._serve, hosts, self.port)
         except OSError as exc:
             why = os.strerror(exc.errno) if exc.errno else str(exc)
             raise UsageError(f"--metrics: cannot listen on {self.host}:{self.port}: "
@@ -411,10 +461,8 @@ class MetricsService:
             if method not in ("GET", "HEAD"):
                 status, ctype, body = "405 Method Not Allowed", "text/plain", b"GET only\n"
             elif path == "/metrics" and self.registry is not None:
-                from prometheus_client.exposition import choose_encoder
-
-                encoder, ctype = choose_encoder(headers.get("accept", ""))
-                status, body = "200 OK", encoder(self.registry)
+                body, ctype = self.render(headers.get("accept", ""))
+                status = "200 OK"
             elif path == "/":
                 status, ctype = "200 OK", "text/plain; charset=utf-8"
                 body = b"rtupoll: metrics at /metrics\n"
