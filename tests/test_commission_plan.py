@@ -9,7 +9,8 @@ import pytest
 from rtupoll.config.address_plan import load_plan
 from rtupoll.config.library import load_one
 from rtupoll.errors import ConfigError, RefusedError
-from rtupoll.jobs.commission import Change, dry_run, refuse
+from rtupoll.jobs.commission import dry_run
+from rtupoll.model.addressing import Change, refuse
 
 FIXTURES = Path(__file__).parent / "fixtures" / "commission"
 

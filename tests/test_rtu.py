@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.config.numbers import parse_int, parse_unit
+from rtupoll.numbers import parse_int, parse_unit
 from rtupoll.rtu import Framing, transaction_wire_time
 
 

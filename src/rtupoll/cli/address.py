@@ -28,22 +28,19 @@ from rtupoll.cli.target import (
     timing_options,
 )
 from rtupoll.config.library import load_library
-from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import PlanFailed, RtupollError, UsageError
 from rtupoll.jobs.commission import (
-    Change,
     Commissioner,
     PlanInterrupted,
     Presence,
     Result,
     Status,
-    address_field,
     dry_run,
-    refuse,
     run_plan,
-    shared_reserved,
 )
+from rtupoll.model.addressing import Change, address_field, refuse, shared_reserved
 from rtupoll.model.profile import Profile
+from rtupoll.numbers import parse_unit
 from rtupoll.ui.records import json_safe
 
 

@@ -16,9 +16,9 @@ import click
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import load_one
-from rtupoll.config.numbers import parse_int
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.model.profile import Profile
+from rtupoll.numbers import parse_int
 from rtupoll.rtu.capture import Carried, Frame, carried, decode_stream, parse_hex
 from rtupoll.ui.records import finite, json_safe, nonfinite_text
 

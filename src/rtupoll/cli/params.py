@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from rtupoll.config.numbers import parse_unit
+from rtupoll.numbers import parse_unit
 
 
 @dataclass(frozen=True)

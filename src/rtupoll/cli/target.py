@@ -18,9 +18,9 @@ import click
 
 from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_one, note_use
-from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import DeviceTimeout, RefusedError, UsageError
 from rtupoll.model.profile import Profile
+from rtupoll.numbers import parse_unit
 
 if TYPE_CHECKING:
     from rtupoll.io.bus import Bus, PortSettings

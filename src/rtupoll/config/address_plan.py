@@ -24,10 +24,10 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from rtupoll.config.library import load_one
-from rtupoll.config.numbers import parse_unit
 from rtupoll.errors import ConfigError, RefusedError, RtupollError
-from rtupoll.jobs.commission import Change, refuse
+from rtupoll.model.addressing import Change, refuse
 from rtupoll.model.profile import Profile
+from rtupoll.numbers import parse_unit
 
 COLUMNS = {"profile": "profile", "address": "address", "old": "address", "current": "address",
            "new": "new", "new_address": "new", "check": "check", "identity": "check"}

@@ -23,9 +23,8 @@ or with a matching identity) is "already done", which makes plans safe to re-run
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import enum
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -42,6 +41,7 @@ from rtupoll.errors import (
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.jobs.writes import WriteOp, write
+from rtupoll.model.addressing import Change, address_field, refuse
 from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.profile import Field, Profile
@@ -52,23 +52,6 @@ if TYPE_CHECKING:
 
 VERIFY_ATTEMPTS = 3  # a device may take a moment to start answering at its new address
 VERIFY_PAUSE = 0.05  # seconds between attempts
-
-
-@dataclass(frozen=True)
-class Change:
-    """One address change: the device ``profile`` at ``old`` gets ``new``."""
-
-    profile: Profile
-    old: int
-    new: int
-    check: tuple[str, str] | None = None  # identity: (field, value as text) to match first
-    where: str = ""  # plan file:line, for messages
-    # addresses other device models keep for themselves on a shared bus -> why
-    avoid: Mapping[int, str] = dataclasses.field(default_factory=dict)
-
-    @property
-    def label(self) -> str:
-        return f"{self.profile.id}@{self.old} -> {self.new}"
 
 
 class Presence(str, enum.Enum):
@@ -113,45 +96,6 @@ class Result:
                 "exit_code": self.error.exit_code if self.error
                 else INTERRUPTED if self.status is Status.UNVERIFIED
                 else None if self.status is Status.NOT_RUN else 0}
-
-
-def address_field(profile: Profile) -> Field:
-    """The register that holds the address, or RefusedError saying what the manual says."""
-    method = profile.set_address
-    if method.field is None:
-        raise RefusedError(f"{profile.id} cannot be readdressed from rtupoll: "
-                           f"{method.unsupported}")
-    return profile.field(method.field)
-
-
-def shared_reserved(profiles: Iterable[Profile]) -> dict[int, str]:
-    """Addresses a device model keeps for itself on any bus it is on: its reserved ones
-    (CO2Meter boards: 0xCC) and its 'any device' one (0xFE). Another device given one of
-    them breaks those boards the day they share its bus."""
-    out: dict[int, str] = {}
-    for p in profiles:
-        for address, why in p.addresses.reserved.items():
-            out.setdefault(address, f"reserved by {p.id} devices ({why})")
-        if p.addresses.any is not None:
-            out.setdefault(p.addresses.any, f"the address every {p.id} device answers")
-    return out
-
-
-def refuse(change: Change) -> Field:
-    """Every check that needs no bus; returns the address field."""
-    address = address_field(change.profile)
-    why = change.profile.addresses.check(change.new)
-    if why:
-        raise RefusedError(f"{change.label}: {why}")
-    if change.new in change.avoid:
-        raise RefusedError(f"{change.label}: {change.new} (0x{change.new:02X}) is "
-                           f"{change.avoid[change.new]}; --allow-reserved if no such device "
-                           "is on this bus")
-    if change.new == change.old:
-        raise RefusedError(f"{change.label}: the device is already at {change.old}")
-    if change.check:
-        change.profile.field(change.check[0])  # UsageError naming the fields if unknown
-    return address
 
 
 def dry_run(change: Change) -> list[tuple[str, str]]:

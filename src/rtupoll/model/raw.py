@@ -17,10 +17,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.config.numbers import parse_int
 from rtupoll.errors import UsageError
 from rtupoll.model.codec import ByteOrder, DataType, Layout
 from rtupoll.model.profile import Addressing, Field
+from rtupoll.numbers import parse_int
 from rtupoll.rtu import Table
 
 TABLE_ALIASES: dict[str, Table] = {
