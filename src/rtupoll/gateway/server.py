@@ -42,6 +42,7 @@ from rtupoll.gateway.pdu import (
 from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.stats import State
+from rtupoll.rtu.effects import writes
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller
@@ -317,5 +318,6 @@ class Gateway:
             finally:
                 end = self._clock()
                 self.poller.load.add(end, end - start, failed_by=self if failed else None)
-                if ask.write and self.cache is not None and ask.table is not None:
-                    self.cache.forget(unit, ask.table, ask.address, ask.count)
+                if ask.write and self.cache is not None:  # FC 22 and 23 too
+                    for run in writes(ask.pdu) or ():
+                        self.cache.forget(unit, run.table, run.address, run.count)
