@@ -341,7 +341,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
     with _sink(fmt, output) as writer:
         services = [*services, *daemon_services(
             site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
-            log_format=log_format, reload=reload)]
+            log_format=log_format, reload=reload, peers=services)]
         for s in services:  # /metrics also serves what other services count
             if isinstance(others := getattr(s, "others", None), list):
                 others += [c() for t in services if callable(c := getattr(t, "collector", None))]
