@@ -5,6 +5,7 @@ line (the old listener and its rules go on); never "nothing changed"."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import signal
@@ -112,3 +113,62 @@ def test_sighup_applies_serve_rules_rebinds_and_refuses_an_address_it_cannot_bin
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=20)
     assert proc.returncode == 0, errors.read_text()
+
+
+def serve_site(path: Path, port: str, serve: str | None) -> Path:
+    text = f"buses:\n  - port: {port}\n    baudrate: 9600\n"
+    text += f"    serve: {serve}\n" if serve else ""
+    text += "    devices:\n      - {name: gas, profile: net-irnet-pro, address: 1, " \
+        "interval: 0.2}\n"
+    path.write_text(text)
+    return path
+
+
+def test_a_serve_that_is_gone_stops_and_one_added_without_a_gateway_needs_a_restart(
+        sim: Callable[..., SimulatedBus], tmp_path: Path,
+        caplog: pytest.LogCaptureFixture) -> None:
+    from rtupoll.config.site import load_site
+    from rtupoll.gateway.service import GatewayService
+    from rtupoll.jobs.reload import ReloadService
+    from rtupoll.jobs.scheduler import Scheduler
+
+    bus = sim("net-irnet-pro@1", tick=None)
+    path, port = tmp_path / "site.yaml", free_port()
+
+    async def main() -> tuple[bool, bool]:
+        scheduler = Scheduler(load_site(serve_site(path, bus.port, f"127.0.0.1:{port}")))
+        gateways = GatewayService()
+        reload = ReloadService(lambda: load_site(path), peers=[gateways])
+        await scheduler.open()
+        await gateways.start(scheduler)
+        await reload.start(scheduler)
+        try:
+            was = listening(port)
+            serve_site(path, bus.port, None)
+            await reload.reload_once()
+            gone = not listening(port) and gateways.gateways == []
+        finally:
+            await reload.stop()
+            await gateways.stop()
+            await scheduler.close()
+
+        plain = Scheduler(load_site(serve_site(path, bus.port, None)))
+        without = ReloadService(lambda: load_site(path), peers=[])
+        await plain.open()
+        await without.start(plain)
+        try:
+            serve_site(path, bus.port, f"127.0.0.1:{port}")
+            await without.reload_once()
+        finally:
+            await without.stop()
+            await plain.close()
+        return was, gone
+
+    with caplog.at_level("INFO", logger="rtupoll.reload"):
+        was, gone = asyncio.run(main())
+    assert was and gone
+    lines = [r.getMessage() for r in caplog.records if r.name == "rtupoll.reload"]
+    assert f"reload: bus {bus.port}: no longer serving tcp://127.0.0.1:{port}" in lines
+    assert lines[-1].startswith("reload refused, polling goes on unchanged: serve: on ")
+    assert "needs a restart" in lines[-1]
+    assert not any("nothing changed" in x for x in lines)
