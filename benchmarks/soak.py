@@ -2,8 +2,9 @@
 
     .venv/bin/python benchmarks/soak.py [--minutes 30] [--warmup 5] [--sample 60]
 
-One real ``rtupoll poll --simulate`` process with everything on: three simulated
-devices on one line with faults (CRC errors, a slow reply now and then, a device that
+One real ``rtupoll poll`` process with everything on, polling three simulated devices
+on one 9600-baud line (``rtupoll simulate`` in a process of its own, so that only
+rtupoll is measured) with faults (CRC errors, a slow reply now and then, a device that
 is dead for a stretch of requests), publishing to a local mosquitto (``--mqtt``), a
 Modbus TCP gateway (``--serve``) that clients keep connecting to and leaving (a raw
 socket every second: a few reads, sometimes a refused write, sometimes a client that
@@ -35,6 +36,28 @@ from pathlib import Path
 DEVICES = ["huiwen-aq@3", "radar-level@2", "net-irnet-pro@1"]
 FAULTS = ["3:crc@5%", "2:slow=0.4@3%", "1:dead@200-260", "1:dead@900-960"]
 RSS_BAR_KB = 1024
+TRACED = """
+import sys, threading, time, tracemalloc
+tracemalloc.start(10)
+def watch():
+    first = None
+    while True:
+        time.sleep({every})
+        snap = tracemalloc.take_snapshot().filter_traces(
+            [tracemalloc.Filter(False, tracemalloc.__file__)])
+        if first is None:
+            first = snap
+            continue
+        with open("{out}", "a") as fh:
+            fh.write(f"--- {{time.strftime('%H:%M:%S')}}\\n")
+            for stat in snap.compare_to(first, "traceback")[:25]:
+                fh.write(f"{{stat}}\\n" + "".join(f"    {{line}}\\n"
+                                                  for line in stat.traceback.format()[-6:]))
+threading.Thread(target=watch, daemon=True).start()
+from rtupoll.cli import main
+sys.argv[0] = "rtupoll"
+sys.exit(main())
+"""
 
 
 def free_port() -> int:
@@ -91,7 +114,14 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=30)
     ap.add_argument("--warmup", type=float, default=5, help="minutes")
     ap.add_argument("--sample", type=float, default=60, help="seconds between samples")
+    ap.add_argument("--trace", action="store_true",
+                    help="run rtupoll under tracemalloc; at each sample write where memory "
+                         "grew since the first (top 25 lines) to trace.txt in the run's "
+                         "directory (slower; for finding a leak, not for the figures)")
     args = ap.parse_args()
+    # stopped early (Ctrl-C, kill, even when started in the background): clean up
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     work = Path(tempfile.mkdtemp(prefix="rtupoll-soak-"))
     mqtt, gw, metrics = free_port(), free_port(), free_port()
@@ -100,8 +130,20 @@ def main() -> None:
     wait_port(mqtt, broker, "mosquitto")
     sub = subprocess.Popen(["mosquitto_sub", "-h", "127.0.0.1", "-p", str(mqtt), "-t", "#"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    argv = [sys.executable, "-m", "rtupoll", "poll", "--simulate", *DEVICES, "--baud", "9600",
-            *(x for f in FAULTS for x in ("--fault", f)), "--interval", "0.5",
+    run = ["-c", TRACED.format(out=work / "trace.txt", every=args.sample)] if args.trace \
+        else ["-m", "rtupoll"]
+    line = work / "line"  # the simulator in a process of its own: only rtupoll is measured
+    simulator = subprocess.Popen([sys.executable, "-m", "rtupoll", "simulate", *DEVICES,
+                                  "--baud", "9600", "--link", str(line),
+                                  *(x for f in FAULTS for x in ("--fault", f))],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not line.exists():
+        if simulator.poll() is not None or time.monotonic() > deadline:
+            raise SystemExit("the simulator did not start")
+        time.sleep(0.1)
+    argv = [sys.executable, *run, "poll", "-p", str(line), "-b", "9600", *DEVICES,
+            "--interval", "0.5",
             "--format", "json", "-o", str(work / "readings.jsonl"),
             "--mqtt", f"mqtt://127.0.0.1:{mqtt}", "--serve", f"127.0.0.1:{gw}",
             "--metrics", f"127.0.0.1:{metrics}"]
@@ -136,7 +178,7 @@ def main() -> None:
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
-        for p in (sub, broker):
+        for p in (simulator, sub, broker):
             p.terminate()
             p.wait(timeout=10)
     warm = [s for s in samples if s[0] >= args.warmup]
