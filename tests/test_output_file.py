@@ -6,6 +6,7 @@ off before anything is appended; SIGHUP resumes."""
 from __future__ import annotations
 
 import json
+import logging
 import resource
 import shutil
 import signal
@@ -76,15 +77,28 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
     assert records and all(r["device"] == "huiwen-aq@3" for r in records)
 
 
-def test_a_partial_last_line_is_cut_off_before_anything_is_appended(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+class Lines(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+def test_a_partial_last_line_is_cut_off_before_anything_is_appended(tmp_path: Path) -> None:
     out = tmp_path / "readings.jsonl"
     out.write_text('{"a": 1}\n{"b": 2}\n{"c": ')
-    f = OutputFile(out)
-    f.write('{"d": 4}\n')
-    f.close()
+    said = Lines()
+    logging.getLogger("rtupoll.output").addHandler(said)  # whatever set up logging before
+    try:
+        f = OutputFile(out)
+        f.write('{"d": 4}\n')
+        f.close()
+    finally:
+        logging.getLogger("rtupoll.output").removeHandler(said)
     assert out.read_text() == '{"a": 1}\n{"b": 2}\n{"d": 4}\n'
-    assert "cut off a partial last line (6 bytes)" in caplog.text
+    assert said.lines == [f"{out}: cut off a partial last line (6 bytes) an earlier run left"]
 
 
 def test_poll_once_onto_a_file_an_earlier_run_cut_short(tmp_path: Path) -> None:
