@@ -21,7 +21,7 @@ from rtupoll.config.site import from_specs
 from rtupoll.errors import ConfigError, DeviceException, FaultSpecError
 from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.hole_services import RememberHoles
-from rtupoll.jobs.holes import HoleStore, bisect, gaps, pieces, show
+from rtupoll.jobs.holes import Bisection, HoleStore, bisect, gaps, pieces, show
 from rtupoll.jobs.scheduler import Backoff, BusPoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.planner import Block, plan
@@ -57,9 +57,11 @@ def test_the_planner_never_bridges_a_hole_but_still_reads_fields_there() -> None
     blocks = plan(p.default_fields(), p, holes=holes)
     assert not any(b.table is Table.INPUT and b.address <= HOLE < b.end for b in blocks)
     assert {f.name for b in blocks for f in b.fields} == {f.name for f in p.default_fields()}
-    # a field's own register is read even where it is a hole (the device decides)
-    assert plan(p.default_fields(), p, holes={(Table.INPUT, 30006)}) == \
-        plan(p.default_fields(), p)
+    # a field whose own register is a hole (the device refused it) is still read, alone
+    alone = plan(p.default_fields(), p, holes={(Table.INPUT, 30006)})
+    assert {f.name for b in alone for f in b.fields} == {f.name for f in p.default_fields()}
+    [pm25] = [b for b in alone if b.table is Table.INPUT and b.address <= 30006 < b.end]
+    assert (pm25.address, pm25.count, [f.name for f in pm25.fields]) == (30006, 1, ["pm25"])
 
 
 def test_the_simulated_hole_refuses_any_read_over_it() -> None:
@@ -133,14 +135,21 @@ def test_one_bisection_then_every_cycle_reads_everything_without_exception_02() 
     assert dev.stats.exceptions[2] == 1
 
 
-def test_a_refused_field_of_its_own_is_no_hole() -> None:
+def test_a_refused_field_of_its_own_is_found_and_every_other_field_read() -> None:
     _, _, bus = holed_bus("3:hole=30006")  # pm25's own register
     block = huiwen_block()
 
-    async def go() -> object:
+    async def go() -> Bisection | None:
         return await bisect(bus, 3, block, timeout=0.5, retries=0)
 
-    assert asyncio.run(go()) is None  # the exception stands; nothing learned
+    found = asyncio.run(go())
+    assert found is not None
+    assert [(f.name, e.code) for f, e in found.refused] == [("pm25", 2)]
+    assert {v.field.name for v in found.values} == {f.name for f in block.fields} - {"pm25"}
+    assert found.holes == {(Table.INPUT, 30006)}  # the gap read: only the field is a hole
+    # the piece 30006+4 refused; its halves 30006+2 (refused: 30006 refused, 30007
+    # reads) and 30008+2; the other piece 30012+2; the gap 30010+2
+    assert bus.exceptions == 3 and len(bus.sent) == 7
 
 
 def test_the_state_file_keeps_holes_per_device_profile_and_variant(tmp_path: Path) -> None:
@@ -197,18 +206,25 @@ def test_poll_remember_holes_end_to_end(tmp_path: Path,
                                     "--remember-holes", "--once"]).exit_code == 2
 
 
-def test_a_block_whose_own_field_is_refused_is_bisected_once_only() -> None:
-    clock, bp, bus = holed_bus("3:hole=30006")  # pm25's own register: no hole to learn
+def test_a_block_whose_own_field_is_refused_is_split_once_then_the_field_read_alone(
+        ) -> None:
+    clock, bp, bus = holed_bus("3:hole=30006")  # pm25's own register
     dev = bp.devices[0]
+    statuses: list[dict[str, str]] = []
 
     async def cycles(n: int) -> None:
         for _ in range(n):
             clock.now = max(clock.now, dev.next_due)
-            await bp.run_one(dev, lambda d, rs: None)
+            await bp.run_one(dev, lambda d, rs: statuses.append(
+                {r.field.name: r.status for r in rs}))
 
     asyncio.run(cycles(1))
     after_first = len(bus.sent)
     asyncio.run(cycles(5))
-    assert dev.holes.registers == set()
-    assert dev.stats.exceptions[2] == 6  # reported every scan, as before
-    assert len(bus.sent) - after_first == 5 * len(dev.blocks)  # no bisection again
+    assert dev.holes.registers == {(Table.INPUT, 30006)}
+    for got in statuses:  # every cycle: every other field ok, pm25 with its exception
+        assert got.pop("pm25") == "exception"
+        assert set(got.values()) == {"ok"}
+    assert dev.stats.exceptions[2] == 6  # the refused field reported every scan
+    assert len(bus.sent) - after_first == 5 * len(dev.blocks)  # no splitting again
+    assert any(b.fields[0].name == "pm25" and len(b.fields) == 1 for b in dev.blocks)

@@ -26,6 +26,7 @@ from rtupoll.cli.params import DEVICE, DeviceSpec, Seconds
 from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
 from rtupoll.gateway.options import from_options, serve_options
+from rtupoll.ui.outfile import OutputFile
 from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
 
 if TYPE_CHECKING:
@@ -47,7 +48,7 @@ class RecordWriter:
     """JSON lines, CSV or Influx line protocol, one whole batch per write, flushed: no
     partial lines, ever. ``path``: the file ``out`` is, reopened by ``reopen`` (SIGHUP)."""
 
-    def __init__(self, out: TextIO, fmt: str, *, header: bool = True,
+    def __init__(self, out: TextIO | OutputFile, fmt: str, *, header: bool = True,
                  path: Path | None = None) -> None:
         self.out, self.fmt, self.path = out, fmt, path
         self._buf = io.StringIO()
@@ -63,12 +64,13 @@ class RecordWriter:
         """Continue in a new file at ``path`` (logrotate moved the old one away)."""
         if self.path is None:
             return
-        fresh = not self.path.exists() or self.path.stat().st_size == 0
-        new = self.path.open("a", encoding="utf-8", newline="")
-        old, self.out = self.out, new
-        old.close()
+        if isinstance(self.out, OutputFile):
+            self.out.reopen()
+        else:
+            old, self.out = self.out, OutputFile(self.path)
+            old.close()
         if self._csv is not None:
-            self._csv = CsvWriter(self._buf, POLL_KEYS, header=fresh)
+            self._csv = CsvWriter(self._buf, POLL_KEYS, header=self.out.fresh)
 
     def write(self, readings: Sequence[Reading], state: str = "") -> None:
         if self._influx is not None:
@@ -346,7 +348,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
     with _sink(fmt, output) as writer:
         services = [*services, *daemon_services(
             site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
-            log_format=log_format, reload=reload)]
+            log_format=log_format, reload=reload, peers=services)]
         for s in services:  # /metrics also serves what other services count
             if isinstance(others := getattr(s, "others", None), list):
                 others += [c() for t in services if callable(c := getattr(t, "collector", None))]
@@ -384,17 +386,14 @@ def _sink(fmt: str, output: Path | None) -> Iterator[RecordWriter | None]:
             with contextlib.suppress(OSError):
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return
-    try:
-        fresh = not output.exists() or output.stat().st_size == 0
-        with output.open("a", encoding="utf-8", newline="") as fh:
-            writer = RecordWriter(fh, fmt, header=fresh, path=output)
-            try:
-                yield writer
-            finally:
-                if writer.out is not fh:  # reopened on SIGHUP
-                    writer.out.close()
+    try:  # whole records or nothing (rtupoll.ui.outfile)
+        fh = OutputFile(output)
     except OSError as exc:
         raise UsageError(f"cannot write {output}: {exc.strerror}") from None
+    try:
+        yield RecordWriter(fh, fmt, header=fh.fresh, path=output)
+    finally:
+        fh.close()
 
 
 @contextlib.asynccontextmanager

@@ -14,7 +14,7 @@ from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import bundled_dir, load_library, load_one, load_profile
-from rtupoll.errors import ProfileError, UsageError
+from rtupoll.errors import ProfileError, RtupollError, UsageError
 from rtupoll.model.profile import Choice, Field, Profile
 
 
@@ -219,18 +219,25 @@ _TABLE = {"coil": "co", "discrete": "di", "input": "ir", "holding": "hr"}
 @profiles.command("check")
 @click.argument("files", nargs=-1, required=True, type=click.Path(path_type=Path))
 def check(files: tuple[Path, ...]) -> None:
-    """Validate profile files; print file:line: field: error for each bad one."""
+    """Validate profile files (a directory: its *.yaml); print file:line: field: error for
+    each bad one. Each file is checked on its own: one that fails never hides another's."""
     bad = 0
-    for path in files:
+    paths = [q for f in files for q in (sorted(f.glob("*.yaml")) if f.is_dir() else [f])]
+    for path in paths:
         try:
+            if path.exists() and not path.is_file():  # a FIFO would block the reader
+                raise ProfileError("not a regular file; not read", file=str(path))
             p = load_profile(path)
-        except ProfileError as exc:
+        except RtupollError as exc:
             bad += 1
-            click.echo(str(exc), err=True)
+            where = getattr(exc, "file", "")
+            parent = f"{path}: the profile it extends does not load: " \
+                if where and Path(where) != path else ""
+            click.echo(f"{parent}{exc}", err=True)
         else:
             click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields)")
     if bad:
-        raise ProfileError(f"{bad} of {len(files)} profile(s) have errors")
+        raise ProfileError(f"{bad} of {len(paths)} profile(s) have errors")
 
 
 def _summary(p: Profile) -> str:

@@ -136,15 +136,30 @@ def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | 
         assert target.profile is not None
         fields = fields_of(target.profile, items, force)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing),
-                          on_timeout=speed_note(settings, target.profile, baudrate))
+        try:
+            rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing),
+                              on_timeout=speed_note(settings, target.profile, baudrate))
+        except PartialRead as partial:  # every field that answered, then exit 5
+            emit(target, partial.rows, fmt, hex_)
+            raise partial.error from None
     emit(target, rows, fmt, hex_)
+
+
+class PartialRead(Exception):
+    """Some fields were refused: the rows to print, then ``error`` (exit 5)."""
+
+    def __init__(self, rows: list[Row], error: Exception) -> None:
+        super().__init__(str(error))
+        self.rows, self.error = rows, error
 
 
 async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timing
                      ) -> list[Row]:
     """Read through the planner; fields the device's variant lacks are reported, not read."""
-    from rtupoll.jobs.device import probe_variant, read_fields
+    from rtupoll.jobs.device import probe_variant
+    from rtupoll.jobs.holes import FieldsRefused, read_all
+    from rtupoll.model.planner import plan
+    from rtupoll.rtu import exception_name
 
     profile = target.profile
     assert profile is not None
@@ -156,10 +171,16 @@ async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timi
                 if f.since > variant:
                     missing[f.name] = f"not present ({profile.variant.name} {variant})"
     present = [f for f in fields if f.name not in missing]
-    values = await read_fields(bus, profile, target.unit, present, timeout=timing.timeout,
-                               retries=timing.retries) if present else []
+    # a block refused with exception 02 is split until the refused fields are found
+    values, refused = await read_all(bus, target.unit, plan(present, profile),
+                                     timeout=timing.timeout, retries=timing.retries)
+    for f, exc in refused:
+        missing[f.name] = f"refused: exception {exc.code:02d} {exception_name(exc.code)}"
     by_name = {fv.field.name: fv for fv in values}
-    return [(f, by_name.get(f.name), missing.get(f.name, "")) for f in fields]
+    rows = [(f, by_name.get(f.name), missing.get(f.name, "")) for f in fields]
+    if refused:  # printed, then exit 5 (``read``)
+        raise PartialRead(rows, FieldsRefused(refused))
+    return rows
 
 
 async def read_raw(bus: Any, unit: int, specs: list[RegisterSpec], max_registers: int,

@@ -90,6 +90,8 @@ def sniff(devices: tuple[DeviceSpec, ...], port: str | None, config: Path | None
     known, site_framing, site_port = _known(devices, config, bus_name, profile_dirs)
     port = port or site_port
     recorded: Capture | None = read_capture(read_path) if read_path is not None else None
+    if recorded is not None and recorded.stopped:  # as Wireshark: up to the damage
+        click.echo(f"rtupoll: {read_path}: {recorded.stopped}", err=True)
     if recorded is None and not port:
         raise UsageError("give --port (the adapter on the pair), -c SITE, or --read FILE")
     framing = _framing(baudrate, parity, stopbits, site_framing,
@@ -135,7 +137,8 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
     from rtupoll.sniff.port import ListenPort
 
     tap = ListenPort(port, framing)
-    writer = CaptureWriter(capture, framing, port) if capture is not None else None
+    writer = CaptureWriter(capture, framing, port, say=lambda m: click.echo(
+        f"rtupoll: {m}", err=True)) if capture is not None else None
     session = Session(framing, view, sink, timeout=timeout, capture=writer)
     stop: list[int] = []
 

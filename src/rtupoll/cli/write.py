@@ -8,6 +8,7 @@ confirmation. What is printed afterwards is what the device holds now.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,14 @@ from rtupoll.cli.target import (
     speed_note,
     timing_options,
 )
-from rtupoll.errors import BusError, DeviceTimeout, FrameError, RefusedError, UsageError
+from rtupoll.errors import (
+    BusError,
+    DeviceTimeout,
+    FrameError,
+    Interrupted,
+    RefusedError,
+    UsageError,
+)
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.jobs.writes import (
@@ -101,6 +109,7 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
         raise UsageError("--one-based, --modicon, --type, --order and --function are for "
                          "--raw writes")
     timing = device_timing(target.profile, timeout, retries)
+    sent: list[str] = []  # the writes whose request has gone (or is going) out
     if raw:
         functions = target.profile.limits.functions if target.profile else RAW_FUNCTIONS
         if function:
@@ -113,8 +122,9 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
             check_move(target, raws[-1])
         confirm(_question(target, [r.describe() for r in raws]), yes)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing),
-                          on_timeout=speed_note(settings, target.profile, baudrate))
+        with _applied_if_interrupted(sent):
+            rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing, sent),
+                              on_timeout=speed_note(settings, target.profile, baudrate))
     else:
         ops = plan_fields(target, assignments)
         confirm_now(yes)  # refused before the port opens when nobody can confirm
@@ -126,10 +136,11 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
                        if "R" in op.field.access else None for op in ops]
                 confirm(_question(target, [f"{op.describe()}  (now: {_now(fv)})"
                                            for op, fv in zip(ops, now, strict=True)]), yes)
-            return await _fields(bus, target.unit, ops, timing)
+            return await _fields(bus, target.unit, ops, timing, sent)
 
-        rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
-                                                               baudrate))
+        with _applied_if_interrupted(sent):
+            rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
+                                                                   baudrate))
     who = target.name if target.profile else f"unit {target.unit}"
     emit(target, rows, fmt, False, title=f"{who} after writing (read back)")
 
@@ -144,9 +155,24 @@ def _question(target: Target, lines: list[str]) -> str:
     return f"Write to {target.name}:\n  " + "\n  ".join(lines) + "\nSend?"
 
 
-async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing) -> list[Row]:
+@contextlib.contextmanager
+def _applied_if_interrupted(sent: list[str]) -> Iterator[None]:
+    """Ctrl-C or SIGTERM once a write request has gone out: the device may have taken it,
+    so say so (exit 130, like any interruption), as ``set-address`` does."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        if not sent:
+            raise
+        raise Interrupted(f"interrupted after sending {'; '.join(sent)}: the write may have "
+                          "been applied (read the device to know)") from None
+
+
+async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing,
+                  started: list[str]) -> list[Row]:
     rows: list[Row] = []
     for op in ops:
+        started.append(op.describe())
         sent, _ = await write_field(bus, unit, op, timing)  # an echo is checked by the bus
         if "R" not in op.field.access:
             rows.append((op.field, None, "written (write-only: cannot be read back)"))
@@ -157,9 +183,11 @@ async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing) -> li
     return rows
 
 
-async def _raw(bus: Any, target: Target, raws: list[RawWrite], timing: Timing) -> list[Row]:
+async def _raw(bus: Any, target: Target, raws: list[RawWrite], timing: Timing,
+               started: list[str]) -> list[Row]:
     rows: list[Row] = []
     for rw in raws:
+        started.append(rw.describe())
         moved = address_register(target, rw)
         if moved is not None:
             rows += await _raw_move(bus, target, rw, moved, timing)

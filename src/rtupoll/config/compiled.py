@@ -17,9 +17,12 @@ directory) means "not cached": the caller reads the profile, which also gives ev
 error as ``file:line``; a failure is never cached. ``$RTUPOLL_NO_PROFILE_CACHE`` (any
 non-empty value) switches the cache off; deleting the directory is always safe.
 
-Loading a pickle can run code. Only the user's own cache directory is read, and whoever
-can write there can already run code as the user; besides, the unpickler here builds
-nothing but the model's own classes, so a planted file cannot call anything else.
+Only the user's own cache is trusted: the directory and each file must be owned by the
+user and writable by no one else (a shared ``XDG_CACHE_HOME``, a directory another user
+created in advance, a CI cache); anything else is "not cached" (the profile file is
+read) and nothing is stored there. Loading a pickle can run code; besides the ownership
+check, the unpickler here builds nothing but the model's own classes, so a planted file
+cannot call anything else.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import dataclasses
 import io
 import os
 import pickle
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -90,9 +94,21 @@ def store(path: Path, built: Profile, sources: Sequence[Source]) -> None:
         pass
 
 
+def _own(st: os.stat_result) -> bool:
+    """Whether a cache directory or file is the user's alone: owned by the user, and
+    neither group- nor other-writable (anyone else who could write there could plant a
+    forged profile: a wrong value reported ``ok``, a write aimed at another register)."""
+    return st.st_uid == os.getuid() and not st.st_mode & 0o022
+
+
 def _load(path: Path) -> Profile | None:
     key = os.path.abspath(path)  # not resolved: the id must match the name as given
+    if not _own(os.stat(directory())):
+        return None
     with _file(key).open("rb") as fh:
+        st = os.fstat(fh.fileno())  # the file opened, whatever a link pointed to
+        if not (_own(st) and stat.S_ISREG(st.st_mode)):
+            return None
         data = fh.read(MAX_BYTES + 1)
     if len(data) > MAX_BYTES:
         return None
@@ -138,6 +154,8 @@ def _write(target: Path, data: bytes) -> None:
     import tempfile  # only after a profile was read, which costs far more
 
     target.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if not _own(os.stat(target.parent)):  # another's (or a shared) directory: no cache
+        return
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:

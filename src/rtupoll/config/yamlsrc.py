@@ -64,6 +64,9 @@ class Node:
                 required: frozenset[str] | set[str] = frozenset()) -> dict[str, Node]:
         out: dict[str, Node] = {}
         for knode, vnode in self._pairs():
+            if not isinstance(knode, yaml.ScalarNode):  # `? [a, b]`: a list as a key
+                raise Node(knode, self.file, self.path, self._error).fail(
+                    "a key must be a plain name, not a list or a mapping")
             key = str(knode.value)
             child = self._child(vnode, key)
             if allowed is not None and key not in allowed:

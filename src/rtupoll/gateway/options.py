@@ -24,16 +24,18 @@ def serve_options(f: F) -> F:
         click.option("--serve-allow", "serve_allow", multiple=True, metavar="CIDR",
                      help="--serve: client networks allowed (repeatable; default: any)."),
         click.option("--serve-read-only", "serve_read_only", is_flag=True,
-                     help="--serve: refuse every write (exception 01)."),
+                     help="--serve: pass only reads of coils and registers (FC 1-4); "
+                          "refuse everything else (exception 01)."),
         click.option("--serve-cache", "serve_cache", type=Seconds(0, 3600),
                      default=0.0, metavar="SECONDS",
                      help="--serve: answer reads from data polled at most this long ago."),
         click.option("--serve-broadcast", "serve_broadcast", is_flag=True,
-                     help="--serve: pass broadcast writes (unit 0) to the line."),
+                     help="--serve: pass broadcast writes (unit 0; FC 5, 6, 15, 16, 22) to "
+                          "the line."),
         click.option("--serve-setup-writes", "serve_setup_writes", multiple=True,
-                     type=click.IntRange(1, 255), metavar="UNIT",
+                     type=click.IntRange(1, 247), metavar="UNIT",
                      help="--serve: let clients write this unit's address and baud-rate "
-                          "registers (repeatable)."),
+                          "registers and send it state-changing diagnostics (repeatable)."),
         click.option("--serve-queue", "serve_queue", type=click.IntRange(1, 1000),
                      default=DEFAULT_QUEUE, show_default=True,
                      help="--serve: requests that may wait for the line; more get 0x0A."),

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
+from rtupoll.rtu.effects import Effect, effect
 from rtupoll.rtu.functions import (
     FUNCTIONS,
     MAX_QUANTITY,
@@ -51,7 +52,8 @@ class Ask:
 
     @property
     def write(self) -> bool:
-        return self.function in (5, 6, 15, 16, 22, 23)
+        """Whether it writes registers or coils (``rtupoll.rtu.effects``)."""
+        return effect(self.pdu) is Effect.WRITE
 
     @property
     def read(self) -> bool:

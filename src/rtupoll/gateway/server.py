@@ -19,9 +19,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import socket
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
@@ -42,6 +43,7 @@ from rtupoll.gateway.pdu import (
 from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.stats import State
+from rtupoll.rtu.effects import writes
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller
@@ -79,6 +81,35 @@ class SilentUnits:
         self._until.pop(unit, None)
 
 
+RULES = ("allow", "read_only", "cache", "broadcast", "setup_writes", "queue", "timeout")
+
+
+def _text(value: object) -> str:
+    if isinstance(value, (tuple, frozenset)):
+        return "[" + ", ".join(map(str, sorted(value, key=str))) + "]"
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+async def listen(config: ServeConfig, handle: Callable[[asyncio.StreamReader,
+                 asyncio.StreamWriter], Awaitable[None]]) -> asyncio.Server:
+    """A listener on ``config``'s address. ``[::]`` (or ``::``) listens dual-stack: IPv4
+    clients too, as ``0.0.0.0`` would (the system's default for a v6 socket varies)."""
+    try:
+        if config.host in ("::", "[::]"):
+            sock = socket.socket(socket.AF_INET6, socket.SOCK_STREAM)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+                sock.bind(("::", config.port))
+            except BaseException:
+                sock.close()
+                raise
+            return await asyncio.start_server(handle, sock=sock)
+        return await asyncio.start_server(handle, config.host, config.port)
+    except OSError as exc:
+        raise PortError(f"cannot serve {config.url}: {exc.strerror or exc}") from None
+
+
 class Gateway:
     """Serves ``config`` for the bus ``poller`` polls, through the poller's transport."""
 
@@ -87,6 +118,7 @@ class Gateway:
                  clock: Clock = time.monotonic) -> None:
         self.config, self.poller, self.turns = config, poller, turns
         self._devices: object = None
+        self.asked = config  # as configured (``config`` has the port a :0 was given)
         self.units: dict[int, DevicePoller]
         self.access: Access
         self._learn_devices()
@@ -110,14 +142,30 @@ class Gateway:
         self.access = Access(self.config, {u: d.config.profile for u, d in self.units.items()})
 
     # -- life ---------------------------------------------------------------------
-    async def start(self) -> None:
-        cfg = self.config
-        try:
-            self._server = await asyncio.start_server(self._handle, cfg.host, cfg.port)
-        except OSError as exc:
-            raise PortError(f"cannot serve {cfg.url}: {exc.strerror or exc}") from None
-        if cfg.port == 0:  # the port the system chose, in the log and the footer
-            self.config = dataclasses.replace(cfg, port=self.address[1])
+    async def start(self, server: asyncio.Server | None = None) -> None:
+        """Listen (or take ``server``, bound for it by ``listen``)."""
+        self.asked = self.config  # as configured (port 0: the system chooses)
+        self._server = server or await listen(self.config, self._handle)
+        if self.config.port == 0:  # the port the system chose, in the log and the footer
+            self.config = dataclasses.replace(self.config, port=self.address[1])
+
+    def reconfigure(self, config: ServeConfig) -> list[str]:
+        """New rules on the same listener (a SIGHUP's ``serve:``): what changed. Clients
+        the new ``allow:`` excludes are disconnected at once."""
+        was, self.asked = self.asked, config
+        self.config = dataclasses.replace(config, port=self.config.port)
+        self._devices = None  # the access rules again, with the new settings
+        self._learn_devices()
+        if config.cache != was.cache:
+            self.cache = ReadCache(config.cache) if config.cache > 0 else None
+        changed = [f"{k} {_text(getattr(was, k))} -> {_text(getattr(config, k))}"
+                   for k in RULES if getattr(was, k) != getattr(config, k)]
+        for writer in list(self._writers):
+            peer = writer.get_extra_info("peername") or ("?", 0)
+            if not self.access.peer_allowed(str(peer[0])):
+                writer.close()
+                changed.append(f"client {peer[0]} disconnected (not in the allowed networks)")
+        return [f"serve {self.config.url}: " + "; ".join(changed)] if changed else []
 
     @property
     def address(self) -> tuple[str, int]:
@@ -317,5 +365,6 @@ class Gateway:
             finally:
                 end = self._clock()
                 self.poller.load.add(end, end - start, failed_by=self if failed else None)
-                if ask.write and self.cache is not None and ask.table is not None:
-                    self.cache.forget(unit, ask.table, ask.address, ask.count)
+                if ask.write and self.cache is not None:  # FC 22 and 23 too
+                    for run in writes(ask.pdu) or ():
+                        self.cache.forget(unit, run.table, run.address, run.count)

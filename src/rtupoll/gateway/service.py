@@ -1,18 +1,26 @@
 """The gateway as a ``rtupoll.jobs.services.Service``: one ``Gateway`` per bus with
-``serve`` set, sharing the line with that bus's poller (``BusPoller.turn``)."""
+``serve`` set, sharing the line with that bus's poller (``BusPoller.turn``).
+
+On SIGHUP (``rtupoll.jobs.reload``) each bus's new ``serve:`` takes effect: new rules
+on the same listener at once (clients the new ``allow:`` excludes are disconnected), a
+new address re-bound (the new listener first: a reload that cannot bind it is refused
+whole), a bus no longer served closed."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.gateway.server import Gateway
+from rtupoll.gateway.server import Gateway, listen
+from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
 
+    from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
 
@@ -48,6 +56,12 @@ class GatewayService:
             bp.turn = turns.turn
             self.gateways.append(gw)
 
+    async def prepare_reload(self, site: Site) -> GatewayReload:
+        """SIGHUP, before the scheduler takes ``site``: bind every listen address the new
+        ``serve:`` entries add, so that a reload that cannot serve them is refused whole
+        (``PortError``, nothing changed) rather than half applied."""
+        return await GatewayReload.prepare(self, site)
+
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
         for gw in self.gateways:
             if dev in gw.poller.devices:
@@ -74,3 +88,83 @@ class GatewayService:
         from rtupoll.gateway.footer import render
 
         return render(self.gateways) if self.gateways else None
+
+
+def _listen_key(cfg: ServeConfig) -> tuple[str, str, int]:
+    return cfg.framing, cfg.host, cfg.port
+
+
+class GatewayReload:
+    """A reload's gateways: listeners bound in advance (``prepare``), then ``commit``
+    (after ``Scheduler.reload``) or ``abort``."""
+
+    def __init__(self, service: GatewayService, site: Site) -> None:
+        self.service, self.site = service, site
+        self.bound: dict[tuple[str, str, int], asyncio.Server] = {}
+        self._ready: dict[tuple[str, str, int], Gateway] = {}
+
+    @classmethod
+    async def prepare(cls, service: GatewayService, site: Site) -> GatewayReload:
+        self = cls(service, site)
+        running = {(gw.poller.config.port, _listen_key(gw.asked)) for gw in service.gateways}
+        try:
+            for bus in site.buses:
+                if bus.serve is None or (bus.port, _listen_key(bus.serve)) in running:
+                    continue
+                key = _listen_key(bus.serve)
+                self.bound[key] = await listen(bus.serve, self._dispatch(key))
+        except BaseException:
+            await self.abort()
+            raise
+        return self
+
+    def _dispatch(self, key: tuple[str, str, int]) -> Callable[
+            [asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]:
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            gw = self._ready.get(key)
+            if gw is None:  # between the bind and the commit: not serving yet
+                writer.close()
+                return
+            await gw._handle(reader, writer)
+        return handle
+
+    async def abort(self) -> None:
+        for server in self.bound.values():
+            server.close()
+        self.bound.clear()
+
+    async def commit(self, scheduler: Scheduler) -> list[str]:
+        """The scheduler has taken the site: each bus's gateway follows its ``serve:``."""
+        svc = self.service
+        old = {gw.poller.config.port: gw for gw in svc.gateways}
+        kept: list[Gateway] = []
+        changes: list[str] = []
+        for bp in scheduler.buses:
+            cfg = bp.config.serve
+            if cfg is None:
+                continue
+            gw = old.pop(bp.config.port, None)
+            if gw is not None and _listen_key(gw.asked) == _listen_key(cfg):
+                if gw.poller is not bp:  # the bus was reopened: its new poller
+                    gw.poller = bp
+                    bp.turn = gw.turns.turn
+                changes += gw.reconfigure(cfg)
+                kept.append(gw)
+                continue
+            new = Gateway(cfg, bp, Turns(), log=svc._log, info=svc._info)
+            await new.start(self.bound.pop(_listen_key(cfg)))
+            self._ready[_listen_key(cfg)] = new
+            bp.turn = new.turns.turn
+            kept.append(new)
+            if gw is not None:
+                await gw.stop()
+                changes.append(f"bus {bp.config.name}: serving {new.config.url} "
+                               f"(no longer {gw.config.url})")
+            else:
+                changes.append(f"bus {bp.config.name}: serving {new.config.url}")
+        for gw in old.values():
+            await gw.stop()
+            changes.append(f"bus {gw.poller.config.name}: no longer serving {gw.config.url}")
+        await self.abort()  # anything bound and not taken
+        svc.gateways[:] = kept
+        return changes

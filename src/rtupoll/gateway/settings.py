@@ -120,7 +120,7 @@ def from_node(node: Node) -> ServeConfig:
     timeout = m["timeout"].number() if "timeout" in m else DEFAULT_TIMEOUT
     if not 0.01 <= timeout <= 30:
         raise m["timeout"].fail(f"{timeout:g} s is outside 0.01..30 s")
-    units = [n.integer(1, 255) for n in m["setup_writes"].sequence()] \
+    units = [n.integer(1, 247) for n in m["setup_writes"].sequence()] \
         if "setup_writes" in m else []
     return serve_config(
         listen, allow=allow, cache=cache, timeout=timeout, setup_writes=units,

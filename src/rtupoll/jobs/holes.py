@@ -97,32 +97,99 @@ def show(registers: Iterable[Register]) -> str:
 
 @dataclass(frozen=True)
 class Bisection:
-    """What ``bisect`` found: the block's fields, read without its gaps, and the holes."""
+    """What ``bisect`` found: the block's fields that read (without its gaps), the fields
+    the device refuses by themselves (with the exception), and the registers not to
+    bridge again: refused registers in gaps, and the refused fields' own."""
 
     values: list[FieldValue]
     holes: frozenset[Register]
+    refused: tuple[tuple[Field, DeviceException], ...] = ()
 
 
 async def bisect(bus: BusLike, unit: int, block: Block, *, timeout: float,
                  retries: int) -> Bisection | None:
-    """``block`` got exception 02: find the registers in its gaps the device refuses.
+    """``block`` got exception 02: find what the device refuses, in the same scan.
 
-    None when a field's own registers are refused too (then it is no hole in a gap,
-    and the exception stands). Timeouts and garbled replies propagate."""
+    Its fields are read without the gaps (``pieces``); a piece that is refused is split
+    between its fields, half by half, until each refused field stands alone (a piece of
+    n fields with one refused field costs about 2 log2 n reads). Then the gaps are
+    halved down to the registers the device refuses. None when no field reads at all
+    (then the exception stands for the whole block). Timeouts and garbled replies
+    propagate."""
     values: list[FieldValue] = []
+    refused: list[tuple[Field, DeviceException]] = []
+    # a piece that is the whole block (no gaps) is known refused: split it at once
+    known = DeviceException(2, unit=unit, function=block.table.read_function)
     for piece in pieces(block):
-        try:
-            words = await bus.read(unit, piece.table, piece.address, piece.count,
-                                   timeout=timeout, retries=retries)
-        except DeviceException:
-            return None
-        values += decode_block(piece, words)
+        await _split(bus, unit, piece, values, refused, timeout=timeout, retries=retries,
+                     known=known if piece.count == block.count else None)
+    if not values:
+        return None
     holes: set[int] = set()
     for gap in gaps(block):
         holes |= await _halve(bus, unit, block.table, gap, timeout=timeout, retries=retries)
-    if not holes:  # each gap reads by itself: what it refused was bridging them at all
+    if not holes and not refused:  # each gap reads by itself: bridging them was refused
         holes = {r for g in gaps(block) for r in g}
-    return Bisection(values, frozenset((block.table, r) for r in holes))
+    holes |= {r for f, _ in refused for r in range(f.address, f.end)}
+    return Bisection(values, frozenset((block.table, r) for r in holes), tuple(refused))
+
+
+async def _split(bus: BusLike, unit: int, piece: Block, values: list[FieldValue],
+                 refused: list[tuple[Field, DeviceException]], *, timeout: float,
+                 retries: int, known: DeviceException | None = None) -> None:
+    """Read ``piece`` (fields without gaps); refused (or ``known`` refused): its halves,
+    down to one field."""
+    try:
+        if known is not None:
+            raise known
+        words = await bus.read(unit, piece.table, piece.address, piece.count,
+                               timeout=timeout, retries=retries)
+    except DeviceException as exc:
+        if len(piece.fields) == 1:
+            refused.append((piece.fields[0], exc))
+            return
+        half = len(piece.fields) // 2
+        for part in (piece.fields[:half], piece.fields[half:]):
+            start, end = min(f.address for f in part), max(f.end for f in part)
+            await _split(bus, unit, Block(piece.table, start, end - start, part), values,
+                         refused, timeout=timeout, retries=retries)
+        return
+    values += decode_block(piece, words)
+
+
+async def read_all(bus: BusLike, unit: int, blocks: Sequence[Block], *, timeout: float,
+                   retries: int) -> tuple[list[FieldValue], list[tuple[Field, DeviceException]]]:
+    """Read ``blocks`` once (``rtupoll read``): a block refused with exception 02 is
+    bisected, so every field that answers is read and each refused field is named with
+    its exception. Another exception, a timeout or a garbled reply propagates."""
+    values: list[FieldValue] = []
+    refused: list[tuple[Field, DeviceException]] = []
+    for block in blocks:
+        try:
+            words = await bus.read(unit, block.table, block.address, block.count,
+                                   timeout=timeout, retries=retries)
+        except DeviceException as exc:
+            found = await bisect(bus, unit, block, timeout=timeout, retries=retries) \
+                if exc.code == 2 else None
+            if found is None:
+                refused += [(f, exc) for f in block.fields]
+                continue
+            values += found.values
+            refused += found.refused
+            continue
+        values += decode_block(block, words)
+    return values, refused
+
+
+class FieldsRefused(DeviceException):
+    """``rtupoll read``: the device refused some fields with an exception; every other
+    field was read and printed (exit 5, like any exception reply)."""
+
+    def __init__(self, refused: Sequence[tuple[Field, DeviceException]]) -> None:
+        first = refused[0][1]
+        super().__init__(first.code, unit=first.unit, function=first.function)
+        names = ", ".join(f.name for f, _ in refused)
+        self.args = (f"{names}: {first}; every other field was read",)
 
 
 async def _halve(bus: BusLike, unit: int, table: Table, span: range, *, timeout: float,

@@ -16,8 +16,8 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rtupoll.errors import RtupollError
 
@@ -40,8 +40,10 @@ class ReloadService:
     """SIGHUP -> reopen the output, reload the site (when there is a site file)."""
 
     def __init__(self, load: Callable[[], Site] | None, output: Reopenable | None = None,
-                 *, notify: Callable[[str], None] | None = None) -> None:
+                 *, notify: Callable[[str], None] | None = None,
+                 peers: Sequence[object] = ()) -> None:
         self.load, self.output, self.notify = load, output, notify
+        self.peers = peers  # services with ``prepare_reload(site)`` (the gateway's serve:)
         self.reloads = 0  # completed reloads, whatever their outcome
         self._scheduler: Scheduler | None = None
         self._pending: asyncio.Task[None] | None = None
@@ -84,18 +86,41 @@ class ReloadService:
                 log.error("reload refused, polling goes on unchanged: %s", exc,
                           extra={"event": "reload", "error": str(exc)})
             else:
-                if site.metrics != self._scheduler.site.metrics:
-                    log.warning("reload: metrics: %s takes effect at the next start",
-                                site.metrics or "(none)", extra={"event": "reload"})
-                changes = await self._scheduler.reload(site)
-                self._name_buses()
-                for c in changes:
-                    log.info("reload: %s", c, extra={"event": "reload"})
-                if not changes:
-                    log.info("reload: nothing changed", extra={"event": "reload"})
+                await self._apply(site)
         self.reloads += 1
         if self.notify is not None:
             self.notify("reloaded")
+
+    async def _apply(self, site: Site) -> None:
+        assert self._scheduler is not None
+        prepared: list[Any] = []
+        served = [b.name for b in site.buses if b.serve is not None]
+        if served and not any(hasattr(p, "prepare_reload") for p in self.peers):
+            log.error("reload refused, polling goes on unchanged: serve: on %s needs a "
+                      "restart (rtupoll was started without a gateway)", ", ".join(served),
+                      extra={"event": "reload", "error": "serve"})
+            return
+        try:  # e.g. the gateway binds a new serve: address first
+            for peer in self.peers:
+                if callable(prepare := getattr(peer, "prepare_reload", None)):
+                    prepared.append(await prepare(site))
+        except RtupollError as exc:
+            for p in prepared:
+                await p.abort()
+            log.error("reload refused, polling goes on unchanged: %s", exc,
+                      extra={"event": "reload", "error": str(exc)})
+            return
+        if site.metrics != self._scheduler.site.metrics:
+            log.warning("reload: metrics: %s takes effect at the next start",
+                        site.metrics or "(none)", extra={"event": "reload"})
+        changes = await self._scheduler.reload(site)
+        for p in prepared:
+            changes += await p.commit(self._scheduler)
+        self._name_buses()
+        for c in changes:
+            log.info("reload: %s", c, extra={"event": "reload"})
+        if not changes:
+            log.info("reload: nothing changed", extra={"event": "reload"})
 
     def _name_buses(self) -> None:
         if self.output is not None and self._scheduler is not None:
@@ -116,7 +141,8 @@ class ReloadService:
 
 def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table: bool,
                     metrics: str | None, log_format: str | None,
-                    reload: Callable[[], Site] | None) -> list[Service]:
+                    reload: Callable[[], Site] | None,
+                    peers: Sequence[Service] = ()) -> list[Service]:
     """The services that make ``poll`` a daemon (docs/service.md), in start order:
     state-change logging (not under the live table, which shows the states itself),
     ``/metrics``, SIGHUP (reload and reopen), and systemd's notify protocol last, so
@@ -151,5 +177,5 @@ def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table:
         else:
             notifier.reloaded("polling")
 
-    services += [ReloadService(reload, writer, notify=notify), notifier]
+    services += [ReloadService(reload, writer, notify=notify, peers=peers), notifier]
     return services

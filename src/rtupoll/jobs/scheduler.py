@@ -45,10 +45,9 @@ from rtupoll.errors import (
 )
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.device import probe_variant, read_block
-from rtupoll.jobs.holes import HoleMemory, Register, bisect, gaps
+from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
-from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
@@ -160,10 +159,14 @@ class DevicePoller:
             status, error, values = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
                 via=transport)
-            if status == "exception" and self.refused == 2 and gaps(block):
+            if status == "exception" and self.refused == 2 and \
+                    (gaps(block) or len(block.fields) > 1):
                 found = await self._find_holes(transport, block, retries)
-                if found is not None:
-                    status, error, values = Status.OK, "", found
+                if found is not None:  # the refused fields alone keep the exception
+                    for f, exc in found.refused:
+                        out[f.name] = Reading(self._wall(), cfg, f, None, Status.EXCEPTION,
+                                              str(exc))
+                    status, error, values = Status.OK, "", found.values
             if status == "ok":
                 answered = True
                 if block.interval is not None:
@@ -234,9 +237,10 @@ class DevicePoller:
         return True
 
     async def _find_holes(self, transport: BusLike, block: Block, retries: int
-                          ) -> list[FieldValue] | None:
-        """``block`` got exception 02 over a gap: bisect (``jobs.holes``); the block's
-        values when its fields' own registers read, and from then on it is not bridged."""
+                          ) -> Bisection | None:
+        """``block`` got exception 02: bisect (``jobs.holes``); what read, and which
+        fields the device refuses; from then on the refused registers are not bridged
+        and a refused field is read alone."""
         key = (block.table, block.address, block.count)
         if key in self.holes.tried:
             return None
@@ -250,7 +254,7 @@ class DevicePoller:
             return None
         self.learn_holes(found.holes, f"exception 02 reading {block.table.value} "
                                       f"0x{block.address:04X}+{block.count}")
-        return found.values
+        return found
 
     def timeout(self, transport: object) -> float:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 from rtupoll import rtu
 from rtupoll.errors import EncodeError, RefusedError, UsageError, VerificationError
 from rtupoll.jobs.device import Timing
-from rtupoll.model.codec import DataType, Value, decode, words_to_hex
+from rtupoll.model.codec import DataType, Value, check_exact, decode, words_to_hex
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field
 from rtupoll.model.raw import RegisterSpec, parse_values, words_of
@@ -122,6 +122,7 @@ def plan_write(field: Field, text: str, functions: frozenset[int]) -> WriteOp:
     check_range(field, value)
     try:
         words = field_words(field, value)
+        check_exact(value, words, field.layout)
     except EncodeError as exc:
         raise RefusedError(f"{field.name}: {exc}") from None
     if field.values and value not in field.values:
@@ -233,7 +234,10 @@ def plan_raw_write(spec: RegisterSpec, text: str, functions: frozenset[int]) -> 
         raise UsageError(f"{spec.label(0)}: the values run past the last register (65535)")
     values = tuple(parse_value(f, t) for f, t in zip(spec.fields(), texts, strict=True))
     try:
-        words = words_of([field_words(f, v) for f, v in zip(spec.fields(), values, strict=True)])
+        each = [field_words(f, v) for f, v in zip(spec.fields(), values, strict=True)]
+        for f, v, w in zip(spec.fields(), values, each, strict=True):
+            check_exact(v, w, f.layout)
+        words = words_of(each)
     except EncodeError as exc:
         raise RefusedError(f"{spec.label(0)}: {exc}") from None
     return RawWrite(spec, values, words, choose_function(spec.fields()[0], len(words), functions))

@@ -199,7 +199,12 @@ def encode_raw(raw: int | float | str | bool, layout: Layout,
     if isinstance(raw, str):
         raise EncodeError(f"expected a number, got {raw!r}")
     if t.is_float:
-        return _to_words(struct.pack(">" + _STRUCT[t.value], float(raw)), layout.order)
+        try:
+            packed = struct.pack(">" + _STRUCT[t.value], float(raw))
+        except OverflowError:  # past the largest f32 (3.4028235e38)
+            raise EncodeError(f"{raw:g} is outside what {t.value} holds "
+                              "(largest 3.4028235e+38)") from None
+        return _to_words(packed, layout.order)
     if isinstance(raw, float):
         if not math.isfinite(raw) or raw != int(raw):
             raise EncodeError(f"{raw!r} is not a whole number, as {t.value} needs")
@@ -224,6 +229,8 @@ def encode(value: int | float | str | bool, layout: Layout,
     """Value -> registers: the exact inverse of ``decode``."""
     if layout.scaled and isinstance(value, (int, float)) and not isinstance(value, bool):
         raw: int | float = (value - layout.offset) / layout.scale
+        if not math.isfinite(raw):
+            raise EncodeError(f"{value:g} is outside what the field holds")
         if layout.type.is_integer:
             nearest = round(raw)
             if abs(nearest - raw) > 1e-6 * max(1.0, abs(raw)):
@@ -232,6 +239,37 @@ def encode(value: int | float | str | bool, layout: Layout,
             raw = nearest
         return encode_raw(raw, layout, current)
     return encode_raw(value, layout, current)
+
+
+def stored(words: Sequence[int], layout: Layout) -> int | float | str | bool:
+    """The value registers hold, as a reading shows it: an f32 at its own precision
+    (``short_f32``), then scale and offset."""
+    if layout.type is DataType.F32:
+        raw = short_f32(float(decode_raw(words, layout)))
+        return round(raw * layout.scale + layout.offset, 9) if layout.scaled else raw
+    return decode(words, layout)
+
+
+def check_exact(value: object, words: Sequence[int], layout: Layout) -> None:
+    """The one check of a number against its type, before a write: the registers
+    ``words`` (``encode``'s) must read back as ``value`` itself. An f32 holds about 7
+    significant digits (99999999 would be 100000000), an f64 about 16, a scaled integer
+    only multiples of its scale; ``EncodeError`` (exit 8) names what would be stored."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    back = stored(words, layout)
+    if back != value:
+        scaled = f" with scale {layout.scale:g}" if layout.scale != 1 else ""
+        offset = f" and offset {layout.offset:g}" if layout.offset else ""
+        raise EncodeError(f"{_plain(value)} cannot be stored as {layout.type.value}{scaled}"
+                          f"{offset}: it would read back as {_plain(back)}")
+
+
+def _plain(x: object) -> str:
+    """A number as typed: the shortest text that is the same float, no ".0"."""
+    if isinstance(x, float) and x.is_integer() and abs(x) < 1e16:
+        return str(int(x))
+    return repr(x) if isinstance(x, float) else str(x)
 
 
 def bits_range(layout: Layout) -> tuple[int, int]:

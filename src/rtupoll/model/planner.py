@@ -97,8 +97,8 @@ def plan(fields: Sequence[Field], profile: Profile, *,
     for f in for_variant(fields, variant):
         wanted.setdefault(f.name, f)
     forbidden = _registers(profile.forbidden())
-    unbridgeable = forbidden | _registers(f for f in profile.fields if f.alone) | \
-        frozenset(holes)
+    learned = frozenset(holes)
+    unbridgeable = forbidden | _registers(f for f in profile.fields if f.alone) | learned
     limit_gap = profile.limits.max_gap
 
     blocks: list[Block] = []
@@ -116,7 +116,9 @@ def plan(fields: Sequence[Field], profile: Profile, *,
         if clash:
             raise RefusedError(f"{f.name} shares a register with {clash[0]}, which must "
                                f"never be read (poll: never)")
-        if f.alone or f.poll is Poll.NEVER:
+        if f.alone or f.poll is Poll.NEVER or any((f.table, r) in learned
+                                                  for r in range(f.address, f.end)):
+            # (a field whose own registers are a learned hole: refused, read alone)
             blocks.append(Block(f.table, f.address, f.words, (f,)))
             continue
         groups.setdefault((f.table, f.interval if by_interval else None), []).append(f)

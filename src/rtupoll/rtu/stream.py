@@ -37,6 +37,8 @@ from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
     FUNCTIONS,
     MAX_FRAME,
+    READ_FUNCTIONS,
+    answer_length,
     exception_name,
     reply_length,
     request_length,
@@ -248,7 +250,7 @@ class Stream:
             if data[0] == 0:
                 out.append(Transaction("broadcast", frame.start, frame))
             else:
-                self.pending, self.expect = frame, expect_for(data)
+                self.pending, self.expect = frame, _expect(data)
             return out
         what = f"unit {data[0]}" + (f" (exception {data[2]:02d})" if data[1] & 0x80 else "")
         return [Transaction("orphan", frame.start, None, frame,
@@ -283,6 +285,17 @@ class Stream:
 
     def _clear(self) -> None:
         self.pending, self.expect = None, None
+
+
+def _expect(request: bytes) -> Expect | None:
+    """``expect_for`` any CRC-valid request: a read of more than a reply can carry (a
+    buggy master, or noise that passes the CRC: 128 registers would need 261 bytes) can
+    only be answered with an exception; its length is past any frame, so no normal
+    reply is ever taken for it."""
+    length = answer_length(request) or 0
+    if request[1] in READ_FUNCTIONS and length > MAX_FRAME:
+        return Expect(request[0], request[1], request[:2], length)
+    return expect_for(request)
 
 
 def _is_request(data: bytes) -> bool:

@@ -17,8 +17,10 @@ baud rate then comes from ``--baudrate``.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -43,6 +45,15 @@ class Capture:
     framing: Framing | None
     port: str = ""
     chunks: list[tuple[float, bytes]] = field(default_factory=list)  # (arrival, bytes)
+    stopped: str = ""  # where a damaged or truncated file stopped being read, and why
+
+
+class _Damaged(Exception):
+    """A block that cannot be read: the capture is read up to it (at byte ``at``)."""
+
+    def __init__(self, why: str, at: int | None = None) -> None:
+        super().__init__(why)
+        self.at = at
 
 
 def _option(code: int, value: bytes) -> bytes:
@@ -63,38 +74,80 @@ def describe_framing(framing: Framing) -> str:
 class CaptureWriter:
     """Writes a pcapng capture as chunks arrive; flushed now and then, and on close."""
 
-    def __init__(self, path: Path, framing: Framing, port: str = "") -> None:
-        try:
-            self.fh: BinaryIO = path.open("wb")
-        except OSError as exc:
-            raise UsageError(f"cannot write {path}: {exc.strerror}") from None
-        self.path = path
+    def __init__(self, path: Path, framing: Framing, port: str = "", *,
+                 say: Callable[[str], None] | None = None) -> None:
+        self.path, self.say = path, say
+        self.error = ""  # why capturing stopped (a full disk): listening goes on
+        self.packets = 0
         self._flushed = float("-inf")
+        self._good = 0  # bytes of whole blocks known on disk
+        self._ends: list[int] = []  # block ends written since
+        self._size = 0
         opts = _option(4, b"rtupoll sniff") + _option(0, b"")
         shb = struct.pack("<IHHq", _BOM, 1, 0, -1) + opts
         desc = f"rtupoll {describe_framing(framing)} {port}".strip().encode()
         idb_opts = (_option(2, port.encode()) if port else b"") + _option(3, desc) \
             + _option(8, struct.pack("<Q", framing.baudrate)) + _option(0, b"")
         idb = struct.pack("<HHI", LINKTYPE_RTAC_SERIAL, 0, 0) + idb_opts
-        self.fh.write(_block(_SHB, shb) + _block(_IDB, idb))
-        self.fh.flush()  # a valid (empty) capture from the start
+        head = _block(_SHB, shb) + _block(_IDB, idb)
+        try:
+            self.fh: BinaryIO = path.open("wb")
+            self.fh.write(head)
+            self.fh.flush()  # a valid (empty) capture from the start
+        except OSError as exc:
+            raise UsageError(f"cannot write {path}: {exc.strerror or exc}") from None
+        self._good = self._size = len(head)
 
     def write(self, data: bytes, t: float) -> None:
-        """One chunk; ``t``: its arrival, seconds since the epoch."""
+        """One chunk; ``t``: its arrival, seconds since the epoch. A write that fails (a
+        full disk) ends the capture, with whole blocks only, and says so once."""
+        if self.error:
+            return
         micros = round(t * 1_000_000)
         seconds, fraction = divmod(micros, 1_000_000)
         payload = struct.pack(">IIBBH", seconds, fraction, RTAC_DATA_RX, 0, 0) + data
         pad = b"\0" * (-len(payload) % 4)
         body = struct.pack("<IIIII", 0, micros >> 32, micros & 0xFFFFFFFF, len(payload),
                            len(payload)) + payload + pad
-        self.fh.write(_block(_EPB, body))
-        if t - self._flushed >= FLUSH_EVERY:
-            self.fh.flush()
-            self._flushed = t
+        block = _block(_EPB, body)
+        try:
+            self.fh.write(block)
+            self._size += len(block)
+            self._ends.append(self._size)
+            self.packets += 1
+            if t - self._flushed >= FLUSH_EVERY:
+                self._flush()
+                self._flushed = t
+        except OSError as exc:
+            self._fail(exc)
+
+    def _flush(self) -> None:
+        self.fh.flush()
+        self._good, self._ends = self._size, []
+
+    def _fail(self, exc: OSError) -> None:
+        """Stop capturing: close, cut the file back to its last whole block, say why."""
+        with contextlib.suppress(OSError):
+            self.fh.close()
+        kept = self._good
+        with contextlib.suppress(OSError):
+            on_disk = self.path.stat().st_size
+            kept = max([self._good, *(e for e in self._ends if e <= on_disk)])
+            os.truncate(self.path, kept)
+        whole = self.packets - sum(1 for e in self._ends if e > kept)
+        self.error = (f"capture to {self.path} stopped: {exc.strerror or exc}; its first "
+                      f"{whole} packets are kept whole, listening goes on")
+        if self.say is not None:
+            self.say(self.error)
 
     def close(self) -> None:
-        if not self.fh.closed:
+        if self.fh.closed:
+            return
+        try:
+            self._flush()
             self.fh.close()
+        except OSError as exc:
+            self._fail(exc)
 
 
 def read_capture(path: Path) -> Capture:
@@ -111,45 +164,68 @@ def read_capture(path: Path) -> Capture:
 
 
 def _pcapng(raw: bytes, path: Path) -> Capture:
+    """Read up to the first damaged or truncated block (a full disk, a power loss, a
+    kill -9), as Wireshark does; ``Capture.stopped`` says where and why."""
     cap = Capture(None)
     links: list[tuple[int, float]] = []  # per interface: link type, seconds per tick
-    endian = "<"
-    for kind, body, e in _blocks(raw, path):
-        endian = e
-        if kind == _SHB:
-            links = []
-        elif kind == _IDB:
-            link = struct.unpack(endian + "H", body[:2])[0]
-            opts = dict(_options(body[8:], endian))
-            resol = opts.get(9, b"\x06")[0]
-            tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
-            links.append((link, tick))
-            if len(links) == 1:
-                cap.port = opts.get(2, b"").decode(errors="replace")
-                cap.framing = _framing(opts.get(3, b"").decode(errors="replace"),
-                                       opts.get(8))
-        elif kind == _EPB:
-            iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
-            if iface >= len(links):
-                raise UsageError(f"{path}: a packet names an interface that was not described")
-            link, tick = links[iface]
-            data = _payload(link, body[20 : 20 + caplen], path)
-            cap.chunks.append((((hi << 32) | lo) * tick, data))
+    try:
+        for at, kind, body, endian in _blocks(raw):
+            try:
+                _pcapng_block(cap, links, kind, body, endian, path)
+            except _Damaged as exc:
+                raise _Damaged(str(exc), at) from None
+    except _Damaged as exc:
+        if not exc.at:  # not even its section header: nothing to read
+            raise UsageError(f"{path}: {exc} at byte 0: not a readable capture") from None
+        cap.stopped = f"{exc} at byte {exc.at}: read the {len(cap.chunks)} packets before it"
     return cap
 
 
-def _blocks(raw: bytes, path: Path) -> Iterator[tuple[int, bytes, str]]:
+def _pcapng_block(cap: Capture, links: list[tuple[int, float]], kind: int, body: bytes,
+                  endian: str, path: Path) -> None:
+    if kind == _SHB:
+        links.clear()
+    elif kind == _IDB:
+        if len(body) < 8:
+            raise _Damaged(f"an interface block of {len(body) + 12} bytes (at least 20)")
+        link = struct.unpack(endian + "H", body[:2])[0]
+        opts = dict(_options(body[8:], endian))
+        resol = (opts.get(9) or b"\x06")[0]
+        tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
+        links.append((link, tick))
+        if len(links) == 1:
+            cap.port = opts.get(2, b"").decode(errors="replace")
+            cap.framing = _framing(opts.get(3, b"").decode(errors="replace"), opts.get(8))
+    elif kind == _EPB:
+        if len(body) < 20:
+            raise _Damaged(f"an enhanced packet block of {len(body) + 12} bytes (at least 32)")
+        iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
+        if 20 + caplen > len(body):
+            raise _Damaged(f"a packet of {caplen} bytes in a block of {len(body) + 12}")
+        if iface >= len(links):
+            raise _Damaged("a packet names an interface that was not described")
+        link, tick = links[iface]
+        data = _payload(link, body[20 : 20 + caplen], path)
+        cap.chunks.append((((hi << 32) | lo) * tick, data))
+
+
+def _blocks(raw: bytes) -> Iterator[tuple[int, int, bytes, str]]:
+    """(offset, kind, body, byte order) of each block; ``_Damaged`` at one that is cut
+    short or says a length it cannot have."""
     i, endian = 0, "<"
-    while i + 12 <= len(raw):
+    while i < len(raw):
+        if i + 12 > len(raw):
+            raise _Damaged(f"a truncated block ({len(raw) - i} bytes)", i)
         kind = struct.unpack("<I", raw[i : i + 4])[0]
         if kind == _SHB:
             bom = raw[i + 8 : i + 12]
             endian = "<" if struct.unpack("<I", bom)[0] == _BOM else ">"
         total = struct.unpack(endian + "I", raw[i + 4 : i + 8])[0]
         kind = struct.unpack(endian + "I", raw[i : i + 4])[0]
-        if total < 12 or i + total > len(raw):
-            raise UsageError(f"{path}: truncated or damaged pcapng block at byte {i}")
-        yield kind, raw[i + 8 : i + total - 4], endian
+        if total < 12 or total % 4 or i + total > len(raw):
+            raise _Damaged(f"a truncated or damaged block (it says {total} bytes, "
+                           f"{len(raw) - i} are left)", i)
+        yield i, kind, raw[i + 8 : i + total - 4], endian
         i += total
 
 
@@ -195,9 +271,18 @@ def _pcap(raw: bytes, path: Path) -> Capture:
     link = struct.unpack(endian + "I", raw[20:24])[0] & 0xFFFF
     cap = Capture(None)
     i = 24
-    while i + 16 <= len(raw):
+    while i < len(raw):
+        if i + 16 > len(raw):
+            cap.stopped = f"a truncated record header at byte {i}"
+            break
         sec, frac, caplen, _ = struct.unpack(endian + "IIII", raw[i : i + 16])
+        if i + 16 + caplen > len(raw):
+            cap.stopped = f"a truncated record ({caplen} bytes, {len(raw) - i - 16} left) " \
+                f"at byte {i}"
+            break
         cap.chunks.append((sec + frac * unit, _payload(link, raw[i + 16 : i + 16 + caplen],
                                                        path)))
         i += 16 + caplen
+    if cap.stopped:
+        cap.stopped += f": read the {len(cap.chunks)} packets before it"
     return cap

@@ -1,0 +1,131 @@
+"""``poll -o``: whole records or nothing. On a full disk (a file size limit stands in for
+it) the file output stops with one logged error, the file holds whole lines only, and
+the gateway goes on answering (mbpoll); a partial last line an earlier run left is cut
+off before anything is appended; SIGHUP resumes."""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from rtupoll.ui.outfile import OutputFile
+from tests.brokers import free_port
+
+LIMIT = 4000
+
+
+def limited() -> None:
+    resource.setrlimit(resource.RLIMIT_FSIZE, (LIMIT, LIMIT))
+
+
+def whole_json_lines(path: Path) -> list[dict[str, object]]:
+    text = path.read_text()
+    assert text == "" or text.endswith("\n"), text[-80:]
+    return [json.loads(line) for line in text.splitlines()]
+
+
+@pytest.mark.skipif(shutil.which("mbpoll") is None or sys.platform != "linux",
+                    reason="needs mbpoll, and RLIMIT_FSIZE as a full disk")
+def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path: Path
+                                                                         ) -> None:
+    out, port = tmp_path / "readings.jsonl", free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+                             "huiwen-aq@3", "--interval", "0.05", "--format", "json",
+                             "-o", str(out), "--serve", f"127.0.0.1:{port}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=limited)
+    assert proc.stderr is not None
+
+    def wait(done: Callable[[], bool]) -> None:
+        deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
+        while not done():
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+
+    try:
+        wait(lambda: out.exists() and out.stat().st_size > 0)
+        batch = out.stat().st_size  # one cycle's records
+        wait(lambda: out.stat().st_size + batch - 100 > LIMIT)  # no further batch fits
+        size = out.stat().st_size
+        time.sleep(0.5)
+        assert out.stat().st_size == size  # stopped: nothing more, nothing half
+        read = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(port), "-1", "-o", "2",
+                               "-a", "3", "-t", "3", "-r", "30010", "127.0.0.1"],
+                              capture_output=True, text=True, timeout=20)
+        assert read.returncode == 0, read.stdout + read.stderr
+        with socket.create_connection(("127.0.0.1", port), timeout=2):
+            pass
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    said = [x for x in err.splitlines() if "cannot write" in x]
+    assert len(said) == 1 and "the file output stops" in said[0], err
+    records = whole_json_lines(out)
+    assert records and all(r["device"] == "huiwen-aq@3" for r in records)
+
+
+class Lines(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+def test_a_partial_last_line_is_cut_off_before_anything_is_appended(tmp_path: Path) -> None:
+    out = tmp_path / "readings.jsonl"
+    out.write_text('{"a": 1}\n{"b": 2}\n{"c": ')
+    said = Lines()
+    logging.getLogger("rtupoll.output").addHandler(said)  # whatever set up logging before
+    try:
+        f = OutputFile(out)
+        f.write('{"d": 4}\n')
+        f.close()
+    finally:
+        logging.getLogger("rtupoll.output").removeHandler(said)
+    assert out.read_text() == '{"a": 1}\n{"b": 2}\n{"d": 4}\n'
+    assert said.lines == [f"{out}: cut off a partial last line (6 bytes) an earlier run left"]
+
+
+def test_poll_once_onto_a_file_an_earlier_run_cut_short(tmp_path: Path) -> None:
+    out = tmp_path / "readings.csv"
+    first = subprocess.run([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+                            "huiwen-aq@3", "--once", "--format", "csv", "-o", str(out)],
+                           capture_output=True, text=True, timeout=60)
+    assert first.returncode == 0, first.stderr
+    lines = out.read_text().splitlines()
+    out.write_bytes(out.read_bytes()[:-7])  # the last record half-written
+    again = subprocess.run([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+                            "huiwen-aq@3", "--once", "--format", "csv", "-o", str(out)],
+                           capture_output=True, text=True, timeout=60)
+    assert again.returncode == 0, again.stderr
+    assert "cut off a partial last line" in again.stderr
+    now = out.read_text().splitlines()
+    assert now[: len(lines) - 1] == lines[:-1]  # the whole lines kept, the fragment gone
+    assert len(now) == 2 * len(lines) - 2  # the same records again, no second header
+    assert all(line.count(",") == lines[0].count(",") for line in now)
+
+
+def test_sighup_resumes_after_a_failure(tmp_path: Path) -> None:
+    out = tmp_path / "readings.jsonl"
+    f = OutputFile(out)
+    f.failed = "No space left on device"  # as after a failed write
+    f.write("lost\n")
+    f.reopen()
+    f.write("kept\n")
+    f.close()
+    assert out.read_text() == "kept\n"
