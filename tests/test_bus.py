@@ -20,6 +20,7 @@ import struct
 import threading
 import time
 import tty
+import warnings
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
@@ -271,7 +272,6 @@ def test_per_transaction_timeout_and_retries(peer: Responder) -> None:
     # each attempt waits its own timeout (how much longer a loaded machine takes is no
     # rule of the bus: the exact deadlines are tested in virtual time, tests/test_line.py)
     assert short >= 0.05 and long_ >= 0.2 and retried >= 0.15
-    assert long_ > short
     assert len(peer.requests) == 5
 
 
@@ -405,13 +405,15 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
     assert min(gaps) >= bus.framing.silence  # never before the silence, never overlapping
 
 
-def test_a_byte_during_the_silence_starts_it_again(peer: Responder) -> None:
+@pytest.mark.timing
+def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: float) -> None:
     """A stray byte 0.8 ms after each reply, while the bus sleeps the rest of the 1.75 ms
     silence: the next request still waits a whole silence after the last byte.
 
-    A byte that reached the line less than 0.5 ms before a request (the peer's thread
-    late on a loaded machine) came when the bus had already looked: the race every
-    master on a shared line has, not a silence the bus cut short."""
+    A byte that reached the line less than 0.5 ms (plus the machine's measured jitter)
+    before a request (the peer's thread late) came when the bus had already looked: the
+    race every master on a shared line has, not a silence the bus cut short. The real
+    clock at sub-millisecond scale: in the timing group, run alone."""
     n = 20
     peer.scripts = [lambda req, normal: [(0.0, normal), (0.0008, b"\x00")]] * n
 
@@ -421,7 +423,11 @@ def test_a_byte_during_the_silence_starts_it_again(peer: Responder) -> None:
     assert run(go()) == [values(a, 2) for a in range(n)]
     heard = [t for t, _ in peer.replies]
     gaps = [sent - max(t for t in heard if t < sent) for sent, _ in peer.requests[1:]]
-    assert [g for g in gaps if 0.0005 <= g < Framing(115200).silence] == []
+    allowance, silence = 0.0005 + jitter, Framing(115200).silence
+    if allowance >= silence:
+        warnings.warn(f"the machine wakes threads {jitter * 1e3:.2f} ms late: too busy to "
+                      f"tell a short silence from a late peer", stacklevel=1)
+    assert [g for g in gaps if allowance <= g < silence] == []
 
 
 def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Responder) -> None:
@@ -443,16 +449,17 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
 
 
 def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
-    async def go() -> tuple[float, float]:
+    async def go() -> float:
         async with fast(peer.path, broadcast_turnaround=0.1) as bus:
             t = time.monotonic()
-            await bus.write_registers(0, 0x10, [5], function=6, timeout=0.5)
-            sent = time.monotonic() - t
+            # it returns before the reply's timeout of a minute could pass: it did not wait
+            # for a reply (the half minute guards against a hang: no timing claim)
+            await asyncio.wait_for(
+                bus.write_registers(0, 0x10, [5], function=6, timeout=60), 30)
             await bus.read(1, Table.HOLDING, 0, 1, timeout=0.2)
             assert bus.stats.outcomes["broadcast"] == 1
-            return sent, time.monotonic() - t
-    sent, both = run(go())
-    assert sent < 0.5  # it did not wait for a reply (the timeout given was 0.5 s)
+            return time.monotonic() - t
+    both = run(go())
     assert both >= 0.1  # the next request waited for the devices to act on it
     assert peer.requests[0][1] == write_single_request(0, 0x10, 5)
 

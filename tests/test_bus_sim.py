@@ -197,5 +197,6 @@ def test_dead_device_costs_its_timeout_not_more(sim: Sim) -> None:
             return dead, time.monotonic() - t
     dead, live = run(go())
     assert dead >= 0.1  # two attempts of 0.05 s each (and no third)
-    assert live >= 0.04  # the drain after the timeout, then the answer
-    assert live < 0.5  # not the live device's own timeout: it answered
+    assert live >= 0.04  # the drain after the timeout, then the answer (that it answered
+    # and did not time out is the read returning; the costs are exact in virtual time,
+    # tests/test_virtual_bus.py)

@@ -91,7 +91,9 @@ def test_an_empty_range_costs_no_more_than_the_derived_timeouts(sim: Sim) -> Non
     framing = Framing(115200)
     derived = 50 * probe_timeout(framing, 1, margin)
     assert found == []
-    assert derived * 0.95 <= elapsed <= derived * 1.15 + 0.2  # + opening the port
+    # never less than the derived timeouts (that it is not more is a rule about time:
+    # exact in virtual time, tests/test_scan_plan.py; here a busy machine adds to it)
+    assert derived * 0.95 <= elapsed
     assert len([w for w in bus.wire if w.direction == "in"]) == 50  # one probe each
 
 
