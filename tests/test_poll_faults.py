@@ -96,8 +96,11 @@ class PollProcess:
         while (line := self._lines.get(timeout=5)) is not None:
             self._take(line)  # whatever came after the signal is whole lines too
         assert all(line.endswith("\n") for line in self.raw), "a partial line was written"
-        assert self.proc.stderr is not None
-        return self.proc.stderr.read(), code
+        assert self.proc.stderr is not None and self.proc.stdout is not None
+        stderr = self.proc.stderr.read()
+        self.proc.stderr.close()
+        self.proc.stdout.close()
+        return stderr, code
 
 
 def stream(port: str, *, until: Callable[[list[dict[str, Any]]], bool], limit: float = 20.0
