@@ -73,7 +73,4 @@ def test_the_minimum_versions_are_the_lowest_the_ranges_allow() -> None:
         assert name in pinned, f"{req.name} is not in {MINIMUMS.name}"
         assert pinned[name] in req.specifier, (req, pinned[name])
         low = next(s.version for s in req.specifier if s.operator == ">=")
-        if name == "pymodbus":  # the known gap, said in minimum-versions.txt
-            assert pinned[name] in SpecifierSet(f">={low}"), (req, pinned[name])
-            continue
         assert SpecifierSet(f"=={low}").contains(pinned[name]), (req, pinned[name])
