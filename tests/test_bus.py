@@ -40,6 +40,9 @@ from rtupoll.rtu import (
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
 
 T = TypeVar("T")
+# the timeout of a read that is answered: the patience a busy machine may need (an answer
+# ends the wait, so it costs nothing); timeouts themselves are exact in virtual time
+ANSWERED = 2.0
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
 
 
@@ -164,7 +167,7 @@ def test_stray_bytes_before_the_reply_are_skipped(peer: Responder, unit: int,
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(unit, Table.HOLDING, 10, 2, timeout=0.2)
+            return await bus.read(unit, Table.HOLDING, 10, 2, timeout=ANSWERED)
     assert run(go()) == values(10, 2)
 
 
@@ -174,7 +177,7 @@ def test_wrong_id_reply_together_with_the_right_one(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], int]:
         async with fast(peer.path) as bus:
-            got = await bus.read(1, Table.HOLDING, 10, 2, timeout=0.2)
+            got = await bus.read(1, Table.HOLDING, 10, 2, timeout=ANSWERED)
             return got, bus.stats.attempts
     assert run(go()) == (values(10, 2), 1)  # taken at once, no retry needed
 
@@ -184,7 +187,7 @@ def test_reply_split_across_writes_and_after_garbage(peer: Responder) -> None:
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(1, Table.INPUT, 0, 3, timeout=0.2)
+            return await bus.read(1, Table.INPUT, 0, 3, timeout=ANSWERED)
     assert run(go()) == values(0, 3)
 
 
@@ -400,7 +403,7 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
 
     async def go() -> None:
         async with bus:
-            reads = [bus.read(u, Table.HOLDING, a, 2, timeout=0.2)
+            reads = [bus.read(u, Table.HOLDING, a, 2, timeout=ANSWERED)
                      for a in range(8) for u in (1, 2, 3)]
             got = await asyncio.gather(*reads)
             assert got == [values(a, 2) for a in range(8) for _ in (1, 2, 3)]
@@ -424,7 +427,7 @@ def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: floa
 
     async def go() -> list[tuple[int, ...]]:
         async with fast(peer.path) as bus:
-            return [await bus.read(1, Table.HOLDING, a, 2, timeout=0.2) for a in range(n)]
+            return [await bus.read(1, Table.HOLDING, a, 2, timeout=ANSWERED) for a in range(n)]
     assert run(go()) == [values(a, 2) for a in range(n)]
     heard = [t for t, _ in peer.replies]
     gaps = [sent - max(t for t in heard if t < sent) for sent, _ in peer.requests[1:]]
@@ -449,7 +452,7 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
                 await waiting
             await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
             assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
-            return await bus.read(1, Table.HOLDING, 8, 1, timeout=0.2)
+            return await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
     assert run(go()) == values(8, 1)
 
 
@@ -461,7 +464,7 @@ def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
             # for a reply (the half minute guards against a hang: no timing claim)
             await asyncio.wait_for(
                 bus.write_registers(0, 0x10, [5], function=6, timeout=60), 30)
-            await bus.read(1, Table.HOLDING, 0, 1, timeout=0.2)
+            await bus.read(1, Table.HOLDING, 0, 1, timeout=ANSWERED)
             assert bus.stats.outcomes["broadcast"] == 1
             return time.monotonic() - t
     both = run(go())
@@ -477,7 +480,7 @@ def test_gateway_reboot_is_survived() -> None:
     async def go() -> list[Any]:
         got: list[Any] = []
         async with Bus(PortSettings(gw.path), connect_timeout=0.5) as bus:
-            got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=0.2))
+            got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
             gw.stop()
             await asyncio.sleep(0.05)
             with pytest.raises(PortError, match="refused"):
@@ -496,9 +499,9 @@ def test_gateway_reboot_is_survived() -> None:
 def test_writes_check_the_echo(peer: Responder) -> None:
     async def go() -> None:
         async with fast(peer.path) as bus:
-            assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=0.2) is True
-            assert await bus.write_registers(1, 0x21, [9], function=6, timeout=0.2) is True
-            await bus.write_coil(1, 0xD0, False, timeout=0.2)
+            assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=ANSWERED) is True
+            assert await bus.write_registers(1, 0x21, [9], function=6, timeout=ANSWERED) is True
+            await bus.write_coil(1, 0xD0, False, timeout=ANSWERED)
             peer.scripts = [lambda req, ok: [(0, write_single_request(1, 0x21, 8))]]
             with pytest.raises(FrameError, match="does not match"):
                 await bus.write_registers(1, 0x21, [9], function=6, timeout=0.1)
@@ -562,10 +565,10 @@ def test_stats_and_client_cpu_per_transaction(peer: Responder) -> None:
 
     async def go() -> tuple[float, Any, float]:
         async with fast(peer.path) as bus:
-            await bus.read(1, Table.HOLDING, 0, 2, timeout=0.2)
+            await bus.read(1, Table.HOLDING, 0, 2, timeout=ANSWERED)
             t, cpu = time.monotonic(), time.thread_time()
             for i in range(n):
-                await bus.read(1, Table.HOLDING, i, 2, timeout=0.2)
+                await bus.read(1, Table.HOLDING, i, 2, timeout=ANSWERED)
             return time.thread_time() - cpu, bus.stats, time.monotonic() - t
     cpu, stats, elapsed = run(go())
     per = cpu / n
