@@ -487,7 +487,7 @@ def test_gateway_reboot_is_survived() -> None:
                 await bus.read(1, Table.INPUT, 3, 2, timeout=0.1)
             back = Responder(tcp=port, offset=0x2000)
             try:
-                got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=0.2))
+                got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
             finally:
                 back.stop()
         return got
