@@ -8,6 +8,14 @@ would answer the next test's requests.
 ``raw_port(path)`` opens a pty path (or ``tcp://HOST:PORT``) without any Modbus library,
 so a test can send exact bytes and see exactly what came back.
 
+``jitter`` is how late this machine wakes a sleeping thread now (seconds, the 99th
+percentile of 200 one-millisecond sleeps): the allowance of a test in the ``timing``
+group, the few that measure the real clock (scripts/test runs them alone, after the
+parallel run). Every other rule about time is proven in virtual time (tests/virtual.py).
+
+Hypothesis runs the ``short`` profile (few examples, the same ones every run) unless
+``--hypothesis-profile=long`` or ``HYPOTHESIS_PROFILE=long`` asks for a long search.
+
 The compiled profile cache (``rtupoll.config.compiled``) of a test run lives in a
 directory of its own, set before any test module loads a profile and inherited by the
 CLI subprocesses tests start: no test reads or writes the user's ~/.cache.
@@ -28,6 +36,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
@@ -36,6 +45,25 @@ pytest_plugins = ("pytester",)
 _CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
 os.environ["XDG_CACHE_HOME"] = _CACHE
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+
+# few examples, and the same ones every run, by default; a long, random search on demand.
+# No deadline: an example's wall-clock time says how busy the machine is (a hang is
+# caught by pytest-timeout, a blow-up by the CPU-time bounds of the tests themselves)
+settings.register_profile("short", max_examples=25, derandomize=True, deadline=None)
+settings.register_profile("long", max_examples=2000, derandomize=False, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "short"))
+
+
+@pytest.fixture(scope="session")
+def jitter() -> float:
+    """How late a sleeping thread wakes on this machine now: the 99th percentile of 200
+    sleeps of 1 ms (seconds). A ``timing`` test's allowance."""
+    late = []
+    for _ in range(200):
+        t = time.monotonic()
+        time.sleep(0.001)
+        late.append(time.monotonic() - t - 0.001)
+    return sorted(late)[197]
 
 
 @pytest.fixture

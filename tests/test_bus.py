@@ -20,6 +20,7 @@ import struct
 import threading
 import time
 import tty
+import warnings
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
@@ -39,6 +40,9 @@ from rtupoll.rtu import (
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
 
 T = TypeVar("T")
+# the timeout of a read that is answered: the patience a busy machine may need (an answer
+# ends the wait, so it costs nothing); timeouts themselves are exact in virtual time
+ANSWERED = 2.0
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
 
 
@@ -163,7 +167,7 @@ def test_stray_bytes_before_the_reply_are_skipped(peer: Responder, unit: int,
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(unit, Table.HOLDING, 10, 2, timeout=0.2)
+            return await bus.read(unit, Table.HOLDING, 10, 2, timeout=ANSWERED)
     assert run(go()) == values(10, 2)
 
 
@@ -173,7 +177,7 @@ def test_wrong_id_reply_together_with_the_right_one(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], int]:
         async with fast(peer.path) as bus:
-            got = await bus.read(1, Table.HOLDING, 10, 2, timeout=0.2)
+            got = await bus.read(1, Table.HOLDING, 10, 2, timeout=ANSWERED)
             return got, bus.stats.attempts
     assert run(go()) == (values(10, 2), 1)  # taken at once, no retry needed
 
@@ -183,13 +187,14 @@ def test_reply_split_across_writes_and_after_garbage(peer: Responder) -> None:
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(1, Table.INPUT, 0, 3, timeout=0.2)
+            return await bus.read(1, Table.INPUT, 0, 3, timeout=ANSWERED)
     assert run(go()) == values(0, 3)
 
 
 def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
-    """Why the filter exists: pymodbus 3.16 alone drops the reply after a stray byte
-    and after a wrong-id frame (if this starts passing, pymodbus got better)."""
+    """Why the filter exists: pymodbus alone drops the reply after a wrong-id frame (every
+    version from 3.10 to 3.16), and 3.16 also the one after a stray byte (if this starts
+    failing, pymodbus got better)."""
     from pymodbus.client import AsyncModbusSerialClient
 
     peer.scripts = [lambda req, ok: [(0, b"\x00" + ok)],
@@ -208,7 +213,8 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
             await asyncio.sleep(0.05)
         client.close()
         return out
-    assert run(go()) == [False, False]
+    _, wrong_id = run(go())  # the first: after a stray byte
+    assert wrong_id is False
 
 
 # -- errors ----------------------------------------------------------------------
@@ -271,7 +277,6 @@ def test_per_transaction_timeout_and_retries(peer: Responder) -> None:
     # each attempt waits its own timeout (how much longer a loaded machine takes is no
     # rule of the bus: the exact deadlines are tested in virtual time, tests/test_line.py)
     assert short >= 0.05 and long_ >= 0.2 and retried >= 0.15
-    assert long_ > short
     assert len(peer.requests) == 5
 
 
@@ -382,7 +387,10 @@ def test_random_faults_never_misattribute(peer: Responder) -> None:
                 right += 1
         return right, failed
     right, failed = run(go())
-    assert failed == plan.count("late") + plan.count("crc")
+    # a corrupt reply always fails; a late one fails unless the machine was so busy that
+    # the bus looked at the line only after it had come (then it is the right value,
+    # checked above: which replies count as late is exact in virtual time, test_line.py)
+    assert plan.count("crc") <= failed <= plan.count("late") + plan.count("crc")
     assert right == len(plan) - failed
 
 
@@ -395,7 +403,7 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
 
     async def go() -> None:
         async with bus:
-            reads = [bus.read(u, Table.HOLDING, a, 2, timeout=0.2)
+            reads = [bus.read(u, Table.HOLDING, a, 2, timeout=ANSWERED)
                      for a in range(8) for u in (1, 2, 3)]
             got = await asyncio.gather(*reads)
             assert got == [values(a, 2) for a in range(8) for _ in (1, 2, 3)]
@@ -405,23 +413,29 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
     assert min(gaps) >= bus.framing.silence  # never before the silence, never overlapping
 
 
-def test_a_byte_during_the_silence_starts_it_again(peer: Responder) -> None:
+@pytest.mark.timing
+def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: float) -> None:
     """A stray byte 0.8 ms after each reply, while the bus sleeps the rest of the 1.75 ms
     silence: the next request still waits a whole silence after the last byte.
 
-    A byte that reached the line less than 0.5 ms before a request (the peer's thread
-    late on a loaded machine) came when the bus had already looked: the race every
-    master on a shared line has, not a silence the bus cut short."""
+    A byte that reached the line less than 0.5 ms (plus the machine's measured jitter)
+    before a request (the peer's thread late) came when the bus had already looked: the
+    race every master on a shared line has, not a silence the bus cut short. The real
+    clock at sub-millisecond scale: in the timing group, run alone."""
     n = 20
     peer.scripts = [lambda req, normal: [(0.0, normal), (0.0008, b"\x00")]] * n
 
     async def go() -> list[tuple[int, ...]]:
         async with fast(peer.path) as bus:
-            return [await bus.read(1, Table.HOLDING, a, 2, timeout=0.2) for a in range(n)]
+            return [await bus.read(1, Table.HOLDING, a, 2, timeout=ANSWERED) for a in range(n)]
     assert run(go()) == [values(a, 2) for a in range(n)]
     heard = [t for t, _ in peer.replies]
     gaps = [sent - max(t for t in heard if t < sent) for sent, _ in peer.requests[1:]]
-    assert [g for g in gaps if 0.0005 <= g < Framing(115200).silence] == []
+    allowance, silence = 0.0005 + jitter, Framing(115200).silence
+    if allowance >= silence:
+        warnings.warn(f"the machine wakes threads {jitter * 1e3:.2f} ms late: too busy to "
+                      f"tell a short silence from a late peer", stacklevel=1)
+    assert [g for g in gaps if allowance <= g < silence] == []
 
 
 def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Responder) -> None:
@@ -438,21 +452,22 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
                 await waiting
             await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
             assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
-            return await bus.read(1, Table.HOLDING, 8, 1, timeout=0.2)
+            return await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
     assert run(go()) == values(8, 1)
 
 
 def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
-    async def go() -> tuple[float, float]:
+    async def go() -> float:
         async with fast(peer.path, broadcast_turnaround=0.1) as bus:
             t = time.monotonic()
-            await bus.write_registers(0, 0x10, [5], function=6, timeout=0.5)
-            sent = time.monotonic() - t
-            await bus.read(1, Table.HOLDING, 0, 1, timeout=0.2)
+            # it returns before the reply's timeout of a minute could pass: it did not wait
+            # for a reply (the half minute guards against a hang: no timing claim)
+            await asyncio.wait_for(
+                bus.write_registers(0, 0x10, [5], function=6, timeout=60), 30)
+            await bus.read(1, Table.HOLDING, 0, 1, timeout=ANSWERED)
             assert bus.stats.outcomes["broadcast"] == 1
-            return sent, time.monotonic() - t
-    sent, both = run(go())
-    assert sent < 0.5  # it did not wait for a reply (the timeout given was 0.5 s)
+            return time.monotonic() - t
+    both = run(go())
     assert both >= 0.1  # the next request waited for the devices to act on it
     assert peer.requests[0][1] == write_single_request(0, 0x10, 5)
 
@@ -465,14 +480,14 @@ def test_gateway_reboot_is_survived() -> None:
     async def go() -> list[Any]:
         got: list[Any] = []
         async with Bus(PortSettings(gw.path), connect_timeout=0.5) as bus:
-            got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=0.2))
+            got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
             gw.stop()
             await asyncio.sleep(0.05)
             with pytest.raises(PortError, match="refused"):
                 await bus.read(1, Table.INPUT, 3, 2, timeout=0.1)
             back = Responder(tcp=port, offset=0x2000)
             try:
-                got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=0.2))
+                got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
             finally:
                 back.stop()
         return got
@@ -484,9 +499,9 @@ def test_gateway_reboot_is_survived() -> None:
 def test_writes_check_the_echo(peer: Responder) -> None:
     async def go() -> None:
         async with fast(peer.path) as bus:
-            assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=0.2) is True
-            assert await bus.write_registers(1, 0x21, [9], function=6, timeout=0.2) is True
-            await bus.write_coil(1, 0xD0, False, timeout=0.2)
+            assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=ANSWERED) is True
+            assert await bus.write_registers(1, 0x21, [9], function=6, timeout=ANSWERED) is True
+            await bus.write_coil(1, 0xD0, False, timeout=ANSWERED)
             peer.scripts = [lambda req, ok: [(0, write_single_request(1, 0x21, 8))]]
             with pytest.raises(FrameError, match="does not match"):
                 await bus.write_registers(1, 0x21, [9], function=6, timeout=0.1)
@@ -550,10 +565,10 @@ def test_stats_and_client_cpu_per_transaction(peer: Responder) -> None:
 
     async def go() -> tuple[float, Any, float]:
         async with fast(peer.path) as bus:
-            await bus.read(1, Table.HOLDING, 0, 2, timeout=0.2)
+            await bus.read(1, Table.HOLDING, 0, 2, timeout=ANSWERED)
             t, cpu = time.monotonic(), time.thread_time()
             for i in range(n):
-                await bus.read(1, Table.HOLDING, i, 2, timeout=0.2)
+                await bus.read(1, Table.HOLDING, i, 2, timeout=ANSWERED)
             return time.thread_time() - cpu, bus.stats, time.monotonic() - t
     cpu, stats, elapsed = run(go())
     per = cpu / n

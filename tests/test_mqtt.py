@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from virtual import START, ScriptedBus, VirtualClock
 
 from rtupoll.config.site import BusConfig, from_specs, load_site
 from rtupoll.errors import ConfigError, RefusedError, UsageError
@@ -272,41 +272,13 @@ def test_plain_values() -> None:
 
 # -- the scheduler's hooks, in virtual time ------------------------------------
 
-@dataclass
-class Clock:
-    now: float = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-@dataclass
-class FakeBus:
-    """Answers every read at once (20 ms of virtual time), and remembers it."""
-
-    clock: Clock
-    calls: list[tuple[int, int]] = field(default_factory=list)
-
-    async def open(self) -> None: ...
-    async def close(self) -> None: ...
-
-    def late(self, unit: int) -> int:
-        return 0  # late replies seen from ``unit`` (none here)
-
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        self.calls.append((unit, address))
-        self.clock.now += 0.02
-        return tuple(range(count))
-
-
 def test_poll_now_and_submit_run_ahead_of_the_schedule() -> None:
-    """A device read a minute ago is read again at once (the fake clock does not move
+    """A device read a minute ago is read again at once (the virtual clock does not move
     between), and a submitted job runs on the bus between two cycles."""
-    clock = Clock()
+    clock = VirtualClock(START)
     site = from_specs("/dev/null", [("radar-level", 4), ("huiwen-aq", 3)], interval=60,
                       check_serial=False)
-    fake = FakeBus(clock)
+    fake = ScriptedBus(clock)  # answers every read at once (20 ms of virtual time)
     bp = BusPoller(site.buses[0], fake, backoff=Backoff(), clock=clock, wall=clock)
     cycles: list[str] = []
 

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from itertools import pairwise
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from rtupoll.config.library import load_one
@@ -230,7 +230,6 @@ def _optimum(fields: Sequence[Field], p: Profile) -> int:
     return total
 
 
-@settings(max_examples=200, deadline=None)
 @given(register_maps())
 def test_plan_properties(case: tuple[Profile, list[Field]]) -> None:
     profile, asked = case
@@ -264,7 +263,6 @@ def test_plan_properties(case: tuple[Profile, list[Field]]) -> None:
     assert plan(list(reversed(asked)), profile) == blocks  # order-independent
 
 
-@settings(max_examples=50, deadline=None)
 @given(register_maps())
 def test_decode_block_hands_each_field_its_own_registers(
         case: tuple[Profile, list[Field]]) -> None:

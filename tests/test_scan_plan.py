@@ -1,26 +1,26 @@
 """The sweep plan and identification, against the simulator's device engine without a port.
 
-``EngineBus`` hands each request to the simulator's engine (the same devices the pty
-server serves) and keeps a virtual clock that charges the full timeout for silence,
-so identification and the cost of empty addresses are checked exactly and fast.
+The one virtual bus (tests/virtual.py: the simulator's engine, the same devices the pty
+server serves, behind the real line discipline) runs on a virtual clock that charges
+the full timeout for silence, so identification and the cost of empty addresses are
+checked exactly and fast.
 The same scans over a real pty and pymodbus are in test_scan_sim.py.
 """
 
 from __future__ import annotations
 
 import asyncio
-import struct
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
+from virtual import START, VirtualBus, VirtualClock
 
-from rtupoll import rtu
 from rtupoll.cli.scan import site_yaml
 from rtupoll.config.library import load_library, load_profile
 from rtupoll.config.site import load_site
-from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
+from rtupoll.errors import UsageError
 from rtupoll.jobs.scan import (
     Found,
     Setting,
@@ -34,6 +34,7 @@ from rtupoll.jobs.scan import (
 )
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.line import Line
 from rtupoll.sim.device import SimDeviceConfig
 from rtupoll.sim.engine import Engine
 
@@ -43,52 +44,31 @@ FIXTURES = Path(__file__).parent / "fixtures"
 MARGIN = 0.04
 
 
-class EngineBus:
-    """A Transport over the simulator's engine; answers only at the engine's own speed."""
-
-    def __init__(self, engine: Engine, setting: Setting, speed: Setting, clock: list[float]
-                 ) -> None:
-        self.engine, self.setting, self.speed, self.clock = engine, setting, speed, clock
-        self.sent: list[bytes] = []
-
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        request = rtu.read_request(unit, table, address, count)
-        self.sent.append(request)
-        framing = self.setting.framing
-        wire = framing.wire_time(sum(rtu.read_frame_sizes(count)))
-        replies = self.engine.handle(request) if self.setting == self.speed else []
-        if not replies:
-            self.clock[0] += wire + timeout
-            raise DeviceTimeout(f"no reply from {unit}")
-        self.clock[0] += wire
-        if len(replies) > 1:
-            raise FrameError("two replies collided")
-        data = replies[0].data
-        if data[1] & 0x80:
-            raise DeviceException(data[2], unit=unit, function=data[1] & 0x7F)
-        return struct.unpack(f">{data[2] // 2}H", data[3:-2])
-
-
 def engine(*specs: tuple[Profile, int]) -> Engine:
     return Engine([SimDeviceConfig(p, a) for p, a in specs], tick=None)
 
 
 def run_sweep(eng: Engine, addresses: Sequence[int], settings: Sequence[Setting],
               speed: Setting, profiles: Sequence[Profile] = LIB
-              ) -> tuple[list[Found], float, list[EngineBus]]:
-    clock = [0.0]
-    buses: list[EngineBus] = []
+              ) -> tuple[list[Found], float, list[VirtualBus]]:
+    """Sweep ``eng``'s devices, which answer only at ``speed``; (found, the virtual time it
+    took, the bus opened for each setting)."""
+    clock = VirtualClock(START)
+    buses: list[VirtualBus] = []
 
     @asynccontextmanager
-    async def open_bus(s: Setting) -> AsyncIterator[EngineBus]:
-        buses.append(EngineBus(eng, s, speed, clock))
-        yield buses[-1]
+    async def open_bus(s: Setting) -> AsyncIterator[VirtualBus]:
+        # at another speed a device hears noise and says nothing: an engine with no devices
+        heard = eng if s == speed else Engine([], tick=None)
+        bus = VirtualBus(heard, s.framing, clock=clock, sleep=clock.sleep)
+        bus.line = Line(s.framing, drain=0.0)  # as ``rtupoll scan`` opens its bus
+        buses.append(bus)
+        yield bus
 
     found: list[Found] = []
     asyncio.run(sweep(open_bus, settings, addresses, profiles, margin=MARGIN,
                       probes=presence_probes(profiles), found=found))
-    return merged(found), clock[0], buses
+    return merged(found), clock.now - START, buses
 
 
 SEEDS = [(BY_ID["net-irnet-pro"], 3), (BY_ID["radar-level"], 7), (BY_ID["huiwen-aq"], 12),

@@ -1,68 +1,23 @@
 """The scheduler's decisions, in virtual time: backoff, probing, resuming, fairness.
 
-A fake transport stands in for the bus and advances a fake clock by what each
-transaction would cost, so these tests show *what* the scheduler does (which block,
-which retries, which device next) without waiting. ``test_poll*.py`` drive the real
+A scripted bus (tests/virtual.py) stands in for the line and advances the virtual clock
+by what each transaction would cost, so these tests show *what* the scheduler does
+(which block, which retries, which device next) without waiting. ``test_poll*.py`` drive the real
 bus and simulator end to end.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
 
 import pytest
+from virtual import START, ScriptedBus, VirtualClock, poll_for
 
 from rtupoll.config.site import BusConfig, DeviceConfig, from_specs
-from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import BusLoad, Reading, State
 from rtupoll.jobs.timeouts import quantile
-from rtupoll.rtu import Table
-
-OK_COST, TIMEOUT_COST = 0.02, 0.5
-
-
-@dataclass
-class Clock:
-    now: float = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-# (block address, call number) -> ok | slow (answers, but takes 0.8 s) | timeout | crc | exc02
-Behaviour = Callable[[int, int], str]
-
-
-@dataclass
-class FakeBus:
-    """Answers by a behaviour per unit; records (unit, address, retries) of every call."""
-
-    clock: Clock
-    behaviour: dict[int, Behaviour] = field(default_factory=dict)
-    calls: list[tuple[int, int, int]] = field(default_factory=list)
-
-    async def open(self) -> None: ...
-    async def close(self) -> None: ...
-
-    def late(self, unit: int) -> int:
-        return 0
-
-    async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        self.calls.append((unit, address, retries))
-        what = self.behaviour.get(unit, lambda a, n: "ok")(address, len(self.calls))
-        if what == "timeout":
-            self.clock.now += timeout * (1 + retries)
-            raise DeviceTimeout(f"no response from device {unit}")
-        self.clock.now += OK_COST if what != "slow" else 0.8
-        if what == "crc":
-            raise FrameError("CRC error")
-        if what.startswith("exc"):
-            raise DeviceException(int(what[3:]), unit=unit, function=table.read_function)
-        return tuple(range(count))
 
 
 def radar(address: int = 2, interval: float = 1.0) -> DeviceConfig:
@@ -71,25 +26,16 @@ def radar(address: int = 2, interval: float = 1.0) -> DeviceConfig:
         .devices[0]
 
 
-def poller(dev: DeviceConfig, clock: Clock) -> DevicePoller:
+def poller(dev: DeviceConfig, clock: VirtualClock) -> DevicePoller:
     return DevicePoller(dev, BusLoad(clock()), clock=clock, wall=clock)
 
 
-def addresses(bus: FakeBus) -> list[int]:
+def addresses(bus: ScriptedBus) -> list[int]:
     return [a for _, a, _ in bus.calls]
 
 
 def run(coro: object) -> list[Reading]:
     return asyncio.run(coro)  # type: ignore[arg-type]
-
-
-async def virtual_time(bp: BusPoller, clock: Clock, seconds: float) -> None:
-    """The bus loop without sleeping: jump the clock to the next device due."""
-    end = clock.now + seconds
-    while clock.now < end:
-        dev = bp.next_device()
-        clock.now = max(clock.now, dev.next_due)
-        await bp.run_one(dev, lambda d, rs: None)
 
 
 def test_backoff_doubles_from_the_interval_up_to_the_cap_within_the_jitter() -> None:
@@ -109,8 +55,8 @@ def test_a_device_offline_for_days_stays_at_the_cap() -> None:
 
 
 def test_a_healthy_cycle_reads_every_block_once_with_the_profiles_retries() -> None:
-    clock = Clock()
-    bus, dev = FakeBus(clock), poller(radar(), clock)
+    clock = VirtualClock(START)
+    bus, dev = ScriptedBus(clock), poller(radar(), clock)
     readings = run(dev.cycle(bus))
     assert addresses(bus) == [0, 1, 2, 3, 0x10]
     assert {r for _, _, r in bus.calls} == {dev.config.retry_count}
@@ -120,8 +66,8 @@ def test_a_healthy_cycle_reads_every_block_once_with_the_profiles_retries() -> N
 
 
 def test_after_a_timeout_the_next_cycle_resumes_at_the_block_that_failed() -> None:
-    clock = Clock()
-    bus, dev = FakeBus(clock, {2: lambda a, n: "timeout" if n == 3 else "ok"}), \
+    clock = VirtualClock(START)
+    bus, dev = ScriptedBus(clock, {2: lambda a, n: "timeout" if n == 3 else "ok"}), \
         poller(radar(), clock)
     first = run(dev.cycle(bus))
     # the device had answered in this cycle, so one timeout does not end it
@@ -133,8 +79,8 @@ def test_after_a_timeout_the_next_cycle_resumes_at_the_block_that_failed() -> No
 
 
 def test_a_device_that_stops_answering_is_probed_cheaply_and_backed_off() -> None:
-    clock = Clock()
-    bus = FakeBus(clock, {2: lambda a, n: "timeout"})
+    clock = VirtualClock(START)
+    bus = ScriptedBus(clock, {2: lambda a, n: "timeout"})
     bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=(radar(),)), bus,
                    backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
     dev = bp.devices[0]
@@ -161,8 +107,8 @@ def test_a_device_that_stops_answering_is_probed_cheaply_and_backed_off() -> Non
 def test_a_dead_device_with_variant_fields_costs_one_probe_per_attempt_too() -> None:
     """Fields only some variants have make the first read a variant probe (IRNET input
     0x0400); for a dead device that probe is the whole attempt, without retries."""
-    clock = Clock()
-    bus = FakeBus(clock, {1: lambda a, n: "timeout"})
+    clock = VirtualClock(START)
+    bus = ScriptedBus(clock, {1: lambda a, n: "timeout"})
     irnet = from_specs("/dev/null", [("net-irnet-pro", 1)],
                        fields=["concentration", "uart_speed"]).buses[0].devices[0]
     bp = BusPoller(BusConfig("b", "/dev/null", 4800, devices=(irnet,)), bus,
@@ -178,9 +124,9 @@ def test_a_dead_device_with_variant_fields_costs_one_probe_per_attempt_too() -> 
 
 
 def test_a_device_that_comes_back_is_online_again_at_its_own_rate() -> None:
-    clock = Clock()
+    clock = VirtualClock(START)
     dead = {"yes": True}
-    bus = FakeBus(clock, {2: lambda a, n: "timeout" if dead["yes"] else "ok"})
+    bus = ScriptedBus(clock, {2: lambda a, n: "timeout" if dead["yes"] else "ok"})
     bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=(radar(),)), bus,
                    backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
     dev = bp.devices[0]
@@ -200,8 +146,8 @@ def test_a_device_that_comes_back_is_online_again_at_its_own_rate() -> None:
 
 
 def test_an_exception_reply_is_counted_by_code_and_the_rest_of_the_device_is_read() -> None:
-    clock = Clock()
-    bus = FakeBus(clock, {2: lambda a, n: "exc02" if a == 1 else "ok"})
+    clock = VirtualClock(START)
+    bus = ScriptedBus(clock, {2: lambda a, n: "exc02" if a == 1 else "ok"})
     dev = poller(radar(), clock)
     readings = run(dev.cycle(bus))
     assert [r.status for r in readings] == ["ok", "exception", "ok", "ok", "ok"]
@@ -210,8 +156,8 @@ def test_an_exception_reply_is_counted_by_code_and_the_rest_of_the_device_is_rea
 
 
 def test_garbled_replies_are_counted_and_do_not_end_the_cycle() -> None:
-    clock = Clock()
-    bus = FakeBus(clock, {2: lambda a, n: "crc" if a in (0, 2) else "ok"})
+    clock = VirtualClock(START)
+    bus = ScriptedBus(clock, {2: lambda a, n: "crc" if a in (0, 2) else "ok"})
     dev = poller(radar(), clock)
     readings = run(dev.cycle(bus))
     assert [r.status for r in readings] == ["garbled", "ok", "garbled", "ok", "ok"]
@@ -223,12 +169,12 @@ def test_a_dead_device_does_not_starve_the_live_ones() -> None:
     the other four get nearly the scans they get on a bus of their own."""
 
     def scans(present: Sequence[int], dead: Sequence[int] = ()) -> dict[int, int]:
-        clock = Clock()
+        clock = VirtualClock(START)
         devs = tuple(radar(a, interval=0) for a in present)
-        bus = FakeBus(clock, {a: (lambda a_, n: "timeout") for a in dead})
+        bus = ScriptedBus(clock, {a: (lambda a_, n: "timeout") for a in dead})
         bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), bus,
                        backoff=Backoff(), clock=clock, wall=clock, rand=lambda: 0.5)
-        asyncio.run(virtual_time(bp, clock, 300))
+        asyncio.run(poll_for(bp, clock, 300))
         return {d.config.address: d.stats.cycles for d in bp.devices}
 
     live = (1, 2, 4, 5)
@@ -240,12 +186,12 @@ def test_a_dead_device_does_not_starve_the_live_ones() -> None:
 
 
 def test_a_slow_device_that_still_answers_gets_a_fair_share_of_time_not_of_turns() -> None:
-    clock = Clock()
+    clock = VirtualClock(START)
     devs = tuple(radar(a, interval=0) for a in (1, 2, 3))
-    bus = FakeBus(clock, {2: lambda a, n: "slow"})
+    bus = ScriptedBus(clock, {2: lambda a, n: "slow"})
     bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), bus,
                    backoff=Backoff(), clock=clock, wall=clock)
-    asyncio.run(virtual_time(bp, clock, 120))
+    asyncio.run(poll_for(bp, clock, 120))
     cycles = {d.config.address: d.stats.cycles for d in bp.devices}
     assert cycles[2] > 0 and bp.devices[1].stats.state is State.ONLINE
     assert abs(cycles[1] - cycles[3]) <= 1  # the healthy ones take turns
@@ -255,9 +201,9 @@ def test_a_slow_device_that_still_answers_gets_a_fair_share_of_time_not_of_turns
 
 
 def test_due_devices_take_turns_and_slow_ones_wait_for_their_interval() -> None:
-    clock = Clock()
+    clock = VirtualClock(START)
     devs = (radar(1, interval=0), radar(2, interval=0), radar(3, interval=10))
-    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), FakeBus(clock),
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=devs), ScriptedBus(clock),
                    backoff=Backoff(), clock=clock, wall=clock)
     order = []
     for _ in range(7):

@@ -89,9 +89,13 @@ def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(pytester: pytest.
 
 # -- wire timing ------------------------------------------------------------------
 
+@pytest.mark.timing
 @pytest.mark.parametrize(("baud", "turnaround"), [(9600, None), (115200, 0.0)])
 def test_wire_timing_takes_the_real_time_of_both_frames(sim: Sim, raw_port: Raw, baud: int,
-                                                        turnaround: float | None) -> None:
+                                                        turnaround: float | None,
+                                                        jitter: float) -> None:
+    """The simulator's thread holds a reply back for the real time of the line: never less,
+    and (run alone, in the timing group) not more than a few wake-ups of a thread late."""
     bus = sim("net-irnet-pro@1", baudrate=baud, turnaround=turnaround, tick=None)
     port = raw_port(bus.port, baud)
     fr = Framing(baud)
@@ -103,10 +107,12 @@ def test_wire_timing_takes_the_real_time_of_both_frames(sim: Sim, raw_port: Raw,
         assert len(port.read(9, timeout=1)) == 9
         times.append(time.monotonic() - sent)
         time.sleep(fr.silence)
-    assert expected - 0.001 <= min(times) <= expected + 0.02, (expected, times)
+    assert expected - 0.001 <= min(times) <= expected + 0.02 + 4 * jitter, (expected, times)
 
 
-def test_without_a_baud_rate_replies_are_not_held_back(sim: Sim, raw_port: Raw) -> None:
+@pytest.mark.timing
+def test_without_a_baud_rate_replies_are_not_held_back(sim: Sim, raw_port: Raw,
+                                                       jitter: float) -> None:
     bus = sim("net-irnet-pro@1", tick=None)
     port = raw_port(bus.port)
     times = []
@@ -114,7 +120,8 @@ def test_without_a_baud_rate_replies_are_not_held_back(sim: Sim, raw_port: Raw) 
         sent = port.send(READ)
         assert len(port.read(9, timeout=1)) == 9
         times.append(time.monotonic() - sent)
-    assert min(times) < 0.5  # not held back (a timed line would take its turnaround too)
+    # not held back (a timed line would take its turnaround too)
+    assert min(times) < 0.5 + 4 * jitter
 
 
 # -- values -----------------------------------------------------------------------

@@ -5,7 +5,7 @@ Times are plain numbers (seconds); nothing here sleeps or opens a port.
 
 from __future__ import annotations
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from rtupoll.rtu import Framing, exception_response, read_request, read_response, with_crc
@@ -189,7 +189,6 @@ def traffic(draw: st.DrawFn) -> tuple[list[tuple[bytes, bytes]], list[tuple[byte
     return exchanges, chunks
 
 
-@settings(max_examples=80, deadline=None)
 @given(traffic())
 def test_any_chunking_and_gaps_give_back_every_transaction(
         case: tuple[list[tuple[bytes, bytes]], list[tuple[bytes, float]]]) -> None:

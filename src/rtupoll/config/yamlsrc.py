@@ -28,7 +28,10 @@ MAX_BYTES = 256 << 10  # a larger file is refused unread (the largest bundled: 9
 MAX_NODES = 100_000  # nodes, with every alias and merge key expanded
 MAX_DEPTH = 64  # nested mappings and lists (the deepest bundled file: 5)
 # libyaml's composer recurses in C (a crash at ~30,000 levels) and its scanner is quadratic
-# in the nesting; below this bound on the depth a file is handed to it unscanned
+# in the nesting; below this bound on the depth a file is handed to it unscanned. The
+# libyaml in PyYAML 6.0.4's wheels refuses 1,000 levels itself ("exceeded maximum nesting
+# depth", often before this check's own words), but the one in 6.0 to 6.0.3 does not, nor
+# does PyYAML without libyaml: the check stays while pyproject.toml allows those.
 _C_SAFE_DEPTH = 1000
 _MERGE = "tag:yaml.org,2002:merge"
 
