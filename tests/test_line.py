@@ -85,6 +85,80 @@ def test_a_garbled_reply_is_known_at_once() -> None:
     assert line.attempt is None  # the attempt is over: retry after the silence
 
 
+def _bad_crc(frame: bytes) -> bytes:
+    bad = bytearray(frame)
+    bad[-1] ^= 0x5A  # only the CRC is wrong, as on a noisy line's last bytes
+    return bytes(bad)
+
+
+def test_a_garbled_reply_settles_its_request_its_retry_is_never_late() -> None:
+    """Issue 24.1: a complete frame with a bad CRC settles the attempt as garbled at once;
+    the retry goes after the silence; its answer is the retry's, not late, and its reply
+    time is the retry's own (the learned timeout never sees the garbled attempt)."""
+    framing = Framing(9600)
+    line = Line(framing)
+    a = req(3, 0)
+    line.send(a, 0.0)
+    event = line.receive(_bad_crc(reply(3, 0)), 0.035)
+    assert isinstance(event, Garbled)
+    assert line.attempt is None
+    retry_at = line.ready_at(drain=False)
+    assert retry_at == pytest.approx(0.035 + framing.silence)  # the silence, no drain
+    assert line.ready_at() == retry_at  # a garbled reply is no timeout: nothing to drain
+    assert line.hazard_until(req(3, 10), retry_at) == 0  # a different read may go too
+    line.send(a, retry_at)
+    answer = line.receive(reply(3, 0), retry_at + 0.035)
+    assert answer == Answer(reply(3, 0))
+    assert line.counts.late[3] == 0 and line.counts.unsolicited == 0
+    own = 0.035 - framing.wire_time(len(a))
+    assert isinstance(answer, Answer) and answer.reply_time == pytest.approx(own)
+    assert line.reply_time[3] == pytest.approx(own)
+    assert 3 not in line.late_reply_time
+
+
+def test_thirty_percent_crc_noise_is_garbled_never_late() -> None:
+    """A device that answers every request in 12 ms through a line that garbles 30 % of
+    the replies: every garbled reply is counted garbled, none late, and every reply
+    time stays 12 ms (what the learned timeout is fed)."""
+    framing, rng = Framing(9600), random.Random(24)
+    line, now, garbled = Line(framing), 0.0, 0
+    for k in range(300):
+        request = req(3, 2 * (k % 4))
+        for _attempt in range(4):
+            now = max(now, line.ready_at(drain=False), line.hazard_until(request, now))
+            line.send(request, now)
+            good = reply(3, 2 * (k % 4))
+            at = now + framing.wire_time(len(request)) + 0.012
+            noisy = rng.random() < 0.3
+            event = line.receive(_bad_crc(good) if noisy else good, at)
+            now = at + framing.wire_time(len(good))
+            if noisy:
+                assert isinstance(event, Garbled)
+                garbled += 1
+                continue
+            assert event == Answer(good)
+            assert isinstance(event, Answer) and event.reply_time == pytest.approx(0.012)
+            break
+    assert garbled > 60
+    assert line.counts.late[3] == 0 and not line.late_reply_time
+    assert max(line.reply_time.values()) == pytest.approx(0.012)
+
+
+def test_a_garbled_late_reply_of_a_timed_out_attempt_keeps_the_others_window() -> None:
+    """Attempt 1 times out (its late window opens); attempt 2 of the same read gets a
+    garbled frame: one of the two identical outstanding requests is settled, the other
+    still holds a different read of that shape back, and the next answer is a right
+    one (identical requests), never a different read's."""
+    timeout = 0.1
+    line = Line(Framing(9600))
+    a, b = req(2, 0), req(2, 2)
+    line.send(a, 0.0)
+    assert line.expire(timeout, timeout) is None
+    line.send(a, line.ready_at(drain=False) + 0.2)
+    assert isinstance(line.receive(_bad_crc(reply(2, 0)), 0.35), Garbled)
+    assert line.hazard_until(b, 0.4) >= LATE_FACTOR * timeout  # A may still be answered
+
+
 @pytest.mark.parametrize("late_by", [1, 2, 3, 10])
 def test_a_late_reply_is_never_the_next_requests_answer(late_by: int) -> None:
     """Read A times out; its reply comes ``late_by`` timeouts late. The next read, B,

@@ -56,7 +56,12 @@ counted from the oldest: never shorter than the truth.
 
 **Garbled replies** are known at once: a complete frame from the unit, with the
 request's function, whose CRC is wrong ends the attempt (``Garbled``) without
-waiting for the timeout. An attempt that ends unanswered is classified by
+waiting for the timeout. It *settles* the request: the device answered (the line
+garbled it), so the request leaves the outstanding queue at once. The retry, sent
+after the silence, is then the only one its answer fits: that answer is never
+counted late, its reply time is the retry's own (so a noisy line never looks like a
+slow device to the learned timeout), and a different request is not held for it.
+An attempt that ends unanswered is classified by
 ``rtupoll.rtu.match.diagnose``: truncated, mismatched or garbled (``FrameError``) or
 plain silence (``DeviceTimeout``).
 """
@@ -205,10 +210,25 @@ class Line:
             self._consume(len(self._buf) - MAX_FRAME)
         if att is not None:
             why = self._garbled(att)
-            if why:
+            if why:  # the request got its reply, garbled: it is settled, not outstanding
                 self.attempt = None
+                self._settle_garbled(att.entry)
                 return Garbled(why)
         return None
+
+    def _settle_garbled(self, entry: Outstanding) -> None:
+        """A garbled reply of the attempt's shape answered one of the unit's identical
+        outstanding requests (the one that would have expired first, as in ``_explain``):
+        it leaves the queue, so the retry's answer is the retry's (not late), its reply
+        time is the retry's own, and a different request need not wait for it."""
+        queue = self._outstanding.get(entry.expect.unit)
+        if not queue:
+            return
+        same = [e for e in queue if e.request == entry.request]
+        if same:
+            queue.remove(min(same, key=lambda e: e.expires))
+        if not queue:
+            del self._outstanding[entry.expect.unit]
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
