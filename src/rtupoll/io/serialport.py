@@ -30,9 +30,11 @@ import asyncio
 import contextlib
 import errno
 import glob
+import itertools
 import os
 import socket
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 import serial
@@ -41,31 +43,82 @@ from rtupoll.errors import UsageError
 
 SCHEME = "nodtr"
 _PREFIX = f"{SCHEME}://"
+OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
+_OWN_PREFIX = f"{OWN}://"
+
+
+@dataclass
+class Slot:
+    """One bus's port as pyserial builds it for pymodbus: what to do on open, and the
+    ``Serial`` object itself once open (``port``), so the bus may write to it and look
+    at what waits in it through pyserial's public API, not pymodbus's internals."""
+
+    deassert_dtr: bool = False
+    port: Serial | None = None
+
+
+_SLOTS: dict[int, Slot] = {}
+_slot_ids = itertools.count(1)
 
 
 class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
-    """A pyserial port that opens with DTR and RTS deasserted."""
+    """A pyserial port that opens with DTR and RTS deasserted (``slot``: when its
+    ``Slot`` says so; ``nodtr://``: always), and tells its ``Slot`` it is open."""
+
+    slot: Slot | None = None
 
     def open(self) -> None:
         # Setting the lines on a closed port only records the state; open() applies it
         # immediately after the open system call (serialposix: _update_dtr_state).
-        self.dtr = False
-        self.rts = False
+        if self.slot is None or self.slot.deassert_dtr:
+            self.dtr = False
+            self.rts = False
         super().open()
+        if self.slot is not None:
+            self.slot.port = self
 
 
 def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
-    """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial)."""
-    if not url.lower().startswith(_PREFIX):
-        raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
-    return url[len(_PREFIX):], Serial
+    """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial);
+    ``rtupoll://N/dev/ttyUSB0`` -> (``/dev/ttyUSB0``, a Serial bound to slot N)."""
+    low = url.lower()
+    if low.startswith(_PREFIX):
+        return url[len(_PREFIX):], Serial
+    if low.startswith(_OWN_PREFIX):
+        number, _, path = url[len(_OWN_PREFIX):].partition("/")
+        slot = _SLOTS.get(int(number)) if number.isdigit() else None
+        if slot is not None:
+            return "/" + path, type("Serial", (Serial,), {"slot": slot})
+    raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
 
 
 def register() -> None:
-    """Make ``nodtr://`` known to ``serial.serial_for_url`` (idempotent)."""
-    sys.modules.setdefault(f"{__name__}.protocol_{SCHEME}", sys.modules[__name__])
+    """Make ``nodtr://`` and ``rtupoll://`` known to ``serial.serial_for_url`` (idempotent)."""
+    for scheme in (SCHEME, OWN):
+        sys.modules.setdefault(f"{__name__}.protocol_{scheme}", sys.modules[__name__])
     if __name__ not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append(__name__)
+
+
+def claim(port: str, *, deassert_dtr: bool) -> tuple[str, Slot | None]:
+    """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
+    ``Serial`` object: for a device path (and ``nodtr://``), ``rtupoll://N/PATH``; other
+    URLs (``socket://``, ``rfc2217://``) pass unchanged, with no slot."""
+    if port.lower().startswith(_PREFIX):
+        port, deassert_dtr = port[len(_PREFIX):], True
+    if "://" in port or not port.startswith("/"):
+        return port_url(port, deassert_dtr=deassert_dtr), None
+    number = next(_slot_ids)
+    slot = _SLOTS[number] = Slot(deassert_dtr=deassert_dtr)
+    return f"{_OWN_PREFIX}{number}{port}", slot
+
+
+def release(url: str) -> None:
+    """Forget the slot of a ``claim``ed URL (its bus is closed for good)."""
+    if url.lower().startswith(_OWN_PREFIX):
+        number = url[len(_OWN_PREFIX):].partition("/")[0]
+        if number.isdigit():
+            _SLOTS.pop(int(number), None)
 
 
 def port_url(port: str, *, deassert_dtr: bool) -> str:
@@ -89,7 +142,9 @@ def gateway(port: str) -> tuple[str, int] | None:
 
 
 def device_path(port: str) -> str:
-    """The filesystem path behind a port or ``nodtr://`` URL."""
+    """The filesystem path behind a port, ``nodtr://`` or ``rtupoll://N`` URL."""
+    if port.lower().startswith(_OWN_PREFIX):
+        return "/" + port[len(_OWN_PREFIX):].partition("/")[2]
     return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
 
 
