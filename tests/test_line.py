@@ -270,3 +270,76 @@ def test_random_late_replies_never_give_a_wrong_answer() -> None:
     assert wrong == 0
     assert right > 100
     assert sum(line.counts.late.values()) > 0
+
+
+# -- issue 24.4: adapters that echo ----------------------------------------------------
+
+
+def test_echo_on_the_echo_is_consumed_and_the_reply_is_the_answer() -> None:
+    framing = Framing(9600)
+    line = Line(framing, echo=True)
+    a = req(1, 0)
+    line.send(a, 0.0)
+    assert line.receive(a[:3], 0.004) is None  # the echo, in chunks, while a goes out
+    assert line.receive(a[3:], 0.009) is None
+    answer = line.receive(reply(1, 0), 0.03)
+    assert answer == Answer(reply(1, 0))
+    assert line.counts.unsolicited == 0 and line.counts.late[1] == 0
+    # the reply time is still counted from the end of the request, not from the echo
+    assert isinstance(answer, Answer)
+    assert answer.reply_time == pytest.approx(0.03 - framing.wire_time(len(a)))
+
+
+def test_echo_on_an_echo_and_the_reply_in_one_chunk() -> None:
+    line = Line(Framing(9600), echo=True)
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))  # FC06: the echo is the reply's very bytes
+    line.send(w, 0.0)
+    assert line.receive(w + w, 0.03) == Answer(w)
+
+
+def test_echo_on_a_write_to_a_dead_device_is_not_confirmed_by_its_echo() -> None:
+    line = Line(Framing(9600), echo=True)
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 0.0)
+    assert line.receive(w, 0.01) is None  # only the echo: the device is silent
+    assert line.expire(0.2, 0.2) is None  # a timeout, not an answer
+
+
+def test_echo_on_an_echo_that_differs_garbles_the_attempt() -> None:
+    line = Line(Framing(9600), echo=True)
+    a = req(1, 0)
+    line.send(a, 0.0)
+    bad = bytes((a[0], a[1] ^ 0x10)) + a[2:]
+    event = line.receive(bad, 0.01)
+    assert isinstance(event, Garbled) and "echo differs" in event.why
+    assert line.attempt is None
+
+
+def test_echo_on_an_adapter_that_does_not_echo_is_said_so() -> None:
+    line = Line(Framing(9600), echo=True)
+    line.send(req(1, 0), 0.0)
+    event = line.receive(reply(1, 0), 0.03)
+    assert isinstance(event, Garbled) and "drop --echo" in event.why
+
+
+def test_echo_off_an_echo_is_detected_and_named_never_an_answer() -> None:
+    line = Line(Framing(9600))
+    a = req(1, 0)
+    line.send(a, 0.0)
+    assert line.receive(a[:4], 0.004) is None  # part of the request: wait for the rest
+    event = line.receive(a[4:] + reply(1, 0), 0.03)
+    assert isinstance(event, Garbled) and "--echo" in event.why
+    assert line.counts.echoes == 1
+    # once seen, a write's echo (byte for byte its reply) is not a confirmation either
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 1.0)
+    event = line.receive(w, 1.01)
+    assert isinstance(event, Garbled) and "--echo" in event.why
+
+
+def test_echo_off_a_write_reply_equal_to_the_request_is_the_answer() -> None:
+    line = Line(Framing(9600))  # no echo seen: FC06's reply is the request's bytes
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 0.0)
+    assert line.receive(w[:5], 0.02) is None
+    assert line.receive(w[5:], 0.021) == Answer(w)

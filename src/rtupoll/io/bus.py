@@ -80,6 +80,8 @@ class PortSettings:
     bytesize: int = 8
     stopbits: int = 1
     deassert_dtr: bool = False  # open with DTR/RTS deasserted (CO2Meter boards reset on DTR)
+    echo: bool = False  # the adapter echoes each request: the line consumes the echo
+    rs485: serialport.Rs485 | None = None  # drive the transceiver's direction (RTS)
 
     @property
     def framing(self) -> Framing:
@@ -107,13 +109,13 @@ class Bus(LineBus):
         self._gateway = settings.gateway
         # pymodbus opens the port by this URL, through rtupoll's pyserial URL handler, so
         # that the Serial object is rtupoll's (``slot.port``) and written to at once
-        self._url, self._slot = serialport.claim(settings.port,
+        self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
                                                  deassert_dtr=settings.deassert_dtr)
         self._connect_timeout = connect_timeout
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
         self._port: _Port | None = None
-        self.line = Line(self.framing, drain=drain)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight
@@ -175,6 +177,8 @@ class Bus(LineBus):
             return
         self._port.close()
         self._port = None
+        if why is None and self._slot is not None and self._slot.error:
+            why = self._slot.error  # it opened, but cannot be used as asked (--rs485)
         if why is None and self._gateway:
             why = await serialport.diagnose_gateway(*self._gateway, self._connect_timeout)
         elif why is None:

@@ -34,10 +34,13 @@ import itertools
 import os
 import socket
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import serial
+import serial.rs485
 
 from rtupoll.errors import UsageError
 
@@ -47,6 +50,64 @@ OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
 _OWN_PREFIX = f"{OWN}://"
 
 
+@dataclass(frozen=True)
+class Rs485:
+    """Direction control for a transceiver whose DE/RE pin is on RTS: RTS is raised
+    ``before`` seconds before a frame's first bit and dropped ``after`` seconds after
+    its last. The kernel's RS-485 mode (TIOCSRS485, pyserial's ``rs485_mode``) does it
+    where the driver has it; else rtupoll toggles RTS around each write."""
+
+    before: float = 0.0
+    after: float = 0.0
+
+
+class RtsToggle:
+    """RTS driven around each write, for a driver without kernel RS-485 mode: up,
+    ``before``, the frame, wait until its last bit has left (``flush``: tcdrain),
+    ``after``, down. ``port`` is any object with pyserial's ``rts`` and ``flush``."""
+
+    def __init__(self, port: Any, rs485: Rs485,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.port, self.rs485, self._sleep = port, rs485, sleep
+
+    def write(self, write: Callable[[bytes], int | None], data: bytes) -> int | None:
+        self.port.rts = True
+        if self.rs485.before:
+            self._sleep(self.rs485.before)
+        try:
+            sent = write(data)
+            self.port.flush()
+            if self.rs485.after:
+                self._sleep(self.rs485.after)
+        finally:
+            self.port.rts = False
+        return sent
+
+
+def direction_control(port: Any, rs485: Rs485) -> tuple[str, RtsToggle | None]:
+    """Set up ``rs485`` on an open ``port``: ("kernel", None) when the driver does it,
+    ("rts", the toggler) when RTS can be driven instead; ``UsageError`` (one line) when
+    the port can do neither."""
+    name = getattr(port, "port", None) or "the port"
+    try:
+        port.rs485_mode = serial.rs485.RS485Settings(
+            rts_level_for_tx=True, rts_level_for_rx=False,
+            delay_before_tx=rs485.before, delay_before_rx=rs485.after)
+        return "kernel", None
+    except (ValueError, OSError, serial.SerialException, NotImplementedError) as exc:
+        kernel = str(exc) or type(exc).__name__
+        with contextlib.suppress(Exception):
+            port.rs485_mode = None
+    try:
+        port.rts = False  # receiving: the transceiver listens
+    except (ValueError, OSError, serial.SerialException) as exc:
+        raise UsageError(f"{name} supports neither the kernel's RS-485 mode ({kernel}) nor "
+                         f"RTS control ({exc or type(exc).__name__}): --rs485 needs a UART "
+                         "with RTS wired to the transceiver's DE/RE, or an adapter that "
+                         "switches direction by itself (then leave --rs485 out)") from None
+    return "rts", RtsToggle(port, rs485)
+
+
 @dataclass
 class Slot:
     """One bus's port as pyserial builds it for pymodbus: what to do on open, and the
@@ -54,7 +115,10 @@ class Slot:
     at what waits in it through pyserial's public API, not pymodbus's internals."""
 
     deassert_dtr: bool = False
+    rs485: Rs485 | None = None
     port: Serial | None = None
+    direction: str = ""  # "kernel" or "rts" once open with rs485
+    error: str = ""  # why the port opened but cannot be used as asked (one line)
 
 
 _SLOTS: dict[int, Slot] = {}
@@ -66,6 +130,7 @@ class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hin
     ``Slot`` says so; ``nodtr://``: always), and tells its ``Slot`` it is open."""
 
     slot: Slot | None = None
+    _toggle: RtsToggle | None = None  # RTS driven around each write (--rs485 without kernel)
 
     def open(self) -> None:
         # Setting the lines on a closed port only records the state; open() applies it
@@ -74,8 +139,23 @@ class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hin
             self.dtr = False
             self.rts = False
         super().open()
-        if self.slot is not None:
-            self.slot.port = self
+        self._toggle = None
+        slot = self.slot
+        if slot is None:
+            return
+        slot.port, slot.error = self, ""
+        if slot.rs485 is not None:
+            try:
+                slot.direction, self._toggle = direction_control(self, slot.rs485)
+            except UsageError as exc:
+                slot.error = str(exc)
+                self.close()
+                raise serial.SerialException(slot.error) from None
+
+    def write(self, data: bytes) -> int | None:
+        if self._toggle is None:
+            return super().write(data)  # type: ignore[no-any-return]
+        return self._toggle.write(super().write, data)
 
 
 def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
@@ -100,16 +180,20 @@ def register() -> None:
         serial.protocol_handler_packages.append(__name__)
 
 
-def claim(port: str, *, deassert_dtr: bool) -> tuple[str, Slot | None]:
+def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
+          ) -> tuple[str, Slot | None]:
     """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
     ``Serial`` object: for a device path (and ``nodtr://``), ``rtupoll://N/PATH``; other
     URLs (``socket://``, ``rfc2217://``) pass unchanged, with no slot."""
     if port.lower().startswith(_PREFIX):
         port, deassert_dtr = port[len(_PREFIX):], True
     if "://" in port or not port.startswith("/"):
+        if rs485 is not None:
+            raise UsageError(f"{port}: --rs485 drives a serial port's RTS line; this is not "
+                             "a serial port")
         return port_url(port, deassert_dtr=deassert_dtr), None
     number = next(_slot_ids)
-    slot = _SLOTS[number] = Slot(deassert_dtr=deassert_dtr)
+    slot = _SLOTS[number] = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
     return f"{_OWN_PREFIX}{number}{port}", slot
 
 
