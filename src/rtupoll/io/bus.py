@@ -48,10 +48,10 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import PortError
 from rtupoll.io import serialport
-from rtupoll.io.interface import LineBus, raise_failed
+from rtupoll.io.interface import LineBus
 from rtupoll.rtu import Framing
 from rtupoll.rtu.line import Line
-from rtupoll.rtu.transaction import OUTCOMES, BusStats, Done, Failed, Transaction
+from rtupoll.rtu.transaction import OUTCOMES, Await, BusStats, Done, Send, Transaction
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
@@ -206,24 +206,22 @@ class Bus(LineBus):
         started = time.monotonic()
         outcome: str | None = None
         try:
-            while True:
-                step = tx.next()
-                if isinstance(step, Done):
-                    return step
-                if isinstance(step, Failed):
-                    raise_failed(step)
-                if tx.attempts and not self.connected:
-                    raise PortError(f"{self.settings.port} went away during the transaction")
-                await self._connect()
-                await self._attempt(tx)
-                if not tx.heard and not self.connected:
-                    raise PortError(f"{self.settings.port} went away during the transaction")
+            return await self._drive(tx)
         except PortError:
             outcome = "port"
             raise
         finally:
             self.stats.add(tx, time.monotonic() - started, outcome=outcome)
             self._lock.release()
+
+    async def _step(self, tx: Transaction, step: Send | Await) -> None:
+        """An attempt, start to end (``_attempt`` both sends and waits)."""
+        if tx.attempts and not self.connected:
+            raise PortError(f"{self.settings.port} went away during the transaction")
+        await self._connect()
+        await self._attempt(tx)
+        if not tx.heard and not self.connected:
+            raise PortError(f"{self.settings.port} went away during the transaction")
 
     async def _hazard_clear(self, tx: Transaction) -> None:
         """Wait (without holding the bus) until no earlier request's late reply could be

@@ -18,11 +18,13 @@ from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.functions import reply_values
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
+    Await,
     BusStats,
     Done,
     Evidence,
     Failed,
     Refused,
+    Send,
     Transaction,
     evidence,
     pdu_frame,
@@ -86,8 +88,22 @@ class LineBus:
     broadcast_turnaround: float = 0.1
 
     async def _run(self, tx: Transaction) -> Done:
-        """Drive ``tx`` to its end: its ``Done``, or the bus error of its ``Failed``."""
+        """``tx`` on the bus (its lock, its clock): ``_drive(tx)``."""
         raise NotImplementedError
+
+    async def _step(self, tx: Transaction, step: Send | Await) -> None:
+        """Do what ``step`` says (send at its time; wait for bytes until its time)."""
+        raise NotImplementedError
+
+    async def _drive(self, tx: Transaction) -> Done:
+        """Drive ``tx`` to its end: its ``Done``, or the bus error of its ``Failed``."""
+        while True:
+            step = tx.next()
+            if isinstance(step, Done):
+                return step
+            if isinstance(step, Failed):
+                raise_failed(step)
+            await self._step(tx, step)
 
     async def _transact(self, request: bytes, timeout: float, retries: int, *,
                         tolerate: bool = False) -> Done:

@@ -16,10 +16,10 @@ import heapq
 import time
 from collections.abc import Awaitable, Callable
 
-from rtupoll.io.interface import LineBus, raise_failed
+from rtupoll.io.interface import LineBus
 from rtupoll.rtu import Framing
 from rtupoll.rtu.line import Line
-from rtupoll.rtu.transaction import Await, BusStats, Done, Failed, Transaction
+from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
 from rtupoll.sim.engine import Engine
 
 
@@ -68,19 +68,16 @@ class VirtualBus(LineBus):
             await self._until(lambda: tx.hazard_until(self._clock()))
             started = self._clock()
             try:
-                while True:
-                    step = tx.next()
-                    if isinstance(step, Done):
-                        return step
-                    if isinstance(step, Failed):
-                        raise_failed(step)
-                    if isinstance(step, Await):
-                        await self._await(tx, step.until)
-                        continue
-                    await self._until(tx.ready_at)
-                    self._send(tx, self._clock())
+                return await self._drive(tx)
             finally:
                 self.stats.add(tx, self._clock() - started)
+
+    async def _step(self, tx: Transaction, step: Send | Await) -> None:
+        if isinstance(step, Await):
+            await self._await(tx, step.until)
+        else:
+            await self._until(tx.ready_at)
+            self._send(tx, self._clock())
 
     def _send(self, tx: Transaction, now: float) -> None:
         """The request goes at ``now``; the engine's replies reach the line when their
