@@ -21,6 +21,7 @@ from rtupoll.outputs.mqtt import Outbox, backoff, device_topics, plain, topic_na
 from rtupoll.outputs.mqtt_commands import WRITES_OFF, failed, plan_get, plan_set, protected
 from rtupoll.outputs.mqtt_settings import parse_url
 from rtupoll.rtu import Table
+from rtupoll.rtu.transaction import Evidence
 
 
 def site_file(tmp_path: Path, mqtt: str) -> Path:
@@ -289,6 +290,14 @@ class FakeBus:
 
     def late(self, unit: int) -> int:
         return 0  # late replies seen from ``unit`` (none here)
+
+    adapter_latency = 0.0  # BusLike: no USB adapter
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence(late=self.late(unit))  # nothing measured
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:

@@ -20,6 +20,7 @@ from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import BusLoad, Reading, State
 from rtupoll.jobs.timeouts import quantile
 from rtupoll.rtu import Table
+from rtupoll.rtu.transaction import Evidence
 
 OK_COST, TIMEOUT_COST = 0.02, 0.5
 
@@ -49,6 +50,14 @@ class FakeBus:
 
     def late(self, unit: int) -> int:
         return 0
+
+    adapter_latency = 0.0  # BusLike: no USB adapter
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence(late=self.late(unit))  # nothing measured
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:

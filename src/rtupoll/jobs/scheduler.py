@@ -252,13 +252,13 @@ class DevicePoller:
                                       f"0x{block.address:04X}+{block.count}")
         return found.values
 
-    def timeout(self, transport: object) -> float:
+    def timeout(self, transport: BusLike) -> float:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
         cfg = self.config
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
                                   ceiling=cfg.timeout_ceiling)
 
-    async def _transact(self, read: Awaitable[T], *, via: object = None
+    async def _transact(self, read: Awaitable[T], *, via: BusLike | None = None
                         ) -> tuple[Status, str, T | None]:
         """One read (not yet awaited), timed and counted: (status, error, what it read)."""
         cfg, st = self.config, self.stats
