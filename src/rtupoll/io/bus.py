@@ -48,10 +48,18 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import PortError
 from rtupoll.io import serialport
-from rtupoll.io.interface import LineBus
+from rtupoll.io.interface import LineBus, raise_failed
 from rtupoll.rtu import Framing
 from rtupoll.rtu.line import Line
-from rtupoll.rtu.transaction import OUTCOMES, Await, BusStats, Done, Send, Transaction
+from rtupoll.rtu.transaction import (
+    OUTCOMES,
+    Await,
+    BusStats,
+    Done,
+    Failed,
+    Send,
+    Transaction,
+)
 
 __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 
@@ -206,7 +214,13 @@ class Bus(LineBus):
         started = time.monotonic()
         outcome: str | None = None
         try:
-            return await self._drive(tx)
+            while True:  # LineBus._drive, flat: one coroutine frame less per wake-up
+                step = tx.next()
+                if isinstance(step, Done):
+                    return step
+                if isinstance(step, Failed):
+                    raise_failed(step)
+                await self._step(tx, step)
         except PortError:
             outcome = "port"
             raise

@@ -117,8 +117,11 @@ class LineBus:
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
         """Registers as 16-bit ints; coils and discrete inputs as 0/1."""
-        done = await self._transact(_checked(lambda: read_frame(unit, table, address, count)),
-                                    timeout, retries)
+        try:
+            request = read_frame(unit, table, address, count)
+        except Refused as exc:
+            raise RefusedError(str(exc)) from None
+        done = await self._transact(request, timeout, retries)
         values = reply_values(done.frame, count)
         if len(values) != count:
             raise FrameError(f"unit {unit} returned {len(values)} values for {count}")

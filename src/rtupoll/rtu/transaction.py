@@ -127,9 +127,7 @@ class Transaction:
         self.deadline = float("inf")  # the attempt in flight's
         self._event: Answer | Garbled | None = None
         self._in_flight = False
-        unit, fn = request[0], request[1]
-        self._what = FUNCTION_NAMES.get(fn, f"function {fn}")
-        self._failure = Failed("timeout", f"no reply from unit {unit}", unit, fn)
+        self._failure: Failed | None = None  # the last attempt's, once one failed
 
     @property
     def outcome(self) -> str:
@@ -207,6 +205,11 @@ class Transaction:
 
     # -- outcomes --------------------------------------------------------------------
 
+    @property
+    def _what(self) -> str:
+        fn = self.request[1]
+        return FUNCTION_NAMES.get(fn, f"function {fn}")
+
     def _tries(self) -> str:
         return f" ({self.attempts} tries)" if self.attempts > 1 else ""
 
@@ -226,7 +229,9 @@ class Transaction:
         return self.result
 
     def _give_up(self) -> Done | Failed:
-        self.result = Done(b"", "unconfirmed") if self.tolerate else self._failure
+        failure = self._failure or Failed("timeout", f"no reply from unit {self.request[0]}",
+                                          self.request[0], self.request[1])
+        self.result = Done(b"", "unconfirmed") if self.tolerate else failure
         return self.result
 
 
