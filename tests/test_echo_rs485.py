@@ -230,3 +230,36 @@ def test_rs485_option_values() -> None:
     gateway = CliRunner().invoke(cli, ["read", "-p", "tcp://127.0.0.1:1", "--rs485",
                                        "radar-level@2"])
     assert gateway.exit_code == 2 and "not a serial port" in gateway.stderr
+
+
+def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
+    """The echo is the master adapter's, not the line's: a sniffer on the line (the
+    simulator's tap) sees each request once and decodes every value, while rtupoll
+    reads through the echoing adapter with --echo."""
+    import signal
+    import subprocess
+    import sys
+
+    tap = str(tmp_path / "tap")
+    bus = simulated_bus(["radar-level@2"], tick=None, tap=tap)
+    bus.echo = True
+    bus.start()
+    rtupoll = str(Path(sys.executable).with_name("rtupoll"))
+    try:
+        proc = subprocess.Popen([rtupoll, "sniff", "-p", tap, "-b", "9600", "--format",
+                                 "json", "radar-level@2"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        assert "listening on" in proc.stderr.readline()
+        read = subprocess.run([rtupoll, "read", "-p", bus.port, "--echo", "radar-level@2",
+                               "level_cm", "--format", "json"], capture_output=True,
+                              text=True, timeout=30, check=False)
+        proc.send_signal(signal.SIGINT)
+        out, _err = proc.communicate(timeout=10)
+    finally:
+        bus.stop()
+    assert read.returncode == 0, read.stderr
+    level = bus.registers(2, Table.HOLDING, 2, 1)[0]
+    assert json.loads(read.stdout.splitlines()[0])["raw"] == [level]
+    seen = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert [(r["field"], r["status"], r["raw"]) for r in seen] == [("level_cm", "ok", [level])]
