@@ -35,6 +35,7 @@ import os
 import socket
 import sys
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -121,7 +122,8 @@ class Slot:
     error: str = ""  # why the port opened but cannot be used as asked (one line)
 
 
-_SLOTS: dict[int, Slot] = {}
+# the bus that claimed a slot holds it; once that bus is gone, so is its slot
+_SLOTS: weakref.WeakValueDictionary[int, Slot] = weakref.WeakValueDictionary()
 _slot_ids = itertools.count(1)
 
 
@@ -193,7 +195,8 @@ def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
                              "a serial port")
         return port_url(port, deassert_dtr=deassert_dtr), None
     number = next(_slot_ids)
-    slot = _SLOTS[number] = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
+    slot = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
+    _SLOTS[number] = slot
     return f"{_OWN_PREFIX}{number}{port}", slot
 
 
