@@ -67,7 +67,7 @@ class Refused(ValueError):
     """A request that must not be sent (the bus raises ``RefusedError``)."""
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Send:
     """Put ``frame`` on the wire at ``at`` (then call ``Transaction.sent``)."""
 
@@ -75,14 +75,14 @@ class Send:
     at: float
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Await:
     """Hand received bytes to ``Transaction.received``; at ``until``, ``expired``."""
 
     until: float
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Done:
     """The answer frame (b"" for a broadcast or an unconfirmed write)."""
 
