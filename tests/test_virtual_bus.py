@@ -12,7 +12,7 @@ import asyncio
 import pytest
 
 from rtupoll.config.site import from_specs
-from rtupoll.errors import DeviceException, DeviceTimeout
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
 from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.jobs.stats import Reading, State
@@ -130,3 +130,36 @@ def test_a_crc_noisy_line_is_garbled_not_late_and_the_timeout_stays_put() -> Non
         assert dev.stats.late == 0
         assert dev.stats.garbled + dev.stats.ok > 0
         assert dev.stats.timeout <= 1.5 * quiet.stats.timeout  # not climbing to 3 s
+
+
+def test_an_echoing_adapter_and_crc_noise_in_virtual_time() -> None:
+    """Issues 24.1 and 24.4 together: every request comes back first (the adapter), and
+    30 % of the replies have a bad CRC. With echo on: every value decoded is right, no
+    reply counted late. With echo off: every read says the adapter echoes."""
+    config = build(["radar-level@2"], faults=("crc@30%",), seed=1, turnaround=0.002,
+                   tick=None)
+    clock = VirtualClock()
+    engine = Engine(config.devices, config.faults, seed=1, tick=None)
+    engine.device(2).pin("level_cm", 333)
+    bus = VirtualBus(engine, clock=clock, sleep=clock.sleep, echo=True)
+
+    async def go() -> list[object]:
+        got: list[object] = []
+        for _ in range(200):
+            try:
+                got.append((await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1,
+                                           retries=2))[0])
+            except FrameError:
+                got.append("garbled")
+        return got
+
+    got = asyncio.run(go())
+    assert set(got) <= {333, "garbled"} and got.count(333) > 150
+    assert bus.late(2) == 0
+    assert bus.stats.outcomes["ok"] == got.count(333)
+
+    plain = VirtualBus(Engine(config.devices, (), seed=1, tick=None), clock=clock,
+                       sleep=clock.sleep)
+    plain.echo = True  # the adapter echoes, but the line was not told
+    with pytest.raises(FrameError, match="--echo"):
+        asyncio.run(plain.read(2, Table.HOLDING, 2, 1, timeout=0.1))

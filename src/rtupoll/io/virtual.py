@@ -44,10 +44,13 @@ class VirtualBus(LineBus):
 
     def __init__(self, engine: Engine, framing: Framing | None = None, *,
                  clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], Awaitable[None]] = asyncio.sleep) -> None:
+                 sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
+                 echo: bool = False) -> None:
+        """``echo``: behind an adapter that echoes each request (and the line expects it)."""
         self.engine = engine
         self.framing = framing or Framing(115200)
-        self.line = Line(self.framing)
+        self.line = Line(self.framing, echo=echo)
+        self.echo = echo
         self.stats = BusStats()
         self.sent: list[bytes] = []  # every request put on the line, for tests
         self._clock, self._sleep = clock, sleep
@@ -85,6 +88,9 @@ class VirtualBus(LineBus):
         tx.sent(now)
         self.sent.append(tx.request)
         sending = self.framing.wire_time(len(tx.request))
+        if self.echo:  # the adapter hands the request back as it goes out
+            self._seq += 1
+            heapq.heappush(self._pending, (now + sending, self._seq, tx.request))
         for reply in self.engine.handle(tx.request, now):
             at = now + sending + reply.turnaround + reply.delay + \
                 self.framing.wire_time(len(reply.data))
