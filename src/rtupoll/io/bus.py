@@ -1,14 +1,17 @@
 """One RS-485 bus: pymodbus carries the bytes, the sans-IO line discipline decides.
 
-The only module that imports pymodbus (it renames things between minor releases),
-and a thin one. pymodbus's transport opens the port (serial, ``nodtr://``, or an
-RTU-over-TCP gateway), writes frames and delivers what arrives; frames are built
-and parsed by ``rtupoll.rtu.functions`` (the one function table), and every rule of
-the shared line -- the 3.5-character silence, the drain after a timeout, which
-received bytes answer which request (resynchronisation past noise, foreign and late
-frames, the late-reply accounting), garbled replies known at once -- is
-``rtupoll.rtu.line.Line``'s, fed here with what went out, what came in and
-``time.monotonic()``.
+The only module that imports pymodbus, and a thin one: it uses pymodbus's public
+transport surface only (docs/architecture.md, "pymodbus": each behaviour relied on is
+pinned by tests/test_pymodbus_surface.py). pymodbus's transport opens the port (a
+serial port through rtupoll's own pyserial URL handler, ``rtupoll://``, so the
+``Serial`` object is rtupoll's; or an RTU-over-TCP gateway) and delivers what
+arrives. What a transaction does -- checks, attempts, retries, outcome, statistics --
+is ``rtupoll.rtu.transaction.Transaction``'s, and every rule of the shared line --
+the 3.5-character silence, the drain after a timeout, which received bytes answer
+which request (resynchronisation past noise, foreign and late frames, the late-reply
+accounting), garbled replies known at once, an adapter's echo -- is
+``rtupoll.rtu.line.Line``'s; this module drives them with what went out, what came in
+and ``time.monotonic()``.
 
 - **One transaction in flight**: the bus's lock spans silence, request, reply and
   retries, so devices polled from several tasks never interleave on the wire. A
@@ -26,7 +29,10 @@ frames, the late-reply accounting), garbled replies known at once -- is
 - **Receiving**: the transport hands every byte to the line; pymodbus's client, its
   receive buffer, framer and PDU decoder are not used (they drop a buffer on one
   stray byte, and cost CPU the line has already spent).
-- **DTR**: ``deassert_dtr`` opens the port as ``nodtr://`` (``rtupoll.io.serialport``).
+- **DTR, RS-485 direction**: ``deassert_dtr`` opens the port with DTR and RTS low;
+  ``rs485`` drives the transceiver's direction (kernel RS-485 mode, else RTS around
+  each frame); both on rtupoll's ``Serial`` (``rtupoll.io.serialport``).
+- **Echo**: ``echo`` tells the line that the adapter echoes each request.
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
   permission, refused, unreachable -- named by ``rtupoll.io.serialport``).

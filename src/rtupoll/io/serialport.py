@@ -10,6 +10,15 @@ writes that state right after the open system call, before a byte is exchanged.
 (The kernel's raise-on-open itself cannot be prevented from user space; what this
 removes is the seconds-long assertion that holds such a board in reset.)
 
+rtupoll's own port. ``Bus`` has pymodbus open every serial port as
+``rtupoll://N/dev/ttyUSB0`` (``claim``): the same hook builds a ``Serial`` bound to
+``Slot`` N, which holds the open ``Serial`` object for the bus. So the bus writes a
+frame to it at once and looks at what waits in it through pyserial's public API,
+never through pymodbus's transport internals; and the slot's ``rs485`` settings are
+applied on open (``direction_control``: the kernel's RS-485 mode, TIOCSRS485, where
+the driver has it, else ``RtsToggle`` around each write; a port with neither is a
+one-line error). ``nodtr://PATH`` stays a port name users may give.
+
 Naming. pyserial finds a scheme ``X`` by importing ``<package>.protocol_X`` for
 each package in ``serial.protocol_handler_packages``. Rather than ship a package
 with a ``protocol_nodtr`` module, this module registers itself in ``sys.modules``
