@@ -160,7 +160,7 @@ def test_port_vanishes_and_returns(sim: Sim, tmp_path: Path) -> None:
 
 
 def test_dtr_and_rts_are_deasserted_before_open(sim: Sim, monkeypatch: Any) -> None:
-    """pymodbus opens the port itself; through nodtr:// it is our Serial that opens it."""
+    """pymodbus opens the port itself; through rtupoll:// it is our Serial that opens it."""
     states: list[tuple[bool, bool]] = []
     real = serialport.Serial._update_dtr_state
 
@@ -175,9 +175,9 @@ def test_dtr_and_rts_are_deasserted_before_open(sim: Sim, monkeypatch: Any) -> N
                                     deassert_dtr=deassert)) as bus:
             return await bus.read(5, Table.INPUT, 1, 1, timeout=0.2)
     run(go(False))
-    assert states == []  # the plain path does not use the handler
+    assert states == [(True, True)]  # rtupoll's Serial too (rtupoll://), lines as pyserial's
     assert run(go(True)) == bus_sim.registers(5, Table.INPUT, 1, 1)
-    assert states == [(False, False)]
+    assert states == [(True, True), (False, False)]
 
 
 def test_nodtr_url_handler() -> None:

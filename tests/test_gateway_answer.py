@@ -14,6 +14,7 @@ from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.transaction import Evidence
 
 
 class ScriptedLine:
@@ -43,6 +44,14 @@ class ScriptedLine:
 
     def late(self, unit: int) -> int:
         return 0
+
+    adapter_latency = 0.0  # BusLike: no USB adapter
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence(late=self.late(unit))  # nothing measured
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
                        retries: int = 0) -> bytes:

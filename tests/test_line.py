@@ -85,6 +85,80 @@ def test_a_garbled_reply_is_known_at_once() -> None:
     assert line.attempt is None  # the attempt is over: retry after the silence
 
 
+def _bad_crc(frame: bytes) -> bytes:
+    bad = bytearray(frame)
+    bad[-1] ^= 0x5A  # only the CRC is wrong, as on a noisy line's last bytes
+    return bytes(bad)
+
+
+def test_a_garbled_reply_settles_its_request_its_retry_is_never_late() -> None:
+    """Issue 24.1: a complete frame with a bad CRC settles the attempt as garbled at once;
+    the retry goes after the silence; its answer is the retry's, not late, and its reply
+    time is the retry's own (the learned timeout never sees the garbled attempt)."""
+    framing = Framing(9600)
+    line = Line(framing)
+    a = req(3, 0)
+    line.send(a, 0.0)
+    event = line.receive(_bad_crc(reply(3, 0)), 0.035)
+    assert isinstance(event, Garbled)
+    assert line.attempt is None
+    retry_at = line.ready_at(drain=False)
+    assert retry_at == pytest.approx(0.035 + framing.silence)  # the silence, no drain
+    assert line.ready_at() == retry_at  # a garbled reply is no timeout: nothing to drain
+    assert line.hazard_until(req(3, 10), retry_at) == 0  # a different read may go too
+    line.send(a, retry_at)
+    answer = line.receive(reply(3, 0), retry_at + 0.035)
+    assert answer == Answer(reply(3, 0))
+    assert line.counts.late[3] == 0 and line.counts.unsolicited == 0
+    own = 0.035 - framing.wire_time(len(a))
+    assert isinstance(answer, Answer) and answer.reply_time == pytest.approx(own)
+    assert line.reply_time[3] == pytest.approx(own)
+    assert 3 not in line.late_reply_time
+
+
+def test_thirty_percent_crc_noise_is_garbled_never_late() -> None:
+    """A device that answers every request in 12 ms through a line that garbles 30 % of
+    the replies: every garbled reply is counted garbled, none late, and every reply
+    time stays 12 ms (what the learned timeout is fed)."""
+    framing, rng = Framing(9600), random.Random(24)
+    line, now, garbled = Line(framing), 0.0, 0
+    for k in range(300):
+        request = req(3, 2 * (k % 4))
+        for _attempt in range(4):
+            now = max(now, line.ready_at(drain=False), line.hazard_until(request, now))
+            line.send(request, now)
+            good = reply(3, 2 * (k % 4))
+            at = now + framing.wire_time(len(request)) + 0.012
+            noisy = rng.random() < 0.3
+            event = line.receive(_bad_crc(good) if noisy else good, at)
+            now = at + framing.wire_time(len(good))
+            if noisy:
+                assert isinstance(event, Garbled)
+                garbled += 1
+                continue
+            assert event == Answer(good)
+            assert isinstance(event, Answer) and event.reply_time == pytest.approx(0.012)
+            break
+    assert garbled > 60
+    assert line.counts.late[3] == 0 and not line.late_reply_time
+    assert max(line.reply_time.values()) == pytest.approx(0.012)
+
+
+def test_a_garbled_late_reply_of_a_timed_out_attempt_keeps_the_others_window() -> None:
+    """Attempt 1 times out (its late window opens); attempt 2 of the same read gets a
+    garbled frame: one of the two identical outstanding requests is settled, the other
+    still holds a different read of that shape back, and the next answer is a right
+    one (identical requests), never a different read's."""
+    timeout = 0.1
+    line = Line(Framing(9600))
+    a, b = req(2, 0), req(2, 2)
+    line.send(a, 0.0)
+    assert line.expire(timeout, timeout) is None
+    line.send(a, line.ready_at(drain=False) + 0.2)
+    assert isinstance(line.receive(_bad_crc(reply(2, 0)), 0.35), Garbled)
+    assert line.hazard_until(b, 0.4) >= LATE_FACTOR * timeout  # A may still be answered
+
+
 @pytest.mark.parametrize("late_by", [1, 2, 3, 10])
 def test_a_late_reply_is_never_the_next_requests_answer(late_by: int) -> None:
     """Read A times out; its reply comes ``late_by`` timeouts late. The next read, B,
@@ -196,3 +270,76 @@ def test_random_late_replies_never_give_a_wrong_answer() -> None:
     assert wrong == 0
     assert right > 100
     assert sum(line.counts.late.values()) > 0
+
+
+# -- issue 24.4: adapters that echo ----------------------------------------------------
+
+
+def test_echo_on_the_echo_is_consumed_and_the_reply_is_the_answer() -> None:
+    framing = Framing(9600)
+    line = Line(framing, echo=True)
+    a = req(1, 0)
+    line.send(a, 0.0)
+    assert line.receive(a[:3], 0.004) is None  # the echo, in chunks, while a goes out
+    assert line.receive(a[3:], 0.009) is None
+    answer = line.receive(reply(1, 0), 0.03)
+    assert answer == Answer(reply(1, 0))
+    assert line.counts.unsolicited == 0 and line.counts.late[1] == 0
+    # the reply time is still counted from the end of the request, not from the echo
+    assert isinstance(answer, Answer)
+    assert answer.reply_time == pytest.approx(0.03 - framing.wire_time(len(a)))
+
+
+def test_echo_on_an_echo_and_the_reply_in_one_chunk() -> None:
+    line = Line(Framing(9600), echo=True)
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))  # FC06: the echo is the reply's very bytes
+    line.send(w, 0.0)
+    assert line.receive(w + w, 0.03) == Answer(w)
+
+
+def test_echo_on_a_write_to_a_dead_device_is_not_confirmed_by_its_echo() -> None:
+    line = Line(Framing(9600), echo=True)
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 0.0)
+    assert line.receive(w, 0.01) is None  # only the echo: the device is silent
+    assert line.expire(0.2, 0.2) is None  # a timeout, not an answer
+
+
+def test_echo_on_an_echo_that_differs_garbles_the_attempt() -> None:
+    line = Line(Framing(9600), echo=True)
+    a = req(1, 0)
+    line.send(a, 0.0)
+    bad = bytes((a[0], a[1] ^ 0x10)) + a[2:]
+    event = line.receive(bad, 0.01)
+    assert isinstance(event, Garbled) and "echo differs" in event.why
+    assert line.attempt is None
+
+
+def test_echo_on_an_adapter_that_does_not_echo_is_said_so() -> None:
+    line = Line(Framing(9600), echo=True)
+    line.send(req(1, 0), 0.0)
+    event = line.receive(reply(1, 0), 0.03)
+    assert isinstance(event, Garbled) and "drop --echo" in event.why
+
+
+def test_echo_off_an_echo_is_detected_and_named_never_an_answer() -> None:
+    line = Line(Framing(9600))
+    a = req(1, 0)
+    line.send(a, 0.0)
+    assert line.receive(a[:4], 0.004) is None  # part of the request: wait for the rest
+    event = line.receive(a[4:] + reply(1, 0), 0.03)
+    assert isinstance(event, Garbled) and "--echo" in event.why
+    assert line.counts.echoes == 1
+    # once seen, a write's echo (byte for byte its reply) is not a confirmation either
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 1.0)
+    event = line.receive(w, 1.01)
+    assert isinstance(event, Garbled) and "--echo" in event.why
+
+
+def test_echo_off_a_write_reply_equal_to_the_request_is_the_answer() -> None:
+    line = Line(Framing(9600))  # no echo seen: FC06's reply is the request's bytes
+    w = with_crc(bytes((1, 6, 0, 5, 0, 42)))
+    line.send(w, 0.0)
+    assert line.receive(w[:5], 0.02) is None
+    assert line.receive(w[5:], 0.021) == Answer(w)

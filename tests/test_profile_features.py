@@ -22,6 +22,7 @@ from rtupoll.model.codec import DataType, Layout, decode, encode
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
 from rtupoll.rtu import Table
+from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.ui.records import CsvWriter, record, to_json
@@ -203,6 +204,14 @@ class CountingTransport:
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
         self.reads.append((address, count))
         return (0,) * count
+
+    adapter_latency = 0.0  # BusLike: no USB adapter
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence()  # nothing measured
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
 
 def test_the_scheduler_reads_a_slow_field_once_per_its_interval(meter: Path) -> None:

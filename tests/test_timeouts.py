@@ -33,11 +33,24 @@ from rtupoll.jobs.timeouts import (
 )
 from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.rtu.line import Answer, Line
+from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.runner import SimulatedBus
 
 # -- the line measures reply times ---------------------------------------------------
+
+
+class Quiet:
+    """A bus that has measured nothing (``BusLike``'s evidence side)."""
+
+    adapter_latency = 0.0
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence()
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
 
 def test_the_line_measures_reply_time_from_the_requests_end_to_the_first_byte() -> None:
@@ -79,15 +92,11 @@ def test_a_short_learned_timeout_does_not_shorten_the_late_window() -> None:
 def test_the_scheduler_side_keeps_the_profiles_patience() -> None:
     told: dict[int, float] = {}
 
-    class Patient:  # a transport that tells reply times, as the buses do
-        def late(self, unit: int) -> int:
-            return 0
+    class Patient:  # a bus that tells reply times (BusLike.evidence), as the buses do
+        adapter_latency = 0.0
 
-        def reply_time(self, unit: int) -> float | None:
-            return None
-
-        def late_reply_time(self, unit: int) -> float | None:
-            return None
+        def evidence(self, unit: int) -> Evidence:
+            return Evidence()
 
         def set_patience(self, unit: int, seconds: float) -> None:
             told[unit] = seconds
@@ -158,16 +167,16 @@ def test_a_timeout_alone_teaches_nothing_so_a_dead_device_stays_cheap() -> None:
         timing.estimator.answered(0.006)
     learned = timing.timeout
     for _ in range(20):
-        timing.after(object(), 1, answered=False)  # no evidence from a silent device
+        timing.after(Quiet(), 1, answered=False)  # no evidence from a silent device
     assert timing.timeout == learned < 0.05
 
 
 def test_a_pinned_timeout_is_used_as_given_and_the_floor_counts_the_adapter() -> None:
-    class Adapter:
+    class Adapter(Quiet):
         adapter_latency = 0.016
 
     timing = DeviceTiming(0.5, silence=0.004)
-    assert timing.before(object(), 1, pinned=0.8) == 0.8 and timing.source == "pinned"
+    assert timing.before(None, 1, pinned=0.8) == 0.8 and timing.source == "pinned"
     for _ in range(300):
         timing.estimator.answered(0.001)
     assert timing.before(Adapter(), 1) == pytest.approx(FLOOR + 0.004 + 0.016)
@@ -413,7 +422,7 @@ def test_timeout_ceiling_from_the_site_file_and_the_command_line(tmp_path: Path)
 
 def test_the_ceiling_bounds_what_is_learned() -> None:
     timing = DeviceTiming(0.5, silence=0.004)
-    timing.before(object(), 1, ceiling=0.8)
+    timing.before(None, 1, ceiling=0.8)
     timing.estimator.answered(2.0)
     assert timing.timeout == 0.8
 

@@ -12,10 +12,10 @@ import asyncio
 import pytest
 
 from rtupoll.config.site import from_specs
-from rtupoll.errors import DeviceException, DeviceTimeout
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
 from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Scheduler
-from rtupoll.jobs.stats import State
+from rtupoll.jobs.stats import Reading, State
 from rtupoll.rtu import Table
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
@@ -95,3 +95,71 @@ def test_a_crc_error_is_known_at_once_not_after_the_timeout() -> None:
     asyncio.run(go())
     assert len(bus.sent) == 2  # the garbled attempt and its retry
     assert clock.now < 0.1  # not 5 s: the CRC error was known as it arrived
+
+
+def test_a_crc_noisy_line_is_garbled_not_late_and_the_timeout_stays_put() -> None:
+    """Issue 24.1 end to end through the scheduler, in virtual time: 30 % of the replies
+    have a bad CRC. Garbled attempts are retried; not one reply is counted late; every
+    value decoded is the pinned one; the learned timeout stays where a clean line puts it."""
+    def run(faults: tuple[str, ...]) -> tuple[Scheduler, list[object]]:
+        bus, clock = virtual(["radar-level@2", "huiwen-aq@3"], faults=faults)
+        bus.engine.device(2).pin("level_cm", 333)
+        site = from_specs("virtual", [("radar-level", 2), ("huiwen-aq", 3)], baudrate=9600,
+                          interval=0.5, check_serial=False)
+        scheduler = Scheduler(site, open_bus=lambda _config: bus, clock=clock)
+        levels: list[object] = []
+
+        def sink(dev: object, readings: list[Reading]) -> None:
+            levels.extend(r.value.value for r in readings if r.value is not None
+                          and r.field.name == "level_cm")
+
+        async def go() -> None:
+            poller = scheduler.buses[0]
+            while clock.now < 60:
+                dev = poller.next_device()
+                clock.now = max(clock.now, dev.next_due)
+                await poller.run_one(dev, sink)
+
+        asyncio.run(go())
+        return scheduler, levels
+
+    clean, _ = run(())
+    noisy, levels = run(("crc@30%",))
+    assert levels and set(levels) == {333}
+    for quiet, dev in zip(clean.pollers(), noisy.pollers(), strict=True):
+        assert dev.stats.late == 0
+        assert dev.stats.garbled + dev.stats.ok > 0
+        assert dev.stats.timeout <= 1.5 * quiet.stats.timeout  # not climbing to 3 s
+
+
+def test_an_echoing_adapter_and_crc_noise_in_virtual_time() -> None:
+    """Issues 24.1 and 24.4 together: every request comes back first (the adapter), and
+    30 % of the replies have a bad CRC. With echo on: every value decoded is right, no
+    reply counted late. With echo off: every read says the adapter echoes."""
+    config = build(["radar-level@2"], faults=("crc@30%",), seed=1, turnaround=0.002,
+                   tick=None)
+    clock = VirtualClock()
+    engine = Engine(config.devices, config.faults, seed=1, tick=None)
+    engine.device(2).pin("level_cm", 333)
+    bus = VirtualBus(engine, clock=clock, sleep=clock.sleep, echo=True)
+
+    async def go() -> list[object]:
+        got: list[object] = []
+        for _ in range(200):
+            try:
+                got.append((await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1,
+                                           retries=2))[0])
+            except FrameError:
+                got.append("garbled")
+        return got
+
+    got = asyncio.run(go())
+    assert set(got) <= {333, "garbled"} and got.count(333) > 150
+    assert bus.late(2) == 0
+    assert bus.stats.outcomes["ok"] == got.count(333)
+
+    plain = VirtualBus(Engine(config.devices, (), seed=1, tick=None), clock=clock,
+                       sleep=clock.sleep)
+    plain.echo = True  # the adapter echoes, but the line was not told
+    with pytest.raises(FrameError, match="--echo"):
+        asyncio.run(plain.read(2, Table.HOLDING, 2, 1, timeout=0.1))

@@ -21,6 +21,7 @@ from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
 from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import BusPoller
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 
@@ -72,6 +73,14 @@ class ScriptedBus:
 
     def late(self, unit: int) -> int:
         return 0  # late replies seen from ``unit`` (none here)
+
+    adapter_latency = 0.0  # BusLike: no USB adapter
+
+    def evidence(self, unit: int) -> Evidence:
+        return Evidence(late=self.late(unit))  # nothing measured
+
+    def set_patience(self, unit: int, seconds: float) -> None:
+        pass
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0) -> tuple[int, ...]:

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import click
 
-from rtupoll.cli.options import format_option
+from rtupoll.cli.options import format_option, line_options
 from rtupoll.cli.params import UNIT, Seconds
 from rtupoll.errors import DeviceException, UsageError
 from rtupoll.model.guess import Guess, interpretations, parse_words
@@ -45,6 +45,7 @@ Examples:
 @click.option("--top", type=int, default=12, show_default=True,
               help="How many interpretations to list (0: all).")
 @format_option("table", "json")
+@line_options
 @click.option("--baudrate", "-b", type=int, default=9600, show_default=True, help="Baud rate.")
 @click.option("--parity", type=click.Choice(["N", "E", "O"], case_sensitive=False), default="N",
               show_default=True, help="Parity.")
@@ -100,12 +101,13 @@ def _spec(text: str) -> tuple[Table, int, int]:
 async def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int,
                 count: int, timeout: float) -> tuple[int, tuple[int, ...]]:
     """The registers around START: one more on each side when the device allows it."""
+    from rtupoll.cli.target import line_settings
     from rtupoll.io.bus import Bus, PortSettings
 
     port, baudrate, parity, stopbits = serial
     # DTR deasserted: some boards (CO2Meter) are held in reset while it is asserted
     settings = PortSettings(port=port, baudrate=baudrate, parity=parity, stopbits=stopbits,
-                            deassert_dtr=True)
+                            deassert_dtr=True, **line_settings())
     tries = [(start - 1, count + 2), (start, count + 1), (start, count)]
     async with Bus(settings) as bus:
         for i, (first, n) in enumerate(t for t in tries if t[0] >= 0 and t[0] + t[1] <= 0x10000):

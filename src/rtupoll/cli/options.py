@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -22,8 +23,67 @@ def format_option(*choices: str) -> Callable[[F], F]:
                         default=choices[0], show_default=True, help="Output format.")
 
 
+@dataclass(frozen=True)
+class LineOptions:
+    """--echo and --rs485: how the adapter meets the line (``line_options``)."""
+
+    echo: bool = False
+    rs485: tuple[float, float] | None = None  # (before, after) in seconds; None: off
+
+
+_LINE_KEY = "rtupoll.line_options"
+
+
+def line_options(f: F) -> F:
+    """--echo, --rs485, --rs485-delays: adapters that echo, transceivers whose
+    direction is on RTS. Kept in the click context (``given_line_options``), so every
+    command that opens a port takes them without a parameter of its own."""
+    def keep(ctx: click.Context, param: click.Parameter, value: object) -> None:
+        if value in (None, False):
+            return
+        now = ctx.meta.get(_LINE_KEY, LineOptions())
+        if param.name == "echo":
+            ctx.meta[_LINE_KEY] = LineOptions(True, now.rs485)
+        elif param.name == "rs485":
+            ctx.meta[_LINE_KEY] = LineOptions(now.echo, now.rs485 or (0.0, 0.0))
+        else:
+            text = str(value)
+            try:
+                parts = [float(x) / 1000 for x in text.split(",")]
+            except ValueError:
+                parts = []
+            if not 1 <= len(parts) <= 2 or any(not 0 <= x <= 1 for x in parts):
+                raise click.BadParameter(f"{text!r}: give BEFORE_MS[,AFTER_MS], each "
+                                         "0..1000 (e.g. 0,0.5)", ctx=ctx, param=param)
+            ctx.meta[_LINE_KEY] = LineOptions(now.echo, (parts[0], parts[-1]
+                                                         if len(parts) > 1 else 0.0))
+
+    f = click.option("--rs485-delays", metavar="BEFORE_MS[,AFTER_MS]", default=None,
+                     expose_value=False, callback=keep,
+                     help="--rs485: milliseconds between raising RTS and the first bit, "
+                          "and between the last bit and dropping it (default 0,0).")(f)
+    f = click.option("--rs485", is_flag=True, default=False, expose_value=False,
+                     callback=keep,
+                     help="Drive the RS-485 transceiver's direction (DE/RE on RTS): the "
+                          "kernel's RS-485 mode where the driver has it, else RTS raised "
+                          "around each frame.")(f)
+    f = click.option("--echo", is_flag=True, default=False, expose_value=False,
+                     callback=keep,
+                     help="The adapter echoes every request back (a 2-wire adapter whose "
+                          "receiver is always on): consume the echo, which must match.")(f)
+    return f
+
+
+def given_line_options() -> LineOptions:
+    """--echo and --rs485 as given to the running command (off outside one)."""
+    ctx = click.get_current_context(silent=True)
+    found = ctx.find_root().meta.get(_LINE_KEY) if ctx is not None else None
+    return found if isinstance(found, LineOptions) else LineOptions()
+
+
 def port_options(f: F) -> F:
-    """--port, --baudrate, --parity, --stopbits: serial settings (default: the profile's)."""
+    """--port, --baudrate, --parity, --stopbits (default: the profile's), --echo, --rs485."""
+    f = line_options(f)
     f = click.option("--stopbits", type=click.Choice(["1", "2"]), default=None,
                      help="Stop bits (default: the profile's).")(f)
     f = click.option("--parity", type=click.Choice(["N", "E", "O"], case_sensitive=False),

@@ -21,7 +21,14 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
-from rtupoll.cli.options import format_option, profiles_option, service_options
+from rtupoll.cli.options import (
+    LineOptions,
+    format_option,
+    given_line_options,
+    line_options,
+    profiles_option,
+    service_options,
+)
 from rtupoll.cli.params import DEVICE, DeviceSpec, Seconds
 from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
@@ -101,6 +108,7 @@ class RecordWriter:
               default=None, help="Parity (default: the profiles').")
 @click.option("--stopbits", type=click.Choice(["1", "2"]), default=None,
               help="Stop bits (default: the profiles').")
+@line_options
 @click.option("--interval", "-i", type=Seconds(0, 86_400), default=None,
               help=f"Seconds between scans of each DEVICE [default: {DEFAULT_INTERVAL:g}; "
                    "0: as fast as the bus allows].")
@@ -176,7 +184,9 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
     if simulate:
         if config or port:
             raise UsageError("--simulate makes its own bus: leave out --config and --port")
-        with _simulated(devices, baud or baudrate, faults) as lines:
+        # --echo: the simulated adapter echoes, and the master expects it
+        with _simulated(devices, baud or baudrate, faults,
+                        echo=given_line_options().echo) as lines:
             buses = []
             wanted = _split(fields)
             every = {n for line in lines for d in line.config.devices
@@ -195,7 +205,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                                  timeout_ceiling=timeout_ceiling)
                 buses += [dataclasses.replace(b, name=f"line{i + 1}" if len(lines) > 1
                                               else "simulated") for b in one.buses]
-            site = dataclasses.replace(one, buses=tuple(buses))
+            site = _with_line_options(dataclasses.replace(one, buses=tuple(buses)))
             timing = "wire timing" if baud or baudrate else "untimed"
             title = (f"simulated: {len(buses)} lines" if len(buses) > 1
                      else "simulated bus") + f", {timing}"
@@ -219,6 +229,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                              "and serial options are set per bus and device in the site file")
         if served is not None:
             raise UsageError("with --config, set serve: per bus in the site file")
+        if given_line_options() != LineOptions():
+            raise UsageError("with --config, set echo: and rs485: per bus in the site file")
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
@@ -241,6 +253,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               interval=DEFAULT_INTERVAL if interval is None else interval,
                               fields=_split(fields), timeout=timeout, retries=retries,
                               profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
+        site = _with_line_options(site)
     site = _gateway(site, served, services, fmt)
     if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt,
              mqtt_id):
@@ -319,16 +332,24 @@ def _split(fields: str | None) -> list[str]:
     return [f.strip() for f in (fields or "").split(",") if f.strip()]
 
 
+def _with_line_options(site: Site) -> Site:
+    """--echo and --rs485 on every bus of a site made from the command line."""
+    given = given_line_options()
+    return dataclasses.replace(site, buses=tuple(
+        dataclasses.replace(b, echo=given.echo, rs485=given.rs485) for b in site.buses))
+
+
 @contextlib.contextmanager
-def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequence[str]
-               ) -> Iterator[list[SimulatedBus]]:
+def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequence[str],
+               *, echo: bool = False) -> Iterator[list[SimulatedBus]]:
     """Start the simulator in-process: the devices on lines that could exist (the seed
     devices by default: four at 9600 and the CO2Meter board at 115200), one port each.
     With devices named and a baud rate, they are one line at that rate, as asked."""
     from rtupoll.sim.runner import simulated_lines
 
     with simulated_lines([f"{d.profile}@{d.address}" for d in devices], baudrate=baudrate,
-                         one_line=bool(devices and baudrate), faults=tuple(faults)) as lines:
+                         one_line=bool(devices and baudrate), faults=tuple(faults),
+                         echo=echo) as lines:
         yield list(lines)
 
 

@@ -32,6 +32,7 @@ from rtupoll.model.codec import ByteOrder, words_to_hex
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
 from rtupoll.model.raw import RegisterSpec, parse_spec, split_reads
+from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import READ_KEYS, record
 
 F = TypeVar("F", bound=Callable[..., object])
@@ -127,7 +128,7 @@ def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | 
     timing = device_timing(target.profile, timeout, retries)
     if raw:
         specs = specs_of(target, items, addressing, type_name, order)
-        max_regs = target.profile.limits.max_registers if target.profile else 125
+        max_regs = target.profile.limits.max_registers if target.profile else MAX_REGISTERS
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         rows = run_on_bus(settings, lambda bus: read_raw(bus, target.unit, specs, max_regs,
                                                          timing),

@@ -16,7 +16,7 @@ from typing import Any
 
 import click
 
-from rtupoll.cli.options import format_option, profiles_option
+from rtupoll.cli.options import format_option, line_options, profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
@@ -76,6 +76,7 @@ Examples:
                    "one (repeatable; each costs one more timeout per empty address).")
 @click.option("--write-config", type=click.Path(dir_okay=False, path_type=Path),
               help="Write the identified devices as a site file for 'rtupoll poll --config'.")
+@line_options
 @profiles_option
 @format_option("table", "json")
 def scan(port: str, addresses: str, baudrates: str | None, parities: str, include_any: bool,
@@ -145,6 +146,7 @@ def scan(port: str, addresses: str, baudrates: str | None, parities: str, includ
 async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
                library: Sequence[Profile], probes: Sequence[Read], margin: float,
                found: list[Found], first: bool) -> None:
+    from rtupoll.cli.target import line_settings
     from rtupoll.io.bus import Bus, PortSettings
 
     def open_bus(s: Setting) -> Bus:
@@ -153,7 +155,7 @@ async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
         # a late reply from one unit for another's, and a drain per empty address
         # would double the time of a sweep.
         return Bus(PortSettings(port=port, baudrate=s.baudrate, parity=s.parity,
-                                deassert_dtr=True), drain=0.0)
+                                deassert_dtr=True, **line_settings()), drain=0.0)
 
     if not sys.stderr.isatty():
         await sweep(open_bus, settings, units, library, margin=margin, probes=probes,

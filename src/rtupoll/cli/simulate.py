@@ -66,12 +66,15 @@ FAULT_HELP = (
               default=None, help="Serve the devices of a capture ('rtupoll sniff --capture'): "
                                  "their captured replies, values and reply times.")
 @click.option("--verbose", "-v", is_flag=True, help="Print every frame on the wire.")
+@click.option("--echo", is_flag=True,
+              help="Behave like an adapter that echoes: every byte the master sends comes "
+                   "back to it before the reply (a master needs --echo).")
 @profiles_option
 def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | None,
              scenario: Path | None, sets: tuple[str, ...], options: tuple[str, ...],
              faults: tuple[str, ...], seed: int | None, tick: float, link: str | None,
              tcp: str | None, tap: str | None, replay: Path | None, verbose: bool,
-             profile_dirs: tuple[Path, ...]) -> None:
+             echo: bool, profile_dirs: tuple[Path, ...]) -> None:
     """Serve simulated Modbus RTU devices until interrupted.
 
     Devices are PROFILE@ADDRESS (e.g. net-irnet-pro@1 huiwen-aq@3); with none, one of
@@ -101,7 +104,9 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
             devices, baudrate=baud, one_line=bool(baud and (devices or scenario)),
             faults=faults, scenario=scenario, tcp=tcp or False, seed=seed, sets=sets,
             options=options, turnaround=turnaround, tick=tick or None,
-            profile_dirs=profile_dirs, link=link, tap=tap)
+            profile_dirs=profile_dirs, link=link, tap=tap, echo=echo)
+    for line in lines:  # (replay too)
+        line.echo = echo
     if verbose:
         for i, line in enumerate(lines):
             line.on_wire = _shower(t0, f"line {i + 1} " if len(lines) > 1 else "")

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
@@ -86,7 +86,17 @@ def port_settings(profile: Profile | None, port: str, baudrate: int | None, pari
         bytesize=s.bytesize if s else 8,
         stopbits=int(stopbits) if stopbits else (s.stopbits if s else 1),
         deassert_dtr=s.deassert_dtr if s else False,
+        **line_settings(),
     )
+
+
+def line_settings() -> dict[str, Any]:
+    """``PortSettings``' echo and rs485 from --echo and --rs485 (``cli.options``)."""
+    from rtupoll.cli.options import given_line_options
+    from rtupoll.io.serialport import Rs485
+
+    given = given_line_options()
+    return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None}
 
 
 def timing_options(f: F) -> F:

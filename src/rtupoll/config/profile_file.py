@@ -38,6 +38,7 @@ from rtupoll.model.profile import (
     Verification,
 )
 from rtupoll.rtu import Table
+from rtupoll.rtu.functions import MAX_REGISTERS
 
 T = TypeVar("T")
 V = TypeVar("V", float, str)  # a value a field holds
@@ -251,8 +252,9 @@ def _limits(node: Node) -> Limits:
     if not 0.01 <= timeout <= 30:
         raise m["timeout"].fail(f"{timeout} s is outside 0.01..30 s")
     return Limits(
-        max_registers=_opt(m, "max_registers", lambda n: n.integer(1, 125), d.max_registers),
-        max_gap=_opt(m, "max_gap", lambda n: n.integer(0, 124), d.max_gap),
+        max_registers=_opt(m, "max_registers", lambda n: n.integer(1, MAX_REGISTERS),
+                           d.max_registers),
+        max_gap=_opt(m, "max_gap", lambda n: n.integer(0, MAX_REGISTERS - 1), d.max_gap),
         functions=_opt(m, "functions",
                        lambda n: frozenset(f.integer(1, 127) for f in n.sequence()), d.functions),
         timeout=timeout,

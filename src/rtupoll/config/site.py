@@ -80,6 +80,8 @@ class BusConfig:
     devices: tuple[DeviceConfig, ...] = ()
     line: int = 0
     serve: ServeConfig | None = None  # Modbus TCP served to other masters (rtupoll.gateway)
+    echo: bool = False  # the adapter echoes each request (``echo: true``, --echo)
+    rs485: tuple[float, float] | None = None  # RTS direction control: (before, after) s
 
     @property
     def deassert_dtr(self) -> bool:
@@ -113,6 +115,7 @@ class Site:
 
 _TOP_KEYS = {"profiles", "buses", "metrics", "mqtt"}
 _BUS_KEYS = {"name", "port", "baudrate", "parity", "bytesize", "stopbits", "devices",
+             "echo", "rs485",
              "serve"}
 _DEVICE_KEYS = {"name", "profile", "address", "interval", "fields", "timeout", "retries",
                 "timeout_ceiling"}
@@ -191,7 +194,9 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
                     baudrate=int(serial["baudrate"]), parity=str(serial["parity"]),
                     bytesize=int(serial["bytesize"]), stopbits=int(serial["stopbits"]),
                     devices=devices, line=node.line,
-                    serve=serve_from_node(m["serve"]) if "serve" in m else None)
+                    serve=serve_from_node(m["serve"]) if "serve" in m else None,
+                    echo=m["echo"].flag() if "echo" in m else False,
+                    rs485=_rs485(m["rs485"]) if "rs485" in m else None)
 
     def fail_at(dnode: Node) -> Fail:
         dm = dnode.mapping()
@@ -200,6 +205,20 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
     check_bus(bus, [fail_at(n) for n in dnodes],
               {k: f"at line {m[k].line}" for k in serial if k in m})
     return bus
+
+
+def _rs485(node: Node) -> tuple[float, float] | None:
+    """``rs485: true`` or ``rs485: {delay_before: S, delay_after: S}`` (seconds)."""
+    if not node.is_mapping:
+        return (0.0, 0.0) if node.flag() else None
+    m = node.mapping({"delay_before", "delay_after"})
+    delays = []
+    for key in ("delay_before", "delay_after"):
+        value = m[key].number() if key in m else 0.0
+        if not 0 <= value <= 1:
+            raise m[key].fail(f"{key} is in seconds, 0..1")
+        delays.append(value)
+    return delays[0], delays[1]
 
 
 def _port(node: Node) -> str:

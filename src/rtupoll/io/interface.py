@@ -10,15 +10,35 @@ tests whose subject is not the port) both are one, as python-can's buses are one
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Protocol
+from collections.abc import Callable, Sequence
+from typing import NoReturn, Protocol
 
+from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError, UsageError
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.functions import reply_values
 from rtupoll.rtu.line import Line
+from rtupoll.rtu.transaction import (
+    Await,
+    BusStats,
+    Done,
+    Evidence,
+    Failed,
+    Refused,
+    Send,
+    Transaction,
+    evidence,
+    pdu_frame,
+    read_frame,
+    write_coil_frame,
+    write_registers_frame,
+)
+
+REPLY_MODES = ("echo", "none", "malformed", "any")
 
 
 class BusLike(Protocol):
     framing: Framing
+    adapter_latency: float  # a USB adapter's latency timer, added to every reply's time
 
     async def open(self) -> None: ...
 
@@ -47,16 +67,112 @@ class BusLike(Protocol):
         """Replies from ``unit`` that came after their request had timed out."""
         ...
 
+    def evidence(self, unit: int) -> Evidence:
+        """What the line knows of ``unit``'s reply times, as one value."""
+        ...
 
-class LineEvidence:
-    """What a bus tells about its line, read from its ``rtu.line.Line``: shared by
-    ``Bus`` and ``VirtualBus`` (the learned timeouts and the statistics use it)."""
+    def set_patience(self, unit: int, seconds: float) -> None:
+        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter."""
+        ...
+
+
+class LineBus:
+    """The one implementation of ``BusLike`` over ``rtu.transaction``: requests are
+    checked and built here, each becomes a ``Transaction``, and a subclass only drives
+    it (``_run``: the port's ``Bus``, the simulator's ``VirtualBus``). What the line
+    knows (late replies, reply times) is read from the one ``rtu.line.Line``."""
 
     line: Line
+    stats: BusStats
+    adapter_latency: float = 0.0
+    broadcast_turnaround: float = 0.1
+
+    async def _run(self, tx: Transaction) -> Done:
+        """``tx`` on the bus (its lock, its clock): ``_drive(tx)``."""
+        raise NotImplementedError
+
+    async def _step(self, tx: Transaction, step: Send | Await) -> None:
+        """Do what ``step`` says (send at its time; wait for bytes until its time)."""
+        raise NotImplementedError
+
+    async def _drive(self, tx: Transaction) -> Done:
+        """Drive ``tx`` to its end: its ``Done``, or the bus error of its ``Failed``."""
+        while True:
+            step = tx.next()
+            if isinstance(step, Done):
+                return step
+            if isinstance(step, Failed):
+                raise_failed(step)
+            await self._step(tx, step)
+
+    async def _transact(self, request: bytes, timeout: float, retries: int, *,
+                        tolerate: bool = False) -> Done:
+        try:
+            tx = Transaction(self.line, request, timeout=timeout, retries=retries,
+                             tolerate=tolerate, turnaround=self.broadcast_turnaround)
+        except Refused as exc:
+            raise UsageError(str(exc)) from None
+        return await self._run(tx)
+
+    async def read(self, unit: int, table: Table, address: int, count: int, *,
+                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+        """Registers as 16-bit ints; coils and discrete inputs as 0/1."""
+        try:
+            request = read_frame(unit, table, address, count)
+        except Refused as exc:
+            raise RefusedError(str(exc)) from None
+        done = await self._transact(request, timeout, retries)
+        values = reply_values(done.frame, count)
+        if len(values) != count:
+            raise FrameError(f"unit {unit} returned {len(values)} values for {count}")
+        return values
+
+    async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
+                              function: int = 16, timeout: float, retries: int = 0,
+                              reply: str = "echo") -> bool:
+        """Function 6 (one value) or 16; True when the device confirmed it with an echo.
+
+        With ``reply`` other than "echo" a missing or malformed reply is not an error and
+        the write is not repeated (False): the caller verifies by reading back. An
+        exception reply is always an error."""
+        if reply not in REPLY_MODES:
+            raise UsageError(f"reply {reply!r} is not one of: {', '.join(REPLY_MODES)}")
+        request = _checked(lambda: write_registers_frame(unit, address, values,
+                                                               function=function))
+        done = await self._transact(request, timeout, retries if reply == "echo" else 0,
+                                    tolerate=reply != "echo")
+        return bool(done.frame)
+
+    async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
+                         retries: int = 0) -> None:
+        request = _checked(lambda: write_coil_frame(unit, address, on))
+        await self._transact(request, timeout, retries)
+
+    async def transact(self, unit: int, pdu: bytes, *, timeout: float,
+                       retries: int = 0) -> bytes:
+        """Any request PDU (function code and data) to ``unit``; the reply PDU, which is
+        an exception PDU (function | 0x80, code) when the device answered with one.
+        For a gateway passing other masters' requests through; a broadcast returns b""."""
+        request = _checked(lambda: pdu_frame(unit, pdu))
+        try:
+            done = await self._transact(request, timeout, retries)
+        except DeviceException as exc:
+            return bytes((pdu[0] | 0x80, exc.code))
+        return done.frame[1:-2]
+
+    # -- what the line knows ---------------------------------------------------------
+
+    @property
+    def unsolicited(self) -> int:
+        """Frames and bursts of bytes that answered nothing this bus asked."""
+        return int(self.line.counts.unsolicited)
 
     def late(self, unit: int) -> int:
         """Late replies from ``unit``: answers to requests that had timed out."""
         return int(self.line.counts.late[unit])
+
+    def evidence(self, unit: int) -> Evidence:
+        return evidence(self.line, unit)
 
     def reply_time(self, unit: int) -> float | None:
         """``unit``'s last reply time (request's end to reply's first byte), if any."""
@@ -70,3 +186,23 @@ class LineEvidence:
         """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
         (``Line.patience``: a learned timeout does not shorten it)."""
         self.line.patience[unit] = seconds
+
+
+def raise_failed(failed: Failed) -> NoReturn:
+    """The bus error of a transaction that got no answer."""
+    if failed.kind == "exception":
+        raise DeviceException(failed.code, unit=failed.unit, function=failed.function)
+    if failed.kind == "frame":
+        raise FrameError(failed.why)
+    raise DeviceTimeout(failed.why)
+
+
+def _checked(build: Callable[[], bytes]) -> bytes:
+    """The request ``build`` makes, or ``RefusedError`` (nothing is sent)."""
+    try:
+        return build()
+    except Refused as exc:
+        raise RefusedError(str(exc)) from None
+
+
+LineEvidence = LineBus  # the former name

@@ -10,6 +10,15 @@ writes that state right after the open system call, before a byte is exchanged.
 (The kernel's raise-on-open itself cannot be prevented from user space; what this
 removes is the seconds-long assertion that holds such a board in reset.)
 
+rtupoll's own port. ``Bus`` has pymodbus open every serial port as
+``rtupoll://N/dev/ttyUSB0`` (``claim``): the same hook builds a ``Serial`` bound to
+``Slot`` N, which holds the open ``Serial`` object for the bus. So the bus writes a
+frame to it at once and looks at what waits in it through pyserial's public API,
+never through pymodbus's transport internals; and the slot's ``rs485`` settings are
+applied on open (``direction_control``: the kernel's RS-485 mode, TIOCSRS485, where
+the driver has it, else ``RtsToggle`` around each write; a port with neither is a
+one-line error). ``nodtr://PATH`` stays a port name users may give.
+
 Naming. pyserial finds a scheme ``X`` by importing ``<package>.protocol_X`` for
 each package in ``serial.protocol_handler_packages``. Rather than ship a package
 with a ``protocol_nodtr`` module, this module registers itself in ``sys.modules``
@@ -30,42 +39,182 @@ import asyncio
 import contextlib
 import errno
 import glob
+import itertools
 import os
 import socket
 import sys
+import time
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import serial
+import serial.rs485
 
 from rtupoll.errors import UsageError
 
 SCHEME = "nodtr"
 _PREFIX = f"{SCHEME}://"
+OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
+_OWN_PREFIX = f"{OWN}://"
+
+
+@dataclass(frozen=True)
+class Rs485:
+    """Direction control for a transceiver whose DE/RE pin is on RTS: RTS is raised
+    ``before`` seconds before a frame's first bit and dropped ``after`` seconds after
+    its last. The kernel's RS-485 mode (TIOCSRS485, pyserial's ``rs485_mode``) does it
+    where the driver has it; else rtupoll toggles RTS around each write."""
+
+    before: float = 0.0
+    after: float = 0.0
+
+
+class RtsToggle:
+    """RTS driven around each write, for a driver without kernel RS-485 mode: up,
+    ``before``, the frame, wait until its last bit has left (``flush``: tcdrain),
+    ``after``, down. ``port`` is any object with pyserial's ``rts`` and ``flush``."""
+
+    def __init__(self, port: Any, rs485: Rs485,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.port, self.rs485, self._sleep = port, rs485, sleep
+
+    def write(self, write: Callable[[bytes], int | None], data: bytes) -> int | None:
+        self.port.rts = True
+        if self.rs485.before:
+            self._sleep(self.rs485.before)
+        try:
+            sent = write(data)
+            self.port.flush()
+            if self.rs485.after:
+                self._sleep(self.rs485.after)
+        finally:
+            self.port.rts = False
+        return sent
+
+
+def direction_control(port: Any, rs485: Rs485) -> tuple[str, RtsToggle | None]:
+    """Set up ``rs485`` on an open ``port``: ("kernel", None) when the driver does it,
+    ("rts", the toggler) when RTS can be driven instead; ``UsageError`` (one line) when
+    the port can do neither."""
+    name = getattr(port, "port", None) or "the port"
+    try:
+        port.rs485_mode = serial.rs485.RS485Settings(
+            rts_level_for_tx=True, rts_level_for_rx=False,
+            delay_before_tx=rs485.before, delay_before_rx=rs485.after)
+        return "kernel", None
+    except (ValueError, OSError, serial.SerialException, NotImplementedError) as exc:
+        kernel = str(exc) or type(exc).__name__
+        with contextlib.suppress(Exception):
+            port.rs485_mode = None
+    try:
+        port.rts = False  # receiving: the transceiver listens
+    except (ValueError, OSError, serial.SerialException) as exc:
+        raise UsageError(f"{name} supports neither the kernel's RS-485 mode ({kernel}) nor "
+                         f"RTS control ({exc or type(exc).__name__}): --rs485 needs a UART "
+                         "with RTS wired to the transceiver's DE/RE, or an adapter that "
+                         "switches direction by itself (then leave --rs485 out)") from None
+    return "rts", RtsToggle(port, rs485)
+
+
+@dataclass
+class Slot:
+    """One bus's port as pyserial builds it for pymodbus: what to do on open, and the
+    ``Serial`` object itself once open (``port``), so the bus may write to it and look
+    at what waits in it through pyserial's public API, not pymodbus's internals."""
+
+    deassert_dtr: bool = False
+    rs485: Rs485 | None = None
+    port: Serial | None = None
+    direction: str = ""  # "kernel" or "rts" once open with rs485
+    error: str = ""  # why the port opened but cannot be used as asked (one line)
+
+
+# the bus that claimed a slot holds it; once that bus is gone, so is its slot
+_SLOTS: weakref.WeakValueDictionary[int, Slot] = weakref.WeakValueDictionary()
+_slot_ids = itertools.count(1)
 
 
 class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
-    """A pyserial port that opens with DTR and RTS deasserted."""
+    """A pyserial port that opens with DTR and RTS deasserted (``slot``: when its
+    ``Slot`` says so; ``nodtr://``: always), and tells its ``Slot`` it is open."""
+
+    slot: Slot | None = None
+    _toggle: RtsToggle | None = None  # RTS driven around each write (--rs485 without kernel)
 
     def open(self) -> None:
         # Setting the lines on a closed port only records the state; open() applies it
         # immediately after the open system call (serialposix: _update_dtr_state).
-        self.dtr = False
-        self.rts = False
+        if self.slot is None or self.slot.deassert_dtr:
+            self.dtr = False
+            self.rts = False
         super().open()
+        self._toggle = None
+        slot = self.slot
+        if slot is None:
+            return
+        slot.port, slot.error = self, ""
+        if slot.rs485 is not None:
+            try:
+                slot.direction, self._toggle = direction_control(self, slot.rs485)
+            except UsageError as exc:
+                slot.error = str(exc)
+                self.close()
+                raise serial.SerialException(slot.error) from None
+
+    def write(self, data: bytes) -> int | None:
+        if self._toggle is None:
+            return super().write(data)  # type: ignore[no-any-return]
+        return self._toggle.write(super().write, data)
 
 
 def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
-    """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial)."""
-    if not url.lower().startswith(_PREFIX):
-        raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
-    return url[len(_PREFIX):], Serial
+    """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial);
+    ``rtupoll://N/dev/ttyUSB0`` -> (``/dev/ttyUSB0``, a Serial bound to slot N)."""
+    low = url.lower()
+    if low.startswith(_PREFIX):
+        return url[len(_PREFIX):], Serial
+    if low.startswith(_OWN_PREFIX):
+        number, _, path = url[len(_OWN_PREFIX):].partition("/")
+        slot = _SLOTS.get(int(number)) if number.isdigit() else None
+        if slot is not None:
+            return "/" + path, type("Serial", (Serial,), {"slot": slot})
+    raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
 
 
 def register() -> None:
-    """Make ``nodtr://`` known to ``serial.serial_for_url`` (idempotent)."""
-    sys.modules.setdefault(f"{__name__}.protocol_{SCHEME}", sys.modules[__name__])
+    """Make ``nodtr://`` and ``rtupoll://`` known to ``serial.serial_for_url`` (idempotent)."""
+    for scheme in (SCHEME, OWN):
+        sys.modules.setdefault(f"{__name__}.protocol_{scheme}", sys.modules[__name__])
     if __name__ not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append(__name__)
+
+
+def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
+          ) -> tuple[str, Slot | None]:
+    """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
+    ``Serial`` object: for a device path (and ``nodtr://``), ``rtupoll://N/PATH``; other
+    URLs (``socket://``, ``rfc2217://``) pass unchanged, with no slot."""
+    if port.lower().startswith(_PREFIX):
+        port, deassert_dtr = port[len(_PREFIX):], True
+    if "://" in port or not port.startswith("/"):
+        if rs485 is not None:
+            raise UsageError(f"{port}: --rs485 drives a serial port's RTS line; this is not "
+                             "a serial port")
+        return port_url(port, deassert_dtr=deassert_dtr), None
+    number = next(_slot_ids)
+    slot = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
+    _SLOTS[number] = slot
+    return f"{_OWN_PREFIX}{number}{port}", slot
+
+
+def release(url: str) -> None:
+    """Forget the slot of a ``claim``ed URL (its bus is closed for good)."""
+    if url.lower().startswith(_OWN_PREFIX):
+        number = url[len(_OWN_PREFIX):].partition("/")[0]
+        if number.isdigit():
+            _SLOTS.pop(int(number), None)
 
 
 def port_url(port: str, *, deassert_dtr: bool) -> str:
@@ -89,7 +238,9 @@ def gateway(port: str) -> tuple[str, int] | None:
 
 
 def device_path(port: str) -> str:
-    """The filesystem path behind a port or ``nodtr://`` URL."""
+    """The filesystem path behind a port, ``nodtr://`` or ``rtupoll://N`` URL."""
+    if port.lower().startswith(_OWN_PREFIX):
+        return "/" + port[len(_OWN_PREFIX):].partition("/")[2]
     return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
 
 

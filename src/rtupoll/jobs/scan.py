@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
 from rtupoll.io.interface import BusLike
-from rtupoll.jobs.timeouts import Evidence, late_margin
+from rtupoll.jobs.timeouts import late_margin
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Check, Profile
 from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
@@ -365,7 +365,7 @@ async def _late_ones(bus: BusLike, profiles: Sequence[Profile], setting: Setting
         return out
     for unit in [u for u in empty if bus.late(u)]:
         empty.remove(unit)
-        took = bus.late_reply_time(unit) if isinstance(bus, Evidence) else None
+        took = bus.evidence(unit).late_reply_time
         longer = Identifier(bus, profiles, setting, late_margin(margin, took))
         result = await probe_address(bus, longer, probes, unit)
         if result is not None:

@@ -256,13 +256,13 @@ class DevicePoller:
                                       f"0x{block.address:04X}+{block.count}")
         return found
 
-    def timeout(self, transport: object) -> float:
+    def timeout(self, transport: BusLike) -> float:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
         cfg = self.config
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
                                   ceiling=cfg.timeout_ceiling)
 
-    async def _transact(self, read: Awaitable[T], *, via: object = None
+    async def _transact(self, read: Awaitable[T], *, via: BusLike | None = None
                         ) -> tuple[Status, str, T | None]:
         """One read (not yet awaited), timed and counted: (status, error, what it read)."""
         cfg, st = self.config, self.stats
@@ -467,7 +467,8 @@ class BusPoller:
 
 def _serial(bus: BusConfig) -> tuple[object, ...]:
     """What a bus's port is opened with: equal means the open port can stay open."""
-    return (bus.port, bus.baudrate, bus.parity, bus.bytesize, bus.stopbits, bus.deassert_dtr)
+    return (bus.port, bus.baudrate, bus.parity, bus.bytesize, bus.stopbits, bus.deassert_dtr,
+            bus.echo, bus.rs485)
 
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
@@ -487,10 +488,12 @@ OpenBus = Callable[[BusConfig], BusLike]
 def open_real_bus(config: BusConfig) -> BusLike:
     """A ``rtupoll.io.bus.Bus`` for the configured port (imported here: pymodbus is slow)."""
     from rtupoll.io.bus import Bus, PortSettings
+    from rtupoll.io.serialport import Rs485
 
     return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
                             bytesize=config.bytesize, stopbits=config.stopbits,
-                            deassert_dtr=config.deassert_dtr))
+                            deassert_dtr=config.deassert_dtr, echo=config.echo,
+                            rs485=Rs485(*config.rs485) if config.rs485 else None))
 
 
 class Scheduler:

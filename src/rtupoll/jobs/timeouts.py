@@ -35,9 +35,13 @@ import heapq
 from collections import deque
 from collections.abc import Collection
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
+
+if TYPE_CHECKING:
+    from rtupoll.io.interface import BusLike
+    from rtupoll.rtu.transaction import Evidence
 
 FLOOR = 0.02  # seconds: never wait less than this beyond the wire time and the silence
 CEILING = 3.0  # seconds: never learn a timeout longer than this (unless pinned)
@@ -133,22 +137,6 @@ class TimeoutEstimator:
         self.current = self._clamp(self.current)
 
 
-@runtime_checkable
-class Evidence(Protocol):
-    """What a transport tells about reply times (``rtupoll.io.bus.Bus`` does)."""
-
-    def late(self, unit: int) -> int: ...
-    def reply_time(self, unit: int) -> float | None: ...
-    def late_reply_time(self, unit: int) -> float | None: ...
-    def set_patience(self, unit: int, seconds: float) -> None: ...
-
-
-def adapter_latency(transport: object) -> float:
-    """The transport's USB adapter latency (``Bus.adapter_latency``), 0 if it has none."""
-    value = getattr(transport, "adapter_latency", 0.0)
-    return float(value) if isinstance(value, (int, float)) else 0.0
-
-
 class DeviceTiming:
     """One polled device's timeout, fed from its transport's evidence.
 
@@ -164,7 +152,6 @@ class DeviceTiming:
         self.estimator = TimeoutEstimator(start, floor=FLOOR + silence,
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None
-        self._tells: tuple[object, bool] | None = None  # (transport, tells reply times)
 
     @property
     def timeout(self) -> float:
@@ -177,44 +164,43 @@ class DeviceTiming:
             return "pinned"
         return "learned" if self.estimator.learned else "profile"
 
-    def before(self, transport: object, unit: int, *, pinned: float | None = None,
+    def before(self, bus: BusLike | None, unit: int, *, pinned: float | None = None,
                ceiling: float | None = None) -> float:
-        """The timeout for the next transaction to ``unit`` (``pinned``, ``ceiling``: the
-        device's configuration now, which a reload may change)."""
+        """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
+        ``ceiling``: the device's configuration now, which a reload may change). The
+        bus's evidence (``BusLike.evidence``: a value) is read; the patience a late
+        reply is still expected with is told back (``BusLike.set_patience``)."""
         self.pinned = pinned
         self.estimator.ceiling = CEILING if ceiling is None else ceiling
-        self.estimator.set_floor(FLOOR + self.silence + adapter_latency(transport))
-        evidence = self._evidence(transport)
-        if evidence is not None:
-            self._take_late(evidence, unit)
-            # a late reply stays expected as long as the manual allows
-            evidence.set_patience(unit, max(self.estimator.start, self.timeout))
+        if bus is None:
+            return self.timeout
+        self.estimator.set_floor(FLOOR + self.silence + bus.adapter_latency)
+        self._take_late(bus.evidence(unit))
+        bus.set_patience(unit, self.patience)  # a late reply stays expected that long
         return self.timeout
 
-    def _evidence(self, transport: object) -> Evidence | None:
-        """The transport, if it tells reply times (asked once: a Protocol check is slow)."""
-        if self._tells is None or self._tells[0] is not transport:
-            self._tells = (transport, isinstance(transport, Evidence))
-        return transport if self._tells[1] else None  # type: ignore[return-value]
+    @property
+    def patience(self) -> float:
+        """How long a late reply is still expected: as long as the manual allows, even
+        when the timeout learned is shorter."""
+        return max(self.estimator.start, self.timeout)
 
-    def after(self, transport: object, unit: int, answered: bool) -> None:
+    def after(self, bus: BusLike | None, unit: int, answered: bool) -> None:
         """``answered``: the transaction got a reply (data or an exception reply)."""
-        evidence = self._evidence(transport)
-        if evidence is None:
+        if bus is None:
             return
-        if answered:
-            took = evidence.reply_time(unit)
-            if took is not None:
-                self.estimator.answered(took)
-        self._take_late(evidence, unit)
+        evidence = bus.evidence(unit)
+        if answered and evidence.reply_time is not None:
+            self.estimator.answered(evidence.reply_time)
+        self._take_late(evidence)
 
-    def _take_late(self, transport: Evidence, unit: int) -> None:
-        n = transport.late(unit)
+    def _take_late(self, evidence: Evidence) -> None:
+        n = evidence.late
         if self._late_seen is None:
             self._late_seen = n
         if n > self._late_seen:
             self._late_seen = n
-            self.estimator.late(transport.late_reply_time(unit))
+            self.estimator.late(evidence.late_reply_time)
 
 
 def late_margin(margin: float, late_reply: float | None, ceiling: float = CEILING) -> float:

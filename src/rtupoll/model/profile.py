@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from rtupoll.errors import UsageError
 from rtupoll.model.codec import ByteOrder, Layout
 from rtupoll.rtu import Table
+from rtupoll.rtu.functions import MAX_REGISTERS
 
 _LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
 
@@ -148,7 +149,7 @@ class Serial:
 
 @dataclass(frozen=True)
 class Limits:
-    max_registers: int = 125  # per read request
+    max_registers: int = MAX_REGISTERS  # per read request
     max_gap: int = 0  # unread registers a block may bridge (0: blocks only over adjacent fields)
     functions: frozenset[int] = frozenset({3, 4, 6, 16})
     timeout: float = 0.5  # response timeout hint, seconds

@@ -22,6 +22,7 @@ from rtupoll.model.codec import ByteOrder, DataType, Layout
 from rtupoll.model.profile import Addressing, Field
 from rtupoll.numbers import parse_int
 from rtupoll.rtu import Table
+from rtupoll.rtu.functions import MAX_BITS
 
 TABLE_ALIASES: dict[str, Table] = {
     "coil": Table.COIL, "coils": Table.COIL, "co": Table.COIL,
@@ -159,7 +160,7 @@ def modicon_wire(spec_table: Table, reference: int) -> int:
 
 def split_reads(spec: RegisterSpec, max_registers: int) -> list[tuple[int, int]]:
     """(wire address, count) reads covering the spec, never splitting a value."""
-    per_read = 2000 if not spec.table.is_register else max_registers
+    per_read = MAX_BITS if not spec.table.is_register else max_registers
     step = max(1, per_read // spec.layout.words) * spec.layout.words
     if spec.layout.words > per_read:
         raise UsageError(f"one {spec.layout.type.value} value needs {spec.layout.words} registers,"

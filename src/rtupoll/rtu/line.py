@@ -47,6 +47,15 @@ is counted late and the attempt times out: never a wrong value, at worst a retry
 What this cannot guarantee: a reply later than the late window of its request, a
 device that answers one request twice, and frames from a second master.
 
+**Echo.** A 2-wire adapter whose receiver is always on hands every request back
+before the device's reply. With ``echo`` on, the line consumes that echo as part of
+each attempt: the first bytes received after a request must be the request, byte for
+byte; anything else ends the attempt as garbled (a collision on the wire, or an
+adapter that does not echo). With ``echo`` off, a request coming back is detected:
+the attempt ends garbled with ``ECHO_HINT`` (reads and FC15/16, whose echo is no
+reply; FC05/06, whose echo is byte for byte the device's reply, once an echo has been
+seen on the line), never taken for the answer.
+
 **Reply time.** For every frame it explains, the line records the device's reply
 time: from the end of the request on the wire (its first byte's time plus its wire
 time) to the reply's first byte, per unit (``reply_time``; ``late_reply_time`` for late
@@ -56,7 +65,12 @@ counted from the oldest: never shorter than the truth.
 
 **Garbled replies** are known at once: a complete frame from the unit, with the
 request's function, whose CRC is wrong ends the attempt (``Garbled``) without
-waiting for the timeout. An attempt that ends unanswered is classified by
+waiting for the timeout. It *settles* the request: the device answered (the line
+garbled it), so the request leaves the outstanding queue at once. The retry, sent
+after the silence, is then the only one its answer fits: that answer is never
+counted late, its reply time is the retry's own (so a noisy line never looks like a
+slow device to the learned timeout), and a different request is not held for it.
+An attempt that ends unanswered is classified by
 ``rtupoll.rtu.match.diagnose``: truncated, mismatched or garbled (``FrameError``) or
 plain silence (``DeviceTimeout``).
 """
@@ -75,6 +89,8 @@ HORIZON = 60.0  # seconds after which no late reply is expected, whatever the ev
 LATE_FACTOR = 12  # a request that timed out may still be answered this many timeouts late
 SETTLE_FACTOR = 3  # an answered-looking request may still be answered this many latencies late
 DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
+ECHO_HINT = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
+             "always on): add --echo (echo: true on the bus in a site file)")
 
 
 @dataclass
@@ -112,14 +128,18 @@ class Attempt:
 class LineCounts:
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
+    echoes: int = 0  # requests that came back with echo off (the adapter echoes)
 
 
 class Line:
     """One line, one master. See the module docstring for the rules."""
 
     def __init__(self, framing: Framing, *, drain: float | None = None,
-                 horizon: float = HORIZON, drain_limit: int = DRAIN_LIMIT) -> None:
+                 horizon: float = HORIZON, drain_limit: int = DRAIN_LIMIT,
+                 echo: bool = False) -> None:
         self.framing = framing
+        self.echo = echo  # the adapter echoes each request: consume it
+        self._echo = b""  # the echo still expected (echo on)
         self.counts = LineCounts()
         self._drain, self._horizon, self._drain_limit = drain, horizon, drain_limit
         self.last_rx = self.tx_end = self.timeout_at = float("-inf")
@@ -164,6 +184,7 @@ class Line:
         self._buf.clear()
         self._marks.clear()
         self._forget(now)
+        self._echo = request if self.echo else b""
         exp = expect_for(request)
         if exp is None:  # a broadcast: nobody answers
             self.attempt = None
@@ -184,6 +205,12 @@ class Line:
         if not data:
             return None
         self.last_rx = now
+        if self._echo:
+            data, garbled = self._take_echo(data)
+            if garbled:
+                return garbled
+            if not data:
+                return None
         self._marks.append((len(self._buf), now))
         self._buf += data
         att = self.attempt
@@ -191,6 +218,14 @@ class Line:
             self._idle_burst = True
         else:
             att.rx += data
+            request = att.entry.request
+            if not self.echo and self._buf[:1] == request[:1]:
+                if len(self._buf) < len(request) and request.startswith(self._buf):
+                    return None  # the request coming back, perhaps: wait for the rest
+                if self._buf.startswith(request) and self._is_echo(request):
+                    self.counts.echoes += 1
+                    self.attempt = None
+                    return Garbled(ECHO_HINT)
         while True:
             found = self._next_frame()
             if found is None:
@@ -205,10 +240,46 @@ class Line:
             self._consume(len(self._buf) - MAX_FRAME)
         if att is not None:
             why = self._garbled(att)
-            if why:
+            if why:  # the request got its reply, garbled: it is settled, not outstanding
                 self.attempt = None
+                self._settle_garbled(att.entry)
                 return Garbled(why)
         return None
+
+    def _settle_garbled(self, entry: Outstanding) -> None:
+        """A garbled reply of the attempt's shape answered one of the unit's identical
+        outstanding requests (the one that would have expired first, as in ``_explain``):
+        it leaves the queue, so the retry's answer is the retry's (not late), its reply
+        time is the retry's own, and a different request need not wait for it."""
+        queue = self._outstanding.get(entry.expect.unit)
+        if not queue:
+            return
+        same = [e for e in queue if e.request == entry.request]
+        if same:
+            queue.remove(min(same, key=lambda e: e.expires))
+        if not queue:
+            del self._outstanding[entry.expect.unit]
+
+    def _take_echo(self, data: bytes) -> tuple[bytes, Garbled | None]:
+        """Echo on: consume the expected echo from ``data``; what is left, or the attempt
+        ending garbled when the echo differs from the request sent."""
+        n = min(len(data), len(self._echo))
+        if data[:n] == self._echo[:n]:
+            self._echo = self._echo[n:]
+            return data[n:], None
+        sent, self._echo = self._echo, b""
+        att, self.attempt = self.attempt, None
+        if att is None:  # a broadcast's echo: nothing waits for it
+            self.counts.unsolicited += 1
+            return b"", None
+        return b"", Garbled(f"the adapter's echo differs from the request sent (expected "
+                            f"{sent[:n].hex(' ')}, got {data[:n].hex(' ')}): a collision, or "
+                            "an adapter that does not echo (then drop --echo)")
+
+    def _is_echo(self, request: bytes) -> bool:
+        """Echo off, ``request`` came back: an echo, unless it is byte for byte a normal
+        reply (FC05/06) and no echo has been seen on this line yet."""
+        return self.counts.echoes > 0 or request[1] not in (5, 6)
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""

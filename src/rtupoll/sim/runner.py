@@ -85,6 +85,7 @@ class SimulatedBus:
         """``tap``: also offer a pty, linked there, that hears every byte on the line;
         ``engine``: serve this one (e.g. ``sim.replay``) instead of the config's devices."""
         self.config, self.tcp, self.link, self.on_wire = config, tcp, link, on_wire
+        self.echo = False  # an echoing adapter: the master hears each request back
         self.framing = Framing(config.baudrate) if config.baudrate else None
         self.port = ""
         self.tap, self.tap_port = tap, ""
@@ -149,6 +150,7 @@ class SimulatedBus:
         try:
             server = self._server = _LineServer(self.engine, speed=self.config.speed,
                                                 framing=self.framing, on_wire=self.on_wire)
+            server.echo = self.echo
             if self.tcp:
                 host, _, port = (self.tcp if isinstance(self.tcp, str) else "").rpartition(":")
                 self.port = await server.serve_tcp(host or "127.0.0.1", int(port or 0))
@@ -343,7 +345,7 @@ def simulated_lines(devices: Sequence[str] = (), *, baudrate: int | None = None,
                     tick: float | None = 1.0, profile_dirs: Iterable[Path] = (),
                     link: str | None = None,
                     on_wire: Callable[[WireFrame], None] | None = None,
-                    tap: str | None = None) -> SimulatedLines:
+                    tap: str | None = None, echo: bool = False) -> SimulatedLines:
     """The devices on lines that could exist (``scenario.split_lines``), one port each.
 
     Arguments as ``simulated_bus``. ``baudrate``: wire timing, and the speed preferred
@@ -365,4 +367,5 @@ def simulated_lines(devices: Sequence[str] = (), *, baudrate: int | None = None,
             where = f"{host}:{int(port) + i if int(port or 0) else 0}"
         out.append(SimulatedBus(line, tcp=where, link=f"{link}{i + 1}" if link and i else link,
                                 on_wire=on_wire, tap=f"{tap}{i + 1}" if tap and i else tap))
+        out[-1].echo = echo  # ``echo``: behind an adapter that echoes the master's requests
     return SimulatedLines(out)

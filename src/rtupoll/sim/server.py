@@ -78,6 +78,8 @@ class _Link:
     def received(self, data: bytes) -> None:
         srv = self.server
         now = srv.loop.time()
+        if srv.echo and not self.closed:  # an adapter whose receiver is always on
+            self.write(data)
         srv.to_tap(data, now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0))
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
@@ -138,6 +140,7 @@ class Server:
     def __init__(self, engine: Engine, *, framing: Framing | None = None,
                  on_wire: Callable[[WireFrame], None] | None = None) -> None:
         self.engine, self.framing, self.on_wire = engine, framing, on_wire
+        self.echo = False  # the master's adapter echoes what the master sends (its own bytes)
         self.loop = asyncio.get_running_loop()
         self.wire: collections.deque[WireFrame] = collections.deque(maxlen=WIRE_LOG)
         self.wire_lock = threading.Lock()  # tests read the log from another thread

@@ -1,0 +1,265 @@
+"""Issue 24.4: adapters that echo (--echo, echo: true) and RS-485 direction control
+(--rs485): end to end on the simulator's echoing adapter, and the modem-line calls of
+direction control recorded on a fake port against the bytes written."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from rtupoll.cli import cli
+from rtupoll.config.site import load_site
+from rtupoll.errors import ConfigError, DeviceTimeout, FrameError
+from rtupoll.io import serialport
+from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.rtu import Table
+from rtupoll.sim.runner import SimulatedBus, simulated_bus
+
+
+@pytest.fixture
+def echoing() -> Iterator[SimulatedBus]:
+    """The huiwen and the radar behind an adapter that echoes every request."""
+    bus = simulated_bus(["huiwen-aq@3", "radar-level@2"], tick=None)
+    bus.echo = True
+    bus.start()
+    yield bus
+    bus.stop()
+
+
+def test_read_with_echo_reads_the_devices_values(echoing: SimulatedBus) -> None:
+    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, "--echo", "radar-level@2",
+                                      "--format", "json"])
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    got = {r["field"]: r["raw"] for r in records}
+    assert got["level_cm"] == list(echoing.registers(2, Table.HOLDING, 2, 1))
+
+
+def test_read_without_echo_says_in_one_line_to_add_it(echoing: SimulatedBus) -> None:
+    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, "radar-level@2",
+                                      "--retries", "0"])
+    assert result.exit_code == 7  # garbled, never a value
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "adapter echoes" in lines[0] and "--echo" in lines[0]
+
+
+def test_echo_on_a_line_without_an_echo_is_said_too(sim: Any) -> None:
+    plain = sim("radar-level@2", tick=None)
+    result = CliRunner().invoke(cli, ["read", "-p", plain.port, "--echo", "radar-level@2",
+                                      "--retries", "0"])
+    assert result.exit_code == 7 and "drop --echo" in result.stderr
+
+
+def test_a_write_to_a_dead_device_is_never_confirmed_by_its_echo(
+        echoing: SimulatedBus) -> None:
+    async def go(echo: bool) -> list[str]:
+        seen = []
+        async with Bus(PortSettings(echoing.port, baudrate=9600, echo=echo)) as bus:
+            if not echo:  # an echo seen on a read first: the write's echo is known too
+                with pytest.raises(FrameError):
+                    await bus.read(2, Table.HOLDING, 2, 1, timeout=0.2)
+            for unit in (9, 2):  # 9: nobody there; 2: the radar
+                try:
+                    await bus.write_registers(unit, 0x0010, [7], function=6, timeout=0.2)
+                    seen.append("confirmed")
+                except (DeviceTimeout, FrameError) as exc:
+                    seen.append(type(exc).__name__)
+                except Exception as exc:
+                    seen.append(type(exc).__name__)
+        return seen
+
+    with_echo = asyncio.run(go(True))
+    assert with_echo[0] == "DeviceTimeout"  # only its echo came back: no confirmation
+    assert with_echo[1] != "DeviceTimeout"  # the radar's own answer (echo or exception)
+    without = asyncio.run(go(False))
+    assert without[0] == "FrameError"  # the echo is named, not taken for the reply
+
+
+def test_poll_simulate_with_echo_reads_every_field() -> None:
+    result = CliRunner().invoke(cli, ["poll", "--simulate", "huiwen-aq@3", "radar-level@2",
+                                      "--echo", "--once", "--format", "json"])
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    assert records and all(r["status"] == "ok" for r in records)
+
+
+def test_poll_with_echo_through_the_gateway_answers_clients(echoing: SimulatedBus) -> None:
+    """The bus consumes the echo for the gateway's clients' requests too."""
+    async def go() -> bytes:
+        async with Bus(PortSettings(echoing.port, baudrate=9600, echo=True)) as bus:
+            return await bus.transact(2, bytes((3, 0, 2, 0, 1)), timeout=0.3)
+
+    pdu = asyncio.run(go())
+    assert pdu[:2] == bytes((3, 2))
+    assert int.from_bytes(pdu[2:4], "big") == echoing.registers(2, Table.HOLDING, 2, 1)[0]
+
+
+# -- the site file -------------------------------------------------------------------
+
+
+def _site(tmp_path: Path, extra: str) -> Path:
+    path = tmp_path / "site.yaml"
+    path.write_text("buses:\n  - port: /dev/ttyUSB0\n    baudrate: 9600\n" + extra +
+                    "    devices:\n      - profile: radar-level\n        address: 2\n")
+    return path
+
+
+def test_site_file_echo_and_rs485(tmp_path: Path) -> None:
+    site = load_site(_site(tmp_path, "    echo: true\n    rs485:\n"
+                                     "      delay_before: 0.001\n      delay_after: 0.002\n"))
+    bus = site.buses[0]
+    assert bus.echo is True and bus.rs485 == (0.001, 0.002)
+    plain = load_site(_site(tmp_path, "    rs485: true\n")).buses[0]
+    assert plain.echo is False and plain.rs485 == (0.0, 0.0)
+
+
+def test_site_file_rs485_delay_out_of_range_is_file_line_field(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as exc:
+        load_site(_site(tmp_path, "    rs485:\n      delay_before: 5\n"))
+    text = str(exc.value)
+    assert "site.yaml:5" in text and "delay_before" in text
+
+
+# -- direction control -----------------------------------------------------------------
+
+
+class FakePort:
+    """Records modem-line calls and bytes written, in order. ``kernel``: the driver
+    has RS-485 mode; ``rts``: RTS can be driven."""
+
+    port = "/dev/ttyFAKE0"
+
+    def __init__(self, *, kernel: bool, rts: bool) -> None:
+        self.kernel, self.can_rts = kernel, rts
+        self.events: list[tuple[str, object]] = []
+        self._mode: object = None
+
+    @property
+    def rs485_mode(self) -> object:
+        return self._mode
+
+    @rs485_mode.setter
+    def rs485_mode(self, value: object) -> None:
+        if value is not None and not self.kernel:
+            raise ValueError("Failed to set RS485 mode: [Errno 25] Inappropriate ioctl")
+        self._mode = value
+        self.events.append(("rs485_mode", value))
+
+    @property
+    def rts(self) -> bool:
+        return False
+
+    @rts.setter
+    def rts(self, level: bool) -> None:
+        if not self.can_rts:
+            raise OSError(25, "Inappropriate ioctl for device")
+        self.events.append(("rts", level))
+
+    def write(self, data: bytes) -> int:
+        self.events.append(("write", data))
+        return len(data)
+
+    def flush(self) -> None:
+        self.events.append(("flush", None))
+
+
+def test_kernel_rs485_mode_where_the_driver_has_it() -> None:
+    port = FakePort(kernel=True, rts=True)
+    mode, toggle = serialport.direction_control(port, serialport.Rs485(0.001, 0.002))
+    assert mode == "kernel" and toggle is None
+    settings: Any = port.rs485_mode
+    assert settings.rts_level_for_tx is True and settings.rts_level_for_rx is False
+    assert (settings.delay_before_tx, settings.delay_before_rx) == (0.001, 0.002)
+    assert [e[0] for e in port.events] == ["rs485_mode"]  # RTS left to the kernel
+
+
+def test_rts_toggled_around_each_frame_without_kernel_mode() -> None:
+    port = FakePort(kernel=False, rts=True)
+    mode, toggle = serialport.direction_control(port, serialport.Rs485(0.001, 0.002))
+    assert mode == "rts" and toggle is not None
+    assert port.events == [("rs485_mode", None), ("rts", False)]  # listening
+    port.events.clear()
+    toggle._sleep = lambda s: port.events.append(("sleep", s))
+    frame = bytes.fromhex("02 03 00 02 00 01 25 f9".replace(" ", ""))
+    assert toggle.write(port.write, frame) == len(frame)
+    assert port.events == [("rts", True), ("sleep", 0.001), ("write", frame),
+                           ("flush", None), ("sleep", 0.002), ("rts", False)]
+
+
+def test_rts_is_dropped_even_when_the_write_fails() -> None:
+    port = FakePort(kernel=False, rts=True)
+    _, toggle = serialport.direction_control(port, serialport.Rs485())
+    assert toggle is not None
+    port.events.clear()
+
+    def broken(data: bytes) -> int:
+        raise OSError(5, "Input/output error")
+
+    with pytest.raises(OSError):
+        toggle.write(broken, b"\x01")
+    assert port.events == [("rts", True), ("rts", False)]
+
+
+def test_a_port_with_neither_is_one_clear_line() -> None:
+    port = FakePort(kernel=False, rts=False)
+    with pytest.raises(Exception) as exc:
+        serialport.direction_control(port, serialport.Rs485())
+    text = str(exc.value)
+    assert "\n" not in text and "neither" in text and "RS-485" in text and "RTS" in text
+
+
+def test_rs485_on_a_pty_is_a_port_error_in_one_line(echoing: SimulatedBus) -> None:
+    """A pseudo-terminal has no RS-485 mode and no RTS line: exit 3, one line."""
+    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, "--rs485", "radar-level@2",
+                                      "--rs485-delays", "0,0.5"])
+    assert result.exit_code == 3
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "supports neither" in lines[0]
+
+
+def test_rs485_option_values() -> None:
+    bad = CliRunner().invoke(cli, ["read", "-p", "/dev/null", "--rs485", "--rs485-delays",
+                                   "abc", "radar-level@2"])
+    assert bad.exit_code == 2 and "BEFORE_MS" in bad.stderr
+    gateway = CliRunner().invoke(cli, ["read", "-p", "tcp://127.0.0.1:1", "--rs485",
+                                       "radar-level@2"])
+    assert gateway.exit_code == 2 and "not a serial port" in gateway.stderr
+
+
+def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
+    """The echo is the master adapter's, not the line's: a sniffer on the line (the
+    simulator's tap) sees each request once and decodes every value, while rtupoll
+    reads through the echoing adapter with --echo."""
+    import signal
+    import subprocess
+    import sys
+
+    tap = str(tmp_path / "tap")
+    bus = simulated_bus(["radar-level@2"], tick=None, tap=tap)
+    bus.echo = True
+    bus.start()
+    rtupoll = str(Path(sys.executable).with_name("rtupoll"))
+    try:
+        proc = subprocess.Popen([rtupoll, "sniff", "-p", tap, "-b", "9600", "--format",
+                                 "json", "radar-level@2"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        assert "listening on" in proc.stderr.readline()
+        read = subprocess.run([rtupoll, "read", "-p", bus.port, "--echo", "radar-level@2",
+                               "level_cm", "--format", "json"], capture_output=True,
+                              text=True, timeout=30, check=False)
+        proc.send_signal(signal.SIGINT)
+        out, _err = proc.communicate(timeout=10)
+    finally:
+        bus.stop()
+    assert read.returncode == 0, read.stderr
+    level = bus.registers(2, Table.HOLDING, 2, 1)[0]
+    assert json.loads(read.stdout.splitlines()[0])["raw"] == [level]
+    seen = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert [(r["field"], r["status"], r["raw"]) for r in seen] == [("level_cm", "ok", [level])]
