@@ -73,7 +73,7 @@ def run(broker: Broker, sim: Callable[..., SimulatedBus], tmp_path: Path
     """(discovery config by device, state payloads by device) of a run with faults."""
     bus = sim("huiwen-aq@3", "net-irnet-pro@1", "banner-ez-array@5", "eastron-sdm120@7",
               "xy-md02@8", "radar-level@2", tcp=True,
-              faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's failure block; the radar
+              faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's PM2.5 failure code; the radar
               sets=["net-irnet-pro@1.error=48",  # undocumented codes
                     "banner-ez-array@5.measurement_1_mode=200"])
     site = tmp_path / "site.yaml"
@@ -168,9 +168,12 @@ def test_every_discovered_key_is_in_every_state_message(
     meter = [json.loads(p) for p in states["meter"]]
     assert all(m["import_active_energy"] is not None for m in meter)
     assert len({m["import_active_energy"] for m in meter}) == 1  # read once (interval 60)
-    # a failing block leaves the others' values, and says why under _rtupoll
+    # a refused register (the PM2.5 failure code) leaves every other value, its block's
+    # included (the block is split until the refused field is found), and says why
+    # under _rtupoll
     air = json.loads(states["air"][-1])
-    assert air["co2"] is not None and air["co2_failure"] is None
+    assert air["co2"] is not None and air["co2_failure"] is not None
+    assert air["pm25_failure"] is None
     assert air["_rtupoll"]["status"] == "partial"
     assert air["_rtupoll"]["error"].startswith("exception: ")
     gas = json.loads(states["gas"][-1])

@@ -90,13 +90,23 @@ def test_a_partial_last_line_is_cut_off_before_anything_is_appended(tmp_path: Pa
     out = tmp_path / "readings.jsonl"
     out.write_text('{"a": 1}\n{"b": 2}\n{"c": ')
     said = Lines()
-    logging.getLogger("rtupoll.output").addHandler(said)  # whatever set up logging before
+    log = logging.getLogger("rtupoll.output")
+    # whatever another test in this worker did to logging (levels, a disabled logger,
+    # logging.disable), this logger's warning reaches the handler
+    was = (log.level, log.disabled, logging.root.manager.disable)
+    log.setLevel(logging.WARNING)
+    log.disabled = False
+    logging.disable(logging.NOTSET)
+    log.addHandler(said)
     try:
         f = OutputFile(out)
         f.write('{"d": 4}\n')
         f.close()
     finally:
-        logging.getLogger("rtupoll.output").removeHandler(said)
+        log.removeHandler(said)
+        log.setLevel(was[0])
+        log.disabled = was[1]
+        logging.disable(was[2])
     assert out.read_text() == '{"a": 1}\n{"b": 2}\n{"d": 4}\n'
     assert said.lines == [f"{out}: cut off a partial last line (6 bytes) an earlier run left"]
 
