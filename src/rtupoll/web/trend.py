@@ -2,14 +2,14 @@
 
 One ``Trend`` per field: two ``array`` columns, the time as a 4-byte unsigned count of
 tenths of a second since the store's epoch (13 years of range) and the value as a
-4-byte float (about 7 significant digits, as much as a register pair carries). At most
-one point per ``STEP`` seconds is kept (a newer reading in the same step replaces the
-older), so ``POINTS`` points always cover at least ``SPAN`` seconds, whatever the poll
-interval: a field costs at most ``BYTES_PER_FIELD`` bytes of points (14,400), plus the
-two arrays' headers; a field read every 10 s fills only a fifth of that in an hour, as
-the columns grow to their bound and then wrap around. The bound holds for any number
-of readings (``tests/test_web_state.py``; ``benchmarks/web_trends.py`` measures 2,000
-fields).
+4-byte float (about 7 significant digits, as much as a register pair carries). At
+most one point per ``STEP`` seconds is kept (steps are aligned to the epoch; a newer
+reading in the same step replaces the older), so ``POINTS`` points always cover at
+least ``SPAN`` seconds, whatever the poll interval: a field costs at most
+``BYTES_PER_FIELD`` bytes of points (14,400), plus the two arrays' headers; a field
+read every 10 s fills only a fifth of that in an hour, as the columns grow to their
+bound and then wrap around. The bound holds for any number of readings
+(``tests/test_web_units.py``; ``benchmarks/web_trends.py`` measures 2,000 fields).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ SPAN = 3600.0  # seconds a chart shows
 STEP = 2.0  # seconds: at most one point per step
 POINTS = int(SPAN / STEP)  # points a ring holds at most
 TICK = 0.1  # seconds per unit of the stored times
+STEP_TICKS = round(STEP / TICK)
 BYTES_PER_FIELD = POINTS * (array("I").itemsize + array("f").itemsize)
 
 
@@ -38,8 +39,8 @@ class Trend:
         n = len(self.times)
         if n:
             last = (self._head - 1) % n if n == POINTS else n - 1
-            if tick - self.times[last] < STEP / TICK and tick >= self.times[last]:
-                self.times[last], self.values[last] = tick, value  # the same step: newer
+            if tick // STEP_TICKS == self.times[last] // STEP_TICKS:  # the same step:
+                self.times[last], self.values[last] = tick, value  # the newer reading
                 return
         if n < POINTS:
             self.times.append(tick)

@@ -418,8 +418,9 @@
       gws++;
       for (const bus of gw.buses) for (const d of bus.devices) { n++; if (d.state === "online" && gw.online) up++; }
     }
-    const text = (state.mode === "fleet" ? gws + (gws === 1 ? " gateway · " : " gateways · ") : "") +
+    let text = (state.mode === "fleet" ? gws + (gws === 1 ? " gateway · " : " gateways · ") : "") +
       up + " of " + n + " devices online";
+    if (state.broker && state.broker !== "connected") text += " · broker " + state.broker;
     document.getElementById("summary").textContent = text;
     document.title = "rtupoll · " + up + "/" + n + " online";
   }
