@@ -92,7 +92,8 @@ def until(check: Callable[[], Any], what: str, limit: float = 60.0, every: float
     deadline = time.monotonic() + limit
     last: Any = None
     while time.monotonic() < deadline:
-        with contextlib.suppress(AssertionError, OSError):
+        # not there yet: a page still loading, a device not yet shown
+        with contextlib.suppress(AssertionError, OSError, KeyError, IndexError, TypeError):
             last = check()
             if last:
                 return last

@@ -32,7 +32,7 @@ from typing import Any
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub
 from rtupoll.web.state import json_value, number
-from rtupoll.web.trend import SPAN, TrendStore
+from rtupoll.web.trend import SPAN, STEP, TrendStore
 
 log = logging.getLogger("rtupoll.web")
 MAX_WAITING = 10_000  # messages held for gateways whose bridge/info has not come yet
@@ -173,7 +173,7 @@ class Fleet:
     def snapshot(self) -> dict[str, Any]:
         gws = sorted(self.gateways.values(), key=lambda g: (g.id, g.base))
         return {"mode": "fleet", "title": self.where, "broker": self.broker,
-                "time": self.clock(), "span": SPAN,
+                "time": self.clock(), "span": SPAN, "step": STEP,
                 "gateways": [gateway_json(g) for g in gws]}
 
     def _snapshot_json(self) -> str:

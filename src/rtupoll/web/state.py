@@ -2,7 +2,7 @@
 
 One shape for both sources, so the page has one code path::
 
-    {"mode": "poll" | "fleet", "time": WALL, "span": 3600,
+    {"mode": "poll" | "fleet", "time": WALL, "span": 3600, "step": 2,
      "gateways": [{"id", "title", "online", "version", "buses": [BUS...]}]}
     BUS    = {"name", "port", "serial", "utilisation", "port_error",
               "gateway": {"listen", "pending", "clients": [...]} | null, "devices": [DEVICE...]}
@@ -167,7 +167,7 @@ def poll_state(scheduler: Scheduler, *, title: str, served: Iterable[dict[str, A
     ``snapshot()``, its listeners' clients and queues)."""
     clocks = Clocks()
     by_bus = {s["bus"]: s for s in served}
-    return {"mode": "poll", "time": clocks.wall, "span": _span(),
+    return {"mode": "poll", "time": clocks.wall, "span": _span(), "step": _step(),
             "gateways": [{"id": gateway or gateway_id(), "title": title, "online": True,
                           "version": version(),
                           "buses": [bus_state(bp, clocks, by_bus) for bp in scheduler.buses]}]}
@@ -186,3 +186,9 @@ def _span() -> float:
     from rtupoll.web.trend import SPAN
 
     return SPAN
+
+
+def _step() -> float:
+    from rtupoll.web.trend import STEP
+
+    return STEP

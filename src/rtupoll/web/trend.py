@@ -3,8 +3,8 @@
 One ``Trend`` per field: two ``array`` columns, the time as a 4-byte unsigned count of
 tenths of a second since the store's epoch (13 years of range) and the value as a
 4-byte float (about 7 significant digits, as much as a register pair carries). At
-most one point per ``STEP`` seconds is kept (steps are aligned to the epoch; a newer
-reading in the same step replaces the older), so ``POINTS`` points always cover at
+most one point per ``STEP`` seconds is kept (steps of wall-clock time, ``t // STEP``; a
+newer reading in the same step replaces the older), so ``POINTS`` points always cover at
 least ``SPAN`` seconds, whatever the poll interval: a field costs at most
 ``BYTES_PER_FIELD`` bytes of points (14,400), plus the two arrays' headers; a field
 read every 10 s fills only a fifth of that in an hour, as the columns grow to their
@@ -74,7 +74,9 @@ class TrendStore:
     """Every field's ring, by (device, field), with one epoch for their times."""
 
     def __init__(self, epoch: float) -> None:
-        self.epoch = epoch  # wall-clock seconds of tick 0
+        # wall-clock seconds of tick 0, on a step boundary: the steps are the same for
+        # every store (and the page's own, which it fills from the events)
+        self.epoch = math.floor(epoch / STEP) * STEP
         self.rings: dict[tuple[str, str], Trend] = {}
 
     def tick(self, wall: float) -> int:

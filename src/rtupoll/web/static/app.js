@@ -329,6 +329,7 @@
       row.classList.remove("open");
       const next = row.nextElementSibling;
       if (next && next.classList.contains("chart-row")) next.remove();
+      fit(card);
       return;
     }
     open.add(k);
@@ -351,7 +352,7 @@
 
   function redraw(k) {
     const tr = document.querySelector('tr.chart-row[data-chart="' + CSS.escape(k) + '"]');
-    if (tr) drawRow(tr);
+    if (tr) { drawRow(tr); fit(tr.closest(".device")); }
   }
 
   function drawRow(tr) {
@@ -363,7 +364,20 @@
 
   function drawCharts(root) {
     for (const tr of root.querySelectorAll("tr.chart-row")) drawRow(tr);
+    fit(root);
   }
+
+  // each card spans as many 4 px grid rows as it is tall (+ the gap): columns of
+  // cards of different heights without holes under the short ones
+  const ROW = 4, GAP = 12;
+  function fit(root) {
+    const cards = root.classList && root.classList.contains("device") ? [root] : root.querySelectorAll(".device");
+    for (const c of cards) {
+      const rows = Math.ceil((c.getBoundingClientRect().height + GAP) / ROW);
+      if (c.dataset.rows !== String(rows)) { c.dataset.rows = String(rows); c.style.gridRowEnd = "span " + rows; }
+    }
+  }
+  window.addEventListener("resize", function () { fit(app); });
 
   // -- the model ------------------------------------------------------------------
 
@@ -385,7 +399,10 @@
       const k = dev.key + SEP + f.name;
       const s = series.get(k);
       if (s && f.kind === "number" && typeof f.value === "number" && f.time) {
-        if (!s.t.length || f.time > s.t[s.t.length - 1]) { s.t.push(f.time); s.v.push(f.value); }
+        const n = s.t.length, step = state.step || 2;
+        if (n && Math.floor(f.time / step) === Math.floor(s.t[n - 1] / step)) {
+          if (f.time >= s.t[n - 1]) { s.t[n - 1] = f.time; s.v[n - 1] = f.value; } // the same step: the newer
+        } else if (!n || f.time > s.t[n - 1]) { s.t.push(f.time); s.v.push(f.value); }
         while (s.t.length && s.t[0] < now() - span) { s.t.shift(); s.v.shift(); }
       }
     }
