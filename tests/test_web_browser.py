@@ -36,6 +36,7 @@ from tests.web_helpers import (
 pytestmark = pytest.mark.skipif(not have_chromium(), reason="chromium and chromedriver "
                                 "(Debian: chromium, chromium-driver) are not installed")
 DOCS = Path(__file__).resolve().parents[1] / "docs"
+IN_DOCS = {"web.png", "web-phone-dark.png", "web-fleet.png"}  # docs/web.md shows these
 DEMO = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "banner-ez-array@5",
         "co2meter-an117@4"]
 
@@ -98,7 +99,8 @@ def screenshots(driver: Any, where: Path, name: str, *, docs: bool = False) -> N
         time.sleep(0.3)  # a frame or two to repaint
         suffix = f"{'-phone' if small else ''}{'-dark' if scheme == 'dark' else ''}"
         for t in targets:
-            driver.save_screenshot(str(t / f"{name}{suffix}.png"))
+            if t == where or f"{name}{suffix}.png" in IN_DOCS:
+                driver.save_screenshot(str(t / f"{name}{suffix}.png"))
     phone(driver, False)
     color_scheme(driver, "light")
 

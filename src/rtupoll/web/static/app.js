@@ -10,6 +10,11 @@
   const open = new Set(); // "KEY\u0000FIELD" of the charts that are open
   const series = new Map(); // same key -> {t: [...], v: [...]}
   const SEP = "\u0000";
+  // for benchmarks/web_*.py: per device event, seconds from the reading to the page
+  // updated, and milliseconds the update took (the last PERF of each)
+  const PERF = 2000;
+  const perf = window.rtupollPerf = { latency: [], update: [] };
+  function note(list, v) { list.push(v); if (list.length > PERF) list.shift(); }
 
   function now() { return Date.now() / 1000 + offset; }
 
@@ -390,6 +395,7 @@
   }
 
   function onDevice(msg) {
+    const started = performance.now();
     const dev = msg.device;
     const at = findDevice(dev.key);
     if (!at) return; // not in the snapshot (a reload sends a new one)
@@ -410,6 +416,10 @@
     if (old) updateDevice(old, at.gw, dev);
     else renderAll();
     summary();
+    note(perf.update, performance.now() - started);
+    let polled = 0;
+    for (const f of dev.fields) if (f.time && f.time > polled) polled = f.time;
+    if (polled) note(perf.latency, Date.now() / 1000 - polled);
   }
 
   function onBuses(msg) {
