@@ -10,8 +10,8 @@
   const open = new Set(); // "KEY\u0000FIELD" of the charts that are open
   const series = new Map(); // same key -> {t: [...], v: [...]}
   const SEP = "\u0000";
-  // for benchmarks/web_*.py: per device event, seconds from the reading to the page
-  // updated, and milliseconds the update took (the last PERF of each)
+  // for benchmarks/web_browser.py: per device event, seconds from the reading to the
+  // page updated, and milliseconds the update took (the last PERF of each)
   const PERF = 2000;
   const perf = window.rtupollPerf = { latency: [], update: [] };
   function note(list, v) { list.push(v); if (list.length > PERF) list.shift(); }
@@ -64,6 +64,7 @@
     }
     for (const gw of state.gateways) app.appendChild(renderGateway(gw));
     drawCharts(app);
+    fit(app);
     summary();
   }
 
@@ -167,19 +168,20 @@
   function updateDevice(card, gw, dev) {
     const fresh = renderDevice(gw, dev);
     const rows = card.querySelectorAll("tr.field");
-    if (rows.length !== dev.fields.length) { card.replaceWith(fresh); drawCharts(fresh); return; }
+    if (rows.length !== dev.fields.length) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
     card.className = fresh.className;
     card.dataset.state = fresh.dataset.state;
     card.replaceChild(fresh.querySelector("header"), card.querySelector("header"));
     const newRows = fresh.querySelectorAll("tr.field");
     for (let i = 0; i < rows.length; i++) {
       const row = rows[i], nr = newRows[i];
-      if (row.dataset.field !== nr.dataset.field) { card.replaceWith(fresh); drawCharts(fresh); return; }
+      if (row.dataset.field !== nr.dataset.field) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
       row.className = nr.className;
       row.replaceChild(nr.children[1], row.children[1]);
     }
     card.replaceChild(fresh.querySelector(".health"), card.querySelector(".health"));
     drawCharts(card);
+    return card;
   }
 
   function stateText(dev) {
@@ -341,6 +343,7 @@
     row.classList.add("open");
     row.after(chartRow(k, f));
     drawCharts(card);
+    fit(card);
     fetch("/api/trend?device=" + encodeURIComponent(key) + "&field=" + encodeURIComponent(name), { credentials: "same-origin" })
       .then(function (r) { if (!r.ok) throw new Error("trend: HTTP " + r.status); return r.json(); })
       .then(function (data) {
@@ -369,7 +372,6 @@
 
   function drawCharts(root) {
     for (const tr of root.querySelectorAll("tr.chart-row")) drawRow(tr);
-    fit(root);
   }
 
   // each card spans as many 4 px grid rows as it is tall (+ the gap): columns of
@@ -394,11 +396,40 @@
     return null;
   }
 
-  function onDevice(msg) {
+  // device events are applied once per frame, the latest of each device: a page in a
+  // background tab (no frames) holds one pending event per device, never a backlog,
+  // and the layout is computed once per frame, not once per event
+  const pending = new Map();
+  let scheduled = false;
+  function queue(msg) {
+    pending.set(msg.device.key, msg);
+    if (!scheduled) { scheduled = true; requestAnimationFrame(flush); }
+  }
+  function flush() {
+    scheduled = false;
     const started = performance.now();
+    const cards = [];
+    const polled = [];
+    for (const msg of pending.values()) {
+      const card = onDevice(msg);
+      if (card) cards.push(card);
+      let t = 0;
+      for (const f of msg.device.fields) if (f.time && f.time > t) t = f.time;
+      if (t) polled.push(t);
+    }
+    const n = pending.size;
+    pending.clear();
+    for (const c of cards) fit(c);
+    summary();
+    const done = Date.now() / 1000;
+    for (const t of polled) note(perf.latency, done - t);
+    if (n) note(perf.update, (performance.now() - started) / n);
+  }
+
+  function onDevice(msg) {
     const dev = msg.device;
     const at = findDevice(dev.key);
-    if (!at) return; // not in the snapshot (a reload sends a new one)
+    if (!at) return null; // not in the snapshot (a reload sends a new one)
     at.bus.devices[at.i] = dev;
     const span = state.span;
     for (const f of dev.fields) {
@@ -413,13 +444,9 @@
       }
     }
     const old = app.querySelector('.device[data-key="' + CSS.escape(dev.key) + '"]');
-    if (old) updateDevice(old, at.gw, dev);
-    else renderAll();
-    summary();
-    note(perf.update, performance.now() - started);
-    let polled = 0;
-    for (const f of dev.fields) if (f.time && f.time > polled) polled = f.time;
-    if (polled) note(perf.latency, Date.now() / 1000 - polled);
+    if (old) return updateDevice(old, at.gw, dev);
+    renderAll();
+    return null;
   }
 
   function onBuses(msg) {
@@ -470,11 +497,12 @@
     es.addEventListener("open", function () { conn.dataset.state = "live"; conn.textContent = "live"; });
     es.addEventListener("error", function () { conn.dataset.state = "lost"; conn.textContent = "reconnecting…"; });
     es.addEventListener("state", function (e) {
+      pending.clear();
       state = JSON.parse(e.data);
       offset = state.time - Date.now() / 1000;
       renderAll();
     });
-    es.addEventListener("device", function (e) { onDevice(JSON.parse(e.data)); });
+    es.addEventListener("device", function (e) { queue(JSON.parse(e.data)); });
     es.addEventListener("buses", function (e) { onBuses(JSON.parse(e.data)); });
   }
 
