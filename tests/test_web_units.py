@@ -171,24 +171,26 @@ def test_authorised() -> None:
                           none, none)
 
 
-def test_a_mailbox_keeps_the_latest_event_per_key() -> None:
+def test_a_mailbox_keeps_the_latest_event_per_key_made_once_for_all() -> None:
     async def run() -> None:
         hub = Hub()
-        hub.publish("d:a", "device", "never")  # nobody listens: not even serialised
-        box = Mailbox()
-        hub.clients.add(box)
-        calls = []
+        calls: list[int] = []
 
         def data() -> str:
             calls.append(1)
             return "2"
 
+        hub.publish("d:a", "device", data)  # nobody listens: never made
+        one, two = Mailbox(), Mailbox()
+        hub.clients |= {one, two}
         hub.publish("d:a", "device", "1")
         hub.publish("d:b", "device", "x")
         hub.publish("d:a", "device", data)
-        assert box.wake.is_set() and len(calls) == 1
-        assert box.take() == b"event: device\ndata: 2\n\nevent: device\ndata: x\n\n"
-        assert not box.wake.is_set() and box.take() == b""
+        assert one.wake.is_set() and two.wake.is_set() and calls == []
+        expected = b"event: device\ndata: 2\n\nevent: device\ndata: x\n\n"
+        assert one.take() == expected and two.take() == expected
+        assert calls == [1]  # made once, when first sent, for both
+        assert not one.wake.is_set() and one.take() == b""
 
     asyncio.run(run())
 

@@ -40,7 +40,8 @@ if TYPE_CHECKING:
     from rtupoll.web.settings import HttpSettings
 
 log = logging.getLogger("rtupoll.web")
-PING = 15.0  # seconds between keep-alive comments on an idle event stream
+PING = 15.0  # seconds between keep-alive events on the event streams
+BATCH = 0.1  # seconds an event stream gathers events before it writes them
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml",
@@ -53,41 +54,55 @@ SECURITY_HEADERS = {
     "X-Frame-Options": "DENY"}
 
 
+class Item:
+    """One event, serialised once, when the first client sends it, for every client."""
+
+    __slots__ = ("_make", "_text", "event")
+
+    def __init__(self, event: str, data: str | Callable[[], str]) -> None:
+        self.event = event
+        self._make = data if callable(data) else None
+        self._text = data if isinstance(data, str) else None
+
+    def encode(self) -> str:
+        if self._text is None:
+            assert self._make is not None
+            self._text, self._make = self._make(), None
+        return f"event: {self.event}\ndata: {self._text}\n\n"
+
+
 class Mailbox:
     """One event-stream client's pending events: the latest per key, in arrival order."""
 
     def __init__(self) -> None:
-        self.pending: dict[str, tuple[str, str]] = {}
+        self.pending: dict[str, Item] = {}
         self.wake = asyncio.Event()
 
-    def put(self, key: str, event: str, data: str) -> None:
-        self.pending[key] = (event, data)
+    def put(self, key: str, item: Item) -> None:
+        self.pending[key] = item
         self.wake.set()
 
     def take(self) -> bytes:
-        out = "".join(f"event: {event}\ndata: {data}\n\n"
-                      for event, data in self.pending.values())
+        out = "".join(item.encode() for item in self.pending.values())
         self.pending.clear()
         self.wake.clear()
         return out.encode()
 
 
 class Hub:
-    """Every connected event stream; ``publish`` is cheap with none."""
+    """Every connected event stream; ``publish`` is cheap with none, and an event's data
+    (a function) is made at most once, when it is sent, however many listen."""
 
     def __init__(self) -> None:
         self.clients: set[Mailbox] = set()
         self.closed = False
-        self.sent = 0  # events handed to clients (for the benchmarks)
 
     def publish(self, key: str, event: str, data: str | Callable[[], str]) -> None:
-        """``data`` may be a function: it is only serialised when someone listens."""
         if not self.clients:
             return
-        text = data() if callable(data) else data
+        item = Item(event, data)
         for c in self.clients:
-            c.put(key, event, text)
-        self.sent += len(self.clients)
+            c.put(key, item)
 
     def close(self) -> None:
         self.closed = True
@@ -157,6 +172,7 @@ class Server:
         self.settings, self.source, self.what = settings, source, what
         self.assets = load_assets()
         self._runner: web.AppRunner | None = None
+        self._pinger: asyncio.Task[None] | None = None
         self.address = ""  # http://HOST:PORT/ once listening
 
     def app(self) -> web.Application:
@@ -182,16 +198,27 @@ class Server:
             why = os.strerror(exc.errno) if exc.errno else str(exc)
             raise UsageError(f"{self.what}: cannot listen on {self.settings.host}:"
                              f"{self.settings.port}: {why}") from None
+        self._pinger = asyncio.create_task(self._ping())
         host, port = self._runner.addresses[0][:2]
         host = f"[{host}]" if ":" in host else host
         self.address = f"http://{host}:{port}/"
 
     async def stop(self) -> None:
         self.source.hub.close()
+        if self._pinger is not None:
+            self._pinger.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._pinger
         if self._runner is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._runner.cleanup(), 3.0)
             self._runner = None
+
+    async def _ping(self) -> None:
+        """Something on every event stream now and then: proxies keep idle ones open."""
+        while True:
+            await asyncio.sleep(PING)
+            self.source.hub.publish("ping", "ping", "{}")
 
     # -- handlers -------------------------------------------------------------
 
@@ -265,13 +292,12 @@ class Server:
             await resp.write(f"retry: 2000\nevent: state\ndata: "
                              f"{to_json(self.source.snapshot())}\n\n".encode())
             while not hub.closed:
-                try:
-                    await asyncio.wait_for(box.wake.wait(), PING)
-                except asyncio.TimeoutError:
-                    await resp.write(b": ping\n\n")
-                    continue
+                await box.wake.wait()
                 if hub.closed:
                     break
+                # what else comes meanwhile goes in the same write: at most 1/BATCH
+                # writes a second per client, however fast the devices are polled
+                await asyncio.sleep(BATCH)
                 await resp.write(box.take())
         except (ConnectionError, RuntimeError):  # the browser went away
             pass
