@@ -61,7 +61,8 @@ def main() -> None:
                 driver.get(url)
                 time.sleep(3)  # the first snapshot drawn
                 driver.execute_script("rtupollPerf.latency.length = 0;"
-                                      "rtupollPerf.update.length = 0;")
+                                      "rtupollPerf.update.length = 0;"
+                                      "rtupollPerf.events = 0;")
                 cpu0 = _cpu(proc.pid)
                 time.sleep(args.seconds)
                 perf = driver.execute_script("return rtupollPerf")
@@ -73,8 +74,10 @@ def main() -> None:
             proc.send_signal(signal.SIGINT)
             proc.wait(timeout=60)
     lat, upd = perf["latency"], perf["update"]
-    print(f"{n} devices, {fields} fields on the page; {len(lat)} device events in "
-          f"{args.seconds:g} s ({len(lat) / args.seconds:.1f}/s); poller CPU "
+    events = perf["events"]
+    print(f"{n} devices, {fields} fields on the page; {events} device events in "
+          f"{args.seconds:g} s ({events / args.seconds:.1f}/s; the last {len(lat)} timed); "
+          f"poller CPU "
           f"{cpu / args.seconds * 100:.0f} %")
     print(f"reading -> page: p50 {quantile(lat, 50) * 1000:.0f} ms, p95 "
           f"{quantile(lat, 95) * 1000:.0f} ms, max {max(lat) * 1000:.0f} ms")

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
-BATCH = 0.1  # seconds an event stream gathers events before it writes them
+BATCH = 0.25  # seconds an event stream gathers events before it writes them
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml",
@@ -57,18 +57,17 @@ SECURITY_HEADERS = {
 class Item:
     """One event, serialised once, when the first client sends it, for every client."""
 
-    __slots__ = ("_make", "_text", "event")
+    __slots__ = ("_bytes", "_make", "event")
 
     def __init__(self, event: str, data: str | Callable[[], str]) -> None:
         self.event = event
-        self._make = data if callable(data) else None
-        self._text = data if isinstance(data, str) else None
+        self._make = data if callable(data) else lambda: data
+        self._bytes: bytes | None = None
 
-    def encode(self) -> str:
-        if self._text is None:
-            assert self._make is not None
-            self._text, self._make = self._make(), None
-        return f"event: {self.event}\ndata: {self._text}\n\n"
+    def encode(self) -> bytes:
+        if self._bytes is None:
+            self._bytes = f"event: {self.event}\ndata: {self._make()}\n\n".encode()
+        return self._bytes
 
 
 class Mailbox:
@@ -83,10 +82,10 @@ class Mailbox:
         self.wake.set()
 
     def take(self) -> bytes:
-        out = "".join(item.encode() for item in self.pending.values())
+        out = b"".join(item.encode() for item in self.pending.values())
         self.pending.clear()
         self.wake.clear()
-        return out.encode()
+        return out
 
 
 class Hub:

@@ -88,7 +88,8 @@ class WebService:
         if bus is not None:
             b = bus.config.name
             self.hub.publish("d:" + name, "device", lambda: to_json(
-                {"gateway": self.gateway, "device": device_state(b, dev, Clocks())}))
+                {"gateway": self.gateway,
+                 "device": device_state(b, dev, Clocks(), latency=False)}))
 
     async def stop(self) -> None:
         if self._ticker is not None:

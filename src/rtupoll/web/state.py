@@ -67,11 +67,21 @@ def label_of(f: Field) -> str:
     return f.name.replace("_", " ")
 
 
+_META: dict[int, tuple[Field, dict[str, Any]]] = {}  # id(field) -> (field, its meta)
+
+
 def field_meta(f: Field) -> dict[str, Any]:
-    return {"name": f.name, "label": label_of(f),
-            "description": (f.description or "").strip().splitlines()[0]
-            if (f.description or "").strip() else "",
-            "unit": f.unit, "kind": kind_of(f), "precision": f.precision}
+    """What the page shows of a field besides its value (a new dict, made once a field)."""
+    got = _META.get(id(f))
+    if got is None or got[0] is not f:
+        text = (f.description or "").strip()
+        got = _META[id(f)] = (f, {
+            "name": f.name, "label": label_of(f),
+            "description": text.splitlines()[0] if text else "",
+            "unit": f.unit, "kind": kind_of(f), "precision": f.precision})
+        if len(_META) > 100_000:  # profiles reloaded again and again: start afresh
+            _META.clear()
+    return dict(got[1])
 
 
 def number(value: object) -> float | None:
@@ -88,9 +98,11 @@ def json_value(value: object) -> object:
     return value
 
 
-def field_state(f: Field, latest: Reading | None, last_good: Reading | None
-                ) -> dict[str, Any]:
-    out = field_meta(f)
+def field_state(f: Field, latest: Reading | None, last_good: Reading | None, *,
+                meta: bool = True) -> dict[str, Any]:
+    """``meta``: with what does not change (label, unit, kind ...); the events leave it
+    out (the page has it from the snapshot) and carry only the name and the reading."""
+    out: dict[str, Any] = field_meta(f) if meta else {"name": f.name}
     out.update(value=None, text="", severity="ok", status="", error="", badges=[],
                last=None)
     if latest is None:
@@ -132,18 +144,22 @@ class Clocks:
         return self.wall + (mono - self.mono)
 
 
-def device_state(bus: str, dev: DevicePoller, clocks: Clocks) -> dict[str, Any]:
+def device_state(bus: str, dev: DevicePoller, clocks: Clocks, *, latency: bool = True
+                 ) -> dict[str, Any]:
+    """``latency=False`` (the events, sent after every cycle): without the p50 and p95
+    reply times (their sorting) and without the fields' unchanging parts."""
     cfg, st = dev.config, dev.stats
     p = cfg.profile
     waiting = st.state in (State.RETRYING, State.OFFLINE)
     health = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
               "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
               "failures": st.failures, "timeout": st.timeout,
-              "timeout_source": st.timeout_source, "p50": st.p50(), "p95": st.p95(),
+              "timeout_source": st.timeout_source,
+              "p50": st.p50() if latency else None, "p95": st.p95() if latency else None,
               "last_seen": st.last_good_time,
               "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,
               "interval": cfg.interval}
-    fields = [field_state(f, st.latest.get(f.name), st.last_good.get(f.name))
+    fields = [field_state(f, st.latest.get(f.name), st.last_good.get(f.name), meta=latency)
               for f in cfg.fields]
     return {"key": cfg.name, "name": cfg.name, "profile": p.id,
             "model": " ".join(x for x in (p.vendor, p.model) if x), "address": cfg.address,

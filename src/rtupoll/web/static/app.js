@@ -13,7 +13,7 @@
   // for benchmarks/web_browser.py: per device event, seconds from the reading to the
   // page updated, and milliseconds the update took (the last PERF of each)
   const PERF = 2000;
-  const perf = window.rtupollPerf = { latency: [], update: [] };
+  const perf = window.rtupollPerf = { latency: [], update: [], events: 0 };
   function note(list, v) { list.push(v); if (list.length > PERF) list.shift(); }
 
   function now() { return Date.now() / 1000 + offset; }
@@ -418,6 +418,7 @@
       if (t) polled.push(t);
     }
     const n = pending.size;
+    perf.events += n;
     pending.clear();
     for (const c of cards) fit(c);
     summary();
@@ -430,6 +431,10 @@
     const dev = msg.device;
     const at = findDevice(dev.key);
     if (!at) return null; // not in the snapshot (a reload sends a new one)
+    // an event's fields carry the reading; the rest (label, unit, kind) is the snapshot's
+    const meta = {};
+    for (const f of at.dev.fields) meta[f.name] = f;
+    dev.fields = dev.fields.map(function (f) { return Object.assign({}, meta[f.name], f); });
     at.bus.devices[at.i] = dev;
     const span = state.span;
     for (const f of dev.fields) {
