@@ -217,3 +217,23 @@ def test_a_busy_port_is_one_line_exit_2(sim: Callable[..., SimulatedBus],
     assert got.exit_code == 2, got.output
     assert got.output.strip().splitlines()[-1] == (
         f"rtupoll: --http: cannot listen on 127.0.0.1:{port}: Address already in use")
+
+
+def test_rtupoll_web_without_a_broker_is_one_line_exit_10() -> None:
+    port = free_port()  # nothing listens there
+    got = run_cli("web", "--mqtt", f"mqtt://127.0.0.1:{port}", "--http", "127.0.0.1:0")
+    assert got.exit_code == 10, got.output
+    assert got.output.strip().splitlines() == [
+        f"rtupoll: --mqtt mqtt://127.0.0.1:{port}: connection refused (is the broker "
+        f"running on port {port}?)"]
+
+
+def test_rtupoll_web_bad_arguments_are_one_line_exit_2() -> None:
+    got = run_cli("web", "--mqtt", "http://broker")
+    assert got.exit_code == 2
+    assert got.output.strip().splitlines()[-1].startswith("rtupoll: --mqtt http://broker: "
+                                                          "expected mqtt://")
+    got = run_cli("web", "--mqtt", "mqtt://broker", "--http", "nowhere")
+    assert got.exit_code == 2
+    assert got.output.strip().splitlines()[-1] == (
+        "rtupoll: --http 'nowhere': expected [HOST:]PORT, e.g. 127.0.0.1:8080")
