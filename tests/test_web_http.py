@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import base64
 import http.client
+import shutil
+import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -237,3 +239,32 @@ def test_rtupoll_web_bad_arguments_are_one_line_exit_2() -> None:
     assert got.exit_code == 2
     assert got.output.strip().splitlines()[-1] == (
         "rtupoll: --http 'nowhere': expected [HOST:]PORT, e.g. 127.0.0.1:8080")
+
+
+@pytest.mark.skipif(shutil.which("mbpoll") is None, reason="mbpoll is not installed "
+                    "(scripts/test installs it)")
+def test_the_gateways_clients_and_queue_with_serve(sim: Callable[..., SimulatedBus],
+                                                   tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3")
+    serve = free_port()
+    with running([*POLL, "-p", bus.port, "--serve", f"127.0.0.1:{serve}", "--http",
+                  "127.0.0.1:0", "huiwen-aq@3"], tmp_path) as p:
+        gw = get_json(p.url + "api/state")["gateways"][0]["buses"][0]["gateway"]
+        assert gw == {"bus": bus.port, "listen": f"tcp://127.0.0.1:{serve}", "pending": 0,
+                      "clients": []}
+        # mbpoll, another master, reads the CO2 register through the gateway
+        done = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(serve), "-1", "-o", "2",
+                               "-a", "3", "-t", "3", "-r", "30009", "-0", "-c", "1",
+                               "127.0.0.1"], capture_output=True, text=True, timeout=30)
+        assert done.returncode == 0, done.stdout + done.stderr
+        state = get_json(p.url + "api/state")
+        (client,) = state["gateways"][0]["buses"][0]["gateway"]["clients"]
+        assert client["requests"] == client["answered"] == 1
+        # the same in the periodic buses event
+        events = Events(p.url)
+        try:
+            _, data = next((k, d) for k, d in events if k == "buses")
+        finally:
+            events.close()
+        (b,) = data["buses"]
+        assert b["gateway"]["clients"][0]["requests"] == 1 and "devices" not in b
