@@ -18,17 +18,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tests.web_helpers import chromium
+from tests.web_helpers import chromium, running
 
 
 def quantile(xs: list[float], q: float) -> float:
@@ -43,36 +40,19 @@ def main() -> None:
     args = ap.parse_args()
     devices = [] if args.devices == "demo" else \
         [f"epever-tracer@{i}" for i in range(1, int(args.devices) + 1)]
-    with tempfile.TemporaryDirectory() as tmp:
-        err = Path(tmp) / "stderr"
-        with err.open("w") as fh:
-            proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                                     "--format", "json", "--http", "127.0.0.1:0", *devices],
-                                    stdout=subprocess.DEVNULL, stderr=fh)
-        try:
-            url = ""
-            deadline = time.monotonic() + 120
-            while not url and time.monotonic() < deadline:
-                m = re.search(r"dashboard on (http://\S+/)", err.read_text())
-                url = m.group(1) if m else ""
-                time.sleep(0.1)
-            assert url, err.read_text()
-            with chromium() as driver:
-                driver.get(url)
-                time.sleep(3)  # the first snapshot drawn
-                driver.execute_script("rtupollPerf.latency.length = 0;"
-                                      "rtupollPerf.update.length = 0;"
-                                      "rtupollPerf.events = 0;")
-                cpu0 = _cpu(proc.pid)
-                time.sleep(args.seconds)
-                perf = driver.execute_script("return rtupollPerf")
-                cpu = _cpu(proc.pid) - cpu0
-                n = driver.execute_script("return document.querySelectorAll('.device').length")
-                fields = driver.execute_script(
-                    "return document.querySelectorAll('tr.field').length")
-        finally:
-            proc.send_signal(signal.SIGINT)
-            proc.wait(timeout=60)
+    with tempfile.TemporaryDirectory() as tmp, running(
+            ["poll", "--simulate", "--format", "json", "--http", "127.0.0.1:0", *devices],
+            Path(tmp)) as p, chromium() as driver:
+        driver.get(p.url)
+        time.sleep(3)  # the first snapshot drawn
+        driver.execute_script("rtupollPerf.latency.length = 0; rtupollPerf.update.length = 0;"
+                              "rtupollPerf.events = 0;")
+        cpu0 = _cpu(p.proc.pid)
+        time.sleep(args.seconds)
+        perf = driver.execute_script("return rtupollPerf")
+        cpu = _cpu(p.proc.pid) - cpu0
+        n = driver.execute_script("return document.querySelectorAll('.device').length")
+        fields = driver.execute_script("return document.querySelectorAll('tr.field').length")
     lat, upd = perf["latency"], perf["update"]
     events = perf["events"]
     print(f"{n} devices, {fields} fields on the page; {events} device events in "

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import signal
 import subprocess
 import sys
 import tempfile
@@ -26,6 +24,9 @@ import time
 from pathlib import Path
 
 from poll_common import simulator
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tests.web_helpers import running
 
 CLIENTS = 10
 
@@ -49,40 +50,26 @@ def main() -> None:
     args = ap.parse_args()
     devices = [f"epever-tracer@{i}" for i in range(1, args.devices + 1)]
     with tempfile.TemporaryDirectory() as tmp, simulator(None, devices) as port:
-        err = Path(tmp) / "stderr"
-        with err.open("w") as fh:
-            records = Path(tmp) / "records.jsonl"  # a file: no pipe to hold the poller up
-            proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "-p", port,
-                                     "-b", "115200", "--format", "json", "-o", str(records),
-                                     "--http", "127.0.0.1:0", *devices],
-                                    stdout=subprocess.DEVNULL, stderr=fh)
+        records = Path(tmp) / "records.jsonl"  # a file: no pipe to hold the poller up
 
         def written() -> int:
             with records.open("rb") as f:
                 return sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
-        try:
-            url = ""
-            deadline = time.monotonic() + 120
-            while not url and time.monotonic() < deadline:
-                m = re.search(r"dashboard on (http://\S+/)", err.read_text())
-                url = m.group(1) if m else ""
-                time.sleep(0.1)
-            assert url, err.read_text()
+
+        with running(["poll", "-p", port, "-b", "115200", "--format", "json", "-o",
+                      str(records), "--http", "127.0.0.1:0", *devices], Path(tmp)) as p:
             time.sleep(3)  # past the start
             results: dict[int, list[tuple[float, int]]] = {0: [], CLIENTS: []}
             for _ in range(args.rounds):
                 for clients in (0, CLIENTS):
-                    streams = [reader(url) for _ in range(clients)]
+                    streams = [reader(p.url) for _ in range(clients)]
                     time.sleep(1.0)  # connected, first snapshot sent
-                    c0, r0 = cpu(proc.pid), written()
+                    c0, r0 = cpu(p.proc.pid), written()
                     time.sleep(args.phase)
-                    results[clients].append((cpu(proc.pid) - c0, written() - r0))
+                    results[clients].append((cpu(p.proc.pid) - c0, written() - r0))
                     for s in streams:
                         s.terminate()
                         s.wait()
-        finally:
-            proc.send_signal(signal.SIGINT)
-            proc.wait(timeout=60)
     per, total = {}, {}
     print(f"{args.devices} devices x 23 fields, every second; {args.rounds} phases of "
           f"{args.phase:g} s each")
