@@ -252,6 +252,9 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
         gone = until(lambda: (s := shown(browser))["rtupoll/building-a/huiwen-aq@3"][
             "gatewayDown"] and s, "building a greyed out")
         assert gone["rtupoll/building-a/huiwen-aq@3"]["down"]
+        # its retained values are no readings now: the last ones, dated, not as fresh
+        assert gone["rtupoll/building-a/huiwen-aq@3"]["fields"]["co2"].startswith(
+            "offline (last 612 ppm at ")
         assert not gone["rtupoll/building-b/huiwen-aq@3"]["gatewayDown"]
         assert "1 of 2 devices online" in browser.find_element("id", "summary").text
         screenshots(browser, tmp_path, "web-fleet", docs=True)

@@ -257,6 +257,10 @@ def test_the_fleet_reads_a_gateways_topics() -> None:
     feed(fleet, "rtupoll/a/huiwen-aq_3/availability", "offline")
     gw = fleet.snapshot()["gateways"][0]
     assert not gw["online"] and gw["buses"][0]["devices"][0]["state"] == "offline"
+    # its retained values are shown as what they are: the last ones, with their time
+    co2_level = gw["buses"][0]["devices"][0]["fields"][1]
+    assert co2_level["value"] is None and co2_level["status"] == "offline"
+    assert co2_level["last"]["text"] == "GOOD"
     # removed for good: an empty retained info
     fleet.on_message("rtupoll/a/bridge/info", b"")
     assert fleet.snapshot()["gateways"] == []

@@ -221,6 +221,11 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
                                                            "online" if dev.time else "starting")
     fields = [field_json(name, meta, values, dev.at, error)
               for name, meta in _fields(dev).items()]
+    if state == "offline" or gw.online is False:  # retained values are no readings now
+        for f in fields:
+            if f["status"] == "ok":
+                f["last"] = {"text": f["text"], "time": dev.at}
+                f.update(value=None, text="offline", status="offline", badges=[])
     info = dev.info
     return {"key": f"{gw.base}/{dev.name}", "name": dev.name,
             "profile": str(info.get("profile") or ""), "model": "",

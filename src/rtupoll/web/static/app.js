@@ -211,7 +211,7 @@
         if (f.unit && f.text !== "") td.appendChild(el("span", "unit", f.unit));
       }
     } else {
-      td.appendChild(el("span", f.status === "absent" || f.status === "waiting" ? "last" : "failed", f.text || f.status));
+      td.appendChild(el("span", f.status === "absent" || f.status === "waiting" || f.status === "offline" ? "last" : "failed", f.text || f.status));
       if (f.error) td.title = f.error;
       if (f.last) {
         td.appendChild(document.createTextNode(" "));
