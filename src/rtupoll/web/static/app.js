@@ -43,7 +43,7 @@
 
   function clock(t) {
     const d = new Date((t - offset) * 1000);
-    return d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit" });
+    return d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit", hourCycle: "h23" });
   }
 
   function badge(name, sev) { return el("span", "badge sev-" + (sev || "info"), name); }
