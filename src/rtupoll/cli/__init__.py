@@ -57,6 +57,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
     "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),
     "profiles": ("rtupoll.cli.profiles:profiles", "List, show and check device profiles."),
+    "web": ("rtupoll.cli.web:web", "Show every gateway on an MQTT broker on one web page."),
 }
 
 EXIT_CODES = """\b

@@ -35,6 +35,7 @@ from rtupoll.errors import ScanIncomplete, UsageError
 from rtupoll.gateway.options import from_options, serve_options
 from rtupoll.ui.outfile import OutputFile
 from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
+from rtupoll.web.options import http_options, http_service, pop_http
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -46,6 +47,7 @@ if TYPE_CHECKING:
     from rtupoll.jobs.stats import Reading
     from rtupoll.sim.runner import SimulatedBus
     from rtupoll.ui.live import PollView
+    from rtupoll.web.settings import HttpSettings
 
 REFRESH = 0.25  # seconds between redraws of the live table
 SIM_BAUDRATE = 115200  # framing assumed on a simulated line that answers at any speed
@@ -144,6 +146,7 @@ class RecordWriter:
 @profiles_option
 @service_options
 @serve_options
+@http_options()
 @click.option("--mqtt", "mqtt", metavar="URL", default=None,
               help="Publish to an MQTT broker: mqtt://[USER[:PASS]@]HOST[:PORT][/BASE] "
                    "(mqtts:// for TLS; also mqtt: in the site file; docs/mqtt.md).")
@@ -175,6 +178,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
     finished, nothing is left half-written, and the exit status is 0.
     """
     services: list[Service] = []  # run beside the scheduler (rtupoll.jobs.services)
+    http = pop_http(serve)  # --http: the dashboard (rtupoll.web)
     _learning(services, config, verify_blocks, remember_holes)
     served = from_options(serve)  # --serve: a Modbus TCP gateway (rtupoll.gateway)
     if output is not None and fmt == "table":
@@ -214,7 +218,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                      fmt, mqtt_id):
                 return
             _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
-                 metrics=metrics, log_format=log_format)
+                 metrics=metrics, log_format=log_format, http=http)
         if fmt == "table" and not once and not faults:
             click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
                        "--baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
@@ -260,7 +264,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         return
     _run(site, once=once, fmt=fmt, output=output,
          title=config.name if config else str(port), services=services,
-         metrics=metrics, log_format=log_format,
+         metrics=metrics, log_format=log_format, http=http,
          reload=(lambda: load_site(config, profile_dirs)) if config is not None else None)
 
 
@@ -355,7 +359,8 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
 
 def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
          services: Sequence[Service] = (), metrics: str | None = None,
-         log_format: str | None = None, reload: Callable[[], Site] | None = None) -> None:
+         log_format: str | None = None, reload: Callable[[], Site] | None = None,
+         http: HttpSettings | None = None) -> None:
     from rich.console import Console
 
     from rtupoll.jobs.reload import daemon_services
@@ -370,6 +375,9 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
         services = [*services, *daemon_services(
             site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
             log_format=log_format, reload=reload, peers=services)]
+        if not once and (http is not None or site.http is not None):
+            services += http_service(site, http, services, title=title,
+                                     say=lambda t: click.echo(f"rtupoll: {t}", err=True))
         for s in services:  # /metrics also serves what other services count
             if isinstance(others := getattr(s, "others", None), list):
                 others += [c() for t in services if callable(c := getattr(t, "collector", None))]

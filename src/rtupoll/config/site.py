@@ -30,6 +30,8 @@ from rtupoll.model.profile import Addressing, Field, Poll, Profile
 from rtupoll.outputs.mqtt_settings import MqttSettings
 from rtupoll.outputs.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.rtu import Framing
+from rtupoll.web.settings import HttpSettings
+from rtupoll.web.settings import from_node as http_from_node
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
 # the serial defaults of a bus with no devices (only served to gateway clients)
@@ -103,6 +105,7 @@ class Site:
     source: str = "command line"
     metrics: str = ""  # HOST:PORT to serve Prometheus metrics on ("": none)
     mqtt: MqttSettings | None = None  # the site file's mqtt: section (docs/mqtt.md)
+    http: HttpSettings | None = None  # the site file's http: section (docs/web.md)
 
     def devices(self) -> Iterator[tuple[BusConfig, DeviceConfig]]:
         for bus in self.buses:
@@ -113,7 +116,7 @@ class Site:
 # ---------------------------------------------------------------------------
 # the site file
 
-_TOP_KEYS = {"profiles", "buses", "metrics", "mqtt"}
+_TOP_KEYS = {"profiles", "buses", "metrics", "mqtt", "http"}
 _BUS_KEYS = {"name", "port", "baudrate", "parity", "bytesize", "stopbits", "devices",
              "echo", "rs485",
              "serve"}
@@ -160,7 +163,8 @@ def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
             seen[dev.name] = dev
     metrics = _listen(top["metrics"]) if "metrics" in top else ""
     mqtt = parse_mqtt(top["mqtt"], path, seen) if "mqtt" in top else None
-    return Site(tuple(buses), source=str(path), metrics=metrics, mqtt=mqtt)
+    http = http_from_node(top["http"]) if "http" in top else None
+    return Site(tuple(buses), source=str(path), metrics=metrics, mqtt=mqtt, http=http)
 
 
 def _listen(node: Node) -> str:

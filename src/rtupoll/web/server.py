@@ -1,0 +1,305 @@
+"""The dashboard's HTTP listener (aiohttp, the ``web`` extra): the page, its JSON, its events.
+
+    GET /                 the page (static/index.html; every asset is in the package)
+    GET /static/NAME      its script, style sheet and icon
+    GET /api/state        the snapshot (``rtupoll.web.state``)
+    GET /api/events       server-sent events: ``state`` first, then ``device`` per device
+                          cycle (or MQTT state message), ``buses`` every few seconds
+    GET /api/trend?device=KEY&field=NAME   the field's last hour: {"t": [...], "v": [...]}
+    GET /metrics          Prometheus, when the source has it (``poll --http``)
+
+Read-only: every other method is 405. Optional authentication (``HttpSettings``): a
+bearer token (``Authorization: Bearer TOKEN``; a browser opens ``/?token=TOKEN`` once
+and keeps a cookie) and/or users for basic authentication.
+
+An event stream never holds up polling: a reading only replaces the latest pending
+event of its device in each client's mailbox (so a slow browser skips intermediate
+states, never gets a backlog), and each client's own task writes its mailbox out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+import contextlib
+import hashlib
+import hmac
+import importlib.resources
+import logging
+import os
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from aiohttp import web
+
+from rtupoll.errors import UsageError
+from rtupoll.ui.records import to_json
+
+if TYPE_CHECKING:
+    from rtupoll.web.settings import HttpSettings
+
+log = logging.getLogger("rtupoll.web")
+PING = 15.0  # seconds between keep-alive events on the event streams
+BATCH = 0.25  # seconds an event stream gathers events before it writes them
+COOKIE = "rtupoll_token"
+STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+                ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml",
+                ".txt": "text/plain; charset=utf-8"}
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
+                               "style-src 'self'; script-src 'self'; connect-src 'self'; "
+                               "frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
+    "X-Frame-Options": "DENY"}
+
+
+class Item:
+    """One event, serialised once, when the first client sends it, for every client."""
+
+    __slots__ = ("_bytes", "_make", "event")
+
+    def __init__(self, event: str, data: str | Callable[[], str]) -> None:
+        self.event = event
+        self._make = data if callable(data) else lambda: data
+        self._bytes: bytes | None = None
+
+    def encode(self) -> bytes:
+        if self._bytes is None:
+            self._bytes = f"event: {self.event}\ndata: {self._make()}\n\n".encode()
+        return self._bytes
+
+
+class Mailbox:
+    """One event-stream client's pending events: the latest per key, in arrival order."""
+
+    def __init__(self) -> None:
+        self.pending: dict[str, Item] = {}
+        self.wake = asyncio.Event()
+
+    def put(self, key: str, item: Item) -> None:
+        self.pending[key] = item
+        self.wake.set()
+
+    def take(self) -> bytes:
+        out = b"".join(item.encode() for item in self.pending.values())
+        self.pending.clear()
+        self.wake.clear()
+        return out
+
+
+class Hub:
+    """Every connected event stream; ``publish`` is cheap with none, and an event's data
+    (a function) is made at most once, when it is sent, however many listen."""
+
+    def __init__(self) -> None:
+        self.clients: set[Mailbox] = set()
+        self.closed = False
+
+    def publish(self, key: str, event: str, data: str | Callable[[], str]) -> None:
+        if not self.clients:
+            return
+        item = Item(event, data)
+        for c in self.clients:
+            c.put(key, item)
+
+    def close(self) -> None:
+        self.closed = True
+        for c in self.clients:
+            c.wake.set()
+
+
+class Source(Protocol):
+    """What the server shows: a polling process or a fleet seen through MQTT."""
+
+    hub: Hub
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+    def trend(self, key: str, field: str) -> dict[str, Any]: ...
+
+    def metrics(self, accept: str) -> tuple[bytes, str] | None: ...
+
+
+def load_assets() -> dict[str, tuple[bytes, str]]:
+    """static/* from the package: name -> (bytes, content type)."""
+    out: dict[str, tuple[bytes, str]] = {}
+    root = importlib.resources.files("rtupoll.web") / "static"
+    for entry in root.iterdir():
+        ext = os.path.splitext(entry.name)[1]
+        if ext in STATIC_TYPES:
+            out[entry.name] = (entry.read_bytes(), STATIC_TYPES[ext])
+    return out
+
+
+def cookie_value(token: str) -> str:
+    """What the cookie holds: a digest of the token, not the token itself."""
+    return hashlib.sha256(f"rtupoll-web:{token}".encode()).hexdigest()
+
+
+def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -> bool:
+    if not settings.guarded:
+        return True
+    auth = headers.get("Authorization", "")
+    scheme, _, cred = auth.partition(" ")
+    if settings.token:
+        token = settings.token
+        if scheme.lower() == "bearer" and hmac.compare_digest(cred.strip().encode(),
+                                                              token.encode()):
+            return True
+        if hmac.compare_digest(cookies.get(COOKIE, "").encode(), cookie_value(token).encode()):
+            return True
+        if hmac.compare_digest(query.get("token", "").encode(), token.encode()):
+            return True
+    if settings.users and scheme.lower() == "basic":
+        try:
+            user, _, password = base64.b64decode(cred.strip(), validate=True).decode(
+                "utf-8").partition(":")
+        except (binascii.Error, UnicodeError):
+            return False
+        want = settings.users.get(user)
+        if want is not None and hmac.compare_digest(password.encode(), want.encode()):
+            return True
+    return False
+
+
+class Server:
+    """The listener: ``start`` binds (one-line ``UsageError`` when it cannot), ``stop``
+    ends the event streams and closes it."""
+
+    def __init__(self, settings: HttpSettings, source: Source, *, what: str = "--http") -> None:
+        self.settings, self.source, self.what = settings, source, what
+        self.assets = load_assets()
+        self._runner: web.AppRunner | None = None
+        self._pinger: asyncio.Task[None] | None = None
+        self.address = ""  # http://HOST:PORT/ once listening
+
+    def app(self) -> web.Application:
+        app = web.Application(middlewares=[self._guard])
+        app.router.add_get("/", self._index)
+        app.router.add_get("/static/{name}", self._static)
+        app.router.add_get("/api/state", self._state)
+        app.router.add_get("/api/events", self._events)
+        app.router.add_get("/api/trend", self._trend)
+        app.router.add_get("/metrics", self._metrics)
+        return app
+
+    async def start(self) -> None:
+        self._runner = web.AppRunner(self.app(), access_log=None, handle_signals=False,
+                                     shutdown_timeout=1.0)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.settings.host, self.settings.port)
+        try:
+            await site.start()
+        except OSError as exc:
+            await self._runner.cleanup()
+            self._runner = None
+            why = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise UsageError(f"{self.what}: cannot listen on {self.settings.host}:"
+                             f"{self.settings.port}: {why}") from None
+        self._pinger = asyncio.create_task(self._ping())
+        host, port = self._runner.addresses[0][:2]
+        host = f"[{host}]" if ":" in host else host
+        self.address = f"http://{host}:{port}/"
+
+    async def stop(self) -> None:
+        self.source.hub.close()
+        if self._pinger is not None:
+            self._pinger.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._pinger
+        if self._runner is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._runner.cleanup(), 3.0)
+            self._runner = None
+
+    async def _ping(self) -> None:
+        """Something on every event stream now and then: proxies keep idle ones open."""
+        while True:
+            await asyncio.sleep(PING)
+            self.source.hub.publish("ping", "ping", "{}")
+
+    # -- handlers -------------------------------------------------------------
+
+    @web.middleware
+    async def _guard(self, request: web.Request, handler: Callable[[web.Request], Awaitable[
+            web.StreamResponse]]) -> web.StreamResponse:
+        if request.method not in ("GET", "HEAD"):
+            raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD"],
+                                           text="read-only: GET only\n")
+        s = self.settings
+        if not authorised(s, request.headers, request.cookies, request.query):
+            challenge = ", ".join((['Bearer realm="rtupoll"'] if s.token else []) +
+                                  (['Basic realm="rtupoll"'] if s.users else []))
+            return web.Response(status=401, text="rtupoll: authentication required "
+                                "(docs/web.md)\n", headers={"WWW-Authenticate": challenge,
+                                                            **SECURITY_HEADERS})
+        if s.token and "token" in request.query and request.path == "/":
+            # the link with the token, once: a cookie from now on, and the token out of
+            # the address bar (and of the history)
+            resp: web.StreamResponse = web.HTTPSeeOther("/")
+            resp.set_cookie(COOKIE, cookie_value(s.token), httponly=True, samesite="Strict",
+                            path="/")
+            return resp
+        resp = await handler(request)
+        resp.headers.update(SECURITY_HEADERS)
+        return resp
+
+    async def _index(self, request: web.Request) -> web.StreamResponse:
+        body, ctype = self.assets["index.html"]
+        return web.Response(body=body, headers={"Content-Type": ctype,
+                                                     "Cache-Control": "no-cache"})
+
+    async def _static(self, request: web.Request) -> web.StreamResponse:
+        got = self.assets.get(request.match_info["name"])
+        if got is None:
+            raise web.HTTPNotFound(text="not found\n")
+        return web.Response(body=got[0], headers={"Content-Type": got[1],
+                                                       "Cache-Control": "no-cache"})
+
+    async def _state(self, request: web.Request) -> web.StreamResponse:
+        return self._json(self.source.snapshot())
+
+    async def _trend(self, request: web.Request) -> web.StreamResponse:
+        key, field = request.query.get("device", ""), request.query.get("field", "")
+        if not key or not field:
+            raise web.HTTPBadRequest(text="give device=KEY&field=NAME\n")
+        return self._json(self.source.trend(key, field))
+
+    async def _metrics(self, request: web.Request) -> web.StreamResponse:
+        got = self.source.metrics(request.headers.get("Accept", ""))
+        if got is None:
+            raise web.HTTPNotFound(text="no metrics here\n")
+        body, ctype = got
+        resp = web.Response(body=body)
+        resp.headers["Content-Type"] = ctype
+        return resp
+
+    def _json(self, obj: Any) -> web.StreamResponse:
+        return web.Response(text=to_json(obj), content_type="application/json",
+                                 headers={"Cache-Control": "no-store"})
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        hub = self.source.hub
+        resp = web.StreamResponse(headers={
+            "Content-Type": "text/event-stream", "Cache-Control": "no-store",
+            "X-Accel-Buffering": "no", **SECURITY_HEADERS})
+        await resp.prepare(request)
+        box = Mailbox()
+        hub.clients.add(box)
+        try:
+            await resp.write(f"retry: 2000\nevent: state\ndata: "
+                             f"{to_json(self.source.snapshot())}\n\n".encode())
+            while not hub.closed:
+                await box.wake.wait()
+                if hub.closed:
+                    break
+                # what else comes meanwhile goes in the same write: at most 1/BATCH
+                # writes a second per client, however fast the devices are polled
+                await asyncio.sleep(BATCH)
+                await resp.write(box.take())
+        except (ConnectionError, RuntimeError):  # the browser went away
+            pass
+        finally:
+            hub.clients.discard(box)
+        return resp

@@ -1,0 +1,144 @@
+"""``rtupoll poll --http HOST:PORT``: the dashboard of this process, as a ``Service``.
+
+Fed like the other services (``rtupoll.jobs.services``): every device cycle's readings
+go into the trend rings and, when a browser listens, become one ``device`` event (the
+device's fields and health, serialised once for every listener). Every ``BUS_EVERY``
+seconds a ``buses`` event carries the buses' load and the gateway's clients and queue.
+``/metrics`` is served here too, from ``outputs.metrics``'s collector, when
+``prometheus_client`` is installed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.ui.records import to_json
+from rtupoll.web.server import Hub, Server
+from rtupoll.web.state import Clocks, buses_event, device_state, gateway_id, number, poll_state
+from rtupoll.web.trend import TrendStore
+
+if TYPE_CHECKING:
+    from rtupoll.config.site import Site
+    from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.stats import Reading
+    from rtupoll.outputs.metrics import MetricsService
+    from rtupoll.web.settings import HttpSettings
+
+log = logging.getLogger("rtupoll.web")
+BUS_EVERY = 2.0  # seconds between ``buses`` events
+
+
+class WebService:
+    """The dashboard beside the scheduler (a ``rtupoll.jobs.services.Service``)."""
+
+    def __init__(self, settings: HttpSettings, *, title: str = "",
+                 served: Callable[[], Sequence[dict[str, Any]]] = list,
+                 say: Callable[[str], None] | None = None) -> None:
+        self.settings, self.title, self.served = settings, title, served
+        self.say = say
+        self.hub = Hub()
+        self.trends = TrendStore(time.time())
+        self.gateway = gateway_id()
+        self.others: list[Any] = []  # other services' collectors, for /metrics (cli.poll)
+        self.server = Server(settings, self)
+        self._scheduler: Scheduler | None = None
+        self._site: Site | None = None
+        self._bus_of: dict[str, BusPoller] = {}
+        self._prom: MetricsService | None = None
+        self._ticker: asyncio.Task[None] | None = None
+
+    @property
+    def address(self) -> str:
+        return self.server.address
+
+    async def start(self, scheduler: Scheduler) -> None:
+        self._scheduler, self._site = scheduler, scheduler.site
+        self._prom = self._metrics(scheduler)
+        await self.server.start()
+        log.info("dashboard on %s", self.address, extra={"event": "http"})
+        if self.say is not None:
+            self.say(f"dashboard on {self.address}")
+        self._ticker = asyncio.create_task(self._tick())
+
+    def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
+        sched = self._scheduler
+        if sched is None:
+            return
+        name = dev.config.name
+        for r in readings:
+            if r.value is not None and (v := number(r.value.output)) is not None:
+                self.trends.add(name, r.field.name, r.time, v)
+        if self._prom is not None:
+            self._prom.on_readings(dev, readings)
+        if sched.site is not self._site:  # a reload: other devices, perhaps other buses
+            self._site = sched.site
+            self._bus_of = {}
+            self.trends.forget({d.config.name for d in sched.pollers()})
+            self.hub.publish("state", "state", lambda: to_json(self.snapshot()))
+            return
+        bus = self._bus_of.get(name)
+        if bus is None or dev not in bus.devices:
+            self._bus_of = {d.config.name: bp for bp in sched.buses for d in bp.devices}
+            bus = self._bus_of.get(name)
+        if bus is not None:
+            b = bus.config.name
+            self.hub.publish("d:" + name, "device", lambda: to_json(
+                {"gateway": self.gateway,
+                 "device": device_state(b, dev, Clocks(), latency=False)}))
+
+    async def stop(self) -> None:
+        if self._ticker is not None:
+            self._ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._ticker
+        await self.server.stop()
+
+    # -- the source the server shows ---------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        assert self._scheduler is not None
+        return poll_state(self._scheduler, title=self.title, served=self.served(),
+                          gateway=self.gateway)
+
+    def trend(self, key: str, field: str) -> dict[str, Any]:
+        return self.trends.series(key, field, time.time())
+
+    def metrics(self, accept: str) -> tuple[bytes, str] | None:
+        if self._prom is None or self._prom.registry is None:
+            return None
+        from prometheus_client.exposition import choose_encoder
+
+        encoder, ctype = choose_encoder(accept)
+        return encoder(self._prom.registry), ctype
+
+    # -----------------------------------------------------------------------------
+
+    def _metrics(self, scheduler: Scheduler) -> MetricsService | None:
+        """``outputs.metrics``'s collector and registry, without its own listener."""
+        try:
+            from prometheus_client import CollectorRegistry
+
+            from rtupoll.outputs.metrics import MetricsService, SchedulerCollector
+        except ImportError:
+            return None
+        prom = MetricsService("127.0.0.1:0")  # never started: its registry is served here
+        prom.collector = SchedulerCollector(scheduler)
+        prom.registry = CollectorRegistry(auto_describe=False)
+        prom.registry.register(prom.collector)
+        for other in self.others:
+            prom.registry.register(other)
+        return prom
+
+    async def _tick(self) -> None:
+        while True:
+            await asyncio.sleep(BUS_EVERY)
+            self.hub.publish("buses", "buses", self._buses)
+
+    def _buses(self) -> str:
+        assert self._scheduler is not None
+        return to_json(buses_event(self._scheduler, self.served(), self.gateway))

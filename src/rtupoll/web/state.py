@@ -1,0 +1,210 @@
+"""What the dashboard shows, as JSON: ``/api/state`` and the events of ``/api/events``.
+
+One shape for both sources, so the page has one code path::
+
+    {"mode": "poll" | "fleet", "time": WALL, "span": 3600, "step": 2,
+     "gateways": [{"id", "title", "online", "version", "buses": [BUS...]}]}
+    BUS    = {"name", "port", "serial", "utilisation", "port_error",
+              "gateway": {"listen", "pending", "clients": [...]} | null, "devices": [DEVICE...]}
+    DEVICE = {"key", "name", "profile", "model", "address", "bus", "state",
+              "health": {...}, "fields": [FIELD...]}
+    FIELD  = {"name", "label", "description", "unit", "kind", "precision", "value", "text",
+              "severity", "status", "error", "badges": [{"name", "severity"}],
+              "last": {"text", "time"} | null}
+
+``kind`` is number, enum, flags or text; only numbers have a trend. A field whose
+latest read failed has no ``value`` (never a stale one): ``status`` says why, and
+``last`` is its last good reading, with its time, for the page to show as such.
+Times are wall-clock seconds since the epoch.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import socket
+import time
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING, Any
+
+from rtupoll.jobs.stats import State, Status
+
+if TYPE_CHECKING:
+    from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.stats import Reading
+    from rtupoll.model.profile import Field
+
+SHORT_STATUS = {"timeout": "no reply", "garbled": "garbled reply", "skipped": "not read",
+                "port": "port gone", "absent": "not in this variant"}
+
+
+def gateway_id() -> str:
+    """This machine's name, lower-cased, in [a-z0-9_-] (the fleet identity's default)."""
+    return re.sub(r"[^a-z0-9_-]+", "-", socket.gethostname().lower()).strip("-") or "rtupoll"
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("rtupoll")
+    except PackageNotFoundError:
+        return ""
+
+
+def kind_of(f: Field) -> str:
+    if f.enum:
+        return "enum"
+    if f.flags:
+        return "flags"
+    if f.layout.type.value == "string":
+        return "text"
+    return "number"
+
+
+def label_of(f: Field) -> str:
+    return f.name.replace("_", " ")
+
+
+_META: dict[int, tuple[Field, dict[str, Any]]] = {}  # id(field) -> (field, its meta)
+
+
+def field_meta(f: Field) -> dict[str, Any]:
+    """What the page shows of a field besides its value (a new dict, made once a field)."""
+    got = _META.get(id(f))
+    if got is None or got[0] is not f:
+        text = (f.description or "").strip()
+        got = _META[id(f)] = (f, {
+            "name": f.name, "label": label_of(f),
+            "description": text.splitlines()[0] if text else "",
+            "unit": f.unit, "kind": kind_of(f), "precision": f.precision})
+        if len(_META) > 100_000:  # profiles reloaded again and again: start afresh
+            _META.clear()
+    return dict(got[1])
+
+
+def number(value: object) -> float | None:
+    """The value a trend draws: a finite int or float (no bool, enum or text)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def json_value(value: object) -> object:
+    """Strict JSON: a NaN or infinite float is null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def field_state(f: Field, latest: Reading | None, last_good: Reading | None, *,
+                meta: bool = True) -> dict[str, Any]:
+    """``meta``: with what does not change (label, unit, kind ...); the events leave it
+    out (the page has it from the snapshot) and carry only the name and the reading."""
+    out: dict[str, Any] = field_meta(f) if meta else {"name": f.name}
+    out.update(value=None, text="", severity="ok", status="", error="", badges=[],
+               last=None)
+    if latest is None:
+        out["status"] = "waiting"
+        return out
+    out["time"] = latest.time
+    fv = latest.value
+    if fv is None:
+        out["status"], out["error"] = latest.status.value, latest.error
+        out["text"] = SHORT_STATUS.get(latest.status.value, latest.status.value)
+        if latest.status is Status.ABSENT:
+            out["severity"] = "info"
+        if last_good is not None and last_good.value is not None:
+            out["last"] = {"text": last_good.value.text, "time": last_good.time}
+        return out
+    out["status"] = "ok"
+    out["severity"] = fv.severity.value
+    out["text"] = fv.text
+    if fv.sentinel is not None:  # the device says there is no reading: no value
+        out["badges"] = [{"name": fv.sentinel.name, "severity": fv.sentinel.severity.value}]
+        return out
+    out["value"] = json_value(fv.value)
+    if f.flags and isinstance(fv.value, list):
+        sev = {c.name: c.severity.value for c in f.flags.values()}
+        out["badges"] = [{"name": n, "severity": sev.get(n, "warning")} for n in fv.value]
+    elif f.enum and isinstance(fv.value, str):
+        out["badges"] = [{"name": fv.value, "severity": fv.severity.value}]
+    return out
+
+
+class Clocks:
+    """Wall and monotonic clocks read together: a monotonic deadline as a wall time."""
+
+    def __init__(self, wall: float | None = None, mono: float | None = None) -> None:
+        self.wall = time.time() if wall is None else wall
+        self.mono = time.monotonic() if mono is None else mono
+
+    def to_wall(self, mono: float) -> float:
+        return self.wall + (mono - self.mono)
+
+
+def device_state(bus: str, dev: DevicePoller, clocks: Clocks, *, latency: bool = True
+                 ) -> dict[str, Any]:
+    """``latency=False`` (the events, sent after every cycle): without the p50 and p95
+    reply times (their sorting) and without the fields' unchanging parts."""
+    cfg, st = dev.config, dev.stats
+    p = cfg.profile
+    waiting = st.state in (State.RETRYING, State.OFFLINE)
+    health = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
+              "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
+              "failures": st.failures, "timeout": st.timeout,
+              "timeout_source": st.timeout_source,
+              "p50": st.p50() if latency else None, "p95": st.p95() if latency else None,
+              "last_seen": st.last_good_time,
+              "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,
+              "interval": cfg.interval}
+    fields = [field_state(f, st.latest.get(f.name), st.last_good.get(f.name), meta=latency)
+              for f in cfg.fields]
+    return {"key": cfg.name, "name": cfg.name, "profile": p.id,
+            "model": " ".join(x for x in (p.vendor, p.model) if x), "address": cfg.address,
+            "bus": bus, "state": st.state.value, "health": health, "fields": fields}
+
+
+def bus_state(bp: BusPoller, clocks: Clocks, served: dict[str, dict[str, Any]],
+              *, devices: bool = True) -> dict[str, Any]:
+    cfg = bp.config
+    out: dict[str, Any] = {"name": cfg.name, "port": cfg.port, "serial": cfg.serial_text,
+                           "utilisation": round(bp.load.utilisation(clocks.mono), 4),
+                           "port_error": bp.port_error, "gateway": served.get(cfg.name)}
+    if devices:
+        out["devices"] = [device_state(cfg.name, d, clocks) for d in bp.devices]
+    return out
+
+
+def poll_state(scheduler: Scheduler, *, title: str, served: Iterable[dict[str, Any]] = (),
+               gateway: str | None = None) -> dict[str, Any]:
+    """The whole snapshot of a polling process (``served``: the gateway service's
+    ``snapshot()``, its listeners' clients and queues)."""
+    clocks = Clocks()
+    by_bus = {s["bus"]: s for s in served}
+    return {"mode": "poll", "time": clocks.wall, "span": _span(), "step": _step(),
+            "gateways": [{"id": gateway or gateway_id(), "title": title, "online": True,
+                          "version": version(),
+                          "buses": [bus_state(bp, clocks, by_bus) for bp in scheduler.buses]}]}
+
+
+def buses_event(scheduler: Scheduler, served: Sequence[dict[str, Any]], gateway: str
+                ) -> dict[str, Any]:
+    """Every bus's load and gateway clients, without the devices (a periodic event)."""
+    clocks = Clocks()
+    by_bus = {s["bus"]: s for s in served}
+    return {"gateway": gateway, "time": clocks.wall,
+            "buses": [bus_state(bp, clocks, by_bus, devices=False) for bp in scheduler.buses]}
+
+
+def _span() -> float:
+    from rtupoll.web.trend import SPAN
+
+    return SPAN
+
+
+def _step() -> float:
+    from rtupoll.web.trend import STEP
+
+    return STEP

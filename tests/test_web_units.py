@@ -1,0 +1,295 @@
+"""The dashboard's pure parts: trend rings (bounded, in order), ``--http`` settings and the
+site file's ``http:``, the authentication check, the event mailbox, and the fleet's
+reading of MQTT messages (fed directly: the broker side is in test_web_browser)."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rtupoll.config.site import load_site
+from rtupoll.errors import ConfigError, UsageError
+from rtupoll.web.fleet import MAX_WAITING, Fleet
+from rtupoll.web.server import COOKIE, Hub, Mailbox, authorised, cookie_value
+from rtupoll.web.settings import HttpSettings, from_options, merge, parse_listen
+from rtupoll.web.trend import BYTES_PER_FIELD, POINTS, SPAN, STEP, Trend, TrendStore
+
+# -- trend rings -------------------------------------------------------------------------
+
+
+def test_a_ring_keeps_one_point_per_step_and_at_most_an_hour_of_steps() -> None:
+    store = TrendStore(1000.0)
+    t = 1000.0
+    for i in range(3 * POINTS):  # three hours of readings every second
+        store.add("d", "f", t + i, float(i))
+    ring = store.rings[("d", "f")]
+    assert len(ring) == POINTS  # bounded, whatever came
+    assert ring.nbytes() == BYTES_PER_FIELD == POINTS * 8
+    now = t + 3 * POINTS - 1
+    got = store.series("d", "f", now)
+    assert len(got["t"]) == len(got["v"]) == POINTS
+    assert got["t"] == sorted(got["t"]) and got["t"][-1] == now
+    assert got["t"][0] >= now - SPAN - 0.05  # the last hour, nothing older
+    assert all(b - a == pytest.approx(STEP) for a, b in zip(got["t"], got["t"][1:],
+                                                             strict=False))
+    assert got["v"][-1] == 3 * POINTS - 1  # the newest reading of the last step
+
+
+def test_points_older_than_the_span_are_not_shown_and_odd_values_are_not_kept() -> None:
+    store = TrendStore(0.0)
+    store.add("d", "f", 10.0, 1.5)
+    store.add("d", "f", 5000.0, 2.25)
+    assert store.series("d", "f", 5000.0) == {"t": [5000.0], "v": [2.25]}
+    assert not store.add("d", "f", 5002.0, float("nan"))
+    assert not store.add("d", "f", 5002.0, 1e39)  # beyond a float32
+    assert store.series("d", "f", 5002.0)["v"] == [2.25]
+    assert store.series("d", "nothing", 5000.0) == {"t": [], "v": []}
+
+
+def test_values_come_back_as_the_shortest_decimal_of_their_float32() -> None:
+    store = TrendStore(0.0)
+    for i, v in enumerate((21.5, 0.036, 296.15, 1175.0, -3.3)):
+        store.add("d", "f", 10.0 * i, v)
+    assert store.series("d", "f", 40.0)["v"] == [21.5, 0.036, 296.15, 1175.0, -3.3]
+
+
+def test_steps_are_wall_clock_steps_the_same_for_every_store() -> None:
+    a, b = TrendStore(1001.3), TrendStore(997.7)
+    for s in (a, b):
+        for t in (1002.1, 1003.9, 1004.2, 1005.5):
+            s.add("d", "f", t, t)
+    assert a.series("d", "f", 1006.0) == b.series("d", "f", 1006.0) == {
+        "t": [1003.9, 1005.5], "v": [1003.9, 1005.5]}
+
+
+def test_forget_drops_the_rings_of_devices_that_left() -> None:
+    store = TrendStore(0.0)
+    store.add("a", "f", 1.0, 1.0)
+    store.add("b", "f", 1.0, 1.0)
+    store.forget({"a"})
+    assert list(store.rings) == [("a", "f")]
+
+
+def test_memory_per_field_is_what_the_docs_say() -> None:
+    ring = Trend()
+    for i in range(POINTS * 2):
+        ring.add(i * 20, 1.0)
+    arrays = sys.getsizeof(ring.times) + sys.getsizeof(ring.values)
+    assert BYTES_PER_FIELD == 14_400
+    assert BYTES_PER_FIELD <= arrays <= BYTES_PER_FIELD + 2_000  # docs/web.md: 14.4 kB
+
+
+# -- settings ----------------------------------------------------------------------------
+
+
+def test_listen_addresses() -> None:
+    assert parse_listen("8080") == ("127.0.0.1", 8080)  # a port alone: loopback
+    assert parse_listen(":8080") == ("127.0.0.1", 8080)
+    assert parse_listen("0.0.0.0:80") == ("0.0.0.0", 80)
+    assert parse_listen("[::1]:8080") == ("::1", 8080)
+    for bad in ("host", "1.2.3.4:99999", "", "a:b"):
+        with pytest.raises(UsageError):
+            parse_listen(bad)
+
+
+def test_loopback_open_and_guarded() -> None:
+    assert HttpSettings("127.0.0.1", 1).warning() == ""
+    assert HttpSettings("::1", 1).warning() == ""
+    assert HttpSettings("localhost", 1).warning() == ""
+    assert "readable by anyone" in HttpSettings("0.0.0.0", 1).warning()
+    assert HttpSettings("0.0.0.0", 1, token="12345678").warning() == ""
+    assert HttpSettings("192.168.1.5", 1, users={"a": "12345678"}).warning() == ""
+
+
+def test_the_command_line_over_the_site_file() -> None:
+    site = HttpSettings("0.0.0.0", 80, token="site-token", users={"u": "site-pass"})
+    assert merge(None, site) is site
+    cli = from_options("127.0.0.1:8080", None, ())
+    assert merge(cli, site) == HttpSettings("127.0.0.1", 8080, "site-token", {"u": "site-pass"})
+    only_token = from_options(None, "cli-token-1", ())
+    assert merge(only_token, site) == HttpSettings("0.0.0.0", 80, "cli-token-1",
+                                                   {"u": "site-pass"})
+    with pytest.raises(UsageError, match="need --http HOST:PORT"):
+        merge(only_token, None)
+    assert from_options(None, None, ()) is None
+
+
+def test_the_site_files_http_section(tmp_path: Path) -> None:
+    path = tmp_path / "site.yaml"
+    body = ("buses:\n  - port: /dev/ttyUSB0\n    baudrate: 9600\n    devices:\n"
+            "      - {profile: huiwen-aq, address: 3}\n")
+    path.write_text("http: 8080\n" + body)
+    assert load_site(path).http == HttpSettings("127.0.0.1", 8080)
+    path.write_text("http:\n  listen: 0.0.0.0:8080\n  token: a-long-token\n"
+                    "  users: {tech: correct-horse}\n" + body)
+    assert load_site(path).http == HttpSettings("0.0.0.0", 8080, "a-long-token",
+                                                {"tech": "correct-horse"})
+    for text, line, message in (
+            ("http: nowhere\n", 1, "http: 'nowhere': expected [HOST:]PORT, e.g. "
+                                   "127.0.0.1:8080"),
+            ("http:\n  listen: 8080\n  token: short\n", 3, "http.token: shorter than 8 "
+                                                            "characters"),
+            ("http:\n  listen: 8080\n  users: {tech: pw}\n", 3,
+             "http.users.tech: the password is shorter than 8 characters"),
+            ("http:\n  token: a-long-token\n", 2, "http: missing required key 'listen'")):
+        path.write_text(text + body)
+        with pytest.raises(ConfigError) as bad:
+            load_site(path)
+        assert str(bad.value).startswith(f"{path}:{line}: "), str(bad.value)
+        assert message.split(": ", 1)[1].split("'")[0] in str(bad.value), str(bad.value)
+
+
+# -- authentication ----------------------------------------------------------------------
+
+
+def test_authorised() -> None:
+    s = HttpSettings("0.0.0.0", 1, token="the-token-1", users={"tech": "correct-horse"})
+    none: dict[str, str] = {}
+
+    def basic(text: str) -> dict[str, str]:
+        return {"Authorization": "Basic " + base64.b64encode(text.encode()).decode()}
+
+    assert authorised(HttpSettings("0.0.0.0", 1), none, none, none)  # open
+    assert not authorised(s, none, none, none)
+    assert authorised(s, {"Authorization": "Bearer the-token-1"}, none, none)
+    assert authorised(s, {"Authorization": "bearer  the-token-1"}, none, none)
+    assert not authorised(s, {"Authorization": "Bearer the-token-2"}, none, none)
+    assert authorised(s, none, {COOKIE: cookie_value("the-token-1")}, none)
+    assert not authorised(s, none, {COOKIE: "the-token-1"}, none)  # the token is no cookie
+    assert authorised(s, none, none, {"token": "the-token-1"})
+    assert authorised(s, basic("tech:correct-horse"), none, none)
+    assert not authorised(s, basic("tech:correct-horsE"), none, none)
+    assert not authorised(s, basic("nobody:correct-horse"), none, none)
+    assert not authorised(s, {"Authorization": "Basic %%%"}, none, none)
+    assert not authorised(s, {"Authorization": "Basic " + base64.b64encode(b"\xff").decode()},
+                          none, none)
+
+
+def test_a_mailbox_keeps_the_latest_event_per_key_made_once_for_all() -> None:
+    async def run() -> None:
+        hub = Hub()
+        calls: list[int] = []
+
+        def data() -> str:
+            calls.append(1)
+            return "2"
+
+        hub.publish("d:a", "device", data)  # nobody listens: never made
+        one, two = Mailbox(), Mailbox()
+        hub.clients |= {one, two}
+        hub.publish("d:a", "device", "1")
+        hub.publish("d:b", "device", "x")
+        hub.publish("d:a", "device", data)
+        assert one.wake.is_set() and two.wake.is_set() and calls == []
+        expected = b"event: device\ndata: 2\n\nevent: device\ndata: x\n\n"
+        assert one.take() == expected and two.take() == expected
+        assert calls == [1]  # made once, when first sent, for both
+        assert not one.wake.is_set() and one.take() == b""
+
+    asyncio.run(run())
+
+
+# -- the fleet ---------------------------------------------------------------------------
+
+INFO = {"gateway": "a", "version": "0.1.0", "base": "rtupoll/a", "devices": {
+    "huiwen-aq@3": {"profile": "huiwen-aq", "address": 3, "bus": "line1", "fields": {
+        "co2": {"label": "CO2", "unit": "ppm", "kind": "number", "precision": 0},
+        "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None},
+        "alarms": {"label": "alarms", "unit": "", "kind": "flags", "precision": None},
+        "temperature": {"label": "temperature", "unit": "°C", "kind": "number",
+                        "precision": 1}}}}}
+
+
+def feed(fleet: Fleet, topic: str, payload: Any) -> None:
+    fleet.on_message(topic, (payload if isinstance(payload, str) else json.dumps(payload))
+                     .encode())
+
+
+def test_the_fleet_reads_a_gateways_topics() -> None:
+    now = [1_800_000_000.0]
+    fleet = Fleet("rtupoll", "mqtt://broker:1883/rtupoll", clock=lambda: now[0])
+    # state before the gateway's bridge/info: held, then placed when the info comes
+    feed(fleet, "rtupoll/a/huiwen-aq_3", {"co2": 612, "co2_level": "GOOD", "alarms": [],
+                                          "temperature": 21.5,
+                                          "last_seen": "2027-01-15T08:00:00.000Z",
+                                          "_rtupoll": {"status": "ok"}})
+    feed(fleet, "rtupoll/a/huiwen-aq_3/availability", "online")
+    assert fleet.snapshot()["gateways"] == []
+    feed(fleet, "rtupoll/a/bridge/info", INFO)
+    feed(fleet, "rtupoll/a/bridge/state", "online")
+    snap = fleet.snapshot()
+    assert snap["mode"] == "fleet" and snap["title"] == "mqtt://broker:1883/rtupoll"
+    (gw,) = snap["gateways"]
+    assert (gw["id"], gw["base"], gw["version"], gw["online"]) == ("a", "rtupoll/a", "0.1.0",
+                                                                   True)
+    (bus,) = gw["buses"]
+    (dev,) = bus["devices"]
+    assert bus["name"] == "line1"
+    assert (dev["key"], dev["state"], dev["address"]) == ("rtupoll/a/huiwen-aq@3", "online", 3)
+    fields = {f["name"]: f for f in dev["fields"]}
+    assert (fields["co2"]["text"], fields["co2"]["unit"], fields["co2"]["label"]) == (
+        "612", "ppm", "CO2")
+    assert fields["temperature"]["text"] == "21.5"
+    assert fields["co2_level"]["badges"] == [{"name": "GOOD", "severity": "info"}]
+    assert fields["alarms"]["badges"] == [] and fields["alarms"]["text"] == "none"
+    # a trend point at the reading's own time (last_seen), from the state message
+    now[0] += 30
+    assert fleet.trend("rtupoll/a/huiwen-aq@3", "co2") == {"t": [1_800_000_000.0],
+                                                            "v": [612.0]}
+    # a failed field: no value, the gateway's own error
+    feed(fleet, "rtupoll/a/huiwen-aq_3", {"co2": None, "co2_level": "GOOD", "alarms": ["fan"],
+                                          "temperature": 21.5,
+                                          "_rtupoll": {"status": "partial",
+                                                       "error": "timeout: no reply"}})
+    dev = fleet.snapshot()["gateways"][0]["buses"][0]["devices"][0]
+    fields = {f["name"]: f for f in dev["fields"]}
+    assert fields["co2"]["value"] is None and fields["co2"]["status"] == "failed"
+    assert fields["co2"]["error"] == "timeout: no reply"
+    assert fields["alarms"]["badges"] == [{"name": "fan", "severity": "info"}]
+    # the gateway's last will: offline; devices that went away
+    feed(fleet, "rtupoll/a/bridge/state", "offline")
+    feed(fleet, "rtupoll/a/huiwen-aq_3/availability", "offline")
+    gw = fleet.snapshot()["gateways"][0]
+    assert not gw["online"] and gw["buses"][0]["devices"][0]["state"] == "offline"
+    # its retained values are shown as what they are: the last ones, with their time
+    co2_level = gw["buses"][0]["devices"][0]["fields"][1]
+    assert co2_level["value"] is None and co2_level["status"] == "offline"
+    assert co2_level["last"]["text"] == "GOOD"
+    # removed for good: an empty retained info
+    fleet.on_message("rtupoll/a/bridge/info", b"")
+    assert fleet.snapshot()["gateways"] == []
+
+
+def test_two_gateways_and_their_devices_never_mix() -> None:
+    fleet = Fleet("rtupoll")
+    for gw in ("a", "b"):
+        feed(fleet, f"rtupoll/{gw}/bridge/info", {**INFO, "gateway": gw,
+                                                  "base": f"rtupoll/{gw}"})
+        feed(fleet, f"rtupoll/{gw}/huiwen-aq_3", {"co2": 600 if gw == "a" else 1400})
+    keys = {d["key"]: d for g in fleet.snapshot()["gateways"] for b in g["buses"]
+            for d in b["devices"]}
+    assert set(keys) == {"rtupoll/a/huiwen-aq@3", "rtupoll/b/huiwen-aq@3"}
+    assert keys["rtupoll/b/huiwen-aq@3"]["fields"][0]["value"] == 1400
+
+
+def test_what_the_fleet_ignores() -> None:
+    fleet = Fleet("rtupoll")
+    feed(fleet, "rtupoll/a/bridge/info", "not json")
+    feed(fleet, "rtupoll/b/bridge/info", [1, 2])
+    assert fleet.snapshot()["gateways"] == []
+    feed(fleet, "rtupoll/a/bridge/info", INFO)
+    feed(fleet, "rtupoll/a/huiwen-aq_3", "garbage{")
+    feed(fleet, "rtupoll/a/huiwen-aq_3", [1])
+    feed(fleet, "rtupoll/a/nobody", {"co2": 1})
+    feed(fleet, "rtupoll/a/huiwen-aq_3/co2", "5")  # a field topic
+    dev = fleet.snapshot()["gateways"][0]["buses"][0]["devices"][0]
+    assert dev["state"] == "starting" and all(f["status"] == "waiting" for f in dev["fields"])
+    for i in range(MAX_WAITING + 10):  # topics of gateways never seen: bounded
+        fleet.on_message(f"elsewhere/{i}", b"x")
+    assert len(fleet.waiting) == MAX_WAITING
