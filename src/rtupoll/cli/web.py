@@ -44,7 +44,7 @@ def web(url: str, **opts: Any) -> None:
     its devices, values, availability and trends appear grouped by gateway. Read-only.
     Stop with Ctrl-C.
     """
-    from rtupoll.outputs.mqtt import aiomqtt_module
+    from rtupoll.outputs.mqtt_client import aiomqtt_module
     from rtupoll.outputs.mqtt_settings import parse_url
     from rtupoll.web.settings import require_aiohttp
 
@@ -92,7 +92,8 @@ async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
 async def _read(fleet: Fleet, settings: MqttSettings, prefix: str,
                 connected: asyncio.Event) -> None:
     """Subscribe and feed the fleet; reconnect with backoff once it worked once."""
-    from rtupoll.outputs.mqtt import backoff, describe, make_client
+    from rtupoll.outputs.mqtt import backoff
+    from rtupoll.outputs.mqtt_client import describe, make_client
 
     attempt = 0
     while True:

@@ -137,10 +137,13 @@ class Fleet:
         for name, d in devices.items():
             if not isinstance(d, dict):
                 continue
+            # keyed by the device's topic level (``BASE/<key>`` is its state), with the
+            # site's name for it under "name"
             level = _UNSAFE.sub("_", str(name))
+            shown = str(d.get("name") or name)
             prev = old.devices.get(level) if old else None
-            gw.devices[level] = Device(str(name), d) if prev is None else \
-                Device(str(name), d, prev.availability, prev.values, prev.time, prev.at)
+            gw.devices[level] = Device(shown, d) if prev is None else \
+                Device(shown, d, prev.availability, prev.values, prev.time, prev.at)
         self.gateways[base] = gw
         for topic in [t for t in self.waiting if t.startswith(base + "/")]:
             self.on_message(topic, self.waiting.pop(topic))
