@@ -9,7 +9,7 @@ test suite can fail a test that forgets to stop one (``tests/conftest.py``)::
         sim.port                             # /dev/pts/N, or tcp://127.0.0.1:PORT
         sim.set(1, "concentration", 12.5)    # pin a value
         sim.get(1, "concentration").value    # 12.5
-        sim.wire                             # WireFrame(time, direction, data, note), ...
+        sim.wire                             # the latest WireFrames (time, direction, data, note)
 """
 
 from __future__ import annotations
@@ -244,7 +244,7 @@ class SimulatedBus:
 
     @property
     def wire(self) -> tuple[WireFrame, ...]:
-        """Every frame seen on the wire so far, oldest first."""
+        """The latest frames on the wire (up to ``server.WIRE_LOG``), oldest first."""
         if self._server is None:
             return ()
         with self._server.wire_lock:

@@ -17,6 +17,7 @@ baud rate then comes from ``--baudrate``.
 
 from __future__ import annotations
 
+import os
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -99,57 +100,83 @@ class CaptureWriter:
 
 def read_capture(path: Path) -> Capture:
     """A pcapng or pcap file -> its chunks (and the line's settings when recorded)."""
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise UsageError(f"cannot read {path}: {exc.strerror}") from None
-    if len(raw) >= 4 and struct.unpack("<I", raw[:4])[0] == _SHB:
-        return _pcapng(raw, path)
-    if len(raw) >= 24:
-        return _pcap(raw, path)
-    raise UsageError(f"{path}: not a pcapng or pcap capture")
+    stream = CaptureStream(path)
+    chunks = list(stream.chunks())
+    return Capture(stream.framing, stream.port, chunks)
 
 
-def _pcapng(raw: bytes, path: Path) -> Capture:
-    cap = Capture(None)
-    links: list[tuple[int, float]] = []  # per interface: link type, seconds per tick
-    endian = "<"
-    for kind, body, e in _blocks(raw, path):
-        endian = e
-        if kind == _SHB:
-            links = []
-        elif kind == _IDB:
-            link = struct.unpack(endian + "H", body[:2])[0]
-            opts = dict(_options(body[8:], endian))
-            resol = opts.get(9, b"\x06")[0]
-            tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
-            links.append((link, tick))
-            if len(links) == 1:
-                cap.port = opts.get(2, b"").decode(errors="replace")
-                cap.framing = _framing(opts.get(3, b"").decode(errors="replace"),
-                                       opts.get(8))
-        elif kind == _EPB:
-            iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
-            if iface >= len(links):
-                raise UsageError(f"{path}: a packet names an interface that was not described")
-            link, tick = links[iface]
-            data = _payload(link, body[20 : 20 + caplen], path)
-            cap.chunks.append((((hi << 32) | lo) * tick, data))
-    return cap
+class CaptureStream:
+    """A capture read as it is iterated: the line's settings at once, then the chunks
+    block by block (each ``chunks()`` reads the file again from its start), so a
+    capture of any length costs the memory of one block."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.framing: Framing | None = None
+        self.port = ""
+        with self._open() as fh:
+            head = fh.read(24)
+        self._pcapng = len(head) >= 4 and struct.unpack("<I", head[:4])[0] == _SHB
+        if not self._pcapng and len(head) < 24:
+            raise UsageError(f"{path}: not a pcapng or pcap capture")
+        next(self.chunks(), None)  # up to the first chunk: the settings come before it
+
+    def _open(self) -> BinaryIO:
+        try:
+            return self.path.open("rb")
+        except OSError as exc:
+            raise UsageError(f"cannot read {self.path}: {exc.strerror}") from None
+
+    def chunks(self) -> Iterator[tuple[float, bytes]]:
+        """Every chunk, in order: (arrival, bytes)."""
+        with self._open() as fh:
+            size = os.fstat(fh.fileno()).st_size
+            yield from (self._pcapng_chunks(fh, size) if self._pcapng
+                        else _pcap(fh, size, self.path))
+
+    def _pcapng_chunks(self, fh: BinaryIO, size: int) -> Iterator[tuple[float, bytes]]:
+        links: list[tuple[int, float]] = []  # per interface: link type, seconds per tick
+        described = False
+        for kind, body, endian in _blocks(fh, size, self.path):
+            if kind == _SHB:
+                links = []
+            elif kind == _IDB:
+                link = struct.unpack(endian + "H", body[:2])[0]
+                opts = dict(_options(body[8:], endian))
+                resol = opts.get(9, b"\x06")[0]
+                tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
+                links.append((link, tick))
+                if not described:
+                    described = True
+                    self.port = opts.get(2, b"").decode(errors="replace")
+                    self.framing = _framing(opts.get(3, b"").decode(errors="replace"),
+                                            opts.get(8))
+            elif kind == _EPB:
+                iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
+                if iface >= len(links):
+                    raise UsageError(f"{self.path}: a packet names an interface that was "
+                                     "not described")
+                link, tick = links[iface]
+                yield ((hi << 32) | lo) * tick, _payload(link, body[20 : 20 + caplen],
+                                                         self.path)
 
 
-def _blocks(raw: bytes, path: Path) -> Iterator[tuple[int, bytes, str]]:
+def _blocks(fh: BinaryIO, size: int, path: Path) -> Iterator[tuple[int, bytes, str]]:
     i, endian = 0, "<"
-    while i + 12 <= len(raw):
-        kind = struct.unpack("<I", raw[i : i + 4])[0]
+    while i + 12 <= size:
+        head = fh.read(12)
+        if len(head) < 12:
+            return
+        kind = struct.unpack("<I", head[:4])[0]
         if kind == _SHB:
-            bom = raw[i + 8 : i + 12]
+            bom = head[8:12]
             endian = "<" if struct.unpack("<I", bom)[0] == _BOM else ">"
-        total = struct.unpack(endian + "I", raw[i + 4 : i + 8])[0]
-        kind = struct.unpack(endian + "I", raw[i : i + 4])[0]
-        if total < 12 or i + total > len(raw):
+        total = struct.unpack(endian + "I", head[4:8])[0]
+        kind = struct.unpack(endian + "I", head[:4])[0]
+        if total < 12 or i + total > size:
             raise UsageError(f"{path}: truncated or damaged pcapng block at byte {i}")
-        yield kind, raw[i + 8 : i + total - 4], endian
+        block = head + fh.read(total - 12)
+        yield kind, block[8 : total - 4], endian
         i += total
 
 
@@ -185,19 +212,18 @@ def _payload(link: int, data: bytes, path: Path) -> bytes:
                      f"{LINKTYPE_RTAC_SERIAL} RTAC serial, or a user link type 147-162)")
 
 
-def _pcap(raw: bytes, path: Path) -> Capture:
-    magic = raw[:4]
+def _pcap(fh: BinaryIO, size: int, path: Path) -> Iterator[tuple[float, bytes]]:
+    header = fh.read(24)
+    magic = header[:4]
     formats = {b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
                b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9)}
     if magic not in formats:
         raise UsageError(f"{path}: not a pcapng or pcap capture")
     endian, unit = formats[magic]
-    link = struct.unpack(endian + "I", raw[20:24])[0] & 0xFFFF
-    cap = Capture(None)
+    link = struct.unpack(endian + "I", header[20:24])[0] & 0xFFFF
     i = 24
-    while i + 16 <= len(raw):
-        sec, frac, caplen, _ = struct.unpack(endian + "IIII", raw[i : i + 16])
-        cap.chunks.append((sec + frac * unit, _payload(link, raw[i + 16 : i + 16 + caplen],
-                                                       path)))
+    while i + 16 <= size:
+        sec, frac, caplen, _ = struct.unpack(endian + "IIII", fh.read(16))
+        data = fh.read(min(caplen, size - i - 16))
+        yield sec + frac * unit, _payload(link, data, path)
         i += 16 + caplen
-    return cap
