@@ -278,7 +278,7 @@ def test_live_table_columns_do_not_shrink_when_a_value_gets_shorter(
                 bus.set(3, "tvoc", tvoc)
                 await scheduler.scan_once(lambda d, r: None)
                 row = next(line for line in show(view) if " tvoc " in line)
-                assert f"{tvoc:g} " in row
+                assert f"{tvoc:.3f} " in row  # one precision: the scale's, 0.001
                 widths.append(len(row.split("│")[2]))  # the value column
         finally:
             await scheduler.close()

@@ -194,6 +194,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
             timing = "wire timing" if baud or baudrate else "untimed"
             title = (f"simulated: {len(buses)} lines" if len(buses) > 1
                      else "simulated bus") + f", {timing}"
+            fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
             site = _gateway(site, served, services, fmt)
             if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services,
                      fmt):
@@ -201,8 +202,9 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
             _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
                  metrics=metrics, log_format=log_format)
         if fmt == "table" and not once and not faults:
-            click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
-                       "--baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
+            dead = lines[0].config.devices[-1].address  # one that exists on this bus
+            click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
+                       "or --baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
                        "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
@@ -236,6 +238,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               interval=DEFAULT_INTERVAL if interval is None else interval,
                               fields=_split(fields), timeout=timeout, retries=retries,
                               profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
+    fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
     site = _gateway(site, served, services, fmt)
     if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt):
         return
@@ -306,6 +309,16 @@ def _learning(services: list[Service], config: Path | None, verify: bool,
         services.append(RememberHoles(HoleStore.for_site(config), say))
     if verify:
         services.append(VerifyBlocks(say))
+
+
+def _piped(fmt: str, *, once: bool, gone: bool) -> str:
+    """The live table needs a terminal: piped (``rtupoll poll | tee``), readings go out
+    as JSON lines as they come, and one stderr line says so and names ``--format``."""
+    if fmt != "table" or once or gone or sys.stdout.isatty():
+        return fmt
+    click.echo("rtupoll: stdout is not a terminal: readings go out as JSON lines as they "
+               "come (--format json; or csv, influx; --once for one table)", err=True)
+    return "json"
 
 
 def _split(fields: str | None) -> list[str]:
