@@ -264,7 +264,7 @@ class SimulatedBus:
 def _consistent(d: SimDevice, speed: int | None) -> None:
     """Related fields of a new device agree (``sim.consistent``), rendered into its image."""
     changed = make_consistent(d.profile, d.fields, d.motions, tuple(d.config.pins), d.rng,
-                              speed)
+                              speed, d.tick or 1.0)
     for name in changed:
         m = d.motions[name]
         if isinstance(m, Static):
