@@ -146,6 +146,12 @@ def decimals(field: Field) -> int | None:
 DISPLAY_UNITS = {"K": ("°C", -273.15)}
 
 
+def display_unit(field: Field, *, celsius: bool = True) -> str:
+    """The unit a field is shown in to a person (``display``), with or without a value."""
+    shown = DISPLAY_UNITS.get(field.unit)
+    return shown[0] if celsius and shown is not None else field.unit
+
+
 def display(fv: FieldValue, *, celsius: bool = True) -> tuple[str, str]:
     """A reading as a person reads it: (text, unit). A temperature in kelvin is shown in
     °C (what Home Assistant and the Prometheus metrics show too) at the same decimals;

@@ -36,7 +36,7 @@ QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 # frames kept in the wire log: a window of the latest, so a simulator left running for days
 # holds the same memory as after its first minute (every frame ever seen is counted in
 # Engine.requests/replies; --verbose prints them all as they pass)
-WIRE_LOG = 2000
+WIRE_LOG = 1000
 TIMER_SLACK = 0.0015  # asyncio timers fire up to 1 ms late; the rest is slept exactly
 
 

@@ -26,7 +26,7 @@ from rich.text import Text
 from rtupoll.io.serialport import gateway
 from rtupoll.jobs.scheduler import BusPoller, DevicePoller
 from rtupoll.jobs.stats import DeviceStats, Reading, State
-from rtupoll.model.interpret import display
+from rtupoll.model.interpret import display, display_unit
 from rtupoll.model.profile import Field, Severity
 from rtupoll.ui.trend import BINS, Trend
 
@@ -270,9 +270,9 @@ class PollView:
                ) -> tuple[Text, str]:
         """The value as shown (highlighted a moment when it changed) and its unit."""
         if r is None:
-            return Text("…", style="dim"), f.unit
+            return Text("…", style="dim"), display_unit(f)
         if r.value is None:
-            return Text("—", style="dim red"), f.unit
+            return Text("—", style="dim red"), display_unit(f)
         fv = r.value
         text, unit = display(fv)
         key, now = (device, f.name), self._clock()
