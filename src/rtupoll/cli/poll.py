@@ -168,6 +168,9 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         raise UsageError("--output writes json or csv: add --format json or --format csv")
     if (baud or faults) and not simulate:
         raise UsageError("--baud and --fault are for --simulate (a real bus: --baudrate)")
+    if simulate and port and click.get_current_context().get_parameter_source("port") \
+            is click.core.ParameterSource.ENVIRONMENT:
+        port = None  # $RTUPOLL_PORT names the real bus; --simulate makes its own
     if simulate:
         if config or port:
             raise UsageError("--simulate makes its own bus: leave out --config and --port")
@@ -443,8 +446,9 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
             raise KeyboardInterrupt
         scan.result()
     readings = [r for d in scheduler.pollers() for r in got.get(d.config.name, [])]
-    if writer is not None:
-        writer.write(readings)
+    if writer is not None:  # per device, with its state, as a running poll writes them
+        for d in scheduler.pollers():
+            writer.write(got.get(d.config.name, []), d.stats.state.value)
     return readings
 
 

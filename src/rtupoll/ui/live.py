@@ -322,7 +322,7 @@ class PollView:
                 ])
             keep = [i for i, h in enumerate(heads) if width is None or width >= 90
                     or h not in ("late", "garbled") or any(str(r[i]) != "0" for r in rows)]
-            natural = sum(max(len(heads[i]), *(len(str(r[i])) for r in rows)) + 1
+            natural = sum(max([len(heads[i]), *(len(str(r[i])) for r in rows)]) + 1
                           for i in keep)
             short = width is not None and natural > width
             if short:  # every column stays: shorter names, times in ms without the unit
