@@ -338,8 +338,8 @@ class PollView:
                 t.add_row(*(r[i] for i in keep))
             parts.append(t)
             if short:
-                parts.append(Text("  t/o timeout, bad garbled, exc exceptions; p50, p95 "
-                                  "and wait in ms", style="dim"))
+                parts.append(Text("  t/o timeout, bad garbled, exc exception; times in ms",
+                                  style="dim"))
             for dev in bus.devices:  # registers learned never to bridge (jobs.holes)
                 for note in dev.stats.holes:
                     parts.append(Text(f"  {dev.config.name}: not bridged: {note}",
