@@ -73,8 +73,8 @@ class PollView:
         foot = console.render_lines(Group(*self._footer(width)), free, pad=False)
         room = height - len(head) - len(foot)
         body = console.render_lines(Group(self.readings_table(width), Text("")), free,
-                                    pad=False)
-        if len(body) > room:
+                                    pad=False) if self.full_height() <= height else []
+        if not body or len(body) > room:  # (the estimate spares drawing what cannot fit)
             body = console.render_lines(self.compact_table(), free, pad=False)
         if len(body) > room:  # health first: the readings give way, and say so
             cut = len(body) - max(room - 1, 0) if room > 0 else len(body)
