@@ -126,7 +126,7 @@ def test_cli_text_shows_fields_and_the_manuals_addresses() -> None:
     code, out = run("decode", "--profile", "huiwen-aq", "01 04 75 36 00 05 CA 0B",
                     "01 04 0A 00 19 00 32 00 FA 13 88 00 00 39 94")
     assert code == 0
-    assert "co2 (30009) = 5000 ppm" in out and "tvoc (30007) = 0.05 ppm" in out
+    assert "co2 (30009) = 5000 ppm" in out and "tvoc (30007) = 0.050 ppm" in out
 
 
 def test_cli_bad_crc_exits_7_and_prints_the_expected_crc() -> None:

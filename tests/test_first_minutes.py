@@ -278,7 +278,7 @@ def test_live_table_columns_do_not_shrink_when_a_value_gets_shorter(
                 bus.set(3, "tvoc", tvoc)
                 await scheduler.scan_once(lambda d, r: None)
                 row = next(line for line in show(view) if " tvoc " in line)
-                assert f"{tvoc:g} " in row
+                assert f"{tvoc:.3f} " in row  # one precision: the scale's, 0.001
                 widths.append(len(row.split("│")[2]))  # the value column
         finally:
             await scheduler.close()
@@ -350,7 +350,7 @@ def test_setup_says_what_it_does_one_line_per_step_and_keeps_pip_quiet(
     assert first.stdout == ""
     assert first.stderr.splitlines() == [
         "setup: creating the virtualenv .venv (python3 -m venv)",
-        "setup: installing rtupoll into .venv (pip, about a minute the first time)",
+        "setup: installing rtupoll into .venv (pip, about 15 s the first time)",
         "setup: done: .venv/bin/rtupoll is ready (the installers' output: .venv/setup.log)"]
     assert "Collecting pymodbus" in (where / ".venv" / "setup.log").read_text()
     again = subprocess.run(["bash", "scripts/setup"], cwd=where, env=env,
@@ -366,3 +366,68 @@ def test_setup_shows_the_installers_output_when_a_step_fails(tmp_path: Path) -> 
     lines = run.stderr.splitlines()
     assert lines[2].startswith("setup: failed: .venv/bin/pip install")
     assert lines[-1] == "ERROR: no matching distribution"
+
+
+# -- issue 28: examples and hints that work as printed ----------------------------------
+
+def test_the_readme_commissioning_script_runs_against_the_simulator_the_readme_names(
+        tmp_path: Path) -> None:
+    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    prose = readme.split("<!-- commissioning:begin -->")[0].rsplit("## Commissioning", 1)[1]
+    said = re.search(r"`(rtupoll simulate [^`]+)`", " ".join(prose.split()))
+    assert said, prose
+    link = tmp_path / "rs485"
+    words = said.group(1).replace("/tmp/rs485", str(link)).split()
+    script = re.search(r"```sh\n(.*?)```", readme.split("<!-- commissioning:begin -->")[1],
+                       re.S)
+    assert script
+    proc = subprocess.Popen([str(BIN / "rtupoll"), *words[1:]], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30
+        while not link.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        env = {**os.environ, "RTUPOLL_PORT": str(link),
+               "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+        run = subprocess.run(["bash", "-eu", "-o", "pipefail", "-c", script.group(1)],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+                             check=False)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+    assert run.returncode == 0, run.stderr
+    assert '"device":"huiwen-aq@12"' in run.stdout and "level_cm" in run.stdout
+
+
+def test_scan_takes_its_port_from_rtupoll_port_and_says_so() -> None:
+    env = {k: v for k, v in os.environ.items() if k != "RTUPOLL_PORT"}
+    run = subprocess.run([str(BIN / "rtupoll"), "scan"], capture_output=True, text=True,
+                         env=env, timeout=60, check=False)
+    assert run.returncode == 2
+    assert run.stderr.strip().endswith("or set $RTUPOLL_PORT")
+    helped = subprocess.run([str(BIN / "rtupoll"), "scan", "--help"], capture_output=True,
+                            text=True, timeout=60, check=False).stdout
+    assert "$RTUPOLL_PORT" in helped and "[required]" not in helped
+
+
+def test_the_closing_hint_of_a_simulated_poll_names_a_device_that_exists() -> None:
+    import pty
+
+    main, child = pty.openpty()
+    proc = subprocess.Popen([str(BIN / "rtupoll"), "poll", "--simulate", "epever-tracer@2",
+                             "eastron-sdm630@1"], stdout=child, stderr=subprocess.PIPE,
+                            text=True)
+    os.close(child)
+    try:
+        seen = b""
+        deadline = time.monotonic() + 30
+        while b"online" not in seen and time.monotonic() < deadline:
+            if select.select([main], [], [], 1)[0]:
+                seen += os.read(main, 65536)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+        os.close(main)
+    assert proc.returncode == 0
+    dead = re.search(r"Try --fault (\d+):dead", err)
+    assert dead and int(dead.group(1)) in (1, 2), err

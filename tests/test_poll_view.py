@@ -74,3 +74,80 @@ def test_a_tall_terminal_gets_one_row_per_field_with_status_and_age(
     assert cells[1:] == ["co2_level", "MODERATE", "", "warning", "ok", cells[-1]]
     assert cells[-1].endswith(" s")  # the age of the reading
     assert lines[0].split(" · ")[2] == "10 scans"
+
+
+def test_a_trend_sparkline_of_the_last_minutes() -> None:
+    from rtupoll.ui.trend import BINS, BLOCKS, Trend
+
+    t = Trend()
+    assert t.line(0) == ""  # one reading is no trend
+    for i, v in enumerate([10, 12, 14, 16, 18]):
+        t.add(100 + 15 * i, v)
+    line = t.line(100 + 15 * 4)
+    assert len(line) == BINS
+    assert line[-5:] == "".join(BLOCKS[round(k * 7 / 4)] for k in range(5))  # ▁▃▅▆█
+    assert line[:-5] == " " * (BINS - 5)  # no readings before: blank, not zero
+    flat = Trend()
+    flat.add(0, 5.0)
+    flat.add(20, 5.0)
+    assert set(flat.line(20).strip()) == {BLOCKS[3]}  # a value that did not move
+    late = t.line(100 + 15 * 4 + 15 * BINS)  # five minutes later, nothing new
+    assert late == ""  # the window moved on
+
+
+def test_the_trend_column_draws_what_the_readings_did(sim: Callable[..., SimulatedBus]) -> None:
+    import dataclasses
+
+    from rtupoll.model.interpret import field_words, interpret
+
+    bus = sim("huiwen-aq@3", tick=None)
+    scheduler = scanned_one(bus)
+    wall = [0.0]
+    view = PollView(scheduler.buses, title="t", wall=lambda: wall[0])
+    dev = scheduler.buses[0].devices[0]
+    co2 = dev.config.profile.field("co2")
+    first = dev.stats.latest["co2"]
+    for i, ppm in enumerate((500, 700, 900)):  # three readings a bin apart
+        r = dataclasses.replace(first, time=first.time + 15 * i,
+                                value=interpret(co2, field_words(co2, ppm)))
+        dev.stats.latest["co2"] = r
+        wall[0] = r.time
+        lines = show(view, 140, 60)
+    head = next(line for line in lines if line.startswith("device"))
+    assert head.rstrip().endswith("trend")
+    row = next(line for line in lines if " co2 " in line)
+    assert row.rstrip().endswith("▁▅█")  # 500, 700, 900 between their low and high
+    assert show(view, 80, 60)[1].rstrip().endswith("age")  # no room: no trend column
+
+
+def test_narrow_no_column_is_dropped(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim(*SEEDS, faults=["3:dead"])
+    view = PollView(scanned(bus).buses, title="simulated bus", live=False)
+    out = io.StringIO()
+    Console(file=out, width=60, color_system=None).print(view)
+    lines = out.getvalue().splitlines()
+    assert all(len(line) <= 60 for line in lines)
+    head = next(line for line in lines if "┃" in line)
+    assert [c.strip() for c in head.split("┃")] == ["field", "value", "unit", "status"]
+    assert any(line.startswith("radar-level@2") for line in lines)  # its own row
+    co2 = next(line for line in lines if line.startswith("co2 "))  # the dead Huiwen's
+    assert "timeout" in co2  # the failed read says so in the one column
+    assert next(line for line in lines if line.startswith("temperature ")).split("│")[1:3] \
+        and any(line.split("│")[-1].strip() == "ok" for line in lines)
+    assert "t/o timeout" in lines[-1]  # the footer's short names, explained
+
+
+def scanned_one(bus: SimulatedBus) -> Scheduler:
+    site = from_specs(bus.port, [("huiwen-aq", 3)], baudrate=115200, timeout=0.5,
+                      check_serial=False)
+    scheduler = Scheduler(site)
+
+    async def run() -> None:
+        await scheduler.open()
+        try:
+            await scheduler.scan_once(lambda d, r: None)
+        finally:
+            await scheduler.close()
+
+    asyncio.run(run())
+    return scheduler

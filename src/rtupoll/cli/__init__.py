@@ -72,7 +72,8 @@ Exit codes:
   8  refused before sending (read-only field, value out of range, address taken)
   9  poll --once: one or more devices failed
   10 poll --mqtt: the broker is unreachable or refused at start-up
-  130 interrupted (Ctrl-C or SIGTERM)
+  130 interrupted (Ctrl-C or SIGTERM) before it finished; poll, simulate and
+      sniff, once running, stop on them with 0
 """
 
 

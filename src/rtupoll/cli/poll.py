@@ -185,6 +185,9 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         raise UsageError("--output writes json or csv: add --format json or --format csv")
     if (baud or faults) and not simulate:
         raise UsageError("--baud and --fault are for --simulate (a real bus: --baudrate)")
+    if simulate and port and click.get_current_context().get_parameter_source("port") \
+            is click.core.ParameterSource.ENVIRONMENT:
+        port = None  # $RTUPOLL_PORT names the real bus; --simulate makes its own
     if simulate:
         if config or port:
             raise UsageError("--simulate makes its own bus: leave out --config and --port")
@@ -213,6 +216,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
             timing = "wire timing" if baud or baudrate else "untimed"
             title = (f"simulated: {len(buses)} lines" if len(buses) > 1
                      else "simulated bus") + f", {timing}"
+            fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
             site = _gateway(site, served, services, fmt)
             if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services,
                      fmt, mqtt_id):
@@ -220,8 +224,9 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
             _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
                  metrics=metrics, log_format=log_format, http=http)
         if fmt == "table" and not once and not faults:
-            click.echo("That was a simulated bus. Try --fault 3:dead (a dead device) or "
-                       "--baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
+            dead = lines[0].config.devices[-1].address  # one that exists on this bus
+            click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
+                       "or --baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
                        "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
@@ -258,6 +263,7 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               fields=_split(fields), timeout=timeout, retries=retries,
                               profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
         site = _with_line_options(site)
+    fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
     site = _gateway(site, served, services, fmt)
     if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt,
              mqtt_id):
@@ -330,6 +336,16 @@ def _learning(services: list[Service], config: Path | None, verify: bool,
         services.append(RememberHoles(HoleStore.for_site(config), say))
     if verify:
         services.append(VerifyBlocks(say))
+
+
+def _piped(fmt: str, *, once: bool, gone: bool) -> str:
+    """The live table needs a terminal: piped (``rtupoll poll | tee``), readings go out
+    as JSON lines as they come, and one stderr line says so and names ``--format``."""
+    if fmt != "table" or once or gone or sys.stdout.isatty():
+        return fmt
+    click.echo("rtupoll: stdout is not a terminal: readings go out as JSON lines as they "
+               "come (--format json; or csv, influx; --once for one table)", err=True)
+    return "json"
 
 
 def _split(fields: str | None) -> list[str]:

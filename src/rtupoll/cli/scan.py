@@ -53,8 +53,9 @@ Examples:
 
 
 @click.command(epilog=EPILOG)
-@click.option("--port", "-p", required=True, envvar="RTUPOLL_PORT",
-              help="Serial port, or tcp://HOST:PORT for an RTU-over-TCP gateway.")
+@click.option("--port", "-p", envvar="RTUPOLL_PORT",
+              help="Serial port, or tcp://HOST:PORT for an RTU-over-TCP gateway. Also "
+                   "$RTUPOLL_PORT.")
 @click.option("--addresses", "-a", default="1-247", show_default=True,
               help="Addresses to probe: ranges and single addresses, e.g. 1-20,100.")
 @click.option("--baudrate", "-b", "baudrates", default=None,
@@ -79,7 +80,7 @@ Examples:
 @line_options
 @profiles_option
 @format_option("table", "json")
-def scan(port: str, addresses: str, baudrates: str | None, parities: str, include_any: bool,
+def scan(port: str | None, addresses: str, baudrates: str | None, parities: str, include_any: bool,
          first: bool, turnaround: float | None, extra_probes: tuple[str, ...],
          write_config: Path | None, profile_dirs: tuple[Path, ...], fmt: str) -> None:
     """Find every device that answers on a bus and identify it by profile.
@@ -90,6 +91,9 @@ def scan(port: str, addresses: str, baudrates: str | None, parities: str, includ
     it answered. Timeouts are derived from the baud rate, so an empty address costs
     a few wire times, not a second.
     """
+    from rtupoll.cli.target import need_port
+
+    port = need_port(port)
     library = sorted(load_library(profile_dirs).profiles.values(), key=lambda p: p.id)
     wanted = parse_addresses(addresses)
     skip: dict[int, str] = {} if include_any else skipped(wanted, library)

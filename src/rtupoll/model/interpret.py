@@ -123,14 +123,62 @@ def _rounded(field: Field, words: tuple[int, ...]) -> Value:
     return value
 
 
+def _places(x: float) -> int:
+    """Decimal places a scale or offset has: 0.01 -> 2, 0.5 -> 1, 10 -> 0."""
+    text = f"{abs(x):.9f}".rstrip("0")
+    return len(text.partition(".")[2])
+
+
+def decimals(field: Field) -> int | None:
+    """The one number of decimal places a field is shown at, in every output: its
+    profile's ``precision``; for an integer type, what its scale and offset carry (a
+    u16 with scale 0.01 is 11.80, never 11.8 one scan and 11.77 the next); None for a
+    float without a precision (shown at the precision the type carries)."""
+    if field.precision is not None:
+        return max(field.precision, 0)
+    layout = field.layout
+    if layout.type.is_integer and layout.scaled:
+        return max(_places(layout.scale), _places(layout.offset))
+    return None
+
+
+# units shown in another unit on a person's screen: unit -> (shown unit, offset added)
+DISPLAY_UNITS = {"K": ("°C", -273.15)}
+
+
+def display_unit(field: Field, *, celsius: bool = True) -> str:
+    """The unit a field is shown in to a person (``display``), with or without a value."""
+    shown = DISPLAY_UNITS.get(field.unit)
+    return shown[0] if celsius and shown is not None else field.unit
+
+
+def display(fv: FieldValue, *, celsius: bool = True) -> tuple[str, str]:
+    """A reading as a person reads it: (text, unit). A temperature in kelvin is shown in
+    °C (what Home Assistant and the Prometheus metrics show too) at the same decimals;
+    records and outputs keep the device's unit."""
+    field = fv.field
+    shown = DISPLAY_UNITS.get(field.unit)
+    value = fv.value
+    if celsius and shown is not None and fv.present and isinstance(value, (int, float)) \
+            and not isinstance(value, bool) and math.isfinite(value):
+        places = decimals(field)
+        moved = value + shown[1]
+        return (f"{moved:.{places}f}" if places is not None else f"{round(moved, 6):g}",
+                shown[0])
+    return fv.text, field.unit
+
+
 def format_value(field: Field, value: Value) -> str:
-    """For people: floats at the field's precision, else at the precision the type
-    carries; flags joined."""
+    """For people: numbers at the field's one precision (``decimals``), else floats at
+    the precision the type carries; flags joined."""
     if isinstance(value, list):
         return ", ".join(value) if value else "none"
+    places = decimals(field)
+    if places is not None and isinstance(value, (int, float)) and not isinstance(value, bool) \
+            and math.isfinite(value) and (isinstance(value, float) or places > 0) \
+            and not field.enum and not field.flags:
+        return f"{value:.{places}f}"
     if isinstance(value, float):
-        if field.precision is not None and math.isfinite(value):
-            return f"{value:.{max(field.precision, 0)}f}"
         if field.layout.type is DataType.F32 and math.isfinite(value):
             # the value is already the shortest decimal for its f32: print it positional
             # (an f32 energy total of 35565090 Wh, not 3.556509e+07)

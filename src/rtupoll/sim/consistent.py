@@ -15,7 +15,13 @@ is built:
 - a value inside what the device can report: a field with a ``values:`` list takes
   one of them (no 23300 baud);
 - configuration that describes the line (a baud-rate register or code) says the
-  line's speed.
+  line's speed;
+- a distance and what it leaves of a fixed height (a radar's air gap and the water
+  level under it): the air gap is the mounting height minus the level, so the two
+  always add up, and the level moves slowly;
+- an energy counter integrates the device's power (an import counter grows with the
+  power drawn, an export counter with the power fed back, a total with both), at the
+  rate that power gives: 3.1 kW adds 0.86 Wh a second.
 
 A field pinned by ``--set`` or a scenario is left as pinned.
 """
@@ -104,6 +110,92 @@ class Banded(Motion):
         return before != self._shown
 
 
+class Complement(Motion):
+    """What a length leaves of a fixed total: ``total - source`` (in this field's unit)."""
+
+    def __init__(self, field: Field, motions: Mapping[str, Motion], source: str,
+                 total: float, factor: float) -> None:
+        self.field, self.motions, self.source = field, motions, source
+        self.total, self.factor = total, factor  # factor: source unit -> this field's unit
+        self._shown: Value = self.value
+
+    @property
+    def value(self) -> Value:  # type: ignore[override]
+        x = _number(self.motions[self.source])
+        return 0 if x is None else quantize(self.field, max(self.total - x * self.factor, 0.0))
+
+    def step(self, rng: random.Random) -> None:
+        self._shown = self.value
+
+    def on_read(self) -> bool:
+        before, self._shown = self._shown, self.value
+        return before != self._shown
+
+
+class Integrating(Motion):
+    """An energy counter fed by a power reading: each tick adds power x tick."""
+
+    def __init__(self, field: Field, motions: Mapping[str, Motion], source: str,
+                 start: float, per_tick: float, sign: int) -> None:
+        self.field, self.motions, self.source = field, motions, source
+        self.x, self.per_tick, self.sign = start, per_tick, sign
+        self.value = quantize(field, start)
+
+    def step(self, rng: random.Random) -> None:
+        power = _number(self.motions[self.source]) or 0.0
+        if self.sign:  # import: power drawn (> 0); export: power fed back (< 0)
+            power = max(power * self.sign, 0.0)
+        self.x += abs(power) * self.per_tick
+        value = quantize(self.field, self.x)
+        if isinstance(value, (int, float)) and isinstance(self.value, (int, float)):
+            self.value = max(value, self.value)  # clamped at the top: stays, never wraps
+
+
+def _power_source(fields: Sequence[Field], motions: Mapping[str, Motion]) -> Field | None:
+    """The device's total power: a walking power field, ``total`` in its name first,
+    else the largest."""
+    powers = [f for f in fields if UNITS.get(f.unit, ("", 0.0))[0] == "power"
+              and isinstance(motions.get(f.name), Walk)]
+    return max(powers, key=lambda f: ("total" in f.name,
+                                      abs(_number(motions[f.name]) or 0.0)), default=None)
+
+
+def _physics(fields: Sequence[Field], motions: MutableMapping[str, Motion],
+             pinned: Sequence[str], tick: float) -> list[str]:
+    """The air gap / level complement and energy counters fed by power."""
+    changed: list[str] = []
+    free = [f for f in fields if f.name not in pinned]
+    for f in free:  # air gap = mounting height - level
+        dim = UNITS.get(f.unit, ("", 0.0))[0]
+        if not f.name.startswith("air_gap") or dim != "length" \
+                or not isinstance(motions.get(f.name), Walk):
+            continue
+        level = next((g for g in fields if g.name.startswith("level")
+                      and UNITS.get(g.unit, ("", 0.0))[0] == "length"
+                      and isinstance(motions.get(g.name), Walk)), None)
+        if level is None:
+            continue
+        walk = motions[level.name]
+        assert isinstance(walk, Walk)
+        factor = UNITS[level.unit][1] / UNITS[f.unit][1]
+        gap = _number(motions[f.name]) or 0.0
+        height = gap + walk.x * factor  # the mounting height, in the air gap's unit
+        motions[f.name] = Complement(f, motions, level.name, height, factor)
+        changed.append(f.name)
+    power = _power_source(fields, motions)
+    if power is not None:
+        for f in free:
+            if not f.counter or UNITS.get(f.unit, ("", 0.0))[0] != "energy" \
+                    or f.name in changed:
+                continue
+            start = _number(motions[f.name]) or 0.0
+            per_tick = UNITS[power.unit][1] * tick / 3600 / UNITS[f.unit][1]
+            sign = 0 if "total" in f.name else -1 if "export" in f.name else 1
+            motions[f.name] = Integrating(f, motions, power.name, start, per_tick, sign)
+            changed.append(f.name)
+    return changed
+
+
 def _rate_choice(field: Field, speed: int) -> Value | None:
     """The value a field describing the line's speed takes, if it is such a field."""
     if field.unit.lower() == "baud" or (field.values and speed in field.values):
@@ -117,8 +209,10 @@ def _rate_choice(field: Field, speed: int) -> Value | None:
 
 def make_consistent(profile: Profile, fields: Sequence[Field],
                     motions: MutableMapping[str, Motion], pinned: Sequence[str],
-                    rng: random.Random, speed: int | None = None) -> list[str]:
-    """Tie related fields of one device together; returns the names of fields changed."""
+                    rng: random.Random, speed: int | None = None, tick: float = 1.0
+                    ) -> list[str]:
+    """Tie related fields of one device together; returns the names of fields changed.
+    ``tick``: seconds per value step (what an energy counter integrates over)."""
     changed: list[str] = []
     free = [f for f in fields if f.name not in pinned]
     by_name = {f.name: f for f in fields}
@@ -158,4 +252,5 @@ def make_consistent(profile: Profile, fields: Sequence[Field],
                 walk.home = walk.x = min(max(bounds[0] * 0.5, walk.lo), walk.hi)
                 walk.value = quantize(walk.field, walk.x)
                 changed.append(source)
+    changed += _physics(fields, motions, pinned, tick)
     return changed

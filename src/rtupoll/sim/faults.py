@@ -15,13 +15,16 @@ line (``--fault``), in a scenario file and in tests::
     lose-first          every device drops its first limits.lost_after_powerup requests
 
 WHEN is a rate (``0.1`` or ``10%``: drawn from the seeded generator, so a seed replays the
-same faults) or a schedule of request numbers (``3``, ``2,4``, ``5-7``, ``10-`` for "from
-10 on"); without it the fault hits every request. A device's faults count the requests
-that device received; bus-wide faults count every valid request on the bus.
+same faults; the first hit comes within the first 1/rate requests, so ``crc@20%`` shows
+in the first five, not whenever the dice say) or a schedule of request numbers (``3``,
+``2,4``, ``5-7``, ``10-`` for "from 10 on"); without it the fault hits every request.
+A device's faults count the requests that device received; bus-wide faults count every
+valid request on the bus.
 """
 
 from __future__ import annotations
 
+import math
 import random
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -158,18 +161,22 @@ class FaultSet:
     def __init__(self, faults: Sequence[Fault], seed: int, salt: str) -> None:
         self.faults = tuple(faults)
         self._rngs = [random.Random(f"{seed}:{salt}:{i}:{f.text}") for i, f in enumerate(faults)]
+        self._hit = [False] * len(self.faults)  # a rated fault has hit at least once
 
     def due(self, bus_n: int, device_n: int, lose_first: int) -> list[Fault]:
         """The faults that hit this request. Every rated fault draws every time, so one
         fault's outcome never depends on whether another was configured."""
         hits: list[Fault] = []
-        for fault, rng in zip(self.faults, self._rngs, strict=True):
+        for i, (fault, rng) in enumerate(zip(self.faults, self._rngs, strict=True)):
             n = device_n if fault.per_device else bus_n
             if fault.kind == "lose-first":
                 limit = int(fault.arg) if fault.arg is not None else lose_first
                 hit = n <= limit
             elif fault.rate is not None:
                 hit = rng.random() < fault.rate
+                if fault.rate and not self._hit[i] and n >= math.ceil(1 / fault.rate):
+                    hit = True  # at the latest by request 1/rate: seen in the first seconds
+                self._hit[i] = self._hit[i] or hit
             else:
                 hit = fault.scheduled(n) if fault.schedule else True
             if hit:

@@ -9,22 +9,29 @@ time; an exception again; silence where the device did not answer; the same garb
 bytes where its reply was garbled. A request the capture does not hold, to a unit it
 does, is answered from the registers that unit's replies carried (latest values), or
 with exception 02 where the capture knows nothing; other units stay silent.
+
+The capture is streamed, never loaded whole: one pass at start learns its requests and
+registers (memory: one entry per distinct request and register), then the answers are
+read from the file as the requests come, one cursor for all, back to the start at its
+end. A request asked less often than the capture holds it keeps at most ``AHEAD``
+answers read ahead; older ones are skipped. So a capture of hours replays in the memory
+of one of minutes.
 """
 
 from __future__ import annotations
 
-import itertools
-from collections import Counter
+from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
 from rtupoll.rtu.functions import READS, Table, exception_response, read_response
-from rtupoll.rtu.stream import Stream
+from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
-from rtupoll.sniff.capfile import read_capture
+from rtupoll.sniff.capfile import CaptureStream
 from rtupoll.sniff.model import carried_words, parse_request
 
 if TYPE_CHECKING:
@@ -40,28 +47,74 @@ class Answer:
     status: str = "ok"
 
 
-class ReplayEngine(Engine):
-    """An engine whose devices are the units of a capture."""
+AHEAD = 64  # answers kept per request read ahead of it (the cursor is shared)
 
-    def __init__(self, answers: dict[bytes, list[Answer]],
+
+@dataclass
+class Captured:
+    """What the capture holds for one distinct request: how often it was asked and
+    answered (the banner's counts); the answers read ahead and not yet served."""
+
+    asked: int = 0
+    replies: int = 0
+    ahead: deque[Answer] | None = None
+
+
+def _answers(capture: CaptureStream, line: Framing) -> Iterator[tuple[bytes, Answer]]:
+    """The capture's requests with how each was answered, in order, read from the file."""
+    stream = Stream(line)
+
+    def pairs(txs: list[Transaction]) -> Iterator[tuple[bytes, Answer]]:
+        for tx in txs:
+            if tx.request is not None and tx.status != "broadcast":
+                reply = tx.reply.data if tx.reply is not None else None
+                yield tx.request.data, Answer(reply, tx.reply_time or 0.0, tx.status)
+
+    for t, data in capture.chunks():
+        yield from pairs(stream.feed(data, t))
+    yield from pairs(stream.close())
+
+
+class ReplayEngine(Engine):
+    """An engine whose devices are the units of a capture, read as it is served."""
+
+    def __init__(self, capture: CaptureStream, line: Framing,
+                 captured: dict[bytes, Captured],
                  image: dict[int, dict[tuple[Table, int], int]], *,
                  silence: float = 0.0) -> None:
         super().__init__(())
-        self.answers, self.image, self.silence = answers, image, silence
-        self.served: Counter[bytes] = Counter()
+        self.capture, self.line, self.captured = capture, line, captured
+        self.image, self.silence = image, silence
+        self._cursor: Iterator[tuple[bytes, Answer]] = iter(())
 
     @property
     def units(self) -> list[int]:
         return sorted(self.image)
 
+    def _next_answer(self, frame: bytes, c: Captured) -> Answer:
+        """The next captured answer to ``frame``: read ahead from the shared cursor (and
+        round from the start) until one comes; the others wait in their requests' queues."""
+        if c.ahead:
+            return c.ahead.popleft()
+        for _ in range(2):  # the rest of this pass, then one whole pass: it is there
+            for request, answer in self._cursor:
+                if request == frame:
+                    return answer
+                other = self.captured.get(request)
+                if other is not None:
+                    if other.ahead is None:
+                        other.ahead = deque(maxlen=AHEAD)
+                    other.ahead.append(answer)
+            self._cursor = _answers(self.capture, self.line)
+        raise RuntimeError(f"the capture changed while replayed: {frame.hex(' ')} is gone")
+
     def handle(self, frame: bytes, now: float = 0.0) -> list[Transmission]:
         self.requests += 1
         self.why_silent = ""
         unit = frame[0]
-        captured = self.answers.get(frame)
+        captured = self.captured.get(frame)
         if captured:
-            answer = captured[self.served[frame] % len(captured)]
-            self.served[frame] += 1
+            answer = self._next_answer(frame, captured)
             if answer.reply is None:
                 self.why_silent = f"unit {unit} did not answer this request in the capture"
                 return []
@@ -97,29 +150,35 @@ def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = Fal
     ``framing`` overrides (or, for a capture that does not record it, supplies) the
     line's settings; ``timed``: the server adds the 3.5-character silence itself.
     """
-    capture = read_capture(path)
+    capture = CaptureStream(path)
     line = framing or capture.framing
     if line is None:
         raise UsageError(f"{path} does not say its baud rate: give --baud")
     stream = Stream(line)
-    answers: dict[bytes, list[Answer]] = {}
+    captured: dict[bytes, Captured] = {}
     image: dict[int, dict[tuple[Table, int], int]] = {}
-    txs = list(itertools.chain.from_iterable(stream.feed(d, t) for t, d in capture.chunks))
-    for tx in txs + stream.close():
-        if tx.request is None or tx.status == "broadcast":
-            continue
-        req = tx.request.data
-        unit = req[0]
-        regs = image.setdefault(unit, {})
-        reply = tx.reply.data if tx.reply is not None else None
-        answers.setdefault(req, []).append(Answer(reply, tx.reply_time or 0.0, tx.status))
-        r = parse_request(req)
-        words = carried_words(tx, r)
-        if words is not None and (table := r.table) is not None:
-            regs.update(((table, r.start + i), w) for i, w in enumerate(words))
-    if not answers:
+
+    def learn(txs: list[Transaction]) -> None:
+        for tx in txs:
+            if tx.request is None or tx.status == "broadcast":
+                continue
+            req = tx.request.data
+            regs = image.setdefault(req[0], {})
+            c = captured.setdefault(req, Captured())
+            c.asked += 1
+            c.replies += tx.reply is not None
+            r = parse_request(req)
+            words = carried_words(tx, r)
+            if words is not None and (table := r.table) is not None:
+                regs.update(((table, r.start + i), w) for i, w in enumerate(words))
+
+    for t, data in capture.chunks():  # one pass: the requests and the latest registers
+        learn(stream.feed(data, t))
+    learn(stream.close())
+    if not captured:
         raise UsageError(f"{path}: no request in this capture to replay")
-    return ReplayEngine(answers, image, silence=line.silence if timed else 0.0), line
+    return ReplayEngine(capture, line, captured, image,
+                        silence=line.silence if timed else 0.0), line
 
 
 def replay_lines(path: Path, *, baud: int | None = None, tcp: bool | str = False,
@@ -149,8 +208,8 @@ def banner(lines: SimulatedLines, path: Path) -> list[str]:
     if bus.tap_port:
         out.append(f"Tap (every byte on the line): {bus.tap_port}, linked as {bus.tap}")
     for unit in engine.units:
-        requests = [r for r in engine.answers if r[0] == unit]
-        replies = sum(1 for r in requests for a in engine.answers[r] if a.reply is not None)
+        requests = [r for r in engine.captured if r[0] == unit]
+        replies = sum(engine.captured[r].replies for r in requests)
         out.append(f"  unit {unit}: {len(requests)} distinct request(s), {replies} captured "
                    f"repl{'y' if replies == 1 else 'ies'}, {len(engine.image[unit])} register(s)")
     out.append("Each captured request is answered as it was on site, in order; press Ctrl-C "

@@ -9,7 +9,7 @@ test suite can fail a test that forgets to stop one (``tests/conftest.py``)::
         sim.port                             # /dev/pts/N, or tcp://127.0.0.1:PORT
         sim.set(1, "concentration", 12.5)    # pin a value
         sim.get(1, "concentration").value    # 12.5
-        sim.wire                             # WireFrame(time, direction, data, note), ...
+        sim.wire                             # the latest WireFrames (time, direction, data, note)
 """
 
 from __future__ import annotations
@@ -246,7 +246,7 @@ class SimulatedBus:
 
     @property
     def wire(self) -> tuple[WireFrame, ...]:
-        """Every frame seen on the wire so far, oldest first."""
+        """The latest frames on the wire (up to ``server.WIRE_LOG``), oldest first."""
         if self._server is None:
             return ()
         with self._server.wire_lock:
@@ -266,7 +266,7 @@ class SimulatedBus:
 def _consistent(d: SimDevice, speed: int | None) -> None:
     """Related fields of a new device agree (``sim.consistent``), rendered into its image."""
     changed = make_consistent(d.profile, d.fields, d.motions, tuple(d.config.pins), d.rng,
-                              speed)
+                              speed, d.tick or 1.0)
     for name in changed:
         m = d.motions[name]
         if isinstance(m, Static):

@@ -33,11 +33,14 @@ from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
 QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
-WIRE_LOG = 100_000  # frames kept in the wire log
+# frames kept in the wire log: a window of the latest, so a simulator left running for days
+# holds the same memory as after its first minute (every frame ever seen is counted in
+# Engine.requests/replies; --verbose prints them all as they pass)
+WIRE_LOG = 1000
 TIMER_SLACK = 0.0015  # asyncio timers fire up to 1 ms late; the rest is slept exactly
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class WireFrame:
     """Bytes seen on the simulated wire: ``in`` from the master, ``out`` from devices."""
 
@@ -166,15 +169,17 @@ class Server:
         asyncio rounds its selector timeouts up to whole milliseconds, which at 115200
         baud is a third of a transaction; so wake a little early and sleep the rest.
         """
+        box: list[asyncio.TimerHandle] = []  # not the handle itself: no reference cycle
+
         def run() -> None:
-            self._pending.discard(handle)
+            self._pending.discard(box.pop())
             rest = when - self.loop.time()
             if rest > 0:
                 time.sleep(rest)
             fn(tx)
 
-        handle = self.loop.call_at(when - TIMER_SLACK, run)
-        self._pending.add(handle)
+        box.append(self.loop.call_at(when - TIMER_SLACK, run))
+        self._pending.add(box[0])
 
     # -- transports ---------------------------------------------------------
     async def serve_pty(self, link: str | None = None) -> str:
@@ -225,12 +230,14 @@ class Server:
         if self._tap is None:
             return
         if at is not None and at > self.loop.time():
+            box: list[asyncio.TimerHandle] = []
+
             def copy() -> None:
-                self._pending.discard(handle)
+                self._pending.discard(box.pop())
                 self.to_tap(data)
 
-            handle = self.loop.call_at(at, copy)
-            self._pending.add(handle)
+            box.append(self.loop.call_at(at, copy))
+            self._pending.add(box[0])
             return
         with contextlib.suppress(OSError):  # nobody listening, the pty buffer full: lost
             _write_all(self._tap, data)

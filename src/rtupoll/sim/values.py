@@ -97,8 +97,14 @@ class Static(Motion):
     value: Value
 
 
+STEP = 0.003  # a walk's step per tick, as a share of its span
+PULL = 0.02  # how strongly it returns home per tick: it wanders about 1.5 % of its span
+
+
 class Walk(Motion):
-    """A mean-reverting random walk inside ``[lo, hi]``: looks like a real measurement."""
+    """A mean-reverting random walk inside ``[lo, hi]``: looks like a real measurement,
+    moving slowly as physical quantities do (a room's temperature drifts by tenths of a
+    degree, not by ten degrees a minute)."""
 
     def __init__(self, field: Field, lo: float, hi: float, rng: random.Random) -> None:
         self.field, self.lo, self.hi = field, lo, hi
@@ -106,11 +112,20 @@ class Walk(Motion):
         self.x = self.home
         self.value = quantize(field, self.x)
 
-    def step(self, rng: random.Random) -> None:
+    @property
+    def span(self) -> float:
+        """How far the value may plausibly wander: the everyday band, not the sensor's
+        whole range (an NDIR sensor's 200-400 K is not a room's temperature)."""
         span = self.hi - self.lo
         if isinstance(self.field.typical, (int, float)):  # stay near it: values agree
-            span = min(span, abs(self.field.typical) * 0.2)
-        self.x += rng.gauss(0.0, span * 0.01) + (self.home - self.x) * 0.05
+            return min(span, abs(self.field.typical) * 0.2)
+        if self.field.unit in _TYPICAL:
+            lo, hi = _TYPICAL[self.field.unit]
+            return min(span, hi - lo)
+        return span
+
+    def step(self, rng: random.Random) -> None:
+        self.x += rng.gauss(0.0, self.span * STEP) + (self.home - self.x) * PULL
         self.x = min(max(self.x, self.lo), self.hi)
         self.value = quantize(self.field, self.x)
 

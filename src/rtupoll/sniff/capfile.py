@@ -152,80 +152,136 @@ class CaptureWriter:
 
 def read_capture(path: Path) -> Capture:
     """A pcapng or pcap file -> its chunks (and the line's settings when recorded)."""
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise UsageError(f"cannot read {path}: {exc.strerror}") from None
-    if len(raw) >= 4 and struct.unpack("<I", raw[:4])[0] == _SHB:
-        return _pcapng(raw, path)
-    if len(raw) >= 24:
-        return _pcap(raw, path)
-    raise UsageError(f"{path}: not a pcapng or pcap capture")
+    stream = CaptureStream(path)
+    chunks = list(stream.chunks())
+    return Capture(stream.framing, stream.port, chunks, stream.stopped)
 
 
-def _pcapng(raw: bytes, path: Path) -> Capture:
-    """Read up to the first damaged or truncated block (a full disk, a power loss, a
-    kill -9), as Wireshark does; ``Capture.stopped`` says where and why."""
-    cap = Capture(None)
-    links: list[tuple[int, float]] = []  # per interface: link type, seconds per tick
-    try:
-        for at, kind, body, endian in _blocks(raw):
-            try:
-                _pcapng_block(cap, links, kind, body, endian, path)
-            except _Damaged as exc:
-                raise _Damaged(str(exc), at) from None
-    except _Damaged as exc:
-        if not exc.at:  # not even its section header: nothing to read
-            raise UsageError(f"{path}: {exc} at byte 0: not a readable capture") from None
-        cap.stopped = f"{exc} at byte {exc.at}: read the {len(cap.chunks)} packets before it"
-    return cap
+class CaptureStream:
+    """A capture read as it is iterated: the line's settings at once, then the chunks
+    block by block (each ``chunks()`` reads the file again from its start), so a
+    capture of any length costs the memory of one block.
 
+    A damaged or truncated block (a full disk, a power loss, a kill -9) ends the reading
+    there, as Wireshark does: every chunk before it is delivered, and ``stopped`` then
+    says where and why. A file whose very first block is damaged is refused."""
 
-def _pcapng_block(cap: Capture, links: list[tuple[int, float]], kind: int, body: bytes,
-                  endian: str, path: Path) -> None:
-    if kind == _SHB:
-        links.clear()
-    elif kind == _IDB:
-        if len(body) < 8:
-            raise _Damaged(f"an interface block of {len(body) + 12} bytes (at least 20)")
-        link = struct.unpack(endian + "H", body[:2])[0]
-        opts = dict(_options(body[8:], endian))
-        resol = (opts.get(9) or b"\x06")[0]
-        tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
-        links.append((link, tick))
-        if len(links) == 1:
-            cap.port = opts.get(2, b"").decode(errors="replace")
-            cap.framing = _framing(opts.get(3, b"").decode(errors="replace"), opts.get(8))
-    elif kind == _EPB:
-        if len(body) < 20:
-            raise _Damaged(f"an enhanced packet block of {len(body) + 12} bytes (at least 32)")
-        iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
-        if 20 + caplen > len(body):
-            raise _Damaged(f"a packet of {caplen} bytes in a block of {len(body) + 12}")
-        if iface >= len(links):
-            raise _Damaged("a packet names an interface that was not described")
-        link, tick = links[iface]
-        data = _payload(link, body[20 : 20 + caplen], path)
-        cap.chunks.append((((hi << 32) | lo) * tick, data))
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.framing: Framing | None = None
+        self.port = ""
+        self.stopped = ""  # set when an iteration of ``chunks()`` met damage
+        with self._open() as fh:
+            head = fh.read(24)
+        self._pcapng = len(head) >= 4 and struct.unpack("<I", head[:4])[0] == _SHB
+        if not self._pcapng and len(head) < 24:
+            raise UsageError(f"{path}: not a pcapng or pcap capture")
+        next(self.chunks(), None)  # up to the first chunk: the settings come before it
 
+    def _open(self) -> BinaryIO:
+        try:
+            return self.path.open("rb")
+        except OSError as exc:
+            raise UsageError(f"cannot read {self.path}: {exc.strerror}") from None
 
-def _blocks(raw: bytes) -> Iterator[tuple[int, int, bytes, str]]:
-    """(offset, kind, body, byte order) of each block; ``_Damaged`` at one that is cut
-    short or says a length it cannot have."""
-    i, endian = 0, "<"
-    while i < len(raw):
-        if i + 12 > len(raw):
-            raise _Damaged(f"a truncated block ({len(raw) - i} bytes)", i)
-        kind = struct.unpack("<I", raw[i : i + 4])[0]
+    def chunks(self) -> Iterator[tuple[float, bytes]]:
+        """Every chunk up to the end or the first damage, in order: (arrival, bytes)."""
+        self.stopped = ""
+        with self._open() as fh:
+            size = os.fstat(fh.fileno()).st_size
+            yield from (self._pcapng_chunks(fh, size) if self._pcapng
+                        else self._pcap_chunks(fh, size))
+
+    def _pcapng_chunks(self, fh: BinaryIO, size: int) -> Iterator[tuple[float, bytes]]:
+        links: list[tuple[int, float]] = []  # per interface: link type, seconds per tick
+        count = 0
+        try:
+            for at, kind, body, endian in _blocks(fh, size):
+                try:
+                    chunk = self._block(links, kind, body, endian)
+                except _Damaged as exc:
+                    raise _Damaged(str(exc), at) from None
+                if chunk is not None:
+                    count += 1
+                    yield chunk
+        except _Damaged as exc:
+            if not exc.at:  # not even its section header: nothing to read
+                raise UsageError(f"{self.path}: {exc} at byte 0: not a readable capture"
+                                 ) from None
+            self.stopped = f"{exc} at byte {exc.at}: read the {count} packets before it"
+
+    def _block(self, links: list[tuple[int, float]], kind: int, body: bytes,
+               endian: str) -> tuple[float, bytes] | None:
         if kind == _SHB:
-            bom = raw[i + 8 : i + 12]
-            endian = "<" if struct.unpack("<I", bom)[0] == _BOM else ">"
-        total = struct.unpack(endian + "I", raw[i + 4 : i + 8])[0]
-        kind = struct.unpack(endian + "I", raw[i : i + 4])[0]
-        if total < 12 or total % 4 or i + total > len(raw):
+            links.clear()
+        elif kind == _IDB:
+            if len(body) < 8:
+                raise _Damaged(f"an interface block of {len(body) + 12} bytes (at least 20)")
+            link = struct.unpack(endian + "H", body[:2])[0]
+            opts = dict(_options(body[8:], endian))
+            resol = (opts.get(9) or b"\x06")[0]
+            tick = 2.0 ** -(resol & 0x7F) if resol & 0x80 else 10.0 ** -resol
+            links.append((link, tick))
+            if len(links) == 1:
+                self.port = opts.get(2, b"").decode(errors="replace")
+                self.framing = _framing(opts.get(3, b"").decode(errors="replace"),
+                                        opts.get(8))
+        elif kind == _EPB:
+            if len(body) < 20:
+                raise _Damaged(f"an enhanced packet block of {len(body) + 12} bytes "
+                               f"(at least 32)")
+            iface, hi, lo, caplen = struct.unpack(endian + "IIII", body[:16])
+            if 20 + caplen > len(body):
+                raise _Damaged(f"a packet of {caplen} bytes in a block of {len(body) + 12}")
+            if iface >= len(links):
+                raise _Damaged("a packet names an interface that was not described")
+            link, tick = links[iface]
+            return ((hi << 32) | lo) * tick, _payload(link, body[20 : 20 + caplen], self.path)
+        return None
+
+    def _pcap_chunks(self, fh: BinaryIO, size: int) -> Iterator[tuple[float, bytes]]:
+        header = fh.read(24)
+        formats = {b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
+                   b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9)}
+        if header[:4] not in formats:
+            raise UsageError(f"{self.path}: not a pcapng or pcap capture")
+        endian, unit = formats[header[:4]]
+        link = struct.unpack(endian + "I", header[20:24])[0] & 0xFFFF
+        i, count = 24, 0
+        while i < size:
+            if i + 16 > size:
+                self.stopped = f"a truncated record header at byte {i}"
+                break
+            sec, frac, caplen, _ = struct.unpack(endian + "IIII", fh.read(16))
+            if i + 16 + caplen > size:
+                self.stopped = (f"a truncated record ({caplen} bytes, {size - i - 16} left) "
+                                f"at byte {i}")
+                break
+            yield sec + frac * unit, _payload(link, fh.read(caplen), self.path)
+            count += 1
+            i += 16 + caplen
+        if self.stopped:
+            self.stopped += f": read the {count} packets before it"
+
+
+def _blocks(fh: BinaryIO, size: int) -> Iterator[tuple[int, int, bytes, str]]:
+    """(offset, kind, body, byte order) of each block, read one at a time; ``_Damaged``
+    at one that is cut short or says a length it cannot have."""
+    i, endian = 0, "<"
+    while i < size:
+        head = fh.read(12) if i + 12 <= size else b""
+        if len(head) < 12:
+            raise _Damaged(f"a truncated block ({size - i} bytes)", i)
+        kind = struct.unpack("<I", head[:4])[0]
+        if kind == _SHB:
+            endian = "<" if struct.unpack("<I", head[8:12])[0] == _BOM else ">"
+        total = struct.unpack(endian + "I", head[4:8])[0]
+        kind = struct.unpack(endian + "I", head[:4])[0]
+        if total < 12 or total % 4 or i + total > size:
             raise _Damaged(f"a truncated or damaged block (it says {total} bytes, "
-                           f"{len(raw) - i} are left)", i)
-        yield i, kind, raw[i + 8 : i + total - 4], endian
+                           f"{size - i} are left)", i)
+        block = head + fh.read(total - 12)
+        yield i, kind, block[8 : total - 4], endian
         i += total
 
 
@@ -259,30 +315,3 @@ def _payload(link: int, data: bytes, path: Path) -> bytes:
         return data
     raise UsageError(f"{path}: link type {link} is not a serial line (expected "
                      f"{LINKTYPE_RTAC_SERIAL} RTAC serial, or a user link type 147-162)")
-
-
-def _pcap(raw: bytes, path: Path) -> Capture:
-    magic = raw[:4]
-    formats = {b"\xd4\xc3\xb2\xa1": ("<", 1e-6), b"\xa1\xb2\xc3\xd4": (">", 1e-6),
-               b"\x4d\x3c\xb2\xa1": ("<", 1e-9), b"\xa1\xb2\x3c\x4d": (">", 1e-9)}
-    if magic not in formats:
-        raise UsageError(f"{path}: not a pcapng or pcap capture")
-    endian, unit = formats[magic]
-    link = struct.unpack(endian + "I", raw[20:24])[0] & 0xFFFF
-    cap = Capture(None)
-    i = 24
-    while i < len(raw):
-        if i + 16 > len(raw):
-            cap.stopped = f"a truncated record header at byte {i}"
-            break
-        sec, frac, caplen, _ = struct.unpack(endian + "IIII", raw[i : i + 16])
-        if i + 16 + caplen > len(raw):
-            cap.stopped = f"a truncated record ({caplen} bytes, {len(raw) - i - 16} left) " \
-                f"at byte {i}"
-            break
-        cap.chunks.append((sec + frac * unit, _payload(link, raw[i + 16 : i + 16 + caplen],
-                                                       path)))
-        i += 16 + caplen
-    if cap.stopped:
-        cap.stopped += f": read the {len(cap.chunks)} packets before it"
-    return cap

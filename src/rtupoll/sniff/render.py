@@ -7,6 +7,7 @@ from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
+from rtupoll.model.interpret import display
 from rtupoll.model.profile import Severity
 from rtupoll.sniff.lines import ms
 from rtupoll.sniff.model import BusView, Unit
@@ -16,8 +17,11 @@ SEVERITY_STYLE = {Severity.OK: "", Severity.INFO: "cyan", Severity.WARNING: "yel
 
 
 def render(view: BusView, now: float, title: str = "") -> RenderableType:
-    """The live table: every unit's health, then the latest value of each decoded field."""
-    health = Table(title=title or None, title_justify="left", expand=False, pad_edge=False)
+    """The live table: every unit's health and the line's trouble first (what a
+    technician sniffing needs most; a short terminal cuts the end), then the latest value
+    of each decoded field. No outer border: nothing touches the text."""
+    health = Table(title=title or None, title_justify="left", expand=False, pad_edge=False,
+                   show_edge=False)
     for name, justify in (("unit", "right"), ("device", "left"), ("req/s", "right"),
                           ("ok", "right"), ("t/o", "right"), ("bad", "right"),
                           ("exc", "left"), ("p50", "right"), ("p95", "right")):
@@ -26,7 +30,7 @@ def render(view: BusView, now: float, title: str = "") -> RenderableType:
         health.add_row(str(u.unit), _device(u), f"{u.rate(now):.1f}", str(u.ok),
                        _count(u.timeouts, "yellow"), _count(u.garbled, "red"),
                        _exceptions(u), ms(u.p50()), ms(u.p95()))
-    fields = Table(expand=False, pad_edge=False)
+    fields = Table(expand=False, pad_edge=False, show_edge=False)
     for name in ("device", "field", "value", "unit", "age"):
         fields.add_column(name, justify="right" if name in ("value", "age") else "left")
     for u in sorted(view.units.values(), key=lambda u: u.unit):
@@ -44,15 +48,16 @@ def render(view: BusView, now: float, title: str = "") -> RenderableType:
                                _age(now - when))
             elif f.name in u.latest:
                 when, fv = u.latest[f.name]
-                fields.add_row(u.name, f.name, Text(fv.text, style=SEVERITY_STYLE[fv.severity]),
-                               f.unit, _age(now - when))
+                text, unit = display(fv)  # kelvin as °C, as the poll table shows it
+                fields.add_row(u.name, f.name, Text(text, style=SEVERITY_STYLE[fv.severity]),
+                               unit, _age(now - when))
     hints = [Text(f"unit {u.unit} looks like {u.hints[0]}", style="cyan")
              for u in sorted(view.units.values(), key=lambda u: u.unit) if u.hints]
     line = Text(f"{view.transactions} transactions; stray bytes {view.noise}, broken frames "
                 f"{view.broken}, replies to no request {view.orphans}, broadcasts "
                 f"{view.broadcasts}; t/o: timeouts, bad: garbled replies, exc: exceptions "
                 "(code x count)", style="dim")
-    return Group(health, *hints, fields, line)
+    return Group(health, line, *hints, fields)
 
 
 def _device(u: Unit) -> Text:

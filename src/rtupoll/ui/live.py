@@ -2,11 +2,15 @@
 
 Rendering only: it reads the scheduler's state and builds rich renderables, so the
 same code draws the live table, the ``--once`` table and the tests' StringIO
-output. Two layouts: one row per field (device, field, value, unit, severity, status, age)
-when the terminal is tall enough, else one wrapped line of ``field value unit``
-per device, so the footer (each bus's load, each device's health) never falls off
-the bottom of a small terminal. A spinner, a scan counter, ages and a brief
-highlight on every changed value show a newcomer at once that the numbers are live.
+output. Two layouts: one row per field (device, field, value, unit, severity, status,
+age, and a trend of the last minutes where the width allows) when the terminal is tall
+enough, else one wrapped line of ``field value unit`` per device. Health comes first:
+the footer (each bus's load, each device's health) is always drawn whole, and when the
+readings do not fit above it they are cut with a line saying how many more there are.
+Narrow, no column is dropped: severity and status share one column (a failed read has
+no severity), then the device names become rows of their own. A spinner, a scan
+counter, ages and a brief highlight on every changed value show a newcomer at once
+that the numbers are live. Kelvin temperatures are shown in °C (``interpret.display``).
 """
 
 from __future__ import annotations
@@ -15,13 +19,16 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 
 from rich.console import Console, ConsoleOptions, Group, RenderableType, RenderResult
+from rich.segment import Segment
 from rich.table import Table
 from rich.text import Text
 
 from rtupoll.io.serialport import gateway
 from rtupoll.jobs.scheduler import BusPoller, DevicePoller
 from rtupoll.jobs.stats import DeviceStats, Reading, State
+from rtupoll.model.interpret import display, display_unit
 from rtupoll.model.profile import Field, Severity
+from rtupoll.ui.trend import BINS, Trend
 
 SEVERITY_STYLE = {Severity.OK: "green", Severity.INFO: "cyan", Severity.WARNING: "yellow",
                   Severity.ERROR: "bold red"}
@@ -48,24 +55,47 @@ class PollView:
         self._started = clock()
         self._seen: dict[tuple[str, str], tuple[str, float]] = {}  # -> (text, changed at)
         self._widths: dict[str, int] = {}  # column -> the widest text seen (no jitter)
+        self._trends: dict[tuple[str, str], Trend] = {}  # numeric fields' last minutes
+        self._sampled: dict[tuple[str, str], float] = {}  # -> time of the reading taken
 
     @property
     def devices(self) -> list[DevicePoller]:
         return [d for b in self.buses for d in b.devices]
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        if not self.live:  # printed once (--once): everything, however long
+            yield self.render(width=options.max_width)
+            return
         height = options.height or console.height
-        yield self.render(compact=self.live and self.full_height() > height,
-                          width=options.max_width)
+        width = options.max_width
+        free = options.update(height=None)
+        head = console.render_lines(self.header(), free) if self.title else []
+        foot = console.render_lines(Group(*self._footer(width)), free, pad=False)
+        room = height - len(head) - len(foot)
+        body = console.render_lines(Group(self.readings_table(width), Text("")), free,
+                                    pad=False) if self.full_height() <= height else []
+        if not body or len(body) > room:  # (the estimate spares drawing what cannot fit)
+            body = console.render_lines(self.compact_table(), free, pad=False)
+        if len(body) > room:  # health first: the readings give way, and say so
+            cut = len(body) - max(room - 1, 0) if room > 0 else len(body)
+            body = body[:max(room - 1, 0)] + ([[Segment(
+                f"… {cut} more line{'s' if cut != 1 else ''} of readings: a taller "
+                "terminal shows them")]] if room > 0 else [])
+        for line in [*head, *body, *foot][:height]:
+            yield from line
+            yield Segment.line()
 
     def render(self, *, compact: bool = False, width: int | None = None) -> RenderableType:
         parts: list[RenderableType] = [self.header()] if self.title else []
-        parts.append(self.compact_table() if compact else self.readings_table())
+        parts.append(self.compact_table() if compact else self.readings_table(width))
         if not compact:
             parts.append(Text(""))
-        parts.append(self.health_table(width))
-        parts += [f for f in (footer() for footer in self.footers) if f is not None]
+        parts += self._footer(width)
         return Group(*parts)
+
+    def _footer(self, width: int | None) -> list[RenderableType]:
+        return [self.health_table(width),
+                *(f for f in (footer() for footer in self.footers) if f is not None)]
 
     def full_height(self) -> int:
         """Lines the one-row-per-field layout needs (header, rows, separators, footer)."""
@@ -91,40 +121,94 @@ class PollView:
         return head
 
     # -- one row per field ----------------------------------------------------------
-    def readings_table(self) -> Table:
+    def readings_table(self, width: int | None = None) -> Table:
         """One row per field. A reading's ``severity`` (what the value means) and its
         ``status`` (whether the read worked) are separate columns, as in JSON. Columns
-        whose text changes every scan keep the widest width seen, so nothing jitters."""
-        t = Table(show_edge=False, pad_edge=False, header_style="bold")
-        t.add_column("device", no_wrap=True)
-        t.add_column("field", no_wrap=True)
-        t.add_column("value", justify="right", overflow="fold", max_width=40)
-        t.add_column("unit", no_wrap=True)
-        t.add_column("severity", no_wrap=True)
-        t.add_column("status", overflow="fold", max_width=30)
-        if self.live:
-            t.add_column("age", justify="right", no_wrap=True)
+        whose text changes every scan keep the widest width seen, so nothing jitters.
+
+        Within ``width``: a trend column only where there is room for it; too narrow for
+        all, severity and status share one column (lossless: a failed read has no
+        severity, a good one has status ok), then each device's name is a row of its
+        own above its fields instead of a column."""
         now = self._wall()
+        rows: list[tuple[DevicePoller, int, Field, list[Text]]] = []
         for dev in self.devices:
             cfg, st = dev.config, dev.stats
             for i, f in enumerate(cfg.fields):
                 r = st.latest.get(f.name)
-                value = self._value(cfg.name, f, r, st)
-                row: list[RenderableType] = [self._device_label(dev, i), f.name, value, f.unit,
-                                             _severity(r), _status(r, st)]
+                text, unit = self._value(cfg.name, f, r, st)
+                cells = [Text(f.name), text, Text(unit), _severity(r), _status(r, st)]
                 if self.live:
                     good = st.last_good.get(f.name)
-                    row.append(Text(_age(now - good.time) if good else "never",
-                                    style="dim" if r is not None and r.ok else "yellow"))
-                t.add_row(*row, end_section=i == len(cfg.fields) - 1)
+                    cells.append(Text(_age(now - good.time) if good else "never",
+                                      style="dim" if r is not None and r.ok else "yellow"))
+                cells.append(Text(self._trend(cfg.name, f, r, now), style="cyan"))
+                rows.append((dev, i, f, cells))
+        heads = ["field", "value", "unit", "severity", "status", *(["age"] if self.live
+                                                                    else []), "trend"]
+        widths = [max([len(h), *(c[k].cell_len for *_, c in rows)])
+                  for k, h in enumerate(heads)]
+        widths[1] = max(widths[1], self._widths.get("value", 0))
+        device_w = max([len("device"), *(len(d.config.name) for d in self.devices)])
+
+        def fits(columns: list[int]) -> bool:
+            return width is None or sum(columns) + 3 * (len(columns) - 1) <= width
+
+        merged = not fits([device_w, *widths[:-1]])
+        if merged:  # severity and status in one column
+            widths[4] = max(widths[3], widths[4])
+            del widths[3]
+            heads = [h for h in heads if h != "severity"]
+            for *_, c in rows:
+                c[4] = c[4] if c[4].plain != "ok" or not c[3].plain else c[3]
+                del c[3]
+        own_rows = not fits([device_w, *widths[:-1]])
+        trend = self.live and not own_rows and any(c[-1].plain for *_, c in rows) \
+            and fits([device_w, *widths[:-1], max(widths[-1], BINS)])
+        if not trend:
+            heads.pop()
+            for *_, c in rows:
+                c.pop()
+        t = Table(show_edge=False, pad_edge=False, header_style="bold")
+        if not own_rows:
+            t.add_column("device", no_wrap=True)
+        for h in heads:
+            t.add_column(h, justify="right" if h in ("value", "age") else "left",
+                         no_wrap=h != "value" and h != "status",
+                         overflow="fold" if h in ("value", "status") else "ellipsis",
+                         max_width={"value": 40, "status": 30}.get(h))
+        for dev, i, _, cells in rows:
+            last = i == len(dev.config.fields) - 1
+            if own_rows:
+                if i == 0:
+                    label = self._device_label(dev, 0)
+                    if dev.config.name != dev.config.spec:
+                        label.append(f" ({dev.config.spec})", style="dim")
+                    if self.live and dev.stats.state in (State.RETRYING, State.OFFLINE):
+                        label.append(f" {self._next_try(dev)}", style="yellow")
+                    t.add_row(label, *([""] * (len(heads) - 1)))
+                t.add_row(*cells, end_section=last)
+            else:
+                t.add_row(self._device_label(dev, i), *cells, end_section=last)
         for col in t.columns:
             if col.header in ("value", "status", "age"):
-                widest = max((Text.from_markup(c).cell_len if isinstance(c, str) else
-                              c.cell_len if isinstance(c, Text) else 0 for c in col.cells),
+                widest = max((c.cell_len if isinstance(c, Text) else 0 for c in col.cells),
                              default=0)
                 col.min_width = self._widths[str(col.header)] = max(
                     widest, self._widths.get(str(col.header), 0))
         return t
+
+    def _trend(self, device: str, f: Field, r: Reading | None, now: float) -> str:
+        """The field's sparkline; a new numeric reading is added to its window first."""
+        key = (device, f.name)
+        fv = r.value if r is not None else None
+        if r is not None and fv is not None and fv.present and not f.enum and not f.flags \
+                and isinstance(fv.value, (int, float)) and not isinstance(fv.value, bool) \
+                and self._sampled.get(key) != r.time:
+            self._sampled[key] = r.time
+            self._trends.setdefault(key, Trend()).add(r.time, float(fv.value))
+        trend = self._trends.get(key)
+        return trend.line(now) if trend is not None else ""
 
     def _device_label(self, dev: DevicePoller, line: int) -> Text:
         cfg, st = dev.config, dev.stats
@@ -171,9 +255,10 @@ class PollView:
             for f in cfg.fields:
                 r = st.latest.get(f.name)
                 chip = Text(f.name + " ", style="dim")
-                chip.append_text(self._value(cfg.name, f, r, st))
-                if f.unit and r is not None and r.ok:
-                    chip.append(" " + f.unit, style="dim")
+                text, unit = self._value(cfg.name, f, r, st)
+                chip.append_text(text)
+                if unit and r is not None and r.ok:
+                    chip.append(" " + unit, style="dim")
                 if r is not None and not r.ok:
                     chip.append(f" {_why(r)}", style="red")
                 chips.append(chip)
@@ -181,13 +266,15 @@ class PollView:
         return t
 
     # -- cells ----------------------------------------------------------------------
-    def _value(self, device: str, f: Field, r: Reading | None, st: DeviceStats) -> Text:
+    def _value(self, device: str, f: Field, r: Reading | None, st: DeviceStats
+               ) -> tuple[Text, str]:
+        """The value as shown (highlighted a moment when it changed) and its unit."""
         if r is None:
-            return Text("…", style="dim")
+            return Text("…", style="dim"), display_unit(f)
         if r.value is None:
-            return Text("—", style="dim red")
+            return Text("—", style="dim red"), display_unit(f)
         fv = r.value
-        text = fv.text
+        text, unit = display(fv)
         key, now = (device, f.name), self._clock()
         before = self._seen.get(key)
         changed_at = now if before is not None and before[0] != text else (
@@ -196,7 +283,7 @@ class PollView:
         style = VALUE_STYLE[fv.severity]
         if self.live and now - changed_at < CHANGED_FOR:
             style += " reverse"
-        return Text(text, style=style)
+        return Text(text, style=style), unit
 
     # -- footer -----------------------------------------------------------------------
     def health_table(self, width: int | None = None) -> Group:
@@ -235,14 +322,24 @@ class PollView:
                 ])
             keep = [i for i, h in enumerate(heads) if width is None or width >= 90
                     or h not in ("late", "garbled") or any(str(r[i]) != "0" for r in rows)]
+            natural = sum(max([len(heads[i]), *(len(str(r[i])) for r in rows)]) + 1
+                          for i in keep)
+            short = width is not None and natural > width
+            if short:  # every column stays: shorter names, times in ms without the unit
+                names = dict(zip(heads, SHORT_HEADS, strict=True))
+                rows = [[_bare_ms(c) for c in r] for r in rows]
             t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
                       padding=(0, 1, 0, 0))
             for i in keep:
-                t.add_column(heads[i], justify="left" if heads[i] in ("  device", "state")
+                t.add_column(names[heads[i]] if short else heads[i],
+                             justify="left" if heads[i] in ("  device", "state")
                              else "right", no_wrap=True)
             for r in rows:
                 t.add_row(*(r[i] for i in keep))
             parts.append(t)
+            if short:
+                parts.append(Text("  t/o timeout, bad garbled, exc exception; times in ms",
+                                  style="dim"))
             for dev in bus.devices:  # registers learned never to bridge (jobs.holes)
                 for note in dev.stats.holes:
                     parts.append(Text(f"  {dev.config.name}: not bridged: {note}",
@@ -303,6 +400,19 @@ def _why(r: Reading) -> str:
     if r.status == "exception" and "exception " in r.error:
         return "exception " + r.error.split("exception ", 1)[1].split()[0]
     return SHORT.get(r.status, r.status)
+
+
+SHORT_HEADS = ("  device", "state", "ok", "t/o", "late", "bad", "exc", "p50", "p95", "wait",
+               "last ok")
+
+
+def _bare_ms(cell: RenderableType) -> RenderableType:
+    """``12 ms`` -> ``12`` (the legend says ms), keeping a Text's style."""
+    if isinstance(cell, Text) and cell.plain.endswith(" ms"):
+        return Text(cell.plain[:-3], style=cell.style)
+    if isinstance(cell, str) and cell.endswith(" ms"):
+        return cell[:-3]
+    return cell
 
 
 def _codes(items: Iterable[tuple[int, int]]) -> str:
