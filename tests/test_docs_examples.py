@@ -252,6 +252,18 @@ def _drain(fd: int, into: list[bytes]) -> None:
         into.append(data)
 
 
+def _started(seen: list[bytes], err: IO[str]) -> bool:
+    """Whether the command itself has printed something: on the terminal, or on stderr
+    beyond what the set-up scripts say before they hand over (``setup: ...``, ``poll: no
+    arguments ...``), which a loaded machine may print seconds before rtupoll runs."""
+    if seen:
+        return True
+    fd = err.fileno()
+    text = os.pread(fd, os.fstat(fd).st_size, 0).decode(errors="replace")
+    return any(line and not line.startswith(("setup: ", "poll: "))
+               for line in text.splitlines())
+
+
 def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[str]
           ) -> str | None:
     """Let the example finish; one that runs until stopped gets Ctrl-C once it has
@@ -267,8 +279,7 @@ def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[s
     start = time.monotonic()
     while proc.poll() is None:
         waited = time.monotonic() - start
-        started = bool(seen) or os.fstat(err.fileno()).st_size > 0
-        if waited > STARTED_BY or (started and waited > RUN_FOR):
+        if waited > STARTED_BY or (_started(seen, err) and waited > RUN_FOR):
             break
         time.sleep(0.1)
     if proc.poll() is not None:
