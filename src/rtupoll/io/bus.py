@@ -180,7 +180,7 @@ class Bus(LineBus):
         why: str | None = None
         try:
             ok = await asyncio.wait_for(self._port.connect(), self._connect_timeout)
-        except asyncio.TimeoutError as exc:
+        except TimeoutError as exc:
             ok = False
             if self._gateway:  # it does not answer: trying again would only wait again
                 why = serialport.gateway_error(*self._gateway, exc, self._connect_timeout)

@@ -309,7 +309,7 @@ async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
     """Try a plain TCP connection; why it fails, or None if it connects."""
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
-    except (OSError, asyncio.TimeoutError) as exc:
+    except (TimeoutError, OSError) as exc:
         return gateway_error(host, port, exc, timeout)
     writer.close()
     with contextlib.suppress(OSError):

@@ -12,7 +12,7 @@ import enum
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from functools import lru_cache
 from typing import Any
 
@@ -80,7 +80,7 @@ class Reading:
 @lru_cache(maxsize=64)  # the readings of one block share their time
 def iso_time(t: float) -> str:
     """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
-    stamp = datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")
+    stamp = datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")
     return stamp.replace("+00:00", "Z")
 
 

@@ -281,7 +281,7 @@ class MqttService:
                 client = self._client()
                 try:
                     await asyncio.wait_for(client.__aenter__(), CONNECT_TIMEOUT)
-                except (lib.MqttError, OSError, asyncio.TimeoutError):
+                except (TimeoutError, lib.MqttError, OSError):
                     client = None
                     attempts += 1
                     await asyncio.sleep(backoff(attempts))

@@ -136,7 +136,7 @@ async def connect(client: aiomqtt.Client, settings: MqttSettings) -> None:
 
     try:
         await asyncio.wait_for(client.__aenter__(), CONNECT_TIMEOUT)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         raise BrokerError(f"{settings.where}: no answer from the MQTT broker within "
                           f"{CONNECT_TIMEOUT:g} s") from None
     except Exception as exc:  # aiomqtt.MqttError and what it lets through

@@ -7,7 +7,7 @@ the live table is ``sniff.render``.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any
 
 from rtupoll.rtu.stream import Transaction
@@ -19,7 +19,7 @@ HEADLINE = {"timeout": "NO REPLY", "garbled": "GARBLED REPLY", "exception": "EXC
 
 def clock(t: float) -> str:
     """UTC time of day to the millisecond, as in the JSON records' ``time``."""
-    return datetime.fromtimestamp(t, timezone.utc).strftime("%H:%M:%S.%f")[:-3]
+    return datetime.fromtimestamp(t, UTC).strftime("%H:%M:%S.%f")[:-3]
 
 
 def ms(seconds: float | None) -> str:
