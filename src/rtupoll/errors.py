@@ -7,17 +7,22 @@ wiring fault from a typo. The codes are documented in the README.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 
 class RtupollError(Exception):
-    """Base of every error rtupoll reports as one line, never as a traceback."""
+    """Base of every error rtupoll reports as one line, never as a traceback. A class
+    that owns an exit code says what it means (``meaning``: ``--help`` shows it)."""
 
     exit_code = 1
+    meaning: ClassVar[str]
 
 
 class UsageError(RtupollError):
     """Bad arguments: a device spec, register spec or option that makes no sense."""
 
     exit_code = 2
+    meaning = "bad arguments, profile or configuration; output that cannot be written"
 
 
 class ProfileError(RtupollError):
@@ -46,6 +51,7 @@ class PortError(RtupollError):
     """The port cannot be opened: missing, busy, no permission, or unreachable gateway."""
 
     exit_code = 3
+    meaning = "port cannot be opened (missing, busy, no permission)"
 
 
 class BusError(RtupollError):
@@ -58,18 +64,22 @@ class DeviceTimeout(BusError):
     """No (valid) reply within the device's timeout."""
 
     exit_code = 4
+    meaning = "no response from the device"
 
 
 class FrameError(BusError):
     """A reply arrived but was unusable: CRC error, garbage, truncated or malformed."""
 
     exit_code = 7
+    meaning = "garbled reply (CRC error, truncated or malformed frame, an echoing adapter)"
 
 
 class DeviceException(BusError):
     """The device answered with a Modbus exception response."""
 
     exit_code = 5
+    meaning = ("the device answered with a Modbus exception (read: the fields that answered "
+               "are printed, the refused one with its exception)")
 
     def __init__(self, code: int, *, unit: int | None = None, function: int | None = None) -> None:
         from rtupoll.rtu import exception_name
@@ -84,6 +94,7 @@ class VerificationError(RtupollError):
     """A write was sent but reading back does not show the intended result."""
 
     exit_code = 6
+    meaning = "verification failed (a write did not take effect)"
 
 
 class PlanFailed(RtupollError):
@@ -101,18 +112,23 @@ class RefusedError(RtupollError):
     """
 
     exit_code = 8
+    meaning = ("refused before sending (read-only field, a value its type cannot hold, "
+               "address taken)")
 
 
 class Interrupted(RtupollError):
     """Ctrl-C or SIGTERM: what was under way stops cleanly (``rtupoll: interrupted``)."""
 
     exit_code = 130
+    meaning = ("interrupted (Ctrl-C or SIGTERM) before it finished; poll, simulate, sniff "
+               "and web, once running, stop on them with 0")
 
 
 class ScanIncomplete(RtupollError):
     """``poll --once``: one or more devices failed; each is named on stderr."""
 
     exit_code = 9
+    meaning = "poll --once: one or more devices failed"
 
 
 class BrokerError(RtupollError):
@@ -120,6 +136,7 @@ class BrokerError(RtupollError):
     host, connection refused, wrong user or password, TLS handshake refused)."""
 
     exit_code = 10
+    meaning = "poll --mqtt, web: the broker is unreachable or refused at start-up"
 
 
 class EncodeError(RefusedError):
@@ -129,3 +146,16 @@ class EncodeError(RefusedError):
 class ClientError(RtupollError):
     """Something a Modbus TCP client sent that the gateway refuses (a malformed frame, a
     request it will not pass on): answered or logged, it never ends rtupoll."""
+
+
+def exit_codes() -> list[tuple[int, str]]:
+    """Every exit code and what it means, from the classes that own one (``meaning``),
+    in order: the ``--help`` text and the docs are made from this."""
+    found: dict[int, str] = {0: "success"}
+    todo: list[type[RtupollError]] = [RtupollError]
+    while todo:
+        cls = todo.pop()
+        todo += cls.__subclasses__()
+        if "meaning" in cls.__dict__:
+            found.setdefault(cls.exit_code, cls.meaning)
+    return sorted(found.items())

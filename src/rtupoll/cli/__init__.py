@@ -43,7 +43,7 @@ from typing import Any, TextIO  # noqa: E402
 
 import click  # noqa: E402
 
-from rtupoll.errors import Interrupted, RtupollError, UsageError  # noqa: E402
+from rtupoll.errors import Interrupted, RtupollError, UsageError, exit_codes  # noqa: E402
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -60,21 +60,20 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "web": ("rtupoll.cli.web:web", "Show every gateway on an MQTT broker on one web page."),
 }
 
-EXIT_CODES = """\b
-Exit codes:
-  0  success
-  2  bad arguments, profile or configuration; output that cannot be written
-  3  port cannot be opened (missing, busy, no permission)
-  4  no response from the device
-  5  the device answered with a Modbus exception
-  6  verification failed (a write did not take effect)
-  7  garbled reply (CRC error, truncated or malformed frame)
-  8  refused before sending (read-only field, value out of range, address taken)
-  9  poll --once: one or more devices failed
-  10 poll --mqtt: the broker is unreachable or refused at start-up
-  130 interrupted (Ctrl-C or SIGTERM) before it finished; poll, simulate and
-      sniff, once running, stop on them with 0
-"""
+
+
+def exit_codes_text() -> str:
+    """The ``--help`` epilog: every exit code, made from the error tree."""
+    import textwrap
+
+    lines = ["\b", "Exit codes:"]
+    for code, meaning in exit_codes():
+        first, *rest = textwrap.wrap(meaning, 74)
+        lines += [f"  {code:<3} {first}", *(f"      {more}" for more in rest)]
+    return "\n".join(lines) + "\n"
+
+
+EXIT_CODES = exit_codes_text()
 
 
 class LazyGroup(click.Group):
