@@ -146,7 +146,7 @@ def test_counters_as_prometheus_metrics() -> None:
     service = GatewayService()
     service.gateways.append(gw)
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(GatewayCollector(service))
+    registry.register(GatewayCollector(lambda: service.gateways))
     text = generate_latest(registry).decode()
     assert 'rtupoll_gateway_requests_total{bus="b",client="127.0.0.1",' \
         'outcome="answered"} 1.0' in text  # the host: no ephemeral port in a label

@@ -14,7 +14,8 @@ from click.testing import CliRunner, Result
 
 from rtupoll import rtu
 from rtupoll.cli import cli
-from rtupoll.config.library import bundled_dir, load_one, load_profile
+from rtupoll.config.library import load_one, load_profile
+from rtupoll.config.paths import bundled_dir
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Poll, Profile
 from rtupoll.rtu import Table

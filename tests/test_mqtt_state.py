@@ -15,7 +15,7 @@ from rtupoll.config.site import DeviceConfig, from_specs, load_site
 from rtupoll.errors import ConfigError, ProfileError, RefusedError, UsageError
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.model.interpret import interpret
-from rtupoll.outputs import fleet
+from rtupoll.outputs import fleet, mqtt_settings
 from rtupoll.outputs.mqtt import from_options
 from rtupoll.outputs.mqtt_commands import MAX_DEPTH, MAX_PAYLOAD, depth, plan_get, plan_set
 from rtupoll.outputs.mqtt_settings import DeviceOptions, parse_url
@@ -112,10 +112,10 @@ def test_on_change_waits_for_a_change_or_the_maximum_silence() -> None:
 # -- identity -----------------------------------------------------------------
 
 def test_the_gateway_id_defaults_to_the_host_name() -> None:
-    assert fleet.default_gateway_id("Pump-House.example.com") == "pump-house_example_com"
-    assert fleet.default_gateway_id("###") == "rtupoll"
+    assert mqtt_settings.default_gateway_id("Pump-House.example.com") == "pump-house_example_com"
+    assert mqtt_settings.default_gateway_id("###") == "rtupoll"
     s = parse_url("mqtt://broker")
-    assert s.gateway_id == fleet.default_gateway_id()
+    assert s.gateway_id == mqtt_settings.default_gateway_id()
     assert s.base == f"rtupoll/{s.gateway_id}"
     assert parse_url("mqtt://broker/site/north").base == "site/north"  # given: as given
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from rtupoll.config import compiled
-from rtupoll.config.library import PROFILES_ENV, bundled_dir, load_one, load_profile
+from rtupoll.config.library import load_one, load_profile
+from rtupoll.config.paths import PROFILES_ENV, bundled_dir
 from rtupoll.config.profile_file import read_profile
 from rtupoll.errors import ProfileError
 from rtupoll.sim.runner import SimulatedBus

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from rtupoll.config import compiled
-from rtupoll.config.library import bundled_dir, load_profile
+from rtupoll.config.library import load_profile
+from rtupoll.config.paths import bundled_dir
 from rtupoll.config.profile_file import read_profile
 from rtupoll.model.profile import Profile
 

@@ -22,7 +22,8 @@ from click.testing import CliRunner
 
 from rtupoll import rtu
 from rtupoll.cli import cli
-from rtupoll.config.library import bundled_dir, load_one
+from rtupoll.config.library import load_one
+from rtupoll.config.paths import bundled_dir
 from rtupoll.rtu import Table
 
 GOLDEN = Path(__file__).parent / "fixtures" / "golden"

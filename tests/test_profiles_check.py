@@ -12,7 +12,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
-from rtupoll.config.library import bundled_dir
+from rtupoll.config.paths import bundled_dir
 
 
 def profile(directory: Path, pid: str, edit: tuple[str, str] | None = None) -> Path:

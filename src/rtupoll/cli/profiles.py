@@ -13,7 +13,8 @@ from rich.table import Table as RichTable
 from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
-from rtupoll.config.library import bundled_dir, load_library, load_one, load_profile
+from rtupoll.config.library import load_library, load_one, load_profile
+from rtupoll.config.paths import bundled_dir
 from rtupoll.errors import ProfileError, RtupollError, UsageError
 from rtupoll.model.profile import Choice, Field, Profile
 

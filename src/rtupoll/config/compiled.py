@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from rtupoll.config.library import find_parent
+from rtupoll.config.paths import find_parent
 from rtupoll.model import codec, profile
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import functions

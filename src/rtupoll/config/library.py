@@ -9,16 +9,13 @@ does not import the YAML parser at all.
 
 from __future__ import annotations
 
-import importlib
-import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from rtupoll.config.paths import bundled_dir, search_path
 from rtupoll.errors import UsageError
 from rtupoll.model.profile import Profile
-
-PROFILES_ENV = "RTUPOLL_PROFILES"  # extra profile directories, os.pathsep-separated
 
 
 def load_profile(path: Path) -> Profile:
@@ -50,29 +47,6 @@ def note_use(profile: Profile) -> Profile:
             "document, so its values may be wrong ('rtupoll profiles show %s')",
             profile.id, profile.provenance.label, profile.id)
     return profile
-
-
-def find_parent(pid: str, child: Path) -> Path | None:
-    """The file of the profile ``pid`` that the profile file ``child`` extends: next to
-    ``child`` first, then on the search path."""
-    for directory in [child.parent, *search_path()]:
-        candidate = directory / f"{pid}.yaml"
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def bundled_dir() -> Path:
-    """The package ``rtupoll.profiles`` (the repository's profiles/, installed as package
-    data): its own directory, without importlib.resources and what that imports."""
-    package = importlib.import_module("rtupoll.profiles")
-    return Path(package.__file__ or ".").parent
-
-
-def search_path(extra: Iterable[Path] = ()) -> list[Path]:
-    """User directories first (``--profiles``, then $RTUPOLL_PROFILES), bundled last."""
-    env = [Path(p) for p in os.environ.get(PROFILES_ENV, "").split(os.pathsep) if p]
-    return [*extra, *env, bundled_dir()]
 
 
 @dataclass(frozen=True)

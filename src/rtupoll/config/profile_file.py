@@ -16,7 +16,7 @@ from typing import TypeVar
 import yaml
 
 from rtupoll.config.compiled import Source
-from rtupoll.config.library import find_parent
+from rtupoll.config.paths import find_parent
 from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
 from rtupoll.errors import EncodeError
 from rtupoll.model.codec import ByteOrder, DataType, Layout, bits_range, encode

@@ -1,5 +1,5 @@
 """The gateway's client counters as Prometheus metrics: a ``prometheus_client``
-collector over a running ``GatewayService``, read at scrape time.
+collector over the running gateways, read at scrape time.
 
 ``rtupoll_gateway_requests_total{bus,client,outcome}`` counts requests by what became
 of them (``answered``, ``cached`` -- answered from the cache, also in answered --,
@@ -18,7 +18,7 @@ scrapes, more than ``KEEP_CLIENTS`` of them, can go uncounted.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from prometheus_client.core import Metric
 
     from rtupoll.gateway.clients import ClientStats
-    from rtupoll.gateway.service import GatewayService
+    from rtupoll.gateway.server import Gateway
 
 OUTCOMES = ("answered", "cached", "exception", "timeout", "refused", "busy")
 # queue waits: nothing when the line is free, a transaction or a poll cycle when not
@@ -71,8 +71,11 @@ class _Connection:
 
 
 class GatewayCollector:
-    def __init__(self, service: GatewayService) -> None:
-        self.service = service
+    """The gateways' counters at scrape time; ``gateways`` says which are running now
+    (the service's list, which a reload may change)."""
+
+    def __init__(self, gateways: Callable[[], Iterable[Gateway]]) -> None:
+        self.gateways = gateways
         self.hosts: dict[tuple[str, str], HostTotals] = {}  # (bus, host) -> totals
         self._open: dict[int, _Connection] = {}  # id(ClientStats) -> connections counting
         self._closed: dict[int, ClientStats] = {}  # taken in, maybe still in the list
@@ -81,7 +84,7 @@ class GatewayCollector:
         """Follow new connections, take in their waits, and fold closed ones' counts into
         their host's (the objects are held, so an ``id`` is never reused meanwhile)."""
         listed: set[int] = set()
-        for gw in self.service.gateways:
+        for gw in self.gateways():
             bus = gw.poller.config.name
             for c in gw.clients:
                 listed.add(id(c))
@@ -120,7 +123,7 @@ class GatewayCollector:
             row = counting[conn.host]
             for i, n in enumerate(_counts(conn.stats)):
                 row[i] += n
-        for gw in self.service.gateways:
+        for gw in self.gateways():
             clients.add_metric([gw.poller.config.name], sum(c.connected for c in gw.clients))
         for (bus, host), row in sorted(counting.items()):
             for outcome, n in zip(OUTCOMES, row, strict=True):

@@ -81,7 +81,7 @@ class GatewayService:
         """Its per-client counters for ``/metrics`` (``outputs.metrics`` registers it)."""
         from rtupoll.gateway.metrics import GatewayCollector
 
-        return GatewayCollector(self)
+        return GatewayCollector(lambda: self.gateways)
 
     def footer(self) -> RenderableType | None:
         """The live table's lines about the gateways' clients."""

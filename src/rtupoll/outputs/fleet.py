@@ -14,44 +14,21 @@ Pure: no MQTT library, no I/O but the host name.
 from __future__ import annotations
 
 import re
-import socket
 from collections.abc import Iterable
 from decimal import Decimal
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.errors import UsageError
 from rtupoll.model.codec import DataType
 
 if TYPE_CHECKING:
     from rtupoll.config.site import BusConfig, DeviceConfig
     from rtupoll.model.profile import Choice, Field
 
-ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
-_NOT_ID = re.compile(r"[^a-z0-9_-]")
-DEFAULT_PREFIX = "rtupoll"  # the default base is rtupoll/<gateway_id>
 # the key of rtupoll's own status in a state message: no profile field can take it
 # (field names are lower_snake_case identifiers that do not start with "_")
 STATUS_KEY = "_rtupoll"
 LAST_SEEN = "last_seen"
 RESERVED = (STATUS_KEY, LAST_SEEN)  # keys of a state message that are not fields
-
-
-def default_gateway_id(hostname: str | None = None) -> str:
-    """The host name, lower-cased, with anything but ``[a-z0-9_-]`` as ``_`` (``rtupoll``
-    for a host with no usable name)."""
-    name = (hostname if hostname is not None else socket.gethostname()).strip().lower()
-    return _NOT_ID.sub("_", name).strip("_")[:64] or "rtupoll"
-
-
-def check_gateway_id(text: str, what: str = "--mqtt-id") -> str:
-    if not ID_PATTERN.match(text):
-        raise UsageError(f"{what} {text!r}: a gateway id is 1 to 64 of a-z, 0-9, '_' and "
-                         "'-', starting with a letter or digit")
-    return text
-
-
-def default_base(gateway_id: str) -> str:
-    return f"{DEFAULT_PREFIX}/{gateway_id}"
 
 
 def label(field: Field) -> str:

@@ -639,7 +639,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     if allow_writes:
         settings = dataclasses.replace(settings, allow_writes=True)
     if gateway_id is not None:
-        from rtupoll.outputs.fleet import check_gateway_id
+        from rtupoll.outputs.mqtt_settings import check_gateway_id
 
         settings = dataclasses.replace(settings, gateway_id=check_gateway_id(gateway_id))
     return settings

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -17,7 +18,30 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from rtupoll.errors import UsageError
-from rtupoll.outputs.fleet import check_gateway_id, default_base, default_gateway_id
+
+# the gateway's identity in topics and ids (docs/mqtt.md)
+ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+_NOT_ID = re.compile(r"[^a-z0-9_-]")
+BASE_PREFIX = "rtupoll"  # the default base is rtupoll/<gateway_id>
+
+
+def default_gateway_id(hostname: str | None = None) -> str:
+    """The host name, lower-cased, with anything but ``[a-z0-9_-]`` as ``_`` (``rtupoll``
+    for a host with no usable name)."""
+    name = (hostname if hostname is not None else socket.gethostname()).strip().lower()
+    return _NOT_ID.sub("_", name).strip("_")[:64] or "rtupoll"
+
+
+def check_gateway_id(text: str, what: str = "--mqtt-id") -> str:
+    if not ID_PATTERN.match(text):
+        raise UsageError(f"{what} {text!r}: a gateway id is 1 to 64 of a-z, 0-9, '_' and "
+                         "'-', starting with a letter or digit")
+    return text
+
+
+def default_base(gateway_id: str) -> str:
+    return f"{BASE_PREFIX}/{gateway_id}"
+
 
 if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node
