@@ -6,6 +6,7 @@ capture, with whole blocks kept and one line said, and goes on listening."""
 
 from __future__ import annotations
 
+import os
 import resource
 import signal
 import struct
@@ -21,6 +22,11 @@ from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.sim.replay import load_replay
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sniff.capfile import CaptureWriter, read_capture
+
+# a child under a file-size limit must not write Python's bytecode cache: the interpreter
+# renames a .pyc cut short by the limit into place, and every later rtupoll start that
+# imports that module then fails (EOFError)
+NO_BYTECODE = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
 
 Sim = Callable[..., SimulatedBus]
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
@@ -113,7 +119,7 @@ def test_sniff_capture_on_a_full_disk_stops_the_capture_and_listens_on(
     proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "frames",
                              "--capture", str(path), "huiwen-aq@3"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=limited(1500))
+                            env=NO_BYTECODE, preexec_fn=limited(1500))
     assert proc.stderr is not None
     assert "listening on" in proc.stderr.readline()
     poller = subprocess.Popen(["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-a", "3",

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import resource
 import shutil
 import signal
@@ -21,6 +22,11 @@ import pytest
 
 from rtupoll.ui.outfile import OutputFile
 from tests.brokers import free_port
+
+# a child under a file-size limit must not write Python's bytecode cache: the interpreter
+# renames a .pyc cut short by the limit into place, and every later rtupoll start that
+# imports that module then fails (EOFError)
+NO_BYTECODE = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
 
 LIMIT = 4000
 
@@ -44,7 +50,7 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
                              "huiwen-aq@3", "--interval", "0.05", "--format", "json",
                              "-o", str(out), "--serve", f"127.0.0.1:{port}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=limited)
+                            env=NO_BYTECODE, preexec_fn=limited)
     assert proc.stderr is not None
 
     def wait(done: Callable[[], bool]) -> None:
