@@ -8,6 +8,7 @@ Piped, ``poll`` writes records as they come and says so in one stderr line.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -46,9 +47,15 @@ def terminal(width: int, height: int, command: list[str]) -> Iterator[Callable[[
         out = subprocess.run([*tmux, "capture-pane", "-p"], capture_output=True, text=True,
                              check=True).stdout
         return out.rstrip("\n").split("\n")
+    pane = int(subprocess.run([*tmux, "list-panes", "-F", "#{pane_pid}"], capture_output=True,
+                              text=True, check=True).stdout.split()[0])
     try:
         yield screen
     finally:
+        # the pane is a session of its own: end the command in it (SIGHUP from tmux would
+        # only make poll reload), then the server
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(pane, signal.SIGTERM)
         subprocess.run([*tmux, "kill-server"], check=False, capture_output=True)
 
 
