@@ -25,7 +25,10 @@ class Session:
         self.bytes = 0
 
     def feed(self, data: bytes, t: float) -> None:
-        """A chunk as it arrived (``b""``: time passed in silence)."""
+        """A chunk as it arrived (``b""``: time passed in silence). The time is taken at
+        the capture's resolution (whole microseconds), so that what is decoded live and
+        what is decoded from the capture later see the very same times."""
+        t = round(t * 1_000_000) / 1_000_000
         if data:
             self.bytes += len(data)
             if self.capture is not None:
