@@ -291,6 +291,7 @@ def test_a_malformed_frame_closes_that_client_with_a_log_line(sim: Sim, data: by
     assert len([w for w in bus.wire[before:] if w.direction == "in"]) == 1  # only its read
 
 
+@pytest.mark.timing  # which pipelined request finds the one queue slot free is timing
 def test_cache_answers_covered_reads_without_the_line_and_queue_overflow_is_0x0A(
         sim: Sim) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:slow=0.1"], tick=None)
