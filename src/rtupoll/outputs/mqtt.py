@@ -243,23 +243,7 @@ class MqttService:
         (The same id online is this gateway's own previous run, whose last will the
         broker has not published yet.)"""
         base, me = self._base, self.settings.gateway_id
-        marker = f"{base}/bridge/sync/{uuid.uuid4().hex}"
-        got: dict[str, bytes] = {}
-        await client.subscribe([(f"{base}/bridge/state", 1), (f"{base}/bridge/info", 1),
-                                (marker, 1)])
-        await client.publish(marker, b"1", qos=1)
-
-        async def collect() -> None:
-            async for message in client.messages:
-                topic = message.topic.value
-                if topic == marker:
-                    return
-                if message.retain and isinstance(message.payload, bytes):
-                    got[topic] = message.payload
-
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(collect(), CONNECT_TIMEOUT)
-        await client.unsubscribe([f"{base}/bridge/state", f"{base}/bridge/info", marker])
+        got = await retained(client, base, [f"{base}/bridge/state", f"{base}/bridge/info"])
         if got.get(f"{base}/bridge/state", b"").strip() != b"online":
             return
         other = ""
@@ -575,6 +559,29 @@ def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:
     return float(raw * (0.8 + 0.4 * rand()))
 
 
+async def retained(client: aiomqtt.Client, base: str, topics: list[str]) -> dict[str, bytes]:
+    """The retained payloads (not empty) of ``topics`` (filters allowed) now: every one
+    arrives on subscription, before a marker of our own published after it comes back
+    (``CONNECT_TIMEOUT`` at most)."""
+    marker = f"{base}/bridge/sync/{uuid.uuid4().hex}"
+    got: dict[str, bytes] = {}
+    await client.subscribe([(t, 1) for t in [*topics, marker]])
+    await client.publish(marker, b"1", qos=1)
+
+    async def collect() -> None:
+        async for message in client.messages:
+            topic = message.topic.value
+            if topic == marker:
+                return
+            if message.retain and isinstance(message.payload, bytes) and message.payload:
+                got[topic] = message.payload
+
+    with contextlib.suppress(asyncio.TimeoutError):
+        await asyncio.wait_for(collect(), CONNECT_TIMEOUT)
+    await client.unsubscribe([*topics, marker])
+    return got
+
+
 async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
     """``--mqtt-remove-discovery``: empty retained payloads for every Home Assistant config
     this gateway (this id and base topic) published, the site's devices and any it had
@@ -589,29 +596,14 @@ async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
         for topic in service._discovery():
             await client.publish(topic, b"", qos=1, retain=True)
             removed.append(topic.split("/")[-2])
-        # every retained config arrives on subscription, before our own marker comes back
-        marker = f"{s.base}/bridge/sync/{uuid.uuid4().hex}"
-        await client.subscribe(f"{s.discovery_prefix}/device/+/config", qos=1)
-        await client.subscribe(marker, qos=1)
-        await client.publish(marker, b"1", qos=1)
-
-        async def sweep() -> None:
-            async for message in client.messages:
-                topic = message.topic.value
-                if topic == marker:
-                    return
-                body = message.payload
-                if not isinstance(body, bytes) or not body:
-                    continue
-                with contextlib.suppress(ValueError, RecursionError):
-                    obj = json.loads(body)
-                    if isinstance(obj, dict) and ha.is_ours(obj, s.gateway_id, s.base) and \
-                            topic.split("/")[-2] not in removed:
-                        await client.publish(topic, b"", qos=1, retain=True)
-                        removed.append(topic.split("/")[-2])
-
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(sweep(), CONNECT_TIMEOUT)
+        configs = await retained(client, s.base, [f"{s.discovery_prefix}/device/+/config"])
+        for topic, body in configs.items():
+            with contextlib.suppress(ValueError, RecursionError):
+                obj = json.loads(body)
+                if isinstance(obj, dict) and ha.is_ours(obj, s.gateway_id, s.base) and \
+                        topic.split("/")[-2] not in removed:
+                    await client.publish(topic, b"", qos=1, retain=True)
+                    removed.append(topic.split("/")[-2])
     except lib.MqttError as exc:
         raise BrokerError(f"{s.where}: {describe(exc, s)}") from None
     finally:
