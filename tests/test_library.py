@@ -149,7 +149,7 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("schneider-iem3155", Table.HOLDING, 3109, _reply(1, 3, _f32(50.0)), {"frequency": 50.0}),
     # Delta: 0x2101 = 0x0003 operating forward; 0x2103 = 6000 = 60.00 Hz
     ("delta-ms300", Table.HOLDING, 0x2101, _reply(1, 3, [0x0003, 5000, 6000]),
-     {"operation_state": "OPERATING", "jog": "OFF", "direction": "FORWARD",
+     {"operation_state": "OPERATING", "direction": "FORWARD",
       "frequency_by_modbus": "NO", "command_by_modbus": "NO", "frequency_command": 50.0,
       "output_frequency": 60.0}),
     # ATV12: ETA 0x0637 is DRIVECOM "operation enabled"
