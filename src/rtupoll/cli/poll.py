@@ -30,24 +30,24 @@ from rtupoll.cli.options import (
     service_options,
 )
 from rtupoll.cli.params import DEVICE, DeviceSpec, Seconds
+from rtupoll.cli.serve_options import from_options, serve_options
 from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
-from rtupoll.gateway.options import from_options, serve_options
 from rtupoll.ui.outfile import OutputFile
-from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
+from rtupoll.ui.records import POLL_KEYS, CsvWriter, reading_record, to_json
 from rtupoll.web.options import http_options, http_service, pop_http
 
 if TYPE_CHECKING:
     from rich.console import Console
     from rich.live import Live
 
-    from rtupoll.gateway.settings import ServeConfig
+    from rtupoll.config.gateway_settings import ServeConfig
+    from rtupoll.config.http_settings import HttpSettings
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.services import Service
     from rtupoll.jobs.stats import Reading
     from rtupoll.sim.runner import SimulatedBus
     from rtupoll.ui.live import PollView
-    from rtupoll.web.settings import HttpSettings
 
 REFRESH = 0.25  # seconds between redraws of the live table
 SIM_BAUDRATE = 115200  # framing assumed on a simulated line that answers at any speed
@@ -87,9 +87,9 @@ class RecordWriter:
             readings = ()
         for r in readings:
             if self._csv is not None:
-                self._csv.write(r.record())
+                self._csv.write(reading_record(r))
             else:
-                self._buf.write(to_json(r.record()) + "\n")
+                self._buf.write(to_json(reading_record(r)) + "\n")
         text = self._buf.getvalue()
         self._buf.seek(0)
         self._buf.truncate()
@@ -379,7 +379,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
          http: HttpSettings | None = None) -> None:
     from rich.console import Console
 
-    from rtupoll.jobs.reload import daemon_services
+    from rtupoll.app.services import daemon_services
     from rtupoll.jobs.scheduler import Scheduler
     from rtupoll.ui.live import PollView
 

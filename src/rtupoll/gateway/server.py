@@ -25,6 +25,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access
@@ -40,7 +41,6 @@ from rtupoll.gateway.pdu import (
     parse,
     read_reply,
 )
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.stats import State
 from rtupoll.rtu.effects import writes

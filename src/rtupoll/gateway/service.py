@@ -13,8 +13,8 @@ import logging
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.gateway.server import Gateway, listen
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 
 if TYPE_CHECKING:

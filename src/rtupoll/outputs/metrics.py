@@ -44,8 +44,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.gateway_settings import host_port
 from rtupoll.errors import UsageError
-from rtupoll.gateway.settings import host_port
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.stats import State
 

@@ -41,6 +41,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.errors import BrokerError, RtupollError, UsageError
 from rtupoll.jobs.stats import State
 from rtupoll.outputs import homeassistant as ha
@@ -53,7 +54,6 @@ from rtupoll.outputs.mqtt_client import (
     describe,
     make_client,
 )
-from rtupoll.outputs.mqtt_settings import MqttSettings
 from rtupoll.outputs.mqtt_state import Out, StatePublisher, plain, topic_name
 from rtupoll.ui.records import to_json
 
@@ -618,7 +618,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     no MQTT at all)."""
     settings = site.mqtt
     if url:
-        from rtupoll.outputs.mqtt_settings import parse_url
+        from rtupoll.config.mqtt_settings import parse_url
 
         settings = settings.with_url(url) if settings is not None else parse_url(url)
     if settings is None:
@@ -631,7 +631,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     if allow_writes:
         settings = dataclasses.replace(settings, allow_writes=True)
     if gateway_id is not None:
-        from rtupoll.outputs.mqtt_settings import check_gateway_id
+        from rtupoll.config.mqtt_settings import check_gateway_id
 
         settings = dataclasses.replace(settings, gateway_id=check_gateway_id(gateway_id))
     return settings

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
-from rtupoll.web.settings import HttpSettings, from_options, merge, require_aiohttp
+from rtupoll.config.http_settings import HttpSettings, from_options, merge, require_aiohttp
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site

@@ -37,7 +37,7 @@ from rtupoll.errors import UsageError
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
-    from rtupoll.web.settings import HttpSettings
+    from rtupoll.config.http_settings import HttpSettings
 
 log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams

@@ -23,11 +23,11 @@ from rtupoll.web.state import Clocks, buses_event, device_state, gateway_id, num
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
+    from rtupoll.config.http_settings import HttpSettings
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
     from rtupoll.outputs.metrics import MetricsService
-    from rtupoll.web.settings import HttpSettings
 
 log = logging.getLogger("rtupoll.web")
 BUS_EVERY = 2.0  # seconds between ``buses`` events
