@@ -138,7 +138,7 @@ def test_a_serve_that_is_gone_stops_and_one_added_without_a_gateway_needs_a_rest
     async def main() -> tuple[bool, bool]:
         scheduler = Scheduler(load_site(serve_site(path, bus.port, f"127.0.0.1:{port}")))
         gateways = GatewayService()
-        reload = ReloadService(lambda: load_site(path), peers=[gateways])
+        reload = ReloadService(lambda: load_site(path), peers=[gateways], serves=True)
         await scheduler.open()
         await gateways.start(scheduler)
         await reload.start(scheduler)

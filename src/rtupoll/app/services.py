@@ -17,18 +17,25 @@ from typing import TYPE_CHECKING
 from rtupoll.jobs.reload import ReloadService, Reopenable
 
 if TYPE_CHECKING:
+    from rtupoll.config.http_settings import HttpSettings
     from rtupoll.config.site import Site
+    from rtupoll.gateway.service import GatewayService
     from rtupoll.jobs.services import Service
 
 
-def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table: bool,
-                    metrics: str | None, log_format: str | None,
-                    reload: Callable[[], Site] | None,
-                    peers: Sequence[Service] = ()) -> list[Service]:
-    """The services that make ``poll`` a daemon (docs/service.md), in start order:
-    state-change logging (not under the live table, which shows the states itself),
-    ``/metrics``, SIGHUP (reload and reopen), and systemd's notify protocol last, so
-    READY=1 means everything runs.
+def poll_services(site: Site, writer: Reopenable | None, given: Sequence[Service], *,
+                  gateway: GatewayService | None, once: bool, table: bool,
+                  metrics: str | None, log_format: str | None,
+                  reload: Callable[[], Site] | None, http: HttpSettings | None,
+                  title: str, say: Callable[[str], None]) -> list[Service]:
+    """Every service of ``poll``, in start order: ``given`` (the command's options made
+    them: --verify-blocks, the gateway, MQTT), state-change logging (not under the live
+    table, which shows the states itself), ``/metrics``, the dashboard, SIGHUP (reload and
+    reopen: every service before it follows a reload), and systemd's notify protocol
+    last, so READY=1 means everything runs.
+
+    ``/metrics`` and the dashboard serve what the given services count (their
+    ``collectors``); the dashboard shows the gateway's clients.
 
     Logging is on when asked for (``log_format``), when stderr is a terminal or the
     journal, or when the gateway serves (its refusals and dropped clients are an
@@ -42,15 +49,20 @@ def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table:
     logs.setup(log_format or "text", level=logging.INFO if verbose else logging.ERROR)
     if writer is not None:
         writer.buses.update({d.name: b.name for b, d in site.devices()})
-    services: list[Service] = []
+    services = list(given)
+    collectors = [c for s in given for c in s.collectors()]
     if verbose and not table and not once:  # --once names each failed device itself
         services.append(logs.StateLog())
     if metrics:
         from rtupoll.outputs.metrics import MetricsService
 
-        services.append(MetricsService(metrics))
+        services.append(MetricsService(metrics, others=collectors))
     if once:
         return services
+    from rtupoll.web.options import http_service
+
+    services += http_service(site, http, served=gateway.snapshot if gateway else list,
+                             others=collectors, title=title, say=say)
     notifier = Notifier()
 
     def notify(what: str) -> None:
@@ -59,5 +71,6 @@ def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table:
         else:
             notifier.reloaded("polling")
 
-    services += [ReloadService(reload, writer, notify=notify, peers=peers), notifier]
+    services += [ReloadService(reload, writer, notify=notify, peers=list(services),
+                               serves=gateway is not None), notifier]
     return services

@@ -15,9 +15,10 @@ import contextlib
 import logging
 import signal
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from rtupoll.errors import RtupollError
+from rtupoll.jobs.services import Reload, Service
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site
@@ -33,14 +34,16 @@ class Reopenable(Protocol):
     def reopen(self) -> None: ...
 
 
-class ReloadService:
+class ReloadService(Service):
     """SIGHUP -> reopen the output, reload the site (when there is a site file)."""
 
     def __init__(self, load: Callable[[], Site] | None, output: Reopenable | None = None,
                  *, notify: Callable[[str], None] | None = None,
-                 peers: Sequence[object] = ()) -> None:
+                 peers: Sequence[Service] = (), serves: bool = False) -> None:
+        """``peers``: the services that follow a reload (``Service.on_reload``); ``serves``:
+        a gateway runs among them, so a changed ``serve:`` can be applied."""
         self.load, self.output, self.notify = load, output, notify
-        self.peers = peers  # services with ``prepare_reload(site)`` (the gateway's serve:)
+        self.peers, self.serves = peers, serves
         self.reloads = 0  # completed reloads, whatever their outcome
         self._scheduler: Scheduler | None = None
         self._pending: asyncio.Task[None] | None = None
@@ -90,17 +93,16 @@ class ReloadService:
 
     async def _apply(self, site: Site) -> None:
         assert self._scheduler is not None
-        prepared: list[Any] = []
+        prepared: list[Reload] = []
         served = [b.name for b in site.buses if b.serve is not None]
-        if served and not any(hasattr(p, "prepare_reload") for p in self.peers):
+        if served and not self.serves:
             log.error("reload refused, polling goes on unchanged: serve: on %s needs a "
                       "restart (rtupoll was started without a gateway)", ", ".join(served),
                       extra={"event": "reload", "error": "serve"})
             return
         try:  # e.g. the gateway binds a new serve: address first
             for peer in self.peers:
-                if callable(prepare := getattr(peer, "prepare_reload", None)):
-                    prepared.append(await prepare(site))
+                prepared.append(await peer.on_reload(site))
         except RtupollError as exc:
             for p in prepared:
                 await p.abort()

@@ -322,13 +322,18 @@ class BusPoller:
         self._seq = 0
         self._port_failures = 0
         self.port_error = ""  # the last port failure, while the port is gone
-        # held for each device cycle: the gateway shares the line (rtupoll.gateway.turns)
+        # held for each device cycle: the gateway shares the line (``share_line``)
         self.turn: Callable[[], AbstractAsyncContextManager[None]] = contextlib.nullcontext
         # from outside the schedule (MQTT get/set): devices to read next, jobs to run
         # between two cycles, and the event that wakes an idle bus for them
         self._urgent: list[DevicePoller] = []
         self._jobs: list[tuple[Job[Any], asyncio.Future[Any]]] = []
         self._wake = asyncio.Event()
+
+    def share_line(self, turn: Callable[[], AbstractAsyncContextManager[None]]) -> None:
+        """Others use this line too (a gateway's clients, ``rtupoll.gateway.turns``): each
+        device cycle waits for ``turn()`` and holds it while it reads."""
+        self.turn = turn
 
     def next_device(self) -> DevicePoller:
         """Among the devices due, the one that used the bus least lately (ties: the one that

@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.errors import BrokerError, RtupollError, UsageError
+from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.outputs import mqtt_commands as cmd
@@ -63,6 +64,7 @@ if TYPE_CHECKING:
 
     from rtupoll.config.site import BusConfig, DeviceConfig, Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.services import Reload
     from rtupoll.jobs.stats import Reading
 
 __all__ = ["MqttService", "Outbox", "backoff", "describe", "device_topics", "from_options",
@@ -133,7 +135,7 @@ class Outbox:
         return len(self._pending)
 
 
-class MqttService:
+class MqttService(Service):
     """The MQTT side of ``poll``: see the module docstring."""
 
     def __init__(self, settings: MqttSettings, site: Site, *, once: bool = False,
@@ -179,11 +181,16 @@ class MqttService:
             await asyncio.wait_for(self._connected.wait(), CONNECT_TIMEOUT)
 
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
-        if self._scheduler is not None and self._scheduler.site is not self.site:
-            self._reloaded(self._scheduler.site)
         for out in self.publisher.readings(dev.config, dev.stats.state is State.ONLINE,
                                            dev.stats.last_good_time, readings):
             self._put(out)
+
+    async def on_reload(self, site: Site) -> Reload:
+        """Topics and discovery follow the new site once the scheduler has it."""
+        def then(scheduler: Scheduler) -> list[str]:
+            self._reloaded(scheduler.site)
+            return []
+        return Follow(then)
 
     async def stop(self) -> None:
         """Flush what is waiting, say offline (retained), disconnect cleanly."""
