@@ -25,6 +25,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING
 
+from rtupoll.backoff import after_failures
 from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.gateway import mbap, rtutcp
@@ -73,8 +74,8 @@ class SilentUnits:
     def timed_out(self, unit: int, now: float) -> None:
         n = self._failures[unit] = self._failures.get(unit, 0) + 1
         if n >= self.after:
-            # capped long before 64 doublings; a larger power would overflow a float
-            self._until[unit] = now + min(self.cap, self.base * 2 ** min(n - self.after, 64))
+            self._until[unit] = now + after_failures(n - self.after + 1, first=self.base,
+                                                     cap=self.cap)
 
     def answered(self, unit: int) -> None:
         self._failures.pop(unit, None)

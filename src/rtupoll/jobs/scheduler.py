@@ -34,6 +34,7 @@ from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from rtupoll.backoff import after_failures
 from rtupoll.config.site import BusConfig, DeviceConfig, Site
 from rtupoll.errors import (
     BusError,
@@ -55,7 +56,8 @@ from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 T = TypeVar("T")
 Job = Callable[["BusLike"], Awaitable[T]]  # BusPoller.submit: work on the bus, between cycles
 Clock = Callable[[], float]
-PORT_RETRY_CAP = 10.0  # seconds between attempts to reopen a port that went away
+# seconds a bus pauses after its port went away, doubling while it stays away
+PORT_RETRY_FIRST, PORT_RETRY_CAP = 1.0, 10.0
 USAGE_MEMORY = 30.0  # seconds over which bus use counts when sharing the bus
 Sink = Callable[["DevicePoller", list[Reading]], None]
 
@@ -65,8 +67,9 @@ class Backoff:
     """Delay before the next attempt after ``failures`` failed cycles in a row.
 
     ``max(base, interval) * factor ** (failures - 1)``, capped, times a random
-    factor in ``1 ± jitter``. After ``offline_after`` failed cycles a device is
-    shown offline (it is still probed at the backed-off rate).
+    factor in ``1 ± jitter`` (the one rule, ``rtupoll.backoff``). After
+    ``offline_after`` failed cycles a device is shown offline (it is still probed at
+    the backed-off rate).
     """
 
     base: float = 1.0
@@ -76,10 +79,8 @@ class Backoff:
     offline_after: int = 3
 
     def delay(self, failures: int, interval: float, rand: Callable[[], float]) -> float:
-        # past 64 steps the cap was reached long ago, and a larger power overflows a float
-        steps = min(max(0, failures - 1), 64)
-        raw = min(self.cap, max(self.base, interval) * self.factor ** steps)
-        return raw * (1 + self.jitter * (2 * rand() - 1))
+        return after_failures(failures, first=max(self.base, interval), cap=self.cap,
+                              factor=self.factor, jitter=self.jitter, rand=rand)
 
 
 class DevicePoller:
@@ -369,7 +370,8 @@ class BusPoller:
             readings = [Reading(self._wall(), dev.config, f, None, Status.PORT, str(exc))
                         for f in dev.config.fields]
             dev.stats.latest.update({r.field.name: r for r in readings})
-            pause = min(PORT_RETRY_CAP, 0.5 * 2 ** min(self._port_failures, 10))
+            pause = after_failures(self._port_failures, first=PORT_RETRY_FIRST,
+                                   cap=PORT_RETRY_CAP)
             for d in self.devices:
                 d.next_due = max(d.next_due, self._clock() + pause)
         else:

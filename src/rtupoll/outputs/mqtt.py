@@ -41,6 +41,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.backoff import after_failures
 from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.errors import BrokerError, RtupollError, UsageError
 from rtupoll.jobs.services import Follow, Service
@@ -561,9 +562,10 @@ class MqttService(Service):
 
 
 def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:
-    """Seconds before reconnection attempt ``attempt`` (1, 2, ...): doubling, capped, ±20%."""
-    raw = min(RECONNECT_MAX, RECONNECT_MIN * 2.0 ** min(max(0, attempt - 1), 30))
-    return float(raw * (0.8 + 0.4 * rand()))
+    """Seconds before reconnection attempt ``attempt`` (1, 2, ...): doubling, capped, ±20%
+    (``rtupoll.backoff``)."""
+    return after_failures(attempt, first=RECONNECT_MIN, cap=RECONNECT_MAX, jitter=0.2,
+                          rand=rand)
 
 
 async def retained(client: aiomqtt.Client, base: str, topics: list[str]) -> dict[str, bytes]:
