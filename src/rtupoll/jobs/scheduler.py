@@ -519,7 +519,7 @@ class Scheduler:
         self._open_bus, self._rand = open_bus, rand
         self._tasks: dict[BusPoller, asyncio.Task[None]] = {}  # while ``run`` runs
         self._running: tuple[Sink, asyncio.Event] | None = None
-        self._tasks_changed = asyncio.Event()
+        self._group: asyncio.TaskGroup | None = None  # the buses' tasks, while ``run`` runs
 
     async def open(self) -> None:
         """Open every port, or none: a port that cannot be opened is a configuration error."""
@@ -541,29 +541,27 @@ class Scheduler:
         """Poll until ``stop`` is set; a cycle in flight then is abandoned, not half-reported.
         Buses that ``reload`` adds join, buses it removes leave, while this runs."""
         self._running = (sink, stop)
-        self._tasks = {bp: asyncio.create_task(bp.run(sink, stop)) for bp in self.buses}
-        stopper = asyncio.create_task(stop.wait())
         try:
-            while not stopper.done():
-                self._tasks_changed.clear()
-                changed = asyncio.create_task(self._tasks_changed.wait())
-                done, _ = await asyncio.wait([*self._tasks.values(), stopper, changed],
-                                             return_when=asyncio.FIRST_COMPLETED)
-                changed.cancel()
-                running = set(self._tasks.values())  # not those ``reload`` stopped
-                for t in done:
-                    if t in running:
-                        t.result()  # a bug in a bus task: surface it rather than poll half
+            async with asyncio.TaskGroup() as group:  # an error in one bus ends them all
+                self._group = group
+                for bp in self.buses:
+                    self._tasks[bp] = group.create_task(bp.run(sink, stop))
+                await stop.wait()
+                for t in self._tasks.values():
+                    t.cancel()
+        except ExceptionGroup as errors:
+            raise _first(errors) from None
         finally:
-            tasks = list(self._tasks.values())
-            for t in [*tasks, stopper]:
-                t.cancel()
-            await asyncio.gather(*tasks, stopper, return_exceptions=True)
-            self._tasks, self._running = {}, None
+            self._tasks, self._running, self._group = {}, None, None
 
     async def scan_once(self, sink: Sink) -> None:
         """Every device once (buses concurrently), for ``poll --once``."""
-        await asyncio.gather(*(bp.scan_once(sink) for bp in self.buses))
+        try:
+            async with asyncio.TaskGroup() as group:
+                for bp in self.buses:
+                    group.create_task(bp.scan_once(sink))
+        except ExceptionGroup as errors:
+            raise _first(errors) from None
 
     def pollers(self) -> Sequence[DevicePoller]:
         return [d for bp in self.buses for d in bp.devices]
@@ -609,9 +607,15 @@ class Scheduler:
             except RtupollError as exc:
                 changes.append(f"bus {bp.config.name}: {exc} (retrying)")
             self._opened.append(bp)
-            if self._running is not None:
-                self._tasks[bp] = asyncio.create_task(bp.run(*self._running))
+            if self._running is not None and self._group is not None:
+                self._tasks[bp] = self._group.create_task(bp.run(*self._running))
         self.buses[:] = keep
         self.site = site
-        self._tasks_changed.set()
         return changes
+
+
+def _first(errors: BaseExceptionGroup[Exception]) -> Exception:
+    """The error a bus task raised (the first, should several): what ``poll`` reports,
+    as it would have from one task (``BrokenPipeError``: the reader went away)."""
+    first = errors.exceptions[0]
+    return _first(first) if isinstance(first, BaseExceptionGroup) else first
