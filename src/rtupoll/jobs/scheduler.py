@@ -45,6 +45,7 @@ from rtupoll.errors import (
     RtupollError,
 )
 from rtupoll.io.interface import BusLike
+from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
 from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
@@ -129,22 +130,19 @@ class DevicePoller:
         device that is gone then costs one timeout, not ``1 + retries`` of them.
         """
         cfg, st = self.config, self.stats
-        probing = st.failures > 0
-        answered, timeouts = False, 0
-        stopped: str | None = None
-        first_failed: int | None = None
+        policy = CyclePolicy(cfg.spec, probing=st.failures > 0, retries=cfg.retry_count)
         out: dict[str, Reading] = {}
         if self.variant_unknown:
-            silent = await self._probe_variant(transport, 0 if probing else cfg.retry_count)
+            silent = await self._probe_variant(transport, policy.retries())
             if silent:  # gone: one timeout, as for a first block that gets no reply
                 wall = self._wall()
                 readings = [Reading(wall, cfg, f, None, Status.TIMEOUT, silent) for f in cfg.fields]
                 st.record(readings, answered=False)
                 return readings
-            answered = not self.variant_unknown  # the probe had its answer
+            if not self.variant_unknown:  # the probe had its answer
+                policy.outcome(-1, Status.OK)
         blocks = self.blocks  # this cycle's plan (learning a hole re-plans the next one)
         n = len(blocks)
-        answered = answered or n == 0  # every field asked for is absent: nothing can fail
         started, attempted = self._clock(), False
         for k in range(n):
             idx = (self.resume + k) % n
@@ -152,15 +150,16 @@ class DevicePoller:
             if not self._due(block, started):
                 continue
             attempted = True
-            if stopped is not None:
+            if policy.stopped is not None:
                 for f in block.fields:
-                    out[f.name] = Reading(self._wall(), cfg, f, None, Status.SKIPPED, stopped)
+                    out[f.name] = Reading(self._wall(), cfg, f, None, Status.SKIPPED,
+                                          policy.stopped)
                 continue
-            retries = 0 if probing and not answered else cfg.retry_count
+            retries = policy.retries()
             status, error, values = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
                 via=transport)
-            if status == "exception" and self.refused == 2 and \
+            if status is Status.EXCEPTION and self.refused == 2 and \
                     (gaps(block) or len(block.fields) > 1):
                 found = await self._find_holes(transport, block, retries)
                 if found is not None:  # the refused fields alone keep the exception
@@ -168,31 +167,21 @@ class DevicePoller:
                         out[f.name] = Reading(self._wall(), cfg, f, None, Status.EXCEPTION,
                                               str(exc))
                     status, error, values = Status.OK, "", found.values
-            if status == "ok":
-                answered = True
+            policy.outcome(idx, status)
+            wall = self._wall()
+            if status is Status.OK:
                 if block.interval is not None:
                     self.block_read[block.table, block.address, block.count] = started
-                wall = self._wall()
                 for fv in values or ():
                     out[fv.field.name] = Reading(wall, cfg, fv.field, fv, Status.OK)
                 continue
-            if status == "exception":
-                answered = True
-            elif status == "timeout":
-                timeouts += 1
-                if not answered or timeouts > 1:
-                    stopped = f"not read: {cfg.spec} stopped answering"
-            if first_failed is None:
-                first_failed = idx
-            wall = self._wall()
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
-        self.resume = 0 if first_failed is None else first_failed
-        answered = answered or not attempted  # only slow blocks, none due: nothing failed
+        self.resume = policy.resume()
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
-        st.record(readings, answered)
+        st.record(readings, policy.succeeded(attempted))
         return readings
 
     def _due(self, block: Block, now: float) -> bool:
@@ -209,8 +198,8 @@ class DevicePoller:
         status, error, variant = await self._transact(probe_variant(
             transport, cfg.profile, cfg.address, timeout=self.timeout(transport),
             retries=retries), via=transport)
-        if status != "ok":
-            return error if status == "timeout" else ""  # else: the reads say what is wrong
+        if status is not Status.OK:  # a reply that is no answer: the reads say what is wrong
+            return error if status is Status.TIMEOUT else ""
         self.variant_unknown = False
         if variant is None:
             return ""
@@ -284,13 +273,14 @@ class DevicePoller:
             self.refused = exc.code
         now = self._clock()
         st.requests += 1
-        self.timing.after(via, cfg.address, answered=status in ("ok", "exception"))
+        self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
         culprit = self.load.add(now, now - start,
-                                failed_by=self if status in ("timeout", "garbled") else None)
+                                failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
+                                else None)
         # the bus's quiet period after a failure is the failing device's cost, not ours
         (culprit if isinstance(culprit, DevicePoller) else self).charge(now, now - start)
-        if status == "ok":
+        if status is Status.OK:
             st.ok += 1
             if culprit is None:
                 st.latencies.append(now - start)
