@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from rtupoll.sim.runner import SimulatedBus
-from tests.brokers import free_port
+from tests.brokers import free_port, listening
 from tests.web_helpers import Events, devices, get, get_json, running, until
 
 TOKEN = "long-enough-token"
@@ -27,14 +27,6 @@ def site(path: Path, port: str, http: str | None) -> None:
     head = f"http:\n{http}" if http is not None else ""
     path.write_text(f"{head}buses:\n  - port: {port}\n    baudrate: 9600\n"
                     "    devices:\n      - {profile: huiwen-aq, address: 3, interval: 0.2}\n")
-
-
-def listening(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=1).close()
-        return True
-    except OSError:
-        return False
 
 
 def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
