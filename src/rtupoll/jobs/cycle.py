@@ -20,6 +20,9 @@ from rtupoll.jobs.stats import Status
 class CyclePolicy:
     """The decisions of one cycle of one device (``spec``: its name in messages)."""
 
+    __slots__ = ("_retries", "answered", "first_failed", "probing", "spec", "stopped",
+                 "timeouts")
+
     def __init__(self, spec: str, *, probing: bool, retries: int) -> None:
         self.spec, self.probing, self._retries = spec, probing, retries
         self.answered = False  # the device answered something in this cycle
