@@ -1,8 +1,9 @@
 """SIGHUP applies a changed ``http:``: the real ``rtupoll poll -c`` on the simulator, the
 dashboard read over real HTTP. New authentication takes effect at once on the same
-listener, a new address is bound (the new listener first), an event stream opened before
-goes on, and an address that cannot be bound refuses the reload in one line while the
-old listener and its rules go on."""
+listener (event streams the old credentials opened are closed), a new address is bound
+(the new listener first), an event stream opened before the move goes on, and an
+address that cannot be bound refuses the reload in one line while the old listener and
+its rules go on."""
 
 from __future__ import annotations
 
@@ -54,10 +55,16 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
         assert get(p.url + "api/state")[0] == 401
         assert list(devices(get_json(p.url + "api/state", BASIC))) == ["huiwen-aq@3"]
 
-        # the same address, a token instead of the user: at once, on the same listener
+        # the same address, a token instead of the user: at once, on the same listener;
+        # an event stream the old credentials opened is closed
+        before = Events(p.url, BASIC)
+        assert next(iter(before))[0] == "state"
         site(path, bus.port, f"  listen: 127.0.0.1:{first}\n  token: {TOKEN}\n")
         lines = reload()
         assert "reload: http: authentication changed" in lines, lines
+        # the stream ends (open, reading it would fail on its 30 s socket timeout)
+        assert set(e for e, _ in before) <= {"device", "buses", "ping"}
+        before.close()
         assert get(p.url + "api/state", BASIC)[0] == 401
         assert get_json(p.url + "api/state", BEARER)["mode"] == "poll"
         stream = Events(p.url, BEARER)  # opened before the move below

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
 BATCH = 0.25  # seconds an event stream gathers events before it writes them
+CLOSE_WAIT = 0.5  # seconds open requests get to finish when the authentication changes
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml",
@@ -218,10 +219,15 @@ class Server:
     async def serve(self, settings: HttpSettings, listener: web.TCPSite | None) -> None:
         """From now on: ``settings``' authentication, on ``listener`` (from ``bind``; None:
         none). The listener before closes; connections it took, event streams among
-        them, stay open."""
-        old, self._listener, self.settings = self._listener, listener, settings
+        them, stay open, unless the authentication changed: then they are closed (a page
+        asks again, with the new credentials)."""
+        was, old, self._listener, self.settings = self.settings, self._listener, listener, \
+            settings
         if old is not None and old is not listener:
             await old.stop()
+        if (was.token, dict(was.users)) != (settings.token, dict(settings.users)) and \
+                self._runner is not None and self._runner.server is not None:
+            await self._runner.server.shutdown(CLOSE_WAIT)
         self.address = ""
         if listener is not None and self._runner is not None and self._runner.addresses:
             host, port = self._runner.addresses[0][:2]
