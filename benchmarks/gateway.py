@@ -29,9 +29,9 @@ import time
 
 from poll_common import simulator
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import BusConfig, Site, from_specs
 from rtupoll.gateway.service import GatewayService
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading

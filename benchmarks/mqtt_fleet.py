@@ -108,11 +108,11 @@ def measure(procs: list[subprocess.Popen[bytes]], seconds: float, warmup: float,
 async def publish_cpu(url: str, baud: int, messages: int) -> float:
     """CPU seconds per state message published by the real ``MqttService`` (one at a
     time: each is on the socket before the next cycle's readings come)."""
+    from rtupoll.config.mqtt_settings import parse_url
     from rtupoll.jobs.scheduler import Scheduler
     from rtupoll.jobs.stats import Reading, State
     from rtupoll.model.interpret import interpret
     from rtupoll.outputs.mqtt import MqttService
-    from rtupoll.outputs.mqtt_settings import parse_url
 
     site = seed_site("/dev/null", baud)
     scheduler = Scheduler(site, open_bus=lambda bus: None)  # type: ignore[arg-type,return-value]

@@ -1,6 +1,6 @@
 """Fixed profile timeouts against learned ones, in one run: dead device, scan, flapping.
 
-Everything runs in virtual time on ``rtupoll.io.virtual.VirtualBus``: the simulator's
+Everything runs in virtual time on ``rtupoll.sim.virtual.VirtualBus``: the simulator's
 engine (the devices and their turnarounds), the real line discipline
 (``rtu.line``: silence, drain after a timeout, late replies) and the real scheduler and
 sweep, with a clock that jumps instead of sleeping. The figures are the model's
@@ -41,7 +41,6 @@ from poll_common import seed_site
 
 from rtupoll.config.library import load_library, load_one
 from rtupoll.config.site import BusConfig, from_specs
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scan import Found, Setting, default_margin, presence_probes, sweep
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
@@ -49,6 +48,7 @@ from rtupoll.rtu import Framing, Table
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 BAUD = 9600
 
@@ -264,7 +264,7 @@ def main() -> None:
     parser.add_argument("--wire", type=float, default=0.0, metavar="SECONDS",
                         help="also run scenario 1 on the real wire for SECONDS per run")
     args = parser.parse_args()
-    print(f"virtual time, {BAUD} baud (rtupoll.io.virtual: the simulator's engine and the "
+    print(f"virtual time, {BAUD} baud (rtupoll.sim.virtual: the simulator's engine and the "
           "real line discipline)\n")
     (lf, pf, tf), (ll, pl, tl) = dead_device(True), dead_device(False)
     print("1. one dead device (huiwen-aq@3 dies after a minute; interval 0)")

@@ -39,6 +39,14 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def listening(port: int) -> bool:
+    """Something accepts connections on 127.0.0.1:``port``."""
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        return True
+    except OSError:
+        return False
+
 def have_mosquitto() -> bool:
     return Path(MOSQUITTO).exists() and shutil.which("mosquitto_sub") is not None
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Sequence
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import BusConfig, Site
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.gateway.clients import ClientStats
 from rtupoll.gateway.server import Gateway, SilentUnits
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from rtupoll.config.gateway_settings import ServeConfig, parse_listen, serve_config
 from rtupoll.config.library import load_one
 from rtupoll.config.site import load_site
 from rtupoll.errors import ConfigError, UsageError
@@ -15,7 +16,6 @@ from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access, line_settings
 from rtupoll.gateway.cache import ReadCache
 from rtupoll.gateway.pdu import BadRequest, parse, read_reply, write_reply
-from rtupoll.gateway.settings import ServeConfig, parse_listen, serve_config
 from rtupoll.rtu import Table, with_crc
 
 

@@ -19,10 +19,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import from_specs
 from rtupoll.gateway.clients import ClientStats
 from rtupoll.gateway.server import Gateway
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table

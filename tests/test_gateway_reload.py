@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from rtupoll.sim.runner import SimulatedBus
-from tests.brokers import free_port
+from tests.brokers import free_port, listening
 
 MBPOLL = shutil.which("mbpoll")
 pytestmark = pytest.mark.skipif(MBPOLL is None, reason="mbpoll is not installed")
@@ -38,14 +38,6 @@ def mbpoll(port: int, *args: str) -> subprocess.CompletedProcess[str]:
     assert MBPOLL is not None
     return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", "2", "-a", "1",
                            *args], capture_output=True, text=True, timeout=20)
-
-
-def listening(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=1).close()
-        return True
-    except OSError:
-        return False
 
 
 def test_sighup_applies_serve_rules_rebinds_and_refuses_an_address_it_cannot_bind(
@@ -138,7 +130,7 @@ def test_a_serve_that_is_gone_stops_and_one_added_without_a_gateway_needs_a_rest
     async def main() -> tuple[bool, bool]:
         scheduler = Scheduler(load_site(serve_site(path, bus.port, f"127.0.0.1:{port}")))
         gateways = GatewayService()
-        reload = ReloadService(lambda: load_site(path), peers=[gateways])
+        reload = ReloadService(lambda: load_site(path), peers=[gateways], serves=True)
         await scheduler.open()
         await gateways.start(scheduler)
         await reload.start(scheduler)

@@ -18,9 +18,9 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 from rich.console import Console
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import BusConfig, Site, from_specs
 from rtupoll.gateway.service import GatewayService
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.jobs.scheduler import Backoff, DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.sim.runner import SimulatedBus

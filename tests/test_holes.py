@@ -2,7 +2,7 @@
 
 The device under test is the simulator's Huiwen module with an undocumented hole at
 input 30011, inside the 30010..30011 gap its profile lets the planner bridge; polling
-runs on ``io.virtual.VirtualBus`` in virtual time.
+runs on ``sim.virtual.VirtualBus`` in virtual time.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
 from rtupoll.errors import ConfigError, DeviceException, FaultSpecError
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.hole_services import RememberHoles
 from rtupoll.jobs.holes import Bisection, HoleStore, bisect, gaps, pieces, show
 from rtupoll.jobs.scheduler import Backoff, BusPoller, Scheduler
@@ -31,6 +30,7 @@ from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
 from rtupoll.sim.runner import SimulatedBus
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 HOLE = 30011  # wire address (the Huiwen module addresses registers directly)
 

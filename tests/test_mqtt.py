@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 from virtual import START, ScriptedBus, VirtualClock
 
+from rtupoll.config.mqtt_settings import parse_url
 from rtupoll.config.site import BusConfig, from_specs, load_site
 from rtupoll.errors import ConfigError, RefusedError, UsageError
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.outputs.mqtt import Outbox, backoff, device_topics, plain, topic_name
 from rtupoll.outputs.mqtt_commands import WRITES_OFF, failed, plan_get, plan_set, protected
-from rtupoll.outputs.mqtt_settings import parse_url
 from rtupoll.rtu import Table
 
 

@@ -10,15 +10,16 @@ from typing import Any
 
 import pytest
 
+from rtupoll.config import mqtt_settings
 from rtupoll.config.library import load_one
+from rtupoll.config.mqtt_settings import DeviceOptions, parse_url
 from rtupoll.config.site import DeviceConfig, from_specs, load_site
 from rtupoll.errors import ConfigError, ProfileError, RefusedError, UsageError
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.model.interpret import interpret
-from rtupoll.outputs import fleet, mqtt_settings
+from rtupoll.outputs import fleet
 from rtupoll.outputs.mqtt import from_options
 from rtupoll.outputs.mqtt_commands import MAX_DEPTH, MAX_PAYLOAD, depth, plan_get, plan_set
-from rtupoll.outputs.mqtt_settings import DeviceOptions, parse_url
 from rtupoll.outputs.mqtt_state import StatePublisher
 
 

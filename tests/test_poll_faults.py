@@ -29,6 +29,7 @@ from virtual import simulated
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.sim.runner import SimulatedBus
+from rtupoll.ui.records import reading_record
 
 UNITS = (1, 2, 3)
 TIMEOUT = 0.25  # seconds; the profile's 0.5 s would only make the tests slower
@@ -180,7 +181,7 @@ def virtual_stream(spec: str, until: Callable[[list[dict[str, Any]]], bool],
             dev = bp.next_device()
             clock.now = max(clock.now, dev.next_due)
             await bp.run_one(dev, lambda d, rs: records.extend(
-                json.loads(json.dumps(r.record())) for r in rs))
+                json.loads(json.dumps(reading_record(r))) for r in rs))
 
     asyncio.run(go())
     return records, clock.now - start

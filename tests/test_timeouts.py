@@ -2,7 +2,7 @@
 
 The estimator's rules are checked with numbers; the whole loop -- the line measuring
 reply times, the scheduler asking for each timeout, a simulated device drifting or
-dying -- runs on ``io.virtual.VirtualBus`` (the simulator's engine and the real line
+dying -- runs on ``sim.virtual.VirtualBus`` (the simulator's engine and the real line
 discipline) with a virtual clock, so minutes of polling cost milliseconds.
 """
 
@@ -20,7 +20,6 @@ import pytest
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
 from rtupoll.io.serialport import latency_timer, latency_warning
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import State
 from rtupoll.jobs.timeouts import (
@@ -37,6 +36,7 @@ from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.runner import SimulatedBus
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 # -- the line measures reply times ---------------------------------------------------
 

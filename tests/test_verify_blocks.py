@@ -2,7 +2,7 @@
 
 The simulator's ``shift=R`` quirk is an undocumented register the device silently
 skips: a block read over it returns the registers after it moved down by one, with
-no exception (pysolarfocus#61). Rules in virtual time on ``io.virtual.VirtualBus``;
+no exception (pysolarfocus#61). Rules in virtual time on ``sim.virtual.VirtualBus``;
 the command end to end on the simulator's pty.
 """
 
@@ -16,7 +16,6 @@ from click.testing import CliRunner
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.hole_services import verify_device
 from rtupoll.jobs.holes import Mismatch, verify_block
 from rtupoll.jobs.scheduler import Backoff, BusPoller
@@ -25,6 +24,7 @@ from rtupoll.rtu import Framing, Table
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 SHIFT = 30011  # inside the 30010..30011 gap the Huiwen profile lets the planner bridge
 

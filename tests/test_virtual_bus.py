@@ -13,12 +13,12 @@ import pytest
 
 from rtupoll.config.site import from_specs
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.jobs.stats import Reading, State
 from rtupoll.rtu import Table
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 
 def virtual(devices: list[str], faults: tuple[str, ...] = ()) -> tuple[VirtualBus, VirtualClock]:

@@ -13,11 +13,11 @@ from typing import Any
 
 import pytest
 
+from rtupoll.config.http_settings import HttpSettings, from_options, merge, parse_listen
 from rtupoll.config.site import load_site
 from rtupoll.errors import ConfigError, UsageError
 from rtupoll.web.fleet import MAX_WAITING, Fleet
 from rtupoll.web.server import COOKIE, Hub, Mailbox, authorised, cookie_value
-from rtupoll.web.settings import HttpSettings, from_options, merge, parse_listen
 from rtupoll.web.trend import BYTES_PER_FIELD, POINTS, SPAN, STEP, Trend, TrendStore
 
 # -- trend rings -------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """One virtual bus and one virtual clock for every test that runs in virtual time.
 
-The clock is the project's own ``rtupoll.io.virtual.VirtualClock``: time passes only
+The clock is the project's own ``rtupoll.sim.virtual.VirtualClock``: time passes only
 when a test or a bus moves it, so a timeout, a backoff or five minutes of polling cost
 no wall-clock time and no other process can stretch them.
 
@@ -18,12 +18,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
-from rtupoll.io.virtual import VirtualBus, VirtualClock
 from rtupoll.jobs.scheduler import BusPoller
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
+from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 __all__ = ["OK_COST", "START", "Behaviour", "ScriptedBus", "VirtualBus", "VirtualClock",
            "poll_for", "simulated"]

@@ -30,24 +30,25 @@ from rtupoll.cli.options import (
     service_options,
 )
 from rtupoll.cli.params import DEVICE, DeviceSpec, Seconds
+from rtupoll.cli.serve_options import from_options, serve_options
 from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
-from rtupoll.gateway.options import from_options, serve_options
 from rtupoll.ui.outfile import OutputFile
-from rtupoll.ui.records import POLL_KEYS, CsvWriter, to_json
-from rtupoll.web.options import http_options, http_service, pop_http
+from rtupoll.ui.records import POLL_KEYS, CsvWriter, reading_record, to_json
+from rtupoll.web.options import http_options, pop_http
 
 if TYPE_CHECKING:
     from rich.console import Console
     from rich.live import Live
 
-    from rtupoll.gateway.settings import ServeConfig
+    from rtupoll.config.gateway_settings import ServeConfig
+    from rtupoll.config.http_settings import HttpSettings
+    from rtupoll.gateway.service import GatewayService
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.services import Service
     from rtupoll.jobs.stats import Reading
     from rtupoll.sim.runner import SimulatedBus
     from rtupoll.ui.live import PollView
-    from rtupoll.web.settings import HttpSettings
 
 REFRESH = 0.25  # seconds between redraws of the live table
 SIM_BAUDRATE = 115200  # framing assumed on a simulated line that answers at any speed
@@ -87,9 +88,9 @@ class RecordWriter:
             readings = ()
         for r in readings:
             if self._csv is not None:
-                self._csv.write(r.record())
+                self._csv.write(reading_record(r))
             else:
-                self._buf.write(to_json(r.record()) + "\n")
+                self._buf.write(to_json(reading_record(r)) + "\n")
         text = self._buf.getvalue()
         self._buf.seek(0)
         self._buf.truncate()
@@ -217,12 +218,12 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
             title = (f"simulated: {len(buses)} lines" if len(buses) > 1
                      else "simulated bus") + f", {timing}"
             fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
-            site = _gateway(site, served, services, fmt)
+            site, gateway = _gateway(site, served, services, fmt)
             if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services,
                      fmt, mqtt_id):
                 return
             _run(site, once=once, fmt=fmt, output=output, title=title, services=services,
-                 metrics=metrics, log_format=log_format, http=http)
+                 metrics=metrics, log_format=log_format, http=http, gateway=gateway)
         if fmt == "table" and not once and not faults:
             dead = lines[0].config.devices[-1].address  # one that exists on this bus
             click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
@@ -264,18 +265,18 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                               profile_dirs=profile_dirs, timeout_ceiling=timeout_ceiling)
         site = _with_line_options(site)
     fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
-    site = _gateway(site, served, services, fmt)
+    site, gateway = _gateway(site, served, services, fmt)
     if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt,
              mqtt_id):
         return
     _run(site, once=once, fmt=fmt, output=output,
          title=config.name if config else str(port), services=services,
-         metrics=metrics, log_format=log_format, http=http,
+         metrics=metrics, log_format=log_format, http=http, gateway=gateway,
          reload=(lambda: load_site(config, profile_dirs)) if config is not None else None)
 
 
 def _gateway(site: Site, served: ServeConfig | None, services: list[Service], fmt: str
-             ) -> Site:
+             ) -> tuple[Site, GatewayService | None]:
     """``--serve`` on the (one) bus, and the gateway service for every bus that serves."""
     if served is not None:
         if len(site.buses) != 1:
@@ -288,9 +289,10 @@ def _gateway(site: Site, served: ServeConfig | None, services: list[Service], fm
 
         # a live table on a terminal shows the gateway's log lines in its footer
         live = fmt == "table" and sys.stdout.isatty()
-        services.append(GatewayService(log=None if live else to_log,
-                                       info=None if live else to_info))
-    return site
+        gateway = GatewayService(log=None if live else to_log, info=None if live else to_info)
+        services.append(gateway)
+        return site, gateway
+    return site, None
 
 
 def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: bool,
@@ -376,10 +378,10 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
 def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
          services: Sequence[Service] = (), metrics: str | None = None,
          log_format: str | None = None, reload: Callable[[], Site] | None = None,
-         http: HttpSettings | None = None) -> None:
+         http: HttpSettings | None = None, gateway: GatewayService | None = None) -> None:
     from rich.console import Console
 
-    from rtupoll.jobs.reload import daemon_services
+    from rtupoll.app.services import poll_services
     from rtupoll.jobs.scheduler import Scheduler
     from rtupoll.ui.live import PollView
 
@@ -388,17 +390,12 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
     console = Console(stderr=fmt != "table" and output is None)
     show_table = fmt == "table" or (output is not None and console.is_terminal)
     with _sink(fmt, output) as writer:
-        services = [*services, *daemon_services(
-            site, writer, once=once, table=show_table, metrics=metrics or site.metrics or None,
-            log_format=log_format, reload=reload, peers=services)]
-        if not once and (http is not None or site.http is not None):
-            services += http_service(site, http, services, title=title,
-                                     say=lambda t: click.echo(f"rtupoll: {t}", err=True))
-        for s in services:  # /metrics also serves what other services count
-            if isinstance(others := getattr(s, "others", None), list):
-                others += [c() for t in services if callable(c := getattr(t, "collector", None))]
+        services = poll_services(
+            site, writer, services, gateway=gateway, once=once, table=show_table,
+            metrics=metrics or site.metrics or None, log_format=log_format, reload=reload,
+            http=http, title=title, say=lambda t: click.echo(f"rtupoll: {t}", err=True))
         view = PollView(scheduler.buses, title=title, live=not once,
-                        footers=[f for s in services if (f := getattr(s, "footer", None))])
+                        footers=[s.footer for s in services])
         if once:
             readings = asyncio.run(_once(scheduler, writer, services))
             if show_table:

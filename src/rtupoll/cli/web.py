@@ -20,7 +20,7 @@ from rtupoll.errors import BrokerError
 from rtupoll.web.options import http_options, pop_http
 
 if TYPE_CHECKING:
-    from rtupoll.outputs.mqtt_settings import MqttSettings
+    from rtupoll.config.mqtt_settings import MqttSettings
     from rtupoll.web.fleet import Fleet
 
 DEFAULT_PREFIX = "rtupoll"
@@ -44,9 +44,9 @@ def web(url: str, **opts: Any) -> None:
     its devices, values, availability and trends appear grouped by gateway. Read-only.
     Stop with Ctrl-C.
     """
+    from rtupoll.config.http_settings import require_aiohttp
+    from rtupoll.config.mqtt_settings import parse_url
     from rtupoll.outputs.mqtt_client import aiomqtt_module
-    from rtupoll.outputs.mqtt_settings import parse_url
-    from rtupoll.web.settings import require_aiohttp
 
     http = pop_http(opts)
     assert http is not None  # --http has a default

@@ -19,19 +19,19 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
+from rtupoll.config.gateway_settings import ServeConfig, host_port
+from rtupoll.config.gateway_settings import from_node as serve_from_node
+from rtupoll.config.http_settings import HttpSettings
+from rtupoll.config.http_settings import from_node as http_from_node
 from rtupoll.config.library import load_one, note_use
+from rtupoll.config.mqtt_settings import MqttSettings
+from rtupoll.config.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
-from rtupoll.gateway.settings import ServeConfig, host_port
-from rtupoll.gateway.settings import from_node as serve_from_node
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
-from rtupoll.outputs.mqtt_settings import MqttSettings
-from rtupoll.outputs.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.rtu import Framing
-from rtupoll.web.settings import HttpSettings
-from rtupoll.web.settings import from_node as http_from_node
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
 # the serial defaults of a bus with no devices (only served to gateway clients)

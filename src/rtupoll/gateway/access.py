@@ -14,8 +14,8 @@ import ipaddress
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.gateway.pdu import ILLEGAL_FUNCTION, PATH_UNAVAILABLE, Ask
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu.effects import (
     BROADCAST_FUNCTIONS,

@@ -25,6 +25,8 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING
 
+from rtupoll.backoff import after_failures
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access
@@ -40,7 +42,6 @@ from rtupoll.gateway.pdu import (
     parse,
     read_reply,
 )
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.stats import State
 from rtupoll.rtu.effects import writes
@@ -73,8 +74,8 @@ class SilentUnits:
     def timed_out(self, unit: int, now: float) -> None:
         n = self._failures[unit] = self._failures.get(unit, 0) + 1
         if n >= self.after:
-            # capped long before 64 doublings; a larger power would overflow a float
-            self._until[unit] = now + min(self.cap, self.base * 2 ** min(n - self.after, 64))
+            self._until[unit] = now + after_failures(n - self.after + 1, first=self.base,
+                                                     cap=self.cap)
 
     def answered(self, unit: int) -> None:
         self._failures.pop(unit, None)
@@ -117,7 +118,6 @@ class Gateway:
                  log: Log | None = None, info: Log | None = None,
                  clock: Clock = time.monotonic) -> None:
         self.config, self.poller, self.turns = config, poller, turns
-        self._devices: object = None
         self.asked = config  # as configured (``config`` has the port a :0 was given)
         self.units: dict[int, DevicePoller]
         self.access: Access
@@ -134,10 +134,7 @@ class Gateway:
 
     def _learn_devices(self) -> None:
         """The polled devices by unit, and the access rules for their profiles (again
-        after a reload changed the bus's devices)."""
-        if self.poller.devices is self._devices:
-            return
-        self._devices = self.poller.devices
+        after a reload: ``reconfigure``)."""
         self.units = {d.config.address: d for d in self.poller.devices}
         self.access = Access(self.config, {u: d.config.profile for u, d in self.units.items()})
 
@@ -154,8 +151,7 @@ class Gateway:
         the new ``allow:`` excludes are disconnected at once."""
         was, self.asked = self.asked, config
         self.config = dataclasses.replace(config, port=self.config.port)
-        self._devices = None  # the access rules again, with the new settings
-        self._learn_devices()
+        self._learn_devices()  # the devices the reload left, under the new rules
         if config.cache != was.cache:
             self.cache = ReadCache(config.cache) if config.cache > 0 else None
         changed = [f"{k} {_text(getattr(was, k))} -> {_text(getattr(config, k))}"
@@ -305,7 +301,6 @@ class Gateway:
     async def answer(self, unit: int, pdu: bytes, stats: ClientStats,
                      queued: float | None = None) -> bytes | None:
         """The reply PDU for one request (None: a broadcast, which has no reply)."""
-        self._learn_devices()
         try:
             ask = parse(pdu)
         except BadRequest as exc:

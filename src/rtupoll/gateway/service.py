@@ -1,10 +1,10 @@
 """The gateway as a ``rtupoll.jobs.services.Service``: one ``Gateway`` per bus with
-``serve`` set, sharing the line with that bus's poller (``BusPoller.turn``).
+``serve`` set, sharing the line with that bus's poller (``BusPoller.share_line``).
 
-On SIGHUP (``rtupoll.jobs.reload``) each bus's new ``serve:`` takes effect: new rules
-on the same listener at once (clients the new ``allow:`` excludes are disconnected), a
-new address re-bound (the new listener first: a reload that cannot bind it is refused
-whole), a bus no longer served closed."""
+On SIGHUP (``rtupoll.jobs.reload`` calls ``on_reload``) each bus's new ``serve:`` takes
+effect: new rules on the same listener at once (clients the new ``allow:`` excludes are
+disconnected), a new address re-bound (the new listener first: a reload that cannot bind
+it is refused whole), a bus no longer served closed."""
 
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ import logging
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.gateway.server import Gateway, listen
-from rtupoll.gateway.settings import ServeConfig
 from rtupoll.gateway.turns import Turns
+from rtupoll.jobs.services import Service
 
 if TYPE_CHECKING:
     from rich.console import RenderableType
@@ -39,7 +40,7 @@ def to_info(line: str) -> None:
     _LOG.info(line, extra={"event": "gateway"})
 
 
-class GatewayService:
+class GatewayService(Service):
     def __init__(self, *, log: Callable[[str], None] | None = None,
                  info: Callable[[str], None] | None = None) -> None:
         self.gateways: list[Gateway] = []
@@ -53,10 +54,10 @@ class GatewayService:
             turns = Turns()
             gw = Gateway(cfg, bp, turns, log=self._log, info=self._info)
             await gw.start()
-            bp.turn = turns.turn
+            bp.share_line(turns.turn)
             self.gateways.append(gw)
 
-    async def prepare_reload(self, site: Site) -> GatewayReload:
+    async def on_reload(self, site: Site) -> GatewayReload:
         """SIGHUP, before the scheduler takes ``site``: bind every listen address the new
         ``serve:`` entries add, so that a reload that cannot serve them is refused whole
         (``PortError``, nothing changed) rather than half applied."""
@@ -77,11 +78,11 @@ class GatewayService:
                  "pending": gw.pending, "clients": [c.record() for c in gw.clients]}
                 for gw in self.gateways]
 
-    def collector(self) -> object:
-        """Its per-client counters for ``/metrics`` (``outputs.metrics`` registers it)."""
+    def collectors(self) -> list[object]:
+        """Its per-client counters for ``/metrics`` (``outputs.metrics`` registers them)."""
         from rtupoll.gateway.metrics import GatewayCollector
 
-        return GatewayCollector(lambda: self.gateways)
+        return [GatewayCollector(lambda: self.gateways)]
 
     def footer(self) -> RenderableType | None:
         """The live table's lines about the gateways' clients."""
@@ -147,14 +148,14 @@ class GatewayReload:
             if gw is not None and _listen_key(gw.asked) == _listen_key(cfg):
                 if gw.poller is not bp:  # the bus was reopened: its new poller
                     gw.poller = bp
-                    bp.turn = gw.turns.turn
+                    bp.share_line(gw.turns.turn)
                 changes += gw.reconfigure(cfg)
                 kept.append(gw)
                 continue
             new = Gateway(cfg, bp, Turns(), log=svc._log, info=svc._info)
             await new.start(self.bound.pop(_listen_key(cfg)))
             self._ready[_listen_key(cfg)] = new
-            bp.turn = new.turns.turn
+            bp.share_line(new.turns.turn)
             kept.append(new)
             if gw is not None:
                 await gw.stop()

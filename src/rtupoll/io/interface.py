@@ -2,7 +2,7 @@
 need of a bus, whichever carries the bytes.
 
 ``rtupoll.io.bus.Bus`` (a serial port or an RTU-over-TCP gateway, through pymodbus)
-and ``rtupoll.io.virtual.VirtualBus`` (the simulator's engine called directly, for
+and ``rtupoll.sim.virtual.VirtualBus`` (the simulator's engine called directly, for
 tests whose subject is not the port) both are one, as python-can's buses are one
 ``BusABC``. Errors are the ``rtupoll.errors`` bus errors: ``DeviceTimeout``,
 ``FrameError``, ``DeviceException``, ``PortError``, ``RefusedError``.

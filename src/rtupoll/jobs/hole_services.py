@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 from rtupoll.errors import BusError
 from rtupoll.jobs.holes import HoleStore, Register, verify_block
+from rtupoll.jobs.services import Service
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 Say = Callable[[str], None]
 
 
-class VerifyBlocks:
+class VerifyBlocks(Service):
     """Compare each multi-field block with its fields read alone, before polling."""
 
     def __init__(self, say: Say) -> None:
@@ -76,7 +77,7 @@ async def verify_device(dev: DevicePoller, transport: BusLike,
             + ("no longer bridged there" if holes else "fields adjacent: nothing to split"))
 
 
-class RememberHoles:
+class RememberHoles(Service):
     """Holes learned per device, kept in ``store`` across runs (profile and variant)."""
 
     def __init__(self, store: HoleStore, say: Say) -> None:

@@ -13,18 +13,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
 import signal
-import sys
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from rtupoll.errors import RtupollError
+from rtupoll.jobs.services import Reload, Service
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
-    from rtupoll.jobs.services import Service
     from rtupoll.jobs.stats import Reading
 
 log = logging.getLogger("rtupoll.reload")
@@ -36,14 +34,16 @@ class Reopenable(Protocol):
     def reopen(self) -> None: ...
 
 
-class ReloadService:
+class ReloadService(Service):
     """SIGHUP -> reopen the output, reload the site (when there is a site file)."""
 
     def __init__(self, load: Callable[[], Site] | None, output: Reopenable | None = None,
                  *, notify: Callable[[str], None] | None = None,
-                 peers: Sequence[object] = ()) -> None:
+                 peers: Sequence[Service] = (), serves: bool = False) -> None:
+        """``peers``: the services that follow a reload (``Service.on_reload``); ``serves``:
+        a gateway runs among them, so a changed ``serve:`` can be applied."""
         self.load, self.output, self.notify = load, output, notify
-        self.peers = peers  # services with ``prepare_reload(site)`` (the gateway's serve:)
+        self.peers, self.serves = peers, serves
         self.reloads = 0  # completed reloads, whatever their outcome
         self._scheduler: Scheduler | None = None
         self._pending: asyncio.Task[None] | None = None
@@ -93,17 +93,16 @@ class ReloadService:
 
     async def _apply(self, site: Site) -> None:
         assert self._scheduler is not None
-        prepared: list[Any] = []
+        prepared: list[Reload] = []
         served = [b.name for b in site.buses if b.serve is not None]
-        if served and not any(hasattr(p, "prepare_reload") for p in self.peers):
+        if served and not self.serves:
             log.error("reload refused, polling goes on unchanged: serve: on %s needs a "
                       "restart (rtupoll was started without a gateway)", ", ".join(served),
                       extra={"event": "reload", "error": "serve"})
             return
         try:  # e.g. the gateway binds a new serve: address first
             for peer in self.peers:
-                if callable(prepare := getattr(peer, "prepare_reload", None)):
-                    prepared.append(await prepare(site))
+                prepared.append(await peer.on_reload(site))
         except RtupollError as exc:
             for p in prepared:
                 await p.abort()
@@ -137,45 +136,3 @@ class ReloadService:
         if self._pending is not None and not self._pending.done():
             self._pending.cancel()
             await asyncio.gather(self._pending, return_exceptions=True)
-
-
-def daemon_services(site: Site, writer: Reopenable | None, *, once: bool, table: bool,
-                    metrics: str | None, log_format: str | None,
-                    reload: Callable[[], Site] | None,
-                    peers: Sequence[Service] = ()) -> list[Service]:
-    """The services that make ``poll`` a daemon (docs/service.md), in start order:
-    state-change logging (not under the live table, which shows the states itself),
-    ``/metrics``, SIGHUP (reload and reopen), and systemd's notify protocol last, so
-    READY=1 means everything runs.
-
-    Logging is on when asked for (``log_format``), when stderr is a terminal or the
-    journal, or when the gateway serves (its refusals and dropped clients are an
-    operator's business); otherwise (a pipe, a file: a script reading the records)
-    only errors."""
-    from rtupoll.ui import logs
-    from rtupoll.ui.systemd import Notifier
-
-    verbose = log_format is not None or sys.stderr.isatty() or \
-        bool(os.environ.get("JOURNAL_STREAM")) or any(b.serve for b in site.buses)
-    logs.setup(log_format or "text", level=logging.INFO if verbose else logging.ERROR)
-    if writer is not None:
-        writer.buses.update({d.name: b.name for b, d in site.devices()})
-    services: list[Service] = []
-    if verbose and not table and not once:  # --once names each failed device itself
-        services.append(logs.StateLog())
-    if metrics:
-        from rtupoll.outputs.metrics import MetricsService
-
-        services.append(MetricsService(metrics))
-    if once:
-        return services
-    notifier = Notifier()
-
-    def notify(what: str) -> None:
-        if what == "reloading":
-            notifier.reloading()
-        else:
-            notifier.reloaded("polling")
-
-    services += [ReloadService(reload, writer, notify=notify, peers=peers), notifier]
-    return services

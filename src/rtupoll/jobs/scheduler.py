@@ -34,6 +34,7 @@ from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from rtupoll.backoff import after_failures
 from rtupoll.config.site import BusConfig, DeviceConfig, Site
 from rtupoll.errors import (
     BusError,
@@ -44,6 +45,7 @@ from rtupoll.errors import (
     RtupollError,
 )
 from rtupoll.io.interface import BusLike
+from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
 from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
@@ -55,7 +57,8 @@ from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 T = TypeVar("T")
 Job = Callable[["BusLike"], Awaitable[T]]  # BusPoller.submit: work on the bus, between cycles
 Clock = Callable[[], float]
-PORT_RETRY_CAP = 10.0  # seconds between attempts to reopen a port that went away
+# seconds a bus pauses after its port went away, doubling while it stays away
+PORT_RETRY_FIRST, PORT_RETRY_CAP = 1.0, 10.0
 USAGE_MEMORY = 30.0  # seconds over which bus use counts when sharing the bus
 Sink = Callable[["DevicePoller", list[Reading]], None]
 
@@ -65,8 +68,9 @@ class Backoff:
     """Delay before the next attempt after ``failures`` failed cycles in a row.
 
     ``max(base, interval) * factor ** (failures - 1)``, capped, times a random
-    factor in ``1 ± jitter``. After ``offline_after`` failed cycles a device is
-    shown offline (it is still probed at the backed-off rate).
+    factor in ``1 ± jitter`` (the one rule, ``rtupoll.backoff``). After
+    ``offline_after`` failed cycles a device is shown offline (it is still probed at
+    the backed-off rate).
     """
 
     base: float = 1.0
@@ -76,10 +80,8 @@ class Backoff:
     offline_after: int = 3
 
     def delay(self, failures: int, interval: float, rand: Callable[[], float]) -> float:
-        # past 64 steps the cap was reached long ago, and a larger power overflows a float
-        steps = min(max(0, failures - 1), 64)
-        raw = min(self.cap, max(self.base, interval) * self.factor ** steps)
-        return raw * (1 + self.jitter * (2 * rand() - 1))
+        return after_failures(failures, first=max(self.base, interval), cap=self.cap,
+                              factor=self.factor, jitter=self.jitter, rand=rand)
 
 
 class DevicePoller:
@@ -128,22 +130,19 @@ class DevicePoller:
         device that is gone then costs one timeout, not ``1 + retries`` of them.
         """
         cfg, st = self.config, self.stats
-        probing = st.failures > 0
-        answered, timeouts = False, 0
-        stopped: str | None = None
-        first_failed: int | None = None
+        policy = CyclePolicy(cfg.spec, probing=st.failures > 0, retries=cfg.retry_count)
         out: dict[str, Reading] = {}
         if self.variant_unknown:
-            silent = await self._probe_variant(transport, 0 if probing else cfg.retry_count)
+            silent = await self._probe_variant(transport, policy.retries())
             if silent:  # gone: one timeout, as for a first block that gets no reply
                 wall = self._wall()
                 readings = [Reading(wall, cfg, f, None, Status.TIMEOUT, silent) for f in cfg.fields]
                 st.record(readings, answered=False)
                 return readings
-            answered = not self.variant_unknown  # the probe had its answer
+            if not self.variant_unknown:  # the probe had its answer
+                policy.outcome(-1, Status.OK)
         blocks = self.blocks  # this cycle's plan (learning a hole re-plans the next one)
         n = len(blocks)
-        answered = answered or n == 0  # every field asked for is absent: nothing can fail
         started, attempted = self._clock(), False
         for k in range(n):
             idx = (self.resume + k) % n
@@ -151,15 +150,16 @@ class DevicePoller:
             if not self._due(block, started):
                 continue
             attempted = True
-            if stopped is not None:
+            if policy.stopped is not None:
                 for f in block.fields:
-                    out[f.name] = Reading(self._wall(), cfg, f, None, Status.SKIPPED, stopped)
+                    out[f.name] = Reading(self._wall(), cfg, f, None, Status.SKIPPED,
+                                          policy.stopped)
                 continue
-            retries = 0 if probing and not answered else cfg.retry_count
+            retries = policy.retries()
             status, error, values = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
                 via=transport)
-            if status == "exception" and self.refused == 2 and \
+            if status is Status.EXCEPTION and self.refused == 2 and \
                     (gaps(block) or len(block.fields) > 1):
                 found = await self._find_holes(transport, block, retries)
                 if found is not None:  # the refused fields alone keep the exception
@@ -167,31 +167,21 @@ class DevicePoller:
                         out[f.name] = Reading(self._wall(), cfg, f, None, Status.EXCEPTION,
                                               str(exc))
                     status, error, values = Status.OK, "", found.values
-            if status == "ok":
-                answered = True
+            policy.outcome(idx, status)
+            wall = self._wall()
+            if status is Status.OK:
                 if block.interval is not None:
                     self.block_read[block.table, block.address, block.count] = started
-                wall = self._wall()
                 for fv in values or ():
                     out[fv.field.name] = Reading(wall, cfg, fv.field, fv, Status.OK)
                 continue
-            if status == "exception":
-                answered = True
-            elif status == "timeout":
-                timeouts += 1
-                if not answered or timeouts > 1:
-                    stopped = f"not read: {cfg.spec} stopped answering"
-            if first_failed is None:
-                first_failed = idx
-            wall = self._wall()
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
-        self.resume = 0 if first_failed is None else first_failed
-        answered = answered or not attempted  # only slow blocks, none due: nothing failed
+        self.resume = policy.resume()
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
-        st.record(readings, answered)
+        st.record(readings, policy.succeeded(attempted))
         return readings
 
     def _due(self, block: Block, now: float) -> bool:
@@ -208,8 +198,8 @@ class DevicePoller:
         status, error, variant = await self._transact(probe_variant(
             transport, cfg.profile, cfg.address, timeout=self.timeout(transport),
             retries=retries), via=transport)
-        if status != "ok":
-            return error if status == "timeout" else ""  # else: the reads say what is wrong
+        if status is not Status.OK:  # a reply that is no answer: the reads say what is wrong
+            return error if status is Status.TIMEOUT else ""
         self.variant_unknown = False
         if variant is None:
             return ""
@@ -283,13 +273,14 @@ class DevicePoller:
             self.refused = exc.code
         now = self._clock()
         st.requests += 1
-        self.timing.after(via, cfg.address, answered=status in ("ok", "exception"))
+        self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
         culprit = self.load.add(now, now - start,
-                                failed_by=self if status in ("timeout", "garbled") else None)
+                                failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
+                                else None)
         # the bus's quiet period after a failure is the failing device's cost, not ours
         (culprit if isinstance(culprit, DevicePoller) else self).charge(now, now - start)
-        if status == "ok":
+        if status is Status.OK:
             st.ok += 1
             if culprit is None:
                 st.latencies.append(now - start)
@@ -322,13 +313,18 @@ class BusPoller:
         self._seq = 0
         self._port_failures = 0
         self.port_error = ""  # the last port failure, while the port is gone
-        # held for each device cycle: the gateway shares the line (rtupoll.gateway.turns)
+        # held for each device cycle: the gateway shares the line (``share_line``)
         self.turn: Callable[[], AbstractAsyncContextManager[None]] = contextlib.nullcontext
         # from outside the schedule (MQTT get/set): devices to read next, jobs to run
         # between two cycles, and the event that wakes an idle bus for them
         self._urgent: list[DevicePoller] = []
         self._jobs: list[tuple[Job[Any], asyncio.Future[Any]]] = []
         self._wake = asyncio.Event()
+
+    def share_line(self, turn: Callable[[], AbstractAsyncContextManager[None]]) -> None:
+        """Others use this line too (a gateway's clients, ``rtupoll.gateway.turns``): each
+        device cycle waits for ``turn()`` and holds it while it reads."""
+        self.turn = turn
 
     def next_device(self) -> DevicePoller:
         """Among the devices due, the one that used the bus least lately (ties: the one that
@@ -364,7 +360,8 @@ class BusPoller:
             readings = [Reading(self._wall(), dev.config, f, None, Status.PORT, str(exc))
                         for f in dev.config.fields]
             dev.stats.latest.update({r.field.name: r for r in readings})
-            pause = min(PORT_RETRY_CAP, 0.5 * 2 ** min(self._port_failures, 10))
+            pause = after_failures(self._port_failures, first=PORT_RETRY_FIRST,
+                                   cap=PORT_RETRY_CAP)
             for d in self.devices:
                 d.next_due = max(d.next_due, self._clock() + pause)
         else:
@@ -512,7 +509,7 @@ class Scheduler:
         self._open_bus, self._rand = open_bus, rand
         self._tasks: dict[BusPoller, asyncio.Task[None]] = {}  # while ``run`` runs
         self._running: tuple[Sink, asyncio.Event] | None = None
-        self._tasks_changed = asyncio.Event()
+        self._group: asyncio.TaskGroup | None = None  # the buses' tasks, while ``run`` runs
 
     async def open(self) -> None:
         """Open every port, or none: a port that cannot be opened is a configuration error."""
@@ -534,29 +531,27 @@ class Scheduler:
         """Poll until ``stop`` is set; a cycle in flight then is abandoned, not half-reported.
         Buses that ``reload`` adds join, buses it removes leave, while this runs."""
         self._running = (sink, stop)
-        self._tasks = {bp: asyncio.create_task(bp.run(sink, stop)) for bp in self.buses}
-        stopper = asyncio.create_task(stop.wait())
         try:
-            while not stopper.done():
-                self._tasks_changed.clear()
-                changed = asyncio.create_task(self._tasks_changed.wait())
-                done, _ = await asyncio.wait([*self._tasks.values(), stopper, changed],
-                                             return_when=asyncio.FIRST_COMPLETED)
-                changed.cancel()
-                running = set(self._tasks.values())  # not those ``reload`` stopped
-                for t in done:
-                    if t in running:
-                        t.result()  # a bug in a bus task: surface it rather than poll half
+            async with asyncio.TaskGroup() as group:  # an error in one bus ends them all
+                self._group = group
+                for bp in self.buses:
+                    self._tasks[bp] = group.create_task(bp.run(sink, stop))
+                await stop.wait()
+                for t in self._tasks.values():
+                    t.cancel()
+        except ExceptionGroup as errors:
+            raise _first(errors) from None
         finally:
-            tasks = list(self._tasks.values())
-            for t in [*tasks, stopper]:
-                t.cancel()
-            await asyncio.gather(*tasks, stopper, return_exceptions=True)
-            self._tasks, self._running = {}, None
+            self._tasks, self._running, self._group = {}, None, None
 
     async def scan_once(self, sink: Sink) -> None:
         """Every device once (buses concurrently), for ``poll --once``."""
-        await asyncio.gather(*(bp.scan_once(sink) for bp in self.buses))
+        try:
+            async with asyncio.TaskGroup() as group:
+                for bp in self.buses:
+                    group.create_task(bp.scan_once(sink))
+        except ExceptionGroup as errors:
+            raise _first(errors) from None
 
     def pollers(self) -> Sequence[DevicePoller]:
         return [d for bp in self.buses for d in bp.devices]
@@ -602,9 +597,15 @@ class Scheduler:
             except RtupollError as exc:
                 changes.append(f"bus {bp.config.name}: {exc} (retrying)")
             self._opened.append(bp)
-            if self._running is not None:
-                self._tasks[bp] = asyncio.create_task(bp.run(*self._running))
+            if self._running is not None and self._group is not None:
+                self._tasks[bp] = self._group.create_task(bp.run(*self._running))
         self.buses[:] = keep
         self.site = site
-        self._tasks_changed.set()
         return changes
+
+
+def _first(errors: BaseExceptionGroup[Exception]) -> Exception:
+    """The error a bus task raised (the first, should several): what ``poll`` reports,
+    as it would have from one task (``BrokenPipeError``: the reader went away)."""
+    first = errors.exceptions[0]
+    return _first(first) if isinstance(first, BaseExceptionGroup) else first

@@ -12,15 +12,12 @@ import enum
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
-from functools import lru_cache
-from typing import Any
 
 from rtupoll.config.site import DeviceConfig
 from rtupoll.jobs.timeouts import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
-from rtupoll.ui.records import failed_record, poll_record, record
+from rtupoll.timestamps import iso_time as iso_time  # sniff takes it from here
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured
@@ -62,26 +59,6 @@ class Reading:
     @property
     def ok(self) -> bool:
         return self.value is not None
-
-    def record(self) -> dict[str, Any]:
-        """The ``output.POLL_KEYS`` record for JSON and CSV."""
-        d = self.device
-        if self.value is not None:
-            return poll_record(iso_time(self.time),
-                               record(d.name, d.profile.id, d.address, self.value))
-        rec = poll_record(iso_time(self.time), failed_record(
-            d.name, d.profile.id, d.address, self.field.name, self.field.unit),
-            self.status.value, self.error)
-        if self.status is Status.ABSENT:  # the device's variant lacks it: no failure
-            rec["severity"] = "info"
-        return rec
-
-
-@lru_cache(maxsize=64)  # the readings of one block share their time
-def iso_time(t: float) -> str:
-    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
-    stamp = datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")
-    return stamp.replace("+00:00", "Z")
 
 
 @dataclass

@@ -40,20 +40,23 @@ import math
 import os
 import re
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.gateway_settings import host_port
 from rtupoll.errors import UsageError
-from rtupoll.gateway.settings import host_port
 from rtupoll.jobs.histogram import Histogram
+from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
 
 if TYPE_CHECKING:
     from prometheus_client import CollectorRegistry
     from prometheus_client.core import Metric
 
+    from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.services import Reload
     from rtupoll.jobs.stats import Reading
     from rtupoll.model.profile import Field
 
@@ -387,10 +390,11 @@ def exposition(registry: CollectorRegistry, accept: str = "") -> tuple[bytes, st
 # the service: an HTTP listener on the event loop
 
 
-class MetricsService:
+class MetricsService(Service):
     """Serves ``/metrics`` for the life of ``poll`` (a ``rtupoll.jobs.services.Service``)."""
 
-    def __init__(self, listen: str) -> None:
+    def __init__(self, listen: str, others: Sequence[object] = ()) -> None:
+        """``others``: other services' collectors (the gateway's clients), served too."""
         self.host, self.port = parse_listen(listen)
         try:
             import prometheus_client  # noqa: F401
@@ -398,7 +402,7 @@ class MetricsService:
             raise UsageError("--metrics needs prometheus_client: pip install "
                              "'rtupoll[metrics]'") from None
         self.collector: SchedulerCollector | None = None
-        self.others: list[Any] = []  # other services' collectors (the gateway's clients)
+        self.others: list[Any] = list(others)
         self.registry: CollectorRegistry | None = None
         self._server: asyncio.Server | None = None
         self._bus_of: dict[str, BusPoller] = {}
@@ -435,12 +439,22 @@ class MetricsService:
         if self.collector is None:
             return
         bus = self._bus_of.get(dev.config.name)
-        if bus is None or dev not in bus.devices:  # new, or moved by a reload
-            self._bus_of = {d.config.name: bp for bp in self.collector.scheduler.buses
-                            for d in bp.devices}
+        if bus is None:  # not seen yet
+            self._bus_of = self._buses(self.collector.scheduler)
             bus = self._bus_of.get(dev.config.name)
         if bus is not None:
             self.collector.observe(bus, dev, readings)
+
+    async def on_reload(self, site: Site) -> Reload:
+        """Devices may have moved to other buses: which bus each is on, again."""
+        def then(scheduler: Scheduler) -> list[str]:
+            self._bus_of = self._buses(scheduler)
+            return []
+        return Follow(then)
+
+    @staticmethod
+    def _buses(scheduler: Scheduler) -> dict[str, BusPoller]:
+        return {d.config.name: bp for bp in scheduler.buses for d in bp.devices}
 
     async def stop(self) -> None:
         if self._server is not None:

@@ -41,7 +41,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.backoff import after_failures
+from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.errors import BrokerError, RtupollError, UsageError
+from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.outputs import mqtt_commands as cmd
@@ -53,7 +56,6 @@ from rtupoll.outputs.mqtt_client import (
     describe,
     make_client,
 )
-from rtupoll.outputs.mqtt_settings import MqttSettings
 from rtupoll.outputs.mqtt_state import Out, StatePublisher, plain, topic_name
 from rtupoll.ui.records import to_json
 
@@ -63,6 +65,7 @@ if TYPE_CHECKING:
 
     from rtupoll.config.site import BusConfig, DeviceConfig, Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
+    from rtupoll.jobs.services import Reload
     from rtupoll.jobs.stats import Reading
 
 __all__ = ["MqttService", "Outbox", "backoff", "describe", "device_topics", "from_options",
@@ -133,7 +136,7 @@ class Outbox:
         return len(self._pending)
 
 
-class MqttService:
+class MqttService(Service):
     """The MQTT side of ``poll``: see the module docstring."""
 
     def __init__(self, settings: MqttSettings, site: Site, *, once: bool = False,
@@ -179,11 +182,16 @@ class MqttService:
             await asyncio.wait_for(self._connected.wait(), CONNECT_TIMEOUT)
 
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
-        if self._scheduler is not None and self._scheduler.site is not self.site:
-            self._reloaded(self._scheduler.site)
         for out in self.publisher.readings(dev.config, dev.stats.state is State.ONLINE,
                                            dev.stats.last_good_time, readings):
             self._put(out)
+
+    async def on_reload(self, site: Site) -> Reload:
+        """Topics and discovery follow the new site once the scheduler has it."""
+        def then(scheduler: Scheduler) -> list[str]:
+            self._reloaded(scheduler.site)
+            return []
+        return Follow(then)
 
     async def stop(self) -> None:
         """Flush what is waiting, say offline (retained), disconnect cleanly."""
@@ -554,9 +562,10 @@ class MqttService:
 
 
 def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:
-    """Seconds before reconnection attempt ``attempt`` (1, 2, ...): doubling, capped, ±20%."""
-    raw = min(RECONNECT_MAX, RECONNECT_MIN * 2.0 ** min(max(0, attempt - 1), 30))
-    return float(raw * (0.8 + 0.4 * rand()))
+    """Seconds before reconnection attempt ``attempt`` (1, 2, ...): doubling, capped, ±20%
+    (``rtupoll.backoff``)."""
+    return after_failures(attempt, first=RECONNECT_MIN, cap=RECONNECT_MAX, jitter=0.2,
+                          rand=rand)
 
 
 async def retained(client: aiomqtt.Client, base: str, topics: list[str]) -> dict[str, bytes]:
@@ -618,7 +627,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     no MQTT at all)."""
     settings = site.mqtt
     if url:
-        from rtupoll.outputs.mqtt_settings import parse_url
+        from rtupoll.config.mqtt_settings import parse_url
 
         settings = settings.with_url(url) if settings is not None else parse_url(url)
     if settings is None:
@@ -631,7 +640,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     if allow_writes:
         settings = dataclasses.replace(settings, allow_writes=True)
     if gateway_id is not None:
-        from rtupoll.outputs.mqtt_settings import check_gateway_id
+        from rtupoll.config.mqtt_settings import check_gateway_id
 
         settings = dataclasses.replace(settings, gateway_id=check_gateway_id(gateway_id))
     return settings

@@ -33,7 +33,7 @@ from rtupoll.errors import UsageError
 if TYPE_CHECKING:
     import aiomqtt
 
-    from rtupoll.outputs.mqtt_settings import MqttSettings
+    from rtupoll.config.mqtt_settings import MqttSettings
 
 CONNECT_TIMEOUT = 10.0  # seconds for a connection before giving up
 KEEPALIVE = 30

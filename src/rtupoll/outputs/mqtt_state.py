@@ -23,15 +23,16 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.jobs.stats import Status, iso_time
+from rtupoll.jobs.stats import Status
 from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
 from rtupoll.outputs.mqtt_commands import value_of
+from rtupoll.timestamps import iso_time
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
+    from rtupoll.config.mqtt_settings import MqttSettings
     from rtupoll.config.site import DeviceConfig
     from rtupoll.jobs.stats import Reading
-    from rtupoll.outputs.mqtt_settings import MqttSettings
 
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")

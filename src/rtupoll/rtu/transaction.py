@@ -1,6 +1,6 @@
 """One master transaction, sans-IO: the request's checks, its attempts, its outcome.
 
-Written once for every bus (``rtupoll.io.bus.Bus`` on a port, ``rtupoll.io.virtual.
+Written once for every bus (``rtupoll.io.bus.Bus`` on a port, ``rtupoll.sim.virtual.
 VirtualBus`` on the simulator's engine): each is a thin driver that does what a
 ``Transaction`` says and tells it what happened, with the time. Like ``Line`` below
 it, this module does no I/O and reads no clock.

@@ -8,7 +8,7 @@ wire timing and a tap), ``scenario`` (devices, pins, options and faults from YAM
 command line), ``consistent`` (values that agree with each other), ``replay`` (the
 devices of a capture) and ``runner`` (``simulated_bus``/``simulated_lines``: buses
 running in a background thread, for ``poll --simulate`` and tests). The same engine
-serves ``rtupoll.io.virtual.VirtualBus``, in-process and in virtual time.
+serves ``rtupoll.sim.virtual.VirtualBus``, in-process and in virtual time.
 
 Nothing is imported here, so ``import rtupoll.sim.runner`` pays only for what it uses.
 """

@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.jobs.stats import iso_time
+from rtupoll.jobs.services import Service
+from rtupoll.timestamps import iso_time
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
@@ -91,7 +92,7 @@ class _Seen:
     failed_cycles: int = 0
 
 
-class StateLog:
+class StateLog(Service):
     """A service that logs each device's and each port's changes of state, once each."""
 
     def __init__(self, wall: Callable[[], float] = time.time) -> None:

@@ -15,9 +15,13 @@ import csv
 import json
 import math
 from collections.abc import Mapping
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from rtupoll.model.interpret import FieldValue
+from rtupoll.timestamps import iso_time
+
+if TYPE_CHECKING:
+    from rtupoll.jobs.stats import Reading
 
 READ_KEYS = ("device", "profile", "address", "field", "value", "unit", "raw", "severity", "text")
 POLL_KEYS = ("time", *READ_KEYS, "status", "error")
@@ -75,6 +79,18 @@ def poll_record(time: str, rec: Mapping[str, Any], status: str = "ok", error: st
                 ) -> dict[str, Any]:
     """``rec`` (``record`` or ``failed_record``) as ``poll`` writes it: POLL_KEYS, in order."""
     return {"time": time, **rec, "status": status, "error": error}
+
+
+def reading_record(r: Reading) -> dict[str, Any]:
+    """A ``poll`` reading (``jobs.stats.Reading``) as its POLL_KEYS record for JSON and CSV."""
+    d = r.device
+    if r.value is not None:
+        return poll_record(iso_time(r.time), record(d.name, d.profile.id, d.address, r.value))
+    rec = poll_record(iso_time(r.time), failed_record(
+        d.name, d.profile.id, d.address, r.field.name, r.field.unit), r.status.value, r.error)
+    if r.status.value == "absent":  # the device's variant lacks it: no failure
+        rec["severity"] = "info"
+    return rec
 
 
 def to_json(rec: Any) -> str:

@@ -17,6 +17,8 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
+from rtupoll.jobs.services import Service
+
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
@@ -46,7 +48,7 @@ def watchdog_period() -> float | None:
     return int(usec) / 1e6 / 2
 
 
-class Notifier:
+class Notifier(Service):
     """READY=1 when polling starts, WATCHDOG=1 while the event loop runs, STOPPING=1."""
 
     def __init__(self) -> None:

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
-from rtupoll.web.settings import HttpSettings, from_options, merge, require_aiohttp
+from rtupoll.config.http_settings import HttpSettings, from_options, merge, require_aiohttp
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site
@@ -42,22 +42,19 @@ def pop_http(opts: MutableMapping[str, Any]) -> HttpSettings | None:
     return from_options(listen, token, tuple(users or ()))
 
 
-def http_service(site: Site, cli: HttpSettings | None, services: Sequence[object], *,
+def http_service(site: Site, cli: HttpSettings | None, *,
+                 served: Callable[[], Sequence[dict[str, Any]]], others: Sequence[object],
                  title: str, say: Callable[[str], None]) -> list[WebService]:
     """``--http`` or the site file's ``http:``: the service (none without either).
-    ``services``: the others, whose gateways' clients the page shows."""
+    ``served``: the gateways' clients the page shows; ``others``: other services'
+    collectors for ``/metrics``."""
     settings = merge(cli, site.http)
     if settings is None:
         return []
     require_aiohttp()
     if warning := settings.warning():
         say(warning)
-    gateways = [s for s in services if callable(getattr(s, "snapshot", None))
-                and hasattr(s, "gateways")]
-
-    def served() -> list[dict[str, Any]]:
-        return [snap for g in gateways for snap in g.snapshot()]  # type: ignore[attr-defined]
-
     from rtupoll.web.service import WebService
 
-    return [WebService(settings, title=title, served=served, say=say)]
+    return [WebService(settings, title=title, served=served, say=say, others=others,
+                       cli=cli)]

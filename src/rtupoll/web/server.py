@@ -37,11 +37,12 @@ from rtupoll.errors import UsageError
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
-    from rtupoll.web.settings import HttpSettings
+    from rtupoll.config.http_settings import HttpSettings
 
 log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
 BATCH = 0.25  # seconds an event stream gathers events before it writes them
+CLOSE_WAIT = 0.5  # seconds open requests get to finish when the authentication changes
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".svg": "image/svg+xml",
@@ -171,6 +172,7 @@ class Server:
         self.settings, self.source, self.what = settings, source, what
         self.assets = load_assets()
         self._runner: web.AppRunner | None = None
+        self._listener: web.TCPSite | None = None
         self._pinger: asyncio.Task[None] | None = None
         self.address = ""  # http://HOST:PORT/ once listening
 
@@ -188,19 +190,49 @@ class Server:
         self._runner = web.AppRunner(self.app(), access_log=None, handle_signals=False,
                                      shutdown_timeout=1.0)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.settings.host, self.settings.port)
         try:
-            await site.start()
-        except OSError as exc:
+            await self.serve(self.settings, await self.bind(self.settings))
+        except UsageError:
             await self._runner.cleanup()
             self._runner = None
-            why = os.strerror(exc.errno) if exc.errno else str(exc)
-            raise UsageError(f"{self.what}: cannot listen on {self.settings.host}:"
-                             f"{self.settings.port}: {why}") from None
+            raise
         self._pinger = asyncio.create_task(self._ping())
-        host, port = self._runner.addresses[0][:2]
-        host = f"[{host}]" if ":" in host else host
-        self.address = f"http://{host}:{port}/"
+
+    async def bind(self, settings: HttpSettings) -> web.TCPSite:
+        """A listener on ``settings``' address for these pages (``UsageError`` when it
+        cannot be bound); ``serve`` makes it the one."""
+        assert self._runner is not None
+        listener = web.TCPSite(self._runner, settings.host, settings.port)
+        try:
+            await listener.start()
+        except OSError as exc:
+            await listener.stop()
+            why = os.strerror(exc.errno) if exc.errno else str(exc)
+            raise UsageError(f"{self.what}: cannot listen on {settings.host}:"
+                             f"{settings.port}: {why}") from None
+        return listener
+
+    @property
+    def listener(self) -> web.TCPSite | None:
+        return self._listener
+
+    async def serve(self, settings: HttpSettings, listener: web.TCPSite | None) -> None:
+        """From now on: ``settings``' authentication, on ``listener`` (from ``bind``; None:
+        none). The listener before closes; connections it took, event streams among
+        them, stay open, unless the authentication changed: then they are closed (a page
+        asks again, with the new credentials)."""
+        was, old, self._listener, self.settings = self.settings, self._listener, listener, \
+            settings
+        if old is not None and old is not listener:
+            await old.stop()
+        if (was.token, dict(was.users)) != (settings.token, dict(settings.users)) and \
+                self._runner is not None and self._runner.server is not None:
+            await self._runner.server.shutdown(CLOSE_WAIT)
+        self.address = ""
+        if listener is not None and self._runner is not None and self._runner.addresses:
+            host, port = self._runner.addresses[0][:2]
+            host = f"[{host}]" if ":" in host else host
+            self.address = f"http://{host}:{port}/"
 
     async def stop(self) -> None:
         self.source.hub.close()
@@ -212,6 +244,7 @@ class Server:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._runner.cleanup(), 3.0)
             self._runner = None
+        self._listener = None
 
     async def _ping(self) -> None:
         """Something on every event stream now and then: proxies keep idle ones open."""

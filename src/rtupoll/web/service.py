@@ -17,37 +17,44 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.http_settings import merge
+from rtupoll.jobs.services import Service
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub, Server
 from rtupoll.web.state import Clocks, buses_event, device_state, gateway_id, number, poll_state
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
+    from aiohttp import web
+
+    from rtupoll.config.http_settings import HttpSettings
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
     from rtupoll.outputs.metrics import MetricsService
-    from rtupoll.web.settings import HttpSettings
 
 log = logging.getLogger("rtupoll.web")
 BUS_EVERY = 2.0  # seconds between ``buses`` events
 
 
-class WebService:
+class WebService(Service):
     """The dashboard beside the scheduler (a ``rtupoll.jobs.services.Service``)."""
 
     def __init__(self, settings: HttpSettings, *, title: str = "",
                  served: Callable[[], Sequence[dict[str, Any]]] = list,
-                 say: Callable[[str], None] | None = None) -> None:
+                 say: Callable[[str], None] | None = None, others: Sequence[object] = (),
+                 cli: HttpSettings | None = None) -> None:
+        """``served``: the gateways' clients; ``others``: other services' collectors, for
+        ``/metrics``; ``cli``: the command line's ``--http*``, over the site file's
+        ``http:`` again at a reload."""
         self.settings, self.title, self.served = settings, title, served
-        self.say = say
+        self.say, self.cli = say, cli
         self.hub = Hub()
         self.trends = TrendStore(time.time())
         self.gateway = gateway_id()
-        self.others: list[Any] = []  # other services' collectors, for /metrics (cli.poll)
+        self.others: Sequence[Any] = others
         self.server = Server(settings, self)
         self._scheduler: Scheduler | None = None
-        self._site: Site | None = None
         self._bus_of: dict[str, BusPoller] = {}
         self._prom: MetricsService | None = None
         self._ticker: asyncio.Task[None] | None = None
@@ -57,7 +64,7 @@ class WebService:
         return self.server.address
 
     async def start(self, scheduler: Scheduler) -> None:
-        self._scheduler, self._site = scheduler, scheduler.site
+        self._scheduler = scheduler
         self._prom = self._metrics(scheduler)
         await self.server.start()
         log.info("dashboard on %s", self.address, extra={"event": "http"})
@@ -75,12 +82,6 @@ class WebService:
                 self.trends.add(name, r.field.name, r.time, v)
         if self._prom is not None:
             self._prom.on_readings(dev, readings)
-        if sched.site is not self._site:  # a reload: other devices, perhaps other buses
-            self._site = sched.site
-            self._bus_of = {}
-            self.trends.forget({d.config.name for d in sched.pollers()})
-            self.hub.publish("state", "state", lambda: to_json(self.snapshot()))
-            return
         bus = self._bus_of.get(name)
         if bus is None or dev not in bus.devices:
             self._bus_of = {d.config.name: bp for bp in sched.buses for d in bp.devices}
@@ -90,6 +91,17 @@ class WebService:
             self.hub.publish("d:" + name, "device", lambda: to_json(
                 {"gateway": self.gateway,
                  "device": device_state(b, dev, Clocks(), latency=False)}))
+
+    async def on_reload(self, site: Site) -> WebReload:
+        """A changed ``http:``: a new address bound first (a reload that cannot bind it is
+        refused whole), new authentication at once; and the devices the site now has."""
+        return await WebReload.prepare(self, merge(self.cli, site.http))
+
+    def reloaded(self, scheduler: Scheduler) -> None:
+        """The scheduler took a new site: other devices, perhaps other buses."""
+        self._bus_of = {}
+        self.trends.forget({d.config.name for d in scheduler.pollers()})
+        self.hub.publish("state", "state", lambda: to_json(self.snapshot()))
 
     async def stop(self) -> None:
         if self._ticker is not None:
@@ -142,3 +154,54 @@ class WebService:
     def _buses(self) -> str:
         assert self._scheduler is not None
         return to_json(buses_event(self._scheduler, self.served(), self.gateway))
+
+
+class WebReload:
+    """The dashboard's part of a reload (a ``rtupoll.jobs.services.Reload``): the new
+    listener bound in ``prepare``, made the one (and the new authentication taken) at
+    ``commit``."""
+
+    def __init__(self, service: WebService, settings: HttpSettings | None,
+                 bound: web.TCPSite | None) -> None:
+        self.service, self.settings, self.bound = service, settings, bound
+
+    @classmethod
+    async def prepare(cls, service: WebService, settings: HttpSettings | None) -> WebReload:
+        old = service.server.settings if service.server.listener is not None else None
+        bound = None
+        if settings is not None and (old is None or _where(old) != _where(settings)):
+            bound = await service.server.bind(settings)
+        return cls(service, settings, bound)
+
+    async def commit(self, scheduler: Scheduler) -> list[str]:
+        svc, new = self.service, self.settings
+        server = svc.server
+        was = server.address if server.listener is not None else ""
+        old = server.settings
+        changes: list[str] = []
+        if new is None:
+            if was:
+                await server.serve(old, None)
+                changes.append(f"http: no longer serving the dashboard on {was}")
+        else:
+            await server.serve(new, self.bound or server.listener)
+            svc.settings = new
+            if server.address != was:
+                changes.append(f"http: dashboard on {server.address}" +
+                               (f" (no longer {was})" if was else ""))
+            if (new.token, dict(new.users)) != (old.token, dict(old.users)):
+                changes.append("http: authentication changed")
+            if self.bound is not None and (warning := new.warning()):
+                log.warning("%s", warning, extra={"event": "http"})
+        self.bound = None
+        svc.reloaded(scheduler)
+        return changes
+
+    async def abort(self) -> None:
+        if self.bound is not None:
+            await self.bound.stop()
+            self.bound = None
+
+
+def _where(settings: HttpSettings) -> tuple[str, int]:
+    return settings.host, settings.port

@@ -14,8 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+from rtupoll.config.gateway_settings import LOOPBACK, host_port
 from rtupoll.errors import UsageError
-from rtupoll.gateway.settings import LOOPBACK, host_port
 
 if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node

@@ -9,8 +9,13 @@ import click
 from click.core import ParameterSource
 
 from rtupoll.cli.params import Seconds
+from rtupoll.config.gateway_settings import (
+    DEFAULT_QUEUE,
+    DEFAULT_TIMEOUT,
+    ServeConfig,
+    serve_config,
+)
 from rtupoll.errors import UsageError
-from rtupoll.gateway.settings import DEFAULT_QUEUE, DEFAULT_TIMEOUT, ServeConfig, serve_config
 
 F = TypeVar("F", bound=Callable[..., Any])
 

@@ -90,7 +90,7 @@ def parse_networks(texts: Sequence[str]) -> tuple[Network, ...]:
 def serve_config(listen: str, *, allow: Sequence[str] = (), read_only: bool = False,
                  cache: float = 0.0, broadcast: bool = False, setup_writes: Sequence[int] = (),
                  queue: int = DEFAULT_QUEUE, timeout: float = DEFAULT_TIMEOUT) -> ServeConfig:
-    """The numbers come checked: by click's ranges (``gateway.options``) or ``from_node``."""
+    """The numbers come checked: by click's ranges (``cli.serve_options``) or ``from_node``."""
     framing, host, port = parse_listen(listen)
     return ServeConfig(host, port, framing, parse_networks(allow), read_only, cache, broadcast,
                        frozenset(setup_writes), queue, timeout)
