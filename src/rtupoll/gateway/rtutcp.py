@@ -33,7 +33,7 @@ class RtuDecoder:
                 fc = self.buffer[1]
                 if fc not in FUNCTIONS:
                     raise MbapError(f"function {fc} unknown: cannot tell where the frame ends")
-                size = (lengths(self.buffer[:11], Direction.REQUEST) or (len(self.buffer),))[0]
+                size = lengths(self.buffer[:11], Direction.REQUEST)[0]
                 raise MbapError(f"CRC error in {self.buffer[:size][:12].hex(' ')}")
             frame, self.buffer = self.buffer[:n], self.buffer[n:]
             out.append(Frame(None, frame[0], frame[1:-2]))

@@ -36,14 +36,15 @@ class Direction(enum.Enum):
 
 
 def lengths(head: bytes, direction: Direction, answering: bytes | None = None
-            ) -> tuple[int, ...] | None:
+            ) -> tuple[int, ...]:
     """The frame lengths the table allows at ``head`` (its first 11 bytes suffice),
-    likeliest first; None while a byte count they depend on has not arrived.
+    likeliest first. A length whose byte count has not arrived (and any length, before
+    the function code has) counts as ``len(head) + 1``: more than is there.
 
     ``answering`` (the request frame a reply is awaited for) puts its normal reply's
     length, or its exception's, first."""
     if len(head) < 2:
-        return None
+        return (len(head) + 1,)
     fc = head[1]
     out: list[int] = []
     if answering is not None and direction is not Direction.REQUEST and head[0] == answering[0]:
@@ -64,10 +65,10 @@ def lengths(head: bytes, direction: Direction, answering: bytes | None = None
             if not length.known:
                 continue
             n = length.of(head)
-            if n is None:
-                return None
-            out.append(n)
-    return tuple(n for i, n in enumerate(out) if 4 <= n <= MAX_FRAME and n not in out[:i])
+            out.append(len(head) + 1 if n is None else n)
+    more = len(head) + 1
+    return tuple(n for i, n in enumerate(out)
+                 if (4 <= n <= MAX_FRAME or n == more) and n not in out[:i])
 
 
 def frame_at(buf: bytes | bytearray, at: int = 0, *, direction: Direction,
@@ -77,10 +78,7 @@ def frame_at(buf: bytes | bytearray, at: int = 0, *, direction: Direction,
     Lengths are tried likeliest first; one not complete yet means ``NEED_MORE`` (a
     request whose first bytes happen to make a CRC-valid shorter frame must not be cut
     there), unless ``final``: no more bytes will come, so only what is here counts."""
-    found = lengths(bytes(buf[at : at + 11]), direction, answering)
-    if found is None:
-        return NOT_A_FRAME if final else NEED_MORE
-    for n in found:
+    for n in lengths(bytes(buf[at : at + 11]), direction, answering):
         if at + n > len(buf):
             if final:
                 continue
