@@ -12,12 +12,10 @@ import enum
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
-from functools import lru_cache
 from typing import Any
 
 from rtupoll.config.site import DeviceConfig
-from rtupoll.jobs.timeouts import quantile
+from rtupoll.figures import iso_time, quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
 from rtupoll.ui.records import failed_record, poll_record, record
@@ -75,13 +73,6 @@ class Reading:
         if self.status is Status.ABSENT:  # the device's variant lacks it: no failure
             rec["severity"] = "info"
         return rec
-
-
-@lru_cache(maxsize=64)  # the readings of one block share their time
-def iso_time(t: float) -> str:
-    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
-    stamp = datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")
-    return stamp.replace("+00:00", "Z")
 
 
 @dataclass

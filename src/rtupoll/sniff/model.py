@@ -4,7 +4,7 @@ Fed ``rtu.stream.Transaction``s, it keeps per unit what the other master saw: re
 replies, reply times, exceptions, timeouts and garbled replies, and the registers the
 replies carried. A unit named ``PROFILE@ADDRESS`` (or in the site file) is decoded
 through its profile; any other unit keeps its raw registers, and when what it answered
-fits a bundled profile's identify rules (``jobs.scan.check_passes``) it "looks like"
+fits a bundled profile's identify rules (``model.identify.check_passes``) it "looks like"
 that profile. A failed transaction yields records with no value (status timeout,
 garbled or exception), never a stale or misread one. Pure: no I/O, no clock.
 """
@@ -17,9 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rtupoll.errors import DeviceException
-from rtupoll.jobs.scan import check_passes
-from rtupoll.jobs.stats import iso_time
-from rtupoll.jobs.timeouts import quantile
+from rtupoll.figures import iso_time, quantile
+from rtupoll.model.identify import check_passes
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu import messages

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.jobs.stats import iso_time
+from rtupoll.figures import iso_time
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
