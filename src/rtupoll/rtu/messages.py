@@ -236,7 +236,10 @@ def parse_request(data: bytes, *, unit: int | None = None) -> Request:
     not a complete request of a function in the table: unknown function, wrong length,
     quantity outside the function's limit, a run past 0xFFFF, a byte count that does not
     fit, a coil value that is neither ON nor OFF."""
-    unit, pdu = _split(data, unit, "request")
+    if unit is None:
+        unit, pdu = _split(data, unit, "request")
+    else:
+        pdu = data
     if not pdu:
         raise Malformed("empty PDU", ILLEGAL_FUNCTION, unit=unit)
     fc = pdu[0]
@@ -244,7 +247,7 @@ def parse_request(data: bytes, *, unit: int | None = None) -> Request:
     if fn is None or fc & 0x80:
         raise Malformed(f"function {fc} is not a Modbus request rtupoll passes on",
                         ILLEGAL_FUNCTION, unit=unit, function=fc)
-    want = fn.request.of(b"\x00" + pdu[:10])
+    want = fn.request.fixed or fn.request.of(b"\x00" + pdu[:10])
     if want is None:
         raise Malformed(f"{fn.name}: truncated ({len(pdu)} bytes)", unit=unit, function=fc)
     if want - 3 != len(pdu):

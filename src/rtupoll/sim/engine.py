@@ -123,7 +123,7 @@ class Engine:
         if not targets:
             self.why_silent = f"no device at {unit}"
         try:
-            request: Request | Malformed = parse_request(frame)
+            request: Request | Malformed = parse_request(frame[1:-2], unit=unit)  # CRC: checked
         except Malformed as bad:
             request = bad
         for d in targets:

@@ -64,7 +64,7 @@ def parse_request(data: bytes) -> Request:
     """The request a (CRC-valid) frame carries; one the parser refuses carries no table,
     so no register is ever attributed to it."""
     try:
-        msg = messages.parse_request(data)
+        msg = messages.parse_request(data[1:-2], unit=data[0])  # the stream checked the CRC
     except messages.Malformed as bad:
         return Request(data[1] & 0x7F if len(data) > 1 else 0, None, 0, 0, problem=bad.reason)
     if isinstance(msg, messages.OtherRequest):
