@@ -194,3 +194,34 @@ def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> 
     read = read_request(1, Table.INPUT, 0, 1)
     assert frame_at(reply + read, direction=Direction.REPLY, answering=read) == len(reply)
     assert lengths(read[:11], Direction.EITHER) == (8, 5 + read[2])
+
+
+def test_the_sniffer_shows_a_malformed_request_and_gives_it_no_registers() -> None:
+    from rtupoll.sniff.model import parse_request as sniffed
+
+    bad = with_crc(bytes.fromhex("07 03 00 10 00 C8"))  # a read of 200 registers
+    req = sniffed(bad)
+    assert req.table is None and req.message is None
+    assert req.text == "function 0x03: read holding registers: quantity 200 is outside 1..125"
+    good = sniffed(read_request(7, Table.HOLDING, 0x10, 2))
+    assert (good.table, good.start, good.count) == (Table.HOLDING, 0x10, 2)
+    assert good.text == "read holding 0x0010 x2"
+
+
+def test_the_gateway_and_the_simulator_answer_the_parsers_code() -> None:
+    from rtupoll.config.library import load_one
+    from rtupoll.gateway.pdu import BadRequest, parse
+    from rtupoll.sim.device import SimDevice, SimDeviceConfig
+    from rtupoll.sim.engine import Engine
+
+    pdu = bytes.fromhex("04 FF FF 00 02")  # runs past 0xFFFF
+    with pytest.raises(BadRequest) as got:
+        parse(pdu)
+    assert got.value.code == ILLEGAL_ADDRESS
+    engine = Engine([SimDeviceConfig(load_one("huiwen-aq"), 3)], tick=None)
+    [reply] = engine.handle(with_crc(b"\x03" + pdu))
+    assert reply.data == ExceptionReply(3, 4, ILLEGAL_ADDRESS).frame()
+    device: SimDevice = engine.device(3)
+    answer = device.handle(ReadRequest(3, 4, 30009, 1))
+    assert answer is not None and isinstance(parse_reply(ReadRequest(3, 4, 30009, 1), answer),
+                                             ReadReply)

@@ -35,6 +35,15 @@ class Direction(enum.Enum):
     EITHER = "either"  # a tap on the line: a request or a reply
 
 
+# the lengths the table knows for each function, by direction (a free length is left out)
+_KNOWN: dict[Direction, dict[int, tuple[tuple[int, int], ...]]] = {
+    d: {fc: tuple((length.fixed, length.count_at) for length in kinds if length.known)
+        for fc, fn in FUNCTIONS.items()
+        for kinds in [{Direction.REQUEST: (fn.request,), Direction.REPLY: (fn.reply,),
+                       Direction.EITHER: (fn.request, fn.reply)}[d]]}
+    for d in Direction}
+
+
 def lengths(head: bytes, direction: Direction, answering: bytes | None = None
             ) -> tuple[int, ...]:
     """The frame lengths the table allows at ``head`` (its first 11 bytes suffice),
@@ -43,8 +52,9 @@ def lengths(head: bytes, direction: Direction, answering: bytes | None = None
 
     ``answering`` (the request frame a reply is awaited for) puts its normal reply's
     length, or its exception's, first."""
-    if len(head) < 2:
-        return (len(head) + 1,)
+    more = len(head) + 1
+    if more < 3:
+        return (more,)
     fc = head[1]
     out: list[int] = []
     if answering is not None and direction is not Direction.REQUEST and head[0] == answering[0]:
@@ -57,18 +67,15 @@ def lengths(head: bytes, direction: Direction, answering: bytes | None = None
     if fc & 0x80:
         if direction is not Direction.REQUEST and fc & 0x7F in FUNCTIONS:
             out.append(EXCEPTION_LENGTH)
-    elif fc in FUNCTIONS:
-        fn = FUNCTIONS[fc]
-        kinds = {Direction.REQUEST: (fn.request,), Direction.REPLY: (fn.reply,),
-                 Direction.EITHER: (fn.request, fn.reply)}[direction]
-        for length in kinds:
-            if not length.known:
-                continue
-            n = length.of(head)
-            out.append(len(head) + 1 if n is None else n)
-    more = len(head) + 1
-    return tuple(n for i, n in enumerate(out)
-                 if (4 <= n <= MAX_FRAME or n == more) and n not in out[:i])
+    else:
+        for fixed, count_at in _KNOWN[direction].get(fc, ()):
+            out.append(fixed or (count_at + 3 + head[count_at] if more > count_at + 1
+                                 else more))
+    kept: list[int] = []
+    for n in out:
+        if (4 <= n <= MAX_FRAME or n == more) and n not in kept:
+            kept.append(n)
+    return tuple(kept)
 
 
 def frame_at(buf: bytes | bytearray, at: int = 0, *, direction: Direction,

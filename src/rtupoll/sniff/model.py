@@ -82,7 +82,8 @@ def carried_words(tx: Transaction, req: Request) -> tuple[int, ...] | None:
         return None
     if isinstance(msg, messages.ReadRequest):
         try:
-            reply = messages.parse_reply(msg, tx.reply.data)
+            data = tx.reply.data  # its CRC checked by the stream
+            reply = messages.parse_reply(msg, data[1:-2], unit=data[0])
         except messages.Malformed:
             return None
         return reply.values if isinstance(reply, messages.ReadReply) else None
