@@ -225,3 +225,12 @@ def test_the_gateway_and_the_simulator_answer_the_parsers_code() -> None:
     answer = device.handle(ReadRequest(3, 4, 30009, 1))
     assert answer is not None and isinstance(parse_reply(ReadRequest(3, 4, 30009, 1), answer),
                                              ReadReply)
+
+
+def test_guess_reads_up_to_the_read_limit() -> None:
+    from rtupoll.cli.guess import _spec
+    from rtupoll.errors import UsageError
+
+    assert _spec("input:0:125") == (Table.INPUT, 0, MAX_QUANTITY[4])
+    with pytest.raises(UsageError, match=r"COUNT 126 is outside 1\.\.125 registers"):
+        _spec("input:0:126")
