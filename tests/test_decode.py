@@ -11,7 +11,8 @@ from click.testing import CliRunner
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
-from rtupoll.rtu.capture import carried, decode_stream, parse_hex, split
+from rtupoll.model.carried import carried
+from rtupoll.rtu.capture import decode_stream, parse_hex, split
 
 
 def frames(text: str, **kw: int):  # type: ignore[no-untyped-def]

@@ -69,11 +69,13 @@ def test_the_simulated_hole_refuses_any_read_over_it() -> None:
     plain = SimDevice(SimConfig(p, 3), tick=None)
     holed = SimDevice(SimConfig(p, 3, faults=(parse_fault(f"3:hole={HOLE}"),)), tick=None)
     from rtupoll.rtu import read_request
+    from rtupoll.rtu.messages import ReadRequest
 
-    block = read_request(3, Table.INPUT, 30006, 8)
+    block = ReadRequest(3, 4, 30006, 8)
     assert plain.handle(block) is not None and plain.handle(block)[1] == 4  # type: ignore[index]
     assert holed.handle(block) == bytes.fromhex("03 84 02") + holed.handle(block)[3:]  # type: ignore[index]
-    alone = holed.handle(read_request(3, Table.INPUT, 30012, 1))
+    alone = holed.handle(ReadRequest(3, 4, 30012, 1))
+    assert read_request(3, Table.INPUT, 30012, 1) == ReadRequest(3, 4, 30012, 1).frame()
     assert alone is not None and alone[1] == 4  # outside the hole: answered
     with pytest.raises(FaultSpecError, match="ADDRESS:hole=REGISTER"):
         parse_fault("hole=5")  # a hole belongs to one device

@@ -15,9 +15,9 @@ import pytest
 from virtual import START, ScriptedBus, VirtualClock, poll_for
 
 from rtupoll.config.site import BusConfig, DeviceConfig, from_specs
+from rtupoll.figures import quantile
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import BusLoad, Reading, State
-from rtupoll.jobs.timeouts import quantile
 
 
 def radar(address: int = 2, interval: float = 1.0) -> DeviceConfig:

@@ -19,6 +19,7 @@ import pytest
 
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
+from rtupoll.figures import quantile
 from rtupoll.io.serialport import latency_timer, latency_warning
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import State
@@ -28,7 +29,6 @@ from rtupoll.jobs.timeouts import (
     MARGIN,
     DeviceTiming,
     TimeoutEstimator,
-    quantile,
 )
 from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.rtu.line import Answer, Line

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +18,10 @@ import click
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import load_one
 from rtupoll.errors import FrameError, UsageError
+from rtupoll.model.carried import Carried, carried
 from rtupoll.model.profile import Profile
 from rtupoll.numbers import parse_int
-from rtupoll.rtu.capture import Carried, Frame, carried, decode_stream, parse_hex
+from rtupoll.rtu.capture import Frame, decode_stream, parse_hex
 from rtupoll.ui.records import finite, json_safe, nonfinite_text
 
 EPILOG = """\b
@@ -54,9 +56,14 @@ def decode(hex_bytes: tuple[str, ...], profile_id: str | None, start: str | None
     if not hex_bytes or hex_bytes == ("-",):
         if sys.stdin.isatty():
             raise UsageError("give the frame as hex arguments, or pipe it in ('-')")
-        chunks = parse_hex(line.replace("/", " / ") + " /" for line in sys.stdin if line.strip())
+        text: Iterable[str] = (line.replace("/", " / ") + " /" for line in sys.stdin
+                               if line.strip())
     else:
-        chunks = parse_hex(hex_bytes)
+        text = hex_bytes
+    try:
+        chunks = parse_hex(text)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     try:
         first = parse_int(start) if start is not None else None
     except ValueError:

@@ -18,6 +18,7 @@ from rtupoll.errors import DeviceException, UsageError
 from rtupoll.model.guess import Guess, interpretations, parse_words
 from rtupoll.model.raw import SYNTAX, parse_spec
 from rtupoll.rtu import Table
+from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import to_json
 
 DEFAULT_COUNT = 4  # registers when COUNT is omitted: room for an f64 at START
@@ -93,8 +94,8 @@ def _spec(text: str) -> tuple[Table, int, int]:
     if not spec.table.is_register:
         raise UsageError("guess interprets registers (input or holding), not bits")
     count = spec.count if text.count(":") >= 2 else DEFAULT_COUNT
-    if not 1 <= count <= 123:
-        raise UsageError(f"COUNT {count} is outside 1..123 registers")
+    if not 1 <= count <= MAX_REGISTERS:
+        raise UsageError(f"COUNT {count} is outside 1..{MAX_REGISTERS} registers")
     return spec.table, spec.address, count
 
 

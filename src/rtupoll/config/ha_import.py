@@ -36,6 +36,7 @@ from rtupoll.config.ha_yaml import HaYaml
 from rtupoll.config.yamlsrc import Node
 from rtupoll.errors import ConfigError
 from rtupoll.model.codec import DataType
+from rtupoll.rtu.functions import MAX_REGISTERS
 
 _TYPES = {"int16": "i16", "uint16": "u16", "int32": "i32", "uint32": "u32", "int64": "i64",
           "uint64": "u64", "float32": "f32", "float64": "f64", "string": "string",
@@ -474,7 +475,7 @@ def profile_text(dev: Device, hub: Hub, source: Path, origin: str = "Home Assist
         "manual": f"{origin} modbus configuration {source.name}",
         "serial": {k: hub.serial[k] for k in ("baudrate", "parity", "stopbits")},
         "addressing": "pdu",
-        "limits": {"max_registers": 125, "max_gap": 0,
+        "limits": {"max_registers": MAX_REGISTERS, "max_gap": 0,
                    "functions": [1, 2, 3, 4, 5, 6, 15, 16]},
         "fields": fields,
     }

@@ -6,7 +6,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from rtupoll.jobs.timeouts import quantile
+from rtupoll.figures import quantile
 
 WAIT_WINDOW = 1000  # queue waits kept for the percentiles
 

@@ -15,19 +15,20 @@ from dataclasses import dataclass
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
 from rtupoll.rtu.effects import Effect, effect
-from rtupoll.rtu.functions import (
-    FUNCTIONS,
-    MAX_QUANTITY,
-    READ_FUNCTIONS,
-    TABLES,
-    bits,
-    data_bytes,
-    pack_bits,
-    request_length,
-    words,
+from rtupoll.rtu.functions import READ_FUNCTIONS, pack_bits, request_length
+from rtupoll.rtu.messages import (
+    ILLEGAL_ADDRESS,
+    ILLEGAL_FUNCTION,
+    ILLEGAL_VALUE,
+    Malformed,
+    OtherRequest,
+    ReadRequest,
+    parse_request,
 )
 
-ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 0x01, 0x02, 0x03
+__all__ = ["ILLEGAL_ADDRESS", "ILLEGAL_FUNCTION", "ILLEGAL_VALUE", "PATH_UNAVAILABLE",
+           "TARGET_FAILED", "Ask", "BadRequest",
+           "exception_pdu", "parse", "pdu_length", "read_reply", "write_reply"]
 PATH_UNAVAILABLE, TARGET_FAILED = 0x0A, 0x0B
 
 
@@ -72,39 +73,17 @@ def pdu_length(pdu: bytes) -> int | None:
 
 
 def parse(pdu: bytes) -> Ask:
-    """Understand a complete request PDU, or raise ``BadRequest`` with the code to answer."""
-    if not pdu:
-        raise BadRequest(ILLEGAL_FUNCTION, "empty PDU")
-    fc = pdu[0]
-    if fc not in FUNCTIONS or fc & 0x80:
-        raise BadRequest(ILLEGAL_FUNCTION, f"function {fc} is not a Modbus request rtupoll "
-                         "passes on")
-    want = pdu_length(pdu)
-    if want is None and FUNCTIONS[fc].request.count_at:
-        raise BadRequest(ILLEGAL_VALUE, f"{FUNCTIONS[fc].name}: truncated ({len(pdu)} bytes)")
-    if want is not None and want != len(pdu):
-        raise BadRequest(ILLEGAL_VALUE, f"{FUNCTIONS[fc].name}: {len(pdu)} bytes, the "
-                         f"function takes {want}")
-    if fc not in TABLES:
-        return Ask(pdu, fc)
-    address, n = struct.unpack_from(">HH", pdu, 1)
-    table = TABLES[fc]
-    if fc in (5, 6):
-        if fc == 5 and n not in (0x0000, 0xFF00):
-            raise BadRequest(ILLEGAL_VALUE, f"coil value 0x{n:04X} is neither ON nor OFF")
-        return Ask(pdu, fc, table, address, 1, (int(n == 0xFF00) if fc == 5 else n,))
-    if not 1 <= n <= MAX_QUANTITY[fc]:
-        raise BadRequest(ILLEGAL_VALUE, f"{FUNCTIONS[fc].name}: quantity {n} is outside "
-                         f"1..{MAX_QUANTITY[fc]}")
-    if address + n > 0x10000:
-        raise BadRequest(ILLEGAL_ADDRESS, f"0x{address:04X} + {n} runs past 0xFFFF")
-    if fc in READ_FUNCTIONS:
-        return Ask(pdu, fc, table, address, n)
-    size = pdu[5]
-    if size != data_bytes(1 if fc == 15 else 3, n):
-        raise BadRequest(ILLEGAL_VALUE, f"byte count {size} does not fit quantity {n}")
-    values = words(pdu[6:]) if fc == 16 else bits(pdu[6:], n)
-    return Ask(pdu, fc, table, address, n, values)
+    """Understand a complete request PDU, or raise ``BadRequest`` with the code to answer
+    (the checks are ``rtupoll.rtu.messages.parse_request``'s)."""
+    try:
+        msg = parse_request(pdu, unit=0)
+    except Malformed as exc:
+        raise BadRequest(exc.code or ILLEGAL_VALUE, exc.reason) from None
+    if isinstance(msg, OtherRequest):
+        return Ask(pdu, msg.function)
+    if isinstance(msg, ReadRequest):
+        return Ask(pdu, msg.function, msg.table, msg.address, msg.count)
+    return Ask(pdu, msg.function, msg.table, msg.address, msg.count, msg.values)
 
 
 def read_reply(function: int, values: Sequence[int]) -> bytes:

@@ -9,8 +9,9 @@ with a malformed MBAP frame, the connection is closed (``MbapError``).
 from __future__ import annotations
 
 from rtupoll.gateway.mbap import Frame, MbapError
-from rtupoll.rtu import crc_ok, with_crc
-from rtupoll.rtu.functions import FUNCTIONS, MAX_PDU, request_length
+from rtupoll.rtu import with_crc
+from rtupoll.rtu.frames import NEED_MORE, Direction, frame_at, lengths
+from rtupoll.rtu.functions import FUNCTIONS, MAX_PDU
 
 
 class RtuDecoder:
@@ -23,17 +24,18 @@ class RtuDecoder:
         self.buffer += data
         out: list[Frame] = []
         while len(self.buffer) >= 2:
-            fc = self.buffer[1]
-            if fc not in FUNCTIONS:
-                raise MbapError(f"function {fc} unknown: cannot tell where the frame ends")
-            n = request_length(self.buffer[:11])
-            if n is None or len(self.buffer) < n:
+            n = frame_at(self.buffer, direction=Direction.REQUEST)
+            if n == NEED_MORE:
                 if len(self.buffer) > MAX_PDU + 3:
                     raise MbapError("no frame in 256 bytes")
                 break
+            if n < 0:  # not a frame: say why, then close
+                fc = self.buffer[1]
+                if fc not in FUNCTIONS:
+                    raise MbapError(f"function {fc} unknown: cannot tell where the frame ends")
+                size = lengths(self.buffer[:11], Direction.REQUEST)[0]
+                raise MbapError(f"CRC error in {self.buffer[:size][:12].hex(' ')}")
             frame, self.buffer = self.buffer[:n], self.buffer[n:]
-            if not crc_ok(frame):
-                raise MbapError(f"CRC error in {frame[:12].hex(' ')}")
             out.append(Frame(None, frame[0], frame[1:-2]))
         return out
 

@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, UsageError
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.timeouts import late_margin
-from rtupoll.model.interpret import interpret
-from rtupoll.model.profile import Check, Profile
+from rtupoll.model.identify import check_passes
+from rtupoll.model.profile import Profile
 from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
 
 LATENCY = 0.02  # USB-serial adapters deliver a reply up to a latency-timer tick late
@@ -188,28 +188,6 @@ def sweep_time(settings: Sequence[Setting], addresses: int, probes: Sequence[Rea
     """
     return sum(addresses * sum(probe_timeout(s.framing, n, margin) for _, _, n in probes)
                for s in settings)
-
-
-def check_passes(check: Check, profile: Profile, unit: int, outcome: Outcome) -> str | None:
-    """Evidence text when ``outcome`` satisfies ``check``, else None."""
-    f = profile.field(check.field)
-    if isinstance(outcome, DeviceException):
-        if check.exception is not None and outcome.code == check.exception:
-            return f"{f.name}: exception {outcome.code:02d}, as the profile expects"
-        return None
-    if not isinstance(outcome, tuple) or len(outcome) != f.words:
-        return None
-    value = interpret(f, outcome).value
-    if isinstance(value, list):
-        return None
-    if check.equals_address and value != unit:
-        return None
-    if check.range is not None and (
-            isinstance(value, str) or not check.range[0] <= float(value) <= check.range[1]):
-        return None
-    if check.equals and value not in check.equals:
-        return None
-    return f"{f.name} = {value}" + (" (its own address)" if check.equals_address else "")
 
 
 def describe(read: Read, outcome: Outcome) -> str:

@@ -14,10 +14,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from rtupoll.config.site import DeviceConfig
-from rtupoll.jobs.timeouts import quantile
+from rtupoll.figures import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
-from rtupoll.timestamps import iso_time as iso_time  # sniff takes it from here
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured

@@ -31,13 +31,12 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
 from __future__ import annotations
 
 import bisect
-import heapq
 from collections import deque
-from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
+from rtupoll.figures import nearest_rank
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
@@ -50,22 +49,6 @@ QUANTILE = 99  # percent: "the slow end"
 WINDOW = 128  # reply times kept
 DOWN = 0.05  # per answer, the share of the way down to a lower target
 LATE_GROWTH = 2.0  # a late reply at least multiplies the timeout by this
-
-
-def quantile(data: Collection[float], q: float) -> float | None:
-    """Nearest-rank percentile (q in 0..100), None without data."""
-    if not data:
-        return None
-    rank = _rank(len(data), q)
-    top = len(data) - rank + 1  # it is the top-th largest: for the slow end, 1 or 2
-    if top <= 4:
-        return heapq.nlargest(top, data)[-1]
-    return sorted(data)[rank - 1]
-
-
-def _rank(n: int, q: float) -> int:
-    """The nearest rank (1-based, in ascending order) of the q-th percentile of n values."""
-    return int(max(1, -(-n * q // 100)))
 
 
 @dataclass
@@ -98,7 +81,7 @@ class TimeoutEstimator:
         """What the reply times alone call for (None before any)."""
         if not self._sorted:
             return None
-        slow = self._sorted[_rank(len(self._sorted), QUANTILE) - 1]  # = quantile(samples)
+        slow = self._sorted[nearest_rank(len(self._sorted), QUANTILE) - 1]  # = quantile(samples)
         return self._clamp(MARGIN * slow)
 
     def _sample(self, reply_time: float) -> None:

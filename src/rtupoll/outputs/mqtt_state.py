@@ -23,10 +23,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.figures import iso_time
 from rtupoll.jobs.stats import Status
 from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
 from rtupoll.outputs.mqtt_commands import value_of
-from rtupoll.timestamps import iso_time
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:

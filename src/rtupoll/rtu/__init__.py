@@ -11,7 +11,9 @@ adapter), the simulator's engine, ``decode`` and the sniffer.
 - ``match``: which bytes answer a request, and why an unanswered attempt failed;
 - ``line``: the master's line discipline (when a frame may go, drains, late replies);
 - ``stream``: a listen-only tap's bytes split into frames and transactions (sniffing);
-- ``capture``: captured byte streams split into frames and decoded.
+- ``capture``: captured byte streams split into frames and decoded;
+- ``messages``: typed requests and replies, one strict parser for each;
+- ``frames``: where a frame ends (``frame_at``), for every reader of bytes.
 """
 
 from rtupoll.rtu.crc import crc16, crc_ok, with_crc

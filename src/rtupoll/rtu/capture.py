@@ -7,7 +7,8 @@ point of looking at it) and says which CRC it should carry. RTU has no direction
 bit either: request or reply is inferred from the structure and from the frame
 before it, and a guess is marked as one.
 
-Imports neither pymodbus nor rich, so ``decode --format json`` starts fast.
+Imports neither pymodbus nor rich, so ``decode --format json`` starts fast. The values
+of a profile's fields in a frame are ``rtupoll.model.carried``'s (a layer above).
 """
 
 from __future__ import annotations
@@ -17,26 +18,21 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 
-from rtupoll.errors import UsageError
-from rtupoll.model.codec import Value
-from rtupoll.model.interpret import interpret
-from rtupoll.model.profile import Profile
 from rtupoll.rtu.crc import crc16, crc_ok, with_crc
+from rtupoll.rtu.frames import Direction, lengths
 from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
     FUNCTION_NAMES,
     MAX_FRAME,
-    MAX_QUANTITY,
     READS,
     WRITE_FUNCTIONS,
     WRITES,
     Table,
     bits,
     exception_name,
-    reply_length,
-    request_length,
     words,
 )
+from rtupoll.rtu.messages import Malformed, parse_request
 
 
 @dataclass(frozen=True)
@@ -76,6 +72,7 @@ def parse_hex(parts: Iterable[str]) -> list[bytes]:
 
     A ``/`` token (or, for input read line by line, a new line) ends a chunk, for when
     the user knows where frames end; each chunk is still split by structure and CRC.
+    ``ValueError`` says what is not hex.
     """
     chunks: list[bytes] = []
     current = bytearray()
@@ -92,12 +89,12 @@ def parse_hex(parts: Iterable[str]) -> list[bytes]:
             if len(digits) == 1:
                 digits = "0" + digits
             if len(digits) % 2 or not re.fullmatch(r"[0-9A-Fa-f]+", digits):
-                raise UsageError(f"{token!r} is not hex bytes (e.g. 01 04 00 06 or 0x01,0x04)")
+                raise ValueError(f"{token!r} is not hex bytes (e.g. 01 04 00 06 or 0x01,0x04)")
             current += bytes.fromhex(digits)
     if current:
         chunks.append(bytes(current))
     if not chunks:
-        raise UsageError("no bytes given")
+        raise ValueError("no bytes given")
     return chunks
 
 
@@ -110,12 +107,15 @@ def _lengths(data: bytes) -> list[tuple[int, str]]:
         return [(EXCEPTION_LENGTH, "exception")]
     if data[1] not in READS and data[1] not in WRITE_FUNCTIONS:
         return []
-    options = [(request_length(data), "request"), (reply_length(data), "response")]
+    head = data[:11]
+    options = [(n, kind) for direction, kind in ((Direction.REQUEST, "request"),
+                                                 (Direction.REPLY, "response"))
+               for n in lengths(head, direction)]
     if data[1] in (15, 16):  # the 8-byte echo first: a request carries its data
         options.reverse()
     out: list[tuple[int, str]] = []
     for n, kind in options:
-        if n is not None and all(n != m for m, _ in out):
+        if all(n != m for m, _ in out):
             out.append((n, kind))
     return out
 
@@ -234,12 +234,10 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
             notes.append("a write request, or its echo (the reply repeats the request)")
         else:
             notes.append("not an echo of the request before it")
-        table = WRITES[fc]
+        notes += _refused(raw)  # a request and its echo are the same bytes
         vals = ((1 if value == 0xFF00 else 0),) if fc == 5 else (value,)
-        if fc == 5 and value not in (0x0000, 0xFF00):
-            notes.append(f"coil value {value:#06x} is neither 0xFF00 (on) nor 0x0000 (off)")
-        return replace(base, kind="response" if pending else "request", table=table, start=address,
-                       count=1, values=vals, notes=tuple(notes))
+        return replace(base, kind="response" if pending else "request", table=WRITES[fc],
+                       start=address, count=1, values=vals, notes=tuple(notes))
     if fc in (15, 16):
         table = WRITES[fc]
         address, qty = struct.unpack(">HH", body[:4]) if len(body) >= 4 else (None, None)
@@ -247,14 +245,22 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
             return replace(base, kind="response", table=table, start=address, count=qty,
                            notes=tuple(notes))
         data = body[5:]
-        if len(body) >= 5 and body[4] != len(data):
-            notes.append(f"byte count says {body[4]}, {len(data)} data bytes follow")
+        notes += _refused(raw)
         data_values = bits(data, qty or 0) if fc == 15 else words(data)
         return replace(base, kind="request", table=table, start=address, count=qty,
-                       values=data_values,
-                     notes=tuple(notes))
+                       values=data_values, notes=tuple(notes))
     notes.append(f"function {fc:#04x} is not one rtupoll decodes; data {body.hex(' ').upper()}")
     return replace(base, kind="unknown", notes=tuple(notes))
+
+
+def _refused(raw: bytes) -> list[str]:
+    """Why the one request parser (``rtu.messages``) refuses the frame's PDU, if it does:
+    decode still shows a refused request's bytes as they are laid out, with the reason."""
+    try:
+        parse_request(raw[1:-2], unit=raw[0])
+    except Malformed as bad:
+        return [bad.reason]
+    return []
 
 
 def _read(raw: bytes, kind: str | None, pending: Frame | None, notes: list[str],
@@ -264,9 +270,7 @@ def _read(raw: bytes, kind: str | None, pending: Frame | None, notes: list[str],
     as_request = len(raw) == 8 and (kind == "request" or (kind is None and pending is None))
     if as_request:
         address, qty = struct.unpack(">HH", body)
-        limit = MAX_QUANTITY[fc]
-        if not 1 <= qty <= limit:
-            notes.append(f"quantity {qty} is outside 1..{limit}")
+        notes += _refused(raw)
         if not table.is_register and kind == "request" and pending is None and 5 + raw[2] == 8:
             notes.append("could also be a reply carrying 3 bytes of bits")
         return replace(base, kind="request", table=table, start=address, count=qty,
@@ -316,47 +320,3 @@ def _crc_hints(raw: bytes, expected: bytes) -> list[str]:
                              f"table?")
                 break
     return hints
-
-
-@dataclass(frozen=True)
-class Carried:
-    """A profile field that a frame carries (a reply, a write) or asks for (a read request)."""
-
-    name: str
-    written: str  # the address as the profile's manual writes it
-    unit: str = ""
-    raw: tuple[int, ...] = ()
-    value: Value | None = None  # None: a request, or only part of the field is in the frame
-    text: str = ""
-    severity: str = ""
-    partial: bool = False
-
-
-def carried(frame: Frame, profile: Profile) -> list[Carried]:
-    """The fields of ``profile`` inside the frame's address range, decoded where it has data.
-
-    A field only partly inside is listed as partial (reading half a float is a classic
-    cause of nonsense values), with no value.
-    """
-    if frame.table is None or frame.start is None or frame.kind not in ("request", "response"):
-        return []
-    count = frame.count if frame.count is not None else len(frame.values)
-    lo, hi = frame.start, frame.start + count
-    has_data = bool(frame.values) and (frame.kind == "response" or frame.function in (5, 6, 15, 16))
-    out: list[Carried] = []
-    for f in profile.fields:
-        if f.table is not frame.table or f.end <= lo or f.address >= hi:
-            continue
-        written = profile.written(f)
-        if f.address < lo or f.end > hi:
-            out.append(Carried(f.name, written, f.unit, partial=True))
-            continue
-        if not has_data or f.end - lo > len(frame.values):
-            out.append(Carried(f.name, written, f.unit))
-            continue
-        raw = frame.values[f.address - lo : f.end - lo]
-        fv = interpret(f, raw)
-        # a sentinel ("not available") is its name, never the number its registers spell
-        text = fv.text + (f" {f.unit}" if f.unit and fv.present else "")
-        out.append(Carried(f.name, written, f.unit, raw, fv.output, text, fv.severity.value))
-    return out

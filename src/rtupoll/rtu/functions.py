@@ -22,6 +22,8 @@ MAX_PDU = MAX_FRAME - 3  # function and data: the frame without unit and CRC
 EXCEPTION_LENGTH = 5  # unit, function | 0x80, code, CRC
 MAX_BITS = 2000  # coils or discrete inputs in one read (FC01/02)
 MAX_REGISTERS = 125  # registers in one read (FC03/04)
+MAX_WRITE_BITS = 1968  # coils in one write (FC15)
+MAX_WRITE_REGISTERS = 123  # registers in one write (FC16)
 
 
 class Table(str, enum.Enum):
@@ -120,7 +122,7 @@ WRITES: dict[int, Table] = {5: Table.COIL, 6: Table.HOLDING, 15: Table.COIL, 16:
 TABLES: dict[int, Table] = {**READS, **WRITES}
 # the largest quantity one request of each function may ask for
 MAX_QUANTITY: dict[int, int] = {1: MAX_BITS, 2: MAX_BITS, 3: MAX_REGISTERS, 4: MAX_REGISTERS,
-                                15: 1968, 16: 123}
+                                15: MAX_WRITE_BITS, 16: MAX_WRITE_REGISTERS}
 
 
 def request_length(head: bytes) -> int | None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rtupoll.rtu.crc import crc_ok
+from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at, lengths
 from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
     FUNCTIONS,
@@ -153,37 +154,23 @@ class Stream:
         return out
 
     # -- splitting --------------------------------------------------------------
-    def _lengths(self, at: int) -> list[int]:
+    def _answering(self) -> bytes | None:
+        return self.pending.data if self.expect is not None and self.pending else None
+
+    def _lengths(self, at: int) -> tuple[int, ...]:
         """Frame lengths (function table) that may start at ``buf[at]``, likeliest first."""
-        head = bytes(self.buf[at : at + 11])
-        if len(head) < 2:
-            return []
-        out: list[int] = []
-        exp, fc = self.expect, head[1]
-        if exp is not None and head[0] == exp.unit:
-            if fc == exp.function:
-                out.append(exp.length)
-            elif fc == exp.function | 0x80:
-                out.append(EXCEPTION_LENGTH)
-        if fc & 0x80:
-            if fc & 0x7F in FUNCTIONS:
-                out.append(EXCEPTION_LENGTH)
-        elif fc in FUNCTIONS:
-            out += [n for n in (request_length(head), reply_length(head)) if n is not None]
-        return [n for i, n in enumerate(out) if 4 <= n <= MAX_FRAME and n not in out[:i]]
+        return lengths(bytes(self.buf[at : at + 11]), Direction.EITHER, self._answering())
 
     def _valid_at(self, at: int, *, wait: bool = False) -> int | None:
         """Length of a complete, CRC-valid frame starting at ``buf[at]``, else None.
         ``wait``: None while a likelier length is still arriving (a request whose first
         bytes happen to make a CRC-valid reply must not be cut there)."""
-        for n in self._lengths(at):
-            if at + n > len(self.buf):
-                if wait:
-                    return None
-                continue
-            if crc_ok(bytes(self.buf[at : at + n])):
-                return n
-        if at == 0 and self._free_length():  # the standard leaves its length to the data
+        n = frame_at(self.buf, at, direction=Direction.EITHER, answering=self._answering(),
+                     final=not wait)
+        if n > 0:
+            return n
+        if n == NOT_A_FRAME and at == 0 and self._free_length():
+            # the standard leaves its length to the data
             return next((n for n in range(5, min(len(self.buf), MAX_FRAME) + 1)
                          if crc_ok(bytes(self.buf[:n]))), None)
         return None

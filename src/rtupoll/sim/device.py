@@ -38,7 +38,7 @@ import dataclasses
 import itertools
 import random
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from rtupoll.errors import UsageError
@@ -46,7 +46,17 @@ from rtupoll.model.codec import Value, decode
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu import Table, exception_response, read_response, with_crc
-from rtupoll.rtu.functions import MAX_QUANTITY, READS, pack_bits
+from rtupoll.rtu.functions import pack_bits
+from rtupoll.rtu.messages import (
+    ILLEGAL_FUNCTION,
+    ILLEGAL_VALUE,
+    Malformed,
+    ReadRequest,
+    Request,
+    WriteMultiple,
+    WriteReply,
+    WriteSingle,
+)
 from rtupoll.sim.faults import Fault, FaultSet
 from rtupoll.sim.values import Motion, Static, motion_for
 
@@ -209,37 +219,33 @@ class SimDevice:
             self.ticks += due - min(due, 100)
 
     # -- requests -----------------------------------------------------------
-    def handle(self, frame: bytes) -> bytes | None:
-        """One request frame (CRC already checked) -> the reply frame, or None for silence."""
-        unit, fc, body = frame[0], frame[1], frame[2:-2]
+    def handle(self, request: Request | Malformed) -> bytes | None:
+        """One request (parsed, or refused by the parser) -> the reply frame, or None
+        for silence. A malformed request of a function the device supports is answered
+        with the parser's exception code, as a device's firmware would."""
+        unit, fc = request.unit or 0, request.function or 0
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
-            return self._refuse(unit, fc, 1)
-        if fc in READS:
-            return self._read(unit, fc, body)
-        if fc == 5:
-            return self._write_coil(frame, body)
-        if fc == 6:
-            address, value = struct.unpack(">HH", body)
-            return self._write(frame, address, [value])
-        if len(body) < 5:
-            return self._refuse(unit, fc, 3)
-        address, count, nbytes = struct.unpack(">HHB", body[:5])
-        if not 1 <= count <= 123 or nbytes != 2 * count or len(body) != 5 + nbytes:
-            return self._refuse(unit, fc, 3)
-        return self._write(frame, address, list(struct.unpack(f">{count}H", body[5:])))
+            return self._refuse(unit, fc, ILLEGAL_FUNCTION)
+        if isinstance(request, Malformed):
+            return self._refuse(unit, fc, request.code or ILLEGAL_VALUE)
+        if isinstance(request, ReadRequest):
+            return self._read(request)
+        if isinstance(request, WriteSingle) and fc == 5:
+            return self._write_coil(request)
+        if isinstance(request, WriteSingle | WriteMultiple):
+            return self._write(request)
+        return self._refuse(unit, fc, ILLEGAL_FUNCTION)  # (not reached: fc is 1-6 or 16)
 
     def _refuse(self, unit: int, fc: int, code: int) -> bytes | None:
         if self.profile.limits.silent_on_error and code in (1, 3):
             return None
         return exception_response(unit, fc, code)
 
-    def _read(self, unit: int, fc: int, body: bytes) -> bytes | None:
-        table = READS[fc]
-        address, count = struct.unpack(">HH", body)
-        limit = MAX_QUANTITY[fc] if fc in (1, 2) else \
-            min(MAX_QUANTITY[fc], self.profile.limits.max_registers)
-        if not 1 <= count <= limit:
-            return self._refuse(unit, fc, 3)
+    def _read(self, req: ReadRequest) -> bytes | None:
+        unit, fc, address, count, table = req.unit, req.function, req.address, req.count, \
+            req.table
+        if table.is_register and count > self.profile.limits.max_registers:
+            return self._refuse(unit, fc, ILLEGAL_VALUE)
         regs = range(address, address + count)
         for r in regs:
             if (table, r) in self._exception_at:
@@ -261,22 +267,18 @@ class SimDevice:
         if fc in (1, 2):
             data = pack_bits(words)
             return with_crc(bytes([unit, fc, len(data)]) + data)
-        return read_response(unit, fc, words)
+        return read_response(unit, fc, words)  # (the builders: quicker than a ReadReply)
 
-    def _write_coil(self, frame: bytes, body: bytes) -> bytes | None:
-        unit, fc = frame[0], frame[1]
-        address, value = struct.unpack(">HH", body)
-        if value not in (0x0000, 0xFF00):
-            return self._refuse(unit, fc, 3)
+    def _write_coil(self, req: WriteSingle) -> bytes | None:
         if any(f.table is Table.COIL for f in self.fields):
-            fs = self._by_register.get((Table.COIL, address))
+            fs = self._by_register.get((Table.COIL, req.address))
             if not fs or not all(f.writable for f in fs):
-                return self._refuse(unit, fc, 2)
-        self.image[Table.COIL][address] = 1 if value else 0
-        return frame
+                return self._refuse(req.unit, req.function, 2)
+        self.image[Table.COIL][req.address] = req.value
+        return req.frame()
 
-    def _write(self, frame: bytes, address: int, values: Sequence[int]) -> bytes | None:
-        unit, fc = frame[0], frame[1]
+    def _write(self, req: WriteSingle | WriteMultiple) -> bytes | None:
+        unit, fc, address, values = req.unit, req.function, req.address, req.values
         regs = range(address, address + len(values))
         touched: dict[str, Field] = {}
         for r in regs:
@@ -307,7 +309,7 @@ class SimDevice:
                 self.motions[name] = Static(moved)
                 self._render(self.field(name))
         if fc == 16:
-            return with_crc(struct.pack(">BBHH", unit, 16, address, len(values)))
+            return WriteReply(unit, 16, address, len(values)).frame()
         if self.write_reply == "short":
             return with_crc(struct.pack(">BBBH", unit, 6, 2, values[0]))
-        return None if self.write_reply == "none" else frame
+        return None if self.write_reply == "none" else req.frame()

@@ -21,7 +21,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from rtupoll.rtu import crc_ok, exception_response
-from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS, request_length
+from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at
+from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS
+from rtupoll.rtu.messages import Malformed, Request, parse_request
 from rtupoll.sim.device import SimDevice, SimDeviceConfig
 from rtupoll.sim.faults import SILENT, Fault, FaultSet, mangle
 
@@ -32,16 +34,13 @@ def _frame_at(buf: bytes, i: int) -> int | None:
     """Length of a complete, CRC-valid request frame starting at ``buf[i]``, else None."""
     if len(buf) - i < 4:
         return None
-    if buf[i + 1] in FUNCTIONS:
-        n = request_length(buf[i : i + 11])
-        if n is None:  # its byte count has not arrived yet
-            return None
-        lengths: Sequence[int] = (n,)
-    else:
-        lengths = range(4, 9)  # an unknown function: short candidates only
-    for n in lengths:
-        if i + n <= len(buf) and crc_ok(buf[i : i + n]):
-            return n
+    n = frame_at(buf, i, direction=Direction.REQUEST)
+    if n > 0:
+        return n
+    if n == NOT_A_FRAME and buf[i + 1] not in FUNCTIONS:
+        # an unknown function: short candidates only (so that it can be refused)
+        return next((n for n in range(4, 9) if i + n <= len(buf) and crc_ok(buf[i : i + n])),
+                    None)
     return None
 
 
@@ -123,6 +122,10 @@ class Engine:
         targets = [d for d in self.devices if broadcast or d.answers(unit)]
         if not targets:
             self.why_silent = f"no device at {unit}"
+        try:
+            request: Request | Malformed = parse_request(frame[1:-2], unit=unit)  # CRC: checked
+        except Malformed as bad:
+            request = bad
         for d in targets:
             d.requests += 1
             d.catch_up(now)
@@ -141,7 +144,7 @@ class Engine:
                 code = int(exc.arg) if exc.arg is not None else 4
                 reply: bytes | None = exception_response(unit, fc, code)
             else:
-                reply = d.handle(frame)
+                reply = d.handle(request)
             if reply is None or broadcast:
                 if not broadcast:
                     self.why_silent = f"{d.name} does not answer this request"

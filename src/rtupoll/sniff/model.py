@@ -4,26 +4,25 @@ Fed ``rtu.stream.Transaction``s, it keeps per unit what the other master saw: re
 replies, reply times, exceptions, timeouts and garbled replies, and the registers the
 replies carried. A unit named ``PROFILE@ADDRESS`` (or in the site file) is decoded
 through its profile; any other unit keeps its raw registers, and when what it answered
-fits a bundled profile's identify rules (``jobs.scan.check_passes``) it "looks like"
+fits a bundled profile's identify rules (``model.identify.check_passes``) it "looks like"
 that profile. A failed transaction yields records with no value (status timeout,
 garbled or exception), never a stale or misread one. Pure: no I/O, no clock.
 """
 
 from __future__ import annotations
 
-import struct
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from rtupoll.errors import DeviceException
-from rtupoll.jobs.scan import check_passes
-from rtupoll.jobs.stats import iso_time
-from rtupoll.jobs.timeouts import quantile
+from rtupoll.figures import iso_time, quantile
+from rtupoll.model.identify import check_passes
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
-from rtupoll.rtu.functions import READ_FUNCTIONS, TABLES, Table, reply_values, words
+from rtupoll.rtu import messages
+from rtupoll.rtu.functions import READ_FUNCTIONS, Table
 from rtupoll.rtu.stream import Transaction
 from rtupoll.ui.records import failed_record, poll_record, record
 
@@ -42,29 +41,35 @@ class Known:
 
 @dataclass(frozen=True)
 class Request:
-    """What a read or write request asks for, from its bytes."""
+    """What a request asks for (``rtu.messages.parse_request``): a table run, or for any
+    other function (or a malformed request: ``problem`` says why) only the function."""
 
     function: int
     table: Table | None
     start: int
     count: int
+    message: messages.Request | None = None
+    problem: str = ""
 
     @property
     def text(self) -> str:
         if self.table is None:
-            return f"function {self.function:#04x}"
+            return f"function {self.function:#04x}" + (f": {self.problem}" if self.problem
+                                                        else "")
         verb = "read" if self.function in READ_FUNCTIONS else "write"
         return f"{verb} {self.table.value} 0x{self.start:04X} x{self.count}"
 
 
 def parse_request(data: bytes) -> Request:
-    fc = data[1] & 0x7F
-    if fc in READ_FUNCTIONS or fc in (15, 16):
-        start, count = struct.unpack(">HH", data[2:6]) if len(data) >= 6 else (0, 0)
-        return Request(fc, TABLES[fc], start, count)
-    if fc in (5, 6) and len(data) >= 6:
-        return Request(fc, TABLES[fc], struct.unpack(">H", data[2:4])[0], 1)
-    return Request(fc, None, 0, 0)
+    """The request a (CRC-valid) frame carries; one the parser refuses carries no table,
+    so no register is ever attributed to it."""
+    try:
+        msg = messages.parse_request(data[1:-2], unit=data[0])  # the stream checked the CRC
+    except messages.Malformed as bad:
+        return Request(data[1] & 0x7F if len(data) > 1 else 0, None, 0, 0, problem=bad.reason)
+    if isinstance(msg, messages.OtherRequest):
+        return Request(msg.function, None, 0, 0, msg)
+    return Request(msg.function, msg.table, msg.address, msg.count, msg)
 
 
 def carried_words(tx: Transaction, req: Request) -> tuple[int, ...] | None:
@@ -72,16 +77,18 @@ def carried_words(tx: Transaction, req: Request) -> tuple[int, ...] | None:
 
     ``req`` is ``parse_request`` of the transaction's request (the caller has it already).
     """
-    if tx.status != "ok" or tx.request is None or tx.reply is None or req.table is None:
+    msg = req.message
+    if tx.status != "ok" or tx.reply is None or msg is None:
         return None
-    if req.function in READ_FUNCTIONS:
-        return reply_values(tx.reply.data, req.count)
-    if req.function == 6:
-        return words(tx.request.data[4:6])
-    if req.function == 5:
-        return (1 if tx.request.data[4] == 0xFF else 0,)
-    if req.function == 16:
-        return words(tx.request.data[7:-2])
+    if isinstance(msg, messages.ReadRequest):
+        try:
+            data = tx.reply.data  # its CRC checked by the stream
+            reply = messages.parse_reply(msg, data[1:-2], unit=data[0])
+        except messages.Malformed:
+            return None
+        return reply.values if isinstance(reply, messages.ReadReply) else None
+    if isinstance(msg, messages.WriteSingle | messages.WriteMultiple):
+        return msg.values
     return None
 
 

@@ -18,8 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
+from rtupoll.figures import iso_time
 from rtupoll.jobs.services import Service
-from rtupoll.timestamps import iso_time
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:

@@ -18,7 +18,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rtupoll.model.interpret import FieldValue
-from rtupoll.timestamps import iso_time
+from rtupoll.figures import iso_time
 
 if TYPE_CHECKING:
     from rtupoll.jobs.stats import Reading
