@@ -17,8 +17,8 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.model.interpret import FieldValue
 from rtupoll.figures import iso_time
+from rtupoll.model.interpret import FieldValue
 
 if TYPE_CHECKING:
     from rtupoll.jobs.stats import Reading
