@@ -12,7 +12,7 @@ from rtupoll.errors import ConfigError, RefusedError
 from rtupoll.jobs.commission import dry_run
 from rtupoll.model.addressing import Change, refuse
 
-FIXTURES = Path(__file__).parent / "fixtures" / "commission"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "commission"
 
 
 @pytest.mark.parametrize(("pid", "new", "why"), [

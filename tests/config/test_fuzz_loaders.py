@@ -28,7 +28,7 @@ from rtupoll.config.site import load_site
 from rtupoll.errors import RtupollError
 from rtupoll.sim.scenario import build
 
-BUNDLED = Path(__file__).parents[1] / "profiles"
+BUNDLED = Path(__file__).parents[2] / "profiles"
 PER_CASE = 5.0  # seconds: a hang or a blow-up fails the case (normal cases take ms)
 
 SITE = """\

@@ -16,7 +16,7 @@ from rtupoll.config.site import load_site
 from rtupoll.model.codec import ByteOrder
 from rtupoll.sim.runner import simulated_bus
 
-CONFIG = Path(__file__).parent / "fixtures" / "ha" / "configuration.yaml"
+CONFIG = Path(__file__).parents[1] / "fixtures" / "ha" / "configuration.yaml"
 
 
 def run(*args: str) -> Result:
@@ -134,7 +134,7 @@ def test_the_hub_list_alone_converts_too(tmp_path: Path) -> None:
     assert "parity: E" in result.site
 
 
-TELEGRAF = Path(__file__).parent / "fixtures" / "telegraf" / "telegraf.conf"
+TELEGRAF = Path(__file__).parents[1] / "fixtures" / "telegraf" / "telegraf.conf"
 
 
 def test_a_telegraf_request_style_configuration_converts_too(tmp_path: Path) -> None:

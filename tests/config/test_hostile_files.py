@@ -38,8 +38,8 @@ from rtupoll.sim.scenario import build
 from rtupoll.ui.records import CsvWriter, finite, json_safe, nonfinite_text, to_json
 
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
-BUNDLED = Path(__file__).parents[1] / "profiles"
-FIXTURES = Path(__file__).parent / "fixtures" / "hostile"
+BUNDLED = Path(__file__).parents[2] / "profiles"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "hostile"
 # CPU seconds any one hostile file may take (the worst measured: ~1.5 s): CPU time, which
 # another process using the machine does not stretch as it stretches the wall clock
 LIMIT = 5.0

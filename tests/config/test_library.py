@@ -23,7 +23,7 @@ from rtupoll.sim.runner import simulated_bus
 
 BUNDLED = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
 SEEDS = {"net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117", "banner-ez-array"}
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def run(*args: str) -> Result:

@@ -19,7 +19,7 @@ from rtupoll.config.paths import PROFILES_ENV, bundled_dir
 from rtupoll.config.profile_file import read_profile
 from rtupoll.errors import ProfileError
 from rtupoll.sim.runner import SimulatedBus
-from tests.test_read_imports import imported, loaded
+from tests.cli.test_read_imports import imported, loaded
 
 BUNDLED = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
 CO2 = "{name: co2, table: input, address: 30009, type: u16, unit: ppm,"

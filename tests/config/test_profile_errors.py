@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from rtupoll.cli import cli
 
-FIXTURES = Path(__file__).parent / "fixtures" / "profiles"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "profiles"
 
 EXPECTED = {
     "bad-order": "6: byte_order: 'BACD' is not one of: ABCD, BADC, CDAB, DCBA",
@@ -52,7 +52,7 @@ def test_check_reports_file_line_and_field(name: str) -> None:
 
 
 def test_check_passes_good_profiles_and_counts_bad_ones() -> None:
-    bundled = sorted(Path(__file__).parents[1].joinpath("profiles").glob("*.yaml"))
+    bundled = sorted(Path(__file__).parents[2].joinpath("profiles").glob("*.yaml"))
     bad = FIXTURES / "overlap.yaml"
     result = CliRunner().invoke(cli, ["profiles", "check", *map(str, bundled), str(bad)])
     assert result.stdout.count(": ok (") == len(bundled) >= 20

@@ -26,7 +26,7 @@ from rtupoll.config.library import load_one
 from rtupoll.config.paths import bundled_dir
 from rtupoll.rtu import Table
 
-GOLDEN = Path(__file__).parent / "fixtures" / "golden"
+GOLDEN = Path(__file__).parents[1] / "fixtures" / "golden"
 LIBRARY = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
 
 
@@ -119,7 +119,7 @@ def test_every_library_profile_names_its_documents(pid: str) -> None:
 
 
 def test_the_docs_list_every_profiles_level_as_its_file_says() -> None:
-    text = (Path(__file__).parents[1] / "docs" / "profiles.md").read_text(encoding="utf-8")
+    text = (Path(__file__).parents[2] / "docs" / "profiles.md").read_text(encoding="utf-8")
     section = text.split("### Verification level of every bundled profile", 1)[1]
     section = section.split("\n#", 1)[0]
     rows = dict(re.findall(r"^\| `([a-z0-9-]+)` \| ([a-z ]+) \|", section, re.M))

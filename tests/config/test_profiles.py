@@ -206,7 +206,7 @@ def test_user_directory_shadows_bundled(tmp_path: Path, monkeypatch: pytest.Monk
 
 
 def test_the_documented_example_profile_loads(tmp_path: Path) -> None:
-    doc = (Path(__file__).parents[1] / "docs" / "profiles.md").read_text()
+    doc = (Path(__file__).parents[2] / "docs" / "profiles.md").read_text()
     example = doc.split("```yaml\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "acme-th100.yaml"
     path.write_text(example)

@@ -16,7 +16,7 @@ from rtupoll.config.library import load_one
 from rtupoll.model.profile import Verification
 from rtupoll.sim.runner import simulated_bus
 
-FIXTURES = Path(__file__).parent / "fixtures" / "profiles"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "profiles"
 
 GOOD = """\
 id: mine

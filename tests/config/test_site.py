@@ -9,7 +9,7 @@ import pytest
 from rtupoll.config.site import from_specs, load_site
 from rtupoll.errors import ConfigError, RtupollError, UsageError
 
-SITE = Path(__file__).parent / "fixtures" / "site"
+SITE = Path(__file__).parents[1] / "fixtures" / "site"
 
 
 def test_a_good_site_gives_buses_devices_and_their_settings() -> None:

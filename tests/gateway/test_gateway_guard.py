@@ -28,7 +28,7 @@ from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.effects import DIAGNOSTICS, Effect, effect, function_effect, reaches
 from rtupoll.sim.runner import SimulatedBus
-from tests.test_gateway_sim import served
+from tests.gateway.test_gateway_sim import served
 
 Sim = Callable[..., SimulatedBus]
 MBPOLL = shutil.which("mbpoll")

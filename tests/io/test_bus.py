@@ -275,7 +275,7 @@ def test_per_transaction_timeout_and_retries(peer: Responder) -> None:
         return took
     short, long_, retried = run(go())
     # each attempt waits its own timeout (how much longer a loaded machine takes is no
-    # rule of the bus: the exact deadlines are tested in virtual time, tests/test_line.py)
+    # rule of the bus: the exact deadlines are tested in virtual time, tests/rtu/test_line.py)
     assert short >= 0.05 and long_ >= 0.2 and retried >= 0.15
     assert len(peer.requests) == 5
 

@@ -206,4 +206,4 @@ def test_dead_device_costs_its_timeout_not_more(sim: Sim) -> None:
     assert dead >= 0.1  # two attempts of 0.05 s each (and no third)
     assert live >= 0.04  # the drain after the timeout, then the answer (that it answered
     # and did not time out is the read returning; the costs are exact in virtual time,
-    # tests/test_virtual_bus.py)
+    # tests/io/test_virtual_bus.py)

@@ -20,7 +20,7 @@ from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 FAST = ("--timeout", "0.1", "--retries", "0")  # each silent address probed costs this
-PLAN = Path(__file__).parent / "fixtures" / "commission" / "three.csv"
+PLAN = Path(__file__).parents[1] / "fixtures" / "commission" / "three.csv"
 
 
 def run(*args: str) -> Result:

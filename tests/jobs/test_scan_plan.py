@@ -40,7 +40,7 @@ from rtupoll.sim.engine import Engine
 
 LIB = sorted(load_library().profiles.values(), key=lambda p: p.id)
 BY_ID = {p.id: p for p in LIB}
-FIXTURES = Path(__file__).parent / "fixtures"
+FIXTURES = Path(__file__).parents[1] / "fixtures"
 MARGIN = 0.04
 
 

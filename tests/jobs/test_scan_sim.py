@@ -29,7 +29,7 @@ from rtupoll.rtu import Framing
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
-FIXTURES = Path(__file__).parent / "fixtures" / "scan"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "scan"
 SEEDS = ["net-irnet-pro@3", "radar-level@7", "huiwen-aq@12", "co2meter-an117@20",
          "banner-ez-array@31"]
 RTUPOLL = [sys.executable, "-m", "rtupoll"]
@@ -37,7 +37,7 @@ RTUPOLL = [sys.executable, "-m", "rtupoll"]
 
 # the simulator's thread may answer 100 ms late on a busy machine: twice the default
 # turnaround margin, so identification does not depend on the machine's load (the
-# derived margins themselves are exact in virtual time, tests/test_scan_plan.py)
+# derived margins themselves are exact in virtual time, tests/jobs/test_scan_plan.py)
 PATIENT = ("--turnaround", "0.15")
 
 
@@ -100,7 +100,7 @@ def test_an_empty_range_costs_no_more_than_the_derived_timeouts(sim: Sim) -> Non
     derived = 50 * probe_timeout(framing, 1, margin)
     assert found == []
     # never less than the derived timeouts (that it is not more is a rule about time:
-    # exact in virtual time, tests/test_scan_plan.py; here a busy machine adds to it)
+    # exact in virtual time, tests/jobs/test_scan_plan.py; here a busy machine adds to it)
     assert derived * 0.95 <= elapsed
     assert len([w for w in bus.wire if w.direction == "in"]) == 50  # one probe each
 

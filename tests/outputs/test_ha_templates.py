@@ -32,7 +32,7 @@ from rtupoll.model.codec import DataType
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, Subscriber, broker_fixture  # noqa: F401  (the broker fixture)
-from tests.test_mqtt_cli import Poll
+from tests.outputs.test_mqtt_cli import Poll
 
 SITE = """\
 buses:
@@ -209,7 +209,7 @@ def profile_values(field: Any) -> list[float]:
 def test_number_boxes_admit_every_value_the_profiles_allow() -> None:
     import os
 
-    here = Path(__file__).parent.parent / "profiles"
+    here = Path(__file__).parents[2] / "profiles"
     checked = 0
     for file in sorted(os.listdir(here)):
         if not file.endswith(".yaml"):

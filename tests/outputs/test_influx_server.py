@@ -22,7 +22,7 @@ from rtupoll.model.interpret import FieldValue
 from rtupoll.outputs.influx import lines
 from rtupoll.sim.runner import SimulatedBus
 from tests.influxdb import Influx, influx_fixture  # noqa: F401
-from tests.test_influx import parse_line
+from tests.outputs.test_influx import parse_line
 
 DEVICES = {1: "net-irnet-pro", 2: "radar-level", 3: "huiwen-aq", 5: "banner-ez-array",
            6: "xy-md02", 7: "eastron-sdm120"}

@@ -26,7 +26,7 @@ from tests.brokers import (
     broker_fixture,  # noqa: F401  (the broker fixture)
     free_port,
 )
-from tests.test_read_imports import imported, loaded
+from tests.cli.test_read_imports import imported, loaded
 
 RTUPOLL = [sys.executable, "-m", "rtupoll"]
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
-from tests.test_mqtt_cli import (  # noqa: F401  (fixtures: plant, polls)
+from tests.outputs.test_mqtt_cli import (  # noqa: F401  (fixtures: plant, polls)
     RTUPOLL,
     Poll,
     plant_fixture,

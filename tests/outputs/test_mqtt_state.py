@@ -157,7 +157,7 @@ def test_bridge_info_describes_devices_and_fields() -> None:
 
 
 def test_names_no_field_can_take(tmp_path: Path) -> None:
-    base = Path(__file__).parent.parent / "profiles" / "xy-md02.yaml"
+    base = Path(__file__).parents[2] / "profiles" / "xy-md02.yaml"
     for reserved in ("_rtupoll", "last_seen"):
         text = base.read_text().replace("name: humidity,", f"name: {reserved},", 1)
         assert text != base.read_text()

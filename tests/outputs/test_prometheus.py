@@ -31,7 +31,7 @@ from tests.brokers import free_port
 
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
 MBPOLL = shutil.which("mbpoll") or "/usr/bin/mbpoll"
-PROFILES = sorted(p.stem for p in Path(__file__).parents[1].joinpath("profiles").glob("*.yaml"))
+PROFILES = sorted(p.stem for p in Path(__file__).parents[2].joinpath("profiles").glob("*.yaml"))
 
 
 def promtool(text: str) -> subprocess.CompletedProcess[str]:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rtupoll.sim.runner import SimulatedBus
 
-README = Path(__file__).parents[1] / "README.md"
+README = Path(__file__).parents[2] / "README.md"
 
 
 def script() -> str:

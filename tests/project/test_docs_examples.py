@@ -53,7 +53,7 @@ import pytest
 from rtupoll.sim.runner import SimulatedLines, simulated_lines
 from rtupoll.sim.scenario import build
 
-ROOT = Path(__file__).parents[1]
+ROOT = Path(__file__).parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SHELLS = {"sh", "bash", "shell", "console"}
 COMMANDS = ("rtupoll", "scripts/", "mbpoll", ".venv/bin/")

@@ -330,7 +330,7 @@ chmod +x "$3/bin/pip" "$3/bin/python"
 
 
 def setup_copy(tmp_path: Path) -> tuple[Path, dict[str, str]]:
-    root = Path(__file__).parents[1]
+    root = Path(__file__).parents[2]
     (tmp_path / "scripts").mkdir()
     (tmp_path / "scripts" / "setup").write_text((root / "scripts" / "setup").read_text())
     (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\n")
@@ -372,7 +372,7 @@ def test_setup_shows_the_installers_output_when_a_step_fails(tmp_path: Path) -> 
 
 def test_the_readme_commissioning_script_runs_against_the_simulator_the_readme_names(
         tmp_path: Path) -> None:
-    readme = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
+    readme = (Path(__file__).parents[2] / "README.md").read_text(encoding="utf-8")
     prose = readme.split("<!-- commissioning:begin -->")[0].rsplit("## Commissioning", 1)[1]
     said = re.search(r"`(rtupoll simulate [^`]+)`", " ".join(prose.split()))
     assert said, prose

@@ -130,7 +130,7 @@ def test_scenario_mistakes_say_file_line_and_path(tmp_path: Path, text: str, whe
 
 
 def test_the_scenario_in_the_docs_builds(tmp_path: Path) -> None:
-    doc = (Path(__file__).parents[1] / "docs" / "simulator.md").read_text()
+    doc = (Path(__file__).parents[2] / "docs" / "simulator.md").read_text()
     block = doc.split("## Scenario files", 1)[1].split("```yaml\n", 1)[1].split("```", 1)[0]
     c = build(scenario=write(tmp_path, block))
     assert [d.name for d in c.devices] == ["net-irnet-pro@1", "huiwen-aq@3"]
@@ -141,7 +141,7 @@ def test_the_scenario_in_the_docs_builds(tmp_path: Path) -> None:
 def test_the_readme_scenario_loads_and_does_what_it_says(tmp_path: Path) -> None:
     from rtupoll.sim.runner import simulated_bus
 
-    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
     text = readme.split("```yaml\nseed: 7", 1)[1].split("```", 1)[0]
     path = tmp_path / "bus.yaml"
     path.write_text("seed: 7" + text)

@@ -16,7 +16,7 @@ import pytest
 from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import profile
-from tests.test_sniff import mbpoll, sniffing
+from tests.sniff.test_sniff import mbpoll, sniffing
 
 TSHARK = shutil.which("tshark") or "/usr/bin/tshark"
 FIELDS = ("frame.number", "mbrtu.unit_id", "modbus.func_code", "modbus.reference_num",

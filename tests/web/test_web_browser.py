@@ -35,7 +35,7 @@ from tests.web_helpers import (
 
 pytestmark = pytest.mark.skipif(not have_chromium(), reason="chromium and chromedriver "
                                 "(Debian: chromium, chromium-driver) are not installed")
-DOCS = Path(__file__).resolve().parents[1] / "docs"
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 IN_DOCS = {"web.png", "web-phone-dark.png", "web-fleet.png"}  # docs/web.md shows these
 DEMO = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "banner-ez-array@5",
         "co2meter-an117@4"]
