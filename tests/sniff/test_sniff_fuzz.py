@@ -91,7 +91,8 @@ def traffic(draw: st.DrawFn) -> list[tuple[bytes, float]]:
     return chunks
 
 
-@settings(max_examples=300, deadline=None, derandomize=True,
+# 100 examples by default (7 CPU-s for 300), the long profile's 2,000 on demand
+@settings(max_examples=max(100, settings().max_examples), deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(traffic())
 def test_the_sniffer_survives_any_bytes_and_accounts_for_every_one(
