@@ -94,8 +94,9 @@ def test_rtu_over_tcp_gateway(sim: Sim) -> None:
     assert bus_sim.port.startswith("tcp://")
 
     async def go() -> list[tuple[int, ...]]:
-        async with Bus(PortSettings(bus_sim.port)) as bus:
-            return [await bus.read(1, *IRNET_BLOCK, timeout=0.3) for _ in range(4)]
+        async with Bus(PortSettings(bus_sim.port)) as bus:  # (a right reply ends the wait:
+            # 5 s only catches a loss; 0.3 s failed once beside 4 workers under load)
+            return [await bus.read(1, *IRNET_BLOCK, timeout=5.0) for _ in range(4)]
     assert run(go()) == [image(bus_sim, 1)] * 4
 
 
