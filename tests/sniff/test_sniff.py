@@ -14,10 +14,11 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pytest
 
@@ -60,21 +61,39 @@ def mbpoll(port: str, unit: int, table: Table, address: int, count: int,
 
 
 @contextmanager
-def sniffing(tap: str, *args: str) -> Iterator[list[str]]:
-    """``rtupoll sniff`` on the tap while the block runs; its stdout lines afterwards."""
+def sniffing(tap: str, *args: str, shown: int = 0) -> Iterator[list[str]]:
+    """``rtupoll sniff`` on the tap while the block runs; its stdout lines afterwards.
+    With ``shown=N`` it is stopped only once it has printed N lines (or after a 30 s
+    hang guard): a busy machine's sniffer may read the last reply after the block ends."""
     proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert proc.stderr is not None
+    assert proc.stderr is not None and proc.stdout is not None
     ready = proc.stderr.readline()  # "listening on ..." once the port is open
     assert "listening on" in ready, ready + proc.stderr.read()
     lines: list[str] = []
+    printed: list[str] = []
+    done = threading.Event()
+
+    def read(out: IO[str]) -> None:
+        for line in out:
+            printed.append(line.rstrip("\n"))
+            if len(printed) >= shown:
+                done.set()
+        done.set()
+
+    reader = threading.Thread(target=read, args=(proc.stdout,), daemon=True)
+    reader.start()
     try:
         yield lines
     finally:
+        if shown:
+            done.wait(timeout=30)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        proc.wait(timeout=30)
+        reader.join(timeout=30)  # stdout is the reader's alone
+        err = proc.stderr.read()
         assert proc.returncode == 0, err
-        lines += out.splitlines()
+        lines += printed
 
 
 def records(lines: Sequence[str]) -> list[dict[str, Any]]:
@@ -169,7 +188,7 @@ def test_an_unknown_unit_is_shown_raw_and_looks_like_its_profile(sim: Sim, tmp_p
     tap = str(tmp_path / "tap")
     bus = sim("huiwen-aq@7", tick=None, tap=tap, sets=["huiwen-aq@7.co2=650"])
     p = profile("huiwen-aq")
-    with sniffing(tap, "--format", "frames") as lines:
+    with sniffing(tap, "--format", "frames", shown=2) as lines:
         for name in ("slave_address", "co2"):
             f = p.field(name)
             mbpoll(bus.port, 7, f.table, f.address, f.words)
@@ -211,9 +230,11 @@ def test_a_site_file_names_the_port_the_speed_and_the_devices(sim: Sim, tmp_path
     assert proc.stderr is not None and "9600 8N1" in proc.stderr.readline()
     co2 = profile("huiwen-aq").field("co2")
     mbpoll(bus.port, 3, co2.table, co2.address, 1)
+    assert proc.stdout is not None
+    first = proc.stdout.readline()  # the reading, once the sniffer has read the reply
     proc.send_signal(signal.SIGINT)
-    out, _ = proc.communicate(timeout=10)
-    [rec] = records(out.splitlines())
+    out, _ = proc.communicate(timeout=30)
+    [rec] = records([first, *out.splitlines()])
     assert (rec["device"], rec["field"], rec["value"]) == ("air", "co2", 900)
 
 
