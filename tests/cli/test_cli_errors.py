@@ -1,0 +1,69 @@
+"""Usage mistakes through the real console script: one line each, exit 2, no traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
+    return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
+                          text=True, timeout=60, env=env)
+
+
+@pytest.mark.parametrize(("args", "line"), [
+    (["read", "huiwen-aq@3"],
+     "rtupoll: which port? give --port PORT (e.g. -p /dev/ttyUSB0, or tcp://HOST:PORT for a "
+     "gateway), or set $RTUPOLL_PORT"),
+    (["reed"], "rtupoll: no command 'reed' (did you mean 'read'?) (see 'rtupoll --help')"),
+    (["poll", "--simulate", "--bogus"],
+     "rtupoll: No such option '--bogus'. Did you mean '--baud'? (see 'rtupoll poll --help')"),
+    (["read", "-p", "/dev/null", "huiwen-aq@300"],
+     "rtupoll: address 300 is outside 0..255 in 'huiwen-aq@300'"),
+])
+def test_usage_mistakes_are_one_line_and_exit_2(args: list[str], line: str) -> None:
+    proc = rtupoll(*args)
+    assert proc.returncode == 2
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.strip() == line
+    assert "Traceback" not in proc.stderr
+
+
+def test_plain_rtupoll_prints_the_help() -> None:
+    proc = rtupoll()
+    assert proc.returncode == 0
+    assert proc.stdout.startswith("Usage: rtupoll [OPTIONS] COMMAND [ARGS]...")
+    assert "Exit codes:" in proc.stdout
+
+
+def test_a_file_that_is_not_a_serial_port_says_so() -> None:
+    proc = rtupoll("read", "-p", "/dev/null", "huiwen-aq@1", "co2")
+    assert proc.returncode == 3
+    assert proc.stderr == "rtupoll: /dev/null is not a serial port\n"
+
+
+def test_the_exit_codes_in_help_and_readme_come_from_the_error_tree() -> None:
+    import re
+    from pathlib import Path
+
+    from rtupoll.cli import EXIT_CODES
+    from rtupoll.errors import RtupollError, exit_codes
+
+    codes = [code for code, _ in exit_codes()]
+    owned = {cls.exit_code for cls in _subclasses(RtupollError) if "exit_code" in cls.__dict__}
+    assert set(codes) == (owned - {1}) | {0}  # every code a class owns is explained
+    assert [int(c) for c in re.findall(r"^  (\d+) ", EXIT_CODES, re.M)] == codes
+    readme = (Path(__file__).parents[2] / "README.md").read_text(encoding="utf-8")
+    table = readme.split("## Exit codes", 1)[1].split("\n## ", 1)[0]
+    assert [int(c) for c in re.findall(r"^\| (\d+) \|", table, re.M)] == codes
+
+
+def _subclasses(cls: type) -> list[type]:
+    out = [cls]
+    for sub in cls.__subclasses__():
+        out += _subclasses(sub)
+    return out

@@ -1,0 +1,123 @@
+"""Provenance: where a profile's facts come from, how far they are verified, and what
+rtupoll says about it (profiles list/show, scan, a warning when an unverified one is used)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from rtupoll.cli import cli
+from rtupoll.config.library import load_one
+from rtupoll.model.profile import Verification
+from rtupoll.sim.runner import simulated_bus
+
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "profiles"
+
+GOOD = """\
+id: mine
+vendor: ACME
+model: TH1
+manual: TH1 sheet
+provenance:
+  level: {level}
+  sources:
+{sources}
+addressing: pdu
+fields:
+  - {{name: t, table: input, address: 0, type: i16}}
+"""
+ONE = "    - {title: TH1 Modbus manual, version: rev 3, where: https://example.com/th1.pdf}\n"
+
+
+def _check(tmp_path: Path, text: str) -> tuple[int, str]:
+    path = tmp_path / "mine.yaml"
+    path.write_text(text)
+    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
+    return result.exit_code, result.stderr.splitlines()[0] if result.stderr else ""
+
+
+@pytest.mark.parametrize(("level", "sources", "line", "message"), [
+    ("guessed", ONE, 6, "provenance.level: 'guessed' is not one of: vendor document, "
+                        "two independent implementations, unverified"),
+    ("vendor document", "    []\n", 8, "provenance.sources: a profile verified by 'vendor "
+                                       "document' names its sources (title, where)"),
+    ("two independent implementations", ONE, 8,
+     "provenance.sources: 'two independent implementations' names two sources, not 1"),
+    ("vendor document", "    - {title: TH1 manual}\n", 8,
+     "provenance.sources[0]: missing required key 'where'"),
+    ("vendor document", "    - {title: TH1, where: x, page: 4}\n", 8,
+     "provenance.sources[0].page: unknown key"),
+])
+def test_bad_provenance_is_named_by_file_line_and_field(tmp_path: Path, level: str,
+                                                        sources: str, line: int,
+                                                        message: str) -> None:
+    code, first = _check(tmp_path, GOOD.format(level=level, sources=sources))
+    assert code == 2
+    assert first.startswith(f"{tmp_path}/mine.yaml:{line}: ") and message in first, first
+
+
+def test_good_provenance_is_shown_by_show_and_list(tmp_path: Path) -> None:
+    (tmp_path / "mine.yaml").write_text(GOOD.format(level="vendor document", sources=ONE))
+    code, _ = _check(tmp_path, GOOD.format(level="vendor document", sources=ONE))
+    assert code == 0
+    show = CliRunner().invoke(cli, ["profiles", "show", "mine", "--profiles", str(tmp_path)],
+                              env={"COLUMNS": "200"})
+    assert "verified    vendor document" in show.stdout
+    assert "source      TH1 Modbus manual (rev 3) <https://example.com/th1.pdf>" in show.stdout
+    listed = CliRunner().invoke(cli, ["profiles", "list", "--format", "json",
+                                      "--profiles", str(tmp_path)])
+    recs = {r["id"]: r for r in map(json.loads, listed.stdout.splitlines())}
+    assert recs["mine"]["verification"] == "vendor document"
+    assert recs["mine"]["sources"] == ["TH1 Modbus manual (rev 3) <https://example.com/th1.pdf>"]
+    assert recs["schneider-atv12"]["verification"] == "unverified"
+
+
+def test_a_profile_without_provenance_is_shown_as_unverified(tmp_path: Path) -> None:
+    text = GOOD.format(level="unverified", sources="").replace(
+        "provenance:\n  level: unverified\n  sources:\n", "")
+    (tmp_path / "mine.yaml").write_text(text)
+    show = CliRunner().invoke(cli, ["profiles", "show", "mine", "--profiles", str(tmp_path)],
+                              env={"COLUMNS": "200"})
+    assert "verified    unverified (no provenance): its values may be wrong" in show.stdout
+
+
+def test_list_table_shows_each_level() -> None:
+    out = CliRunner().invoke(cli, ["profiles", "list"], env={"COLUMNS": "200"}).stdout
+    rows = {line.split()[0]: line for line in out.splitlines()
+            if line.startswith("   ") and line.strip()}
+    assert rows["eastron-sdm630"].rstrip().endswith("vendor doc")
+    assert rows["carlo-gavazzi-em24"].rstrip().endswith("2 impls")
+    assert rows["schneider-atv12"].rstrip().endswith("UNVERIFIED")
+
+
+def test_using_an_unverified_profile_warns_once_in_one_line() -> None:
+    assert load_one("schneider-atv12").provenance.level is Verification.UNVERIFIED
+    with simulated_bus(["schneider-atv12@1", "schneider-atv12@3", "eastron-sdm630@2"],
+                       tcp=True, tick=None) as bus:
+        proc = subprocess.run(
+            [sys.executable, "-m", "rtupoll", "poll", "--port", bus.port, "--once",
+             "--format", "json", "schneider-atv12@1", "schneider-atv12@3"],
+            capture_output=True, text=True, timeout=120)
+        verified = subprocess.run(
+            [sys.executable, "-m", "rtupoll", "read", "--port", bus.port, "--format", "json",
+             "eastron-sdm630@2", "voltage_l1"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if "schneider-atv12" in line]
+    assert len(warnings) == 1
+    assert "profile schneider-atv12 is unverified" in warnings[0]
+    assert verified.returncode == 0, verified.stderr
+    assert "unverified" not in verified.stderr
+
+
+def test_scan_shows_the_level_of_the_profile_it_found() -> None:
+    with simulated_bus(["eastron-sdm630@2"], tcp=True, tick=None) as bus:
+        result = CliRunner().invoke(cli, ["scan", "--port", bus.port, "--baudrate", "9600",
+                                          "--addresses", "2", "--format", "json"])
+    assert result.exit_code == 0, result.output
+    rec = json.loads(result.stdout.splitlines()[0])
+    assert rec["profile"] == "eastron-sdm630" and rec["verification"] == "vendor document"

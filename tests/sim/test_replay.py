@@ -1,0 +1,166 @@
+"""``rtupoll simulate --replay``: a capture's devices answer as they did on site."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from rtupoll.errors import UsageError
+from rtupoll.rtu import Framing, exception_response, read_request, read_response
+from rtupoll.rtu.functions import Table
+from rtupoll.sim.replay import load_replay
+from rtupoll.sim.runner import SimulatedBus
+from rtupoll.sniff.capfile import CaptureWriter
+
+Sim = Callable[..., SimulatedBus]
+RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
+F = Framing(9600)
+CO2 = read_request(3, Table.INPUT, 30009, 1)
+BLOCK = read_request(3, Table.INPUT, 30006, 4)
+
+
+def write_capture(path: Path, exchanges: list[tuple[bytes, bytes | None, float]]) -> None:
+    """Request, reply (None: no answer) and reply time, one exchange every 100 ms."""
+    w = CaptureWriter(path, F, "/dev/ttyUSB0")
+    t = 1_700_000_000.0
+    for request, reply, delay in exchanges:
+        end = t + F.wire_time(len(request))
+        w.write(request, end)
+        if reply is not None:
+            w.write(reply, end + delay + F.wire_time(len(reply)))
+        t += 0.1
+    w.close()
+
+
+def mbpoll(port: str, address: int, count: int, unit: int = 3) -> str:
+    run = subprocess.run(["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-0", "-1",
+                          "-o", "0.3", "-a", str(unit), "-t", "3", "-r", str(address), "-c",
+                          str(count), port], capture_output=True, text=True, timeout=10,
+                         check=False)
+    return run.stdout + run.stderr
+
+
+def values(out: str) -> list[int]:
+    return [int(v) for v in re.findall(r"^\[\d+\]:\s+(-?\d+)", out, re.MULTILINE)]
+
+
+def test_the_engine_answers_each_request_as_captured_in_order(tmp_path: Path) -> None:
+    path = tmp_path / "cap.pcapng"
+    write_capture(path, [(CO2, read_response(3, 4, [650]), 0.030),
+                         (CO2, None, 0.0),
+                         (CO2, read_response(3, 4, [700]), 0.045),
+                         (BLOCK, read_response(3, 4, [25, 50, 250, 700]), 0.020)])
+    engine, line = load_replay(path)
+    assert line.baudrate == 9600
+    first = engine.handle(CO2)
+    assert [t.data for t in first] == [read_response(3, 4, [650])]
+    assert first[0].turnaround == pytest.approx(0.030, abs=2e-3) and first[0].explicit
+    assert engine.handle(CO2) == []  # it did not answer the second time
+    assert [t.data for t in engine.handle(CO2)] == [read_response(3, 4, [700])]
+    assert [t.data for t in engine.handle(CO2)] == [read_response(3, 4, [650])]  # cycles
+    # not captured as such, but every register is known: the latest values
+    part = read_request(3, Table.INPUT, 30007, 2)
+    assert [t.data for t in engine.handle(part)] == [read_response(3, 4, [50, 250])]
+    unknown = read_request(3, Table.INPUT, 40, 1)
+    assert [t.data for t in engine.handle(unknown)] == [exception_response(3, 4, 2)]
+    assert engine.handle(read_request(9, Table.INPUT, 1, 1)) == []  # no such unit
+
+
+def test_a_capture_without_requests_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "empty.pcapng"
+    write_capture(path, [])
+    with pytest.raises(UsageError, match="no request"):
+        load_replay(path)
+
+
+def test_a_replayed_capture_answers_mbpoll_with_the_captured_values(tmp_path: Path) -> None:
+    path = tmp_path / "cap.pcapng"
+    write_capture(path, [(CO2, read_response(3, 4, [650]), 0.02),
+                         (BLOCK, read_response(3, 4, [25, 50, 250, 650]), 0.02),
+                         (read_request(3, Table.INPUT, 30100, 1), exception_response(3, 4, 2),
+                          0.02)])
+    proc = subprocess.Popen([RTUPOLL, "simulate", "--replay", str(path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        head = proc.stdout.readline()
+        found = re.search(r" on (/dev/pts/\d+)", head)
+        assert found, head + proc.stderr.read() if proc.stderr else head
+        port = found.group(1)
+        assert values(mbpoll(port, 30009, 1)) == [650]
+        assert values(mbpoll(port, 30006, 4)) == [25, 50, 250, 650]
+        assert "Illegal data address" in mbpoll(port, 30100, 1)
+        assert "timed out" in mbpoll(port, 30009, 1, unit=4)  # not in the capture
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    assert "stopped after 4 requests (3 replies)" in out
+
+
+def sniff_frames(tap: str, *devices: str) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "frames",
+                             *devices], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    assert proc.stderr is not None
+    assert "listening on" in proc.stderr.readline()
+    return proc
+
+
+def stop(proc: subprocess.Popen[str]) -> str:
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    return out
+
+
+def reply_times(frames: str) -> list[float]:
+    return [float(ms) for ms in re.findall(r"reply (\d+\.\d) ms", frames)]
+
+
+# reply times as a sniffer sees them on the real clock: a busy machine delays its reads
+# either way (seen: 45.7 ms after a capture's 70.9 ms, beside 3 workers), so it runs alone
+@pytest.mark.timing
+def test_a_live_capture_replays_its_values_and_reply_times(sim: Sim, tmp_path: Path) -> None:
+    """Sniff mbpoll reading a timed simulator, replay the capture, sniff the replay."""
+    tap, path = str(tmp_path / "tap"), tmp_path / "site.pcapng"
+    bus = sim("huiwen-aq@3", tick=None, baudrate=9600, tap=tap,
+              sets=["huiwen-aq@3.co2=777", "huiwen-aq@3.pm25=42"],
+              options=["huiwen-aq@3.turnaround=0.08"])  # well above scheduling noise
+    sniffer = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format",
+                                "frames", "--capture", str(path)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert sniffer.stderr is not None and "listening on" in sniffer.stderr.readline()
+    site = [values(mbpoll(bus.port, 30009, 1)), values(mbpoll(bus.port, 30006, 4))]
+    on_site = stop(sniffer)
+    bus.stop()
+    assert site == [[777], [42, *bus.registers(3, "input", 30007, 3)]]
+
+    tap2 = str(tmp_path / "tap2")
+    proc = subprocess.Popen([RTUPOLL, "simulate", "--replay", str(path), "--tap", tap2],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        found = re.search(r" on (/dev/pts/\d+)", proc.stdout.readline())
+        assert found
+        assert "Tap" in proc.stdout.readline()
+        sniffer = sniff_frames(tap2)
+        replayed = [values(mbpoll(found.group(1), 30009, 1)),
+                    values(mbpoll(found.group(1), 30006, 4))]
+        at_desk = stop(sniffer)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=10)
+    assert replayed == site
+    before, after = reply_times(on_site), reply_times(at_desk)
+    assert len(before) == len(after) == 2
+    # the 80 ms turnaround on site, and the replay answers no sooner than the capture did
+    # (measured through two processes' scheduling: only lower bounds hold on a busy machine)
+    assert all(b > 70.0 for b in before), (before, after)
+    assert all(a > b - 15.0 for a, b in zip(after, before, strict=True)), (before, after)

@@ -1,0 +1,133 @@
+"""A listener survives any byte sequence: ``sniff``'s whole path (the splitter, the
+pairing, the per-device view that decodes values, the one-line render) fed random
+bytes and mutated traffic (bit flips, cuts, insertions, and odd frames with a valid
+CRC: reads of 126-2000 registers, unknown functions, byte counts that lie), in chunks
+of any size and timing. Every byte fed comes back in exactly one frame; a value is
+only ever decoded from a CRC-valid reply."""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from rtupoll.config.library import load_library, load_one
+from rtupoll.rtu import Framing, Table, crc_ok, read_request, read_response, with_crc
+from rtupoll.rtu.stream import Transaction
+from rtupoll.sniff.lines import frame_line
+from rtupoll.sniff.model import BusView, Known
+from rtupoll.sniff.session import Session
+
+F9600 = Framing(9600)
+CHAR = F9600.char_time
+LIBRARY = list(load_library(()).profiles.values())
+KNOWN = [Known("air", load_one("huiwen-aq"), 3), Known("gas", load_one("net-irnet-pro"), 1),
+         Known("meter", load_one("eastron-sdm120"), 10)]
+
+
+@st.composite
+def frames(draw: st.DrawFn) -> bytes:
+    """One frame as a master or a device could send it, or one that passes the CRC
+    without making sense."""
+    unit = draw(st.sampled_from([0, 1, 3, 10, 247, 255]))
+    kind = draw(st.sampled_from(["read", "reply", "huge", "exception", "any", "write"]))
+    if kind == "read":
+        return read_request(unit, draw(st.sampled_from(list(Table))),
+                            draw(st.integers(0, 0xFFFF)), draw(st.integers(1, 125)))
+    if kind == "reply":
+        n = draw(st.integers(0, 125))
+        return read_response(unit, draw(st.sampled_from([3, 4])),
+                             draw(st.lists(st.integers(0, 0xFFFF), min_size=n, max_size=n)))
+    if kind == "huge":  # more than any reply can carry: 126..0xFFFF registers
+        return with_crc(struct.pack(">BBHH", unit, draw(st.sampled_from([1, 2, 3, 4])),
+                                    draw(st.integers(0, 0xFFFF)),
+                                    draw(st.integers(126, 0xFFFF))))
+    if kind == "exception":
+        return with_crc(bytes((unit, draw(st.integers(0, 255)) | 0x80,
+                               draw(st.integers(0, 255)))))
+    if kind == "write":
+        return with_crc(struct.pack(">BBHH", unit, draw(st.sampled_from([5, 6, 8])),
+                                    draw(st.integers(0, 0xFFFF)), draw(st.integers(0, 0xFFFF))))
+    return with_crc(bytes((unit, draw(st.integers(0, 255)))) +
+                    draw(st.binary(max_size=40)))
+
+
+@st.composite
+def mutated(draw: st.DrawFn, frame: bytes) -> bytes:
+    how = draw(st.sampled_from(["keep", "keep", "flip", "cut", "insert", "recrc"]))
+    data = bytearray(frame)
+    if how == "flip" and data:
+        i = draw(st.integers(0, len(data) - 1))
+        data[i] ^= 1 << draw(st.integers(0, 7))
+    elif how == "cut" and len(data) > 1:
+        data = data[: draw(st.integers(1, len(data) - 1))]
+    elif how == "insert":
+        i = draw(st.integers(0, len(data)))
+        data[i:i] = draw(st.binary(min_size=1, max_size=4))
+    elif how == "recrc" and len(data) > 3:  # edited, and the CRC made valid again
+        i = draw(st.integers(0, len(data) - 3))
+        data[i] = draw(st.integers(0, 255))
+        data = bytearray(with_crc(bytes(data[:-2])))
+    return bytes(data)
+
+
+@st.composite
+def traffic(draw: st.DrawFn) -> list[tuple[bytes, float]]:
+    """Chunks with arrival times: mutated frames glued or apart, or plain random bytes."""
+    if draw(st.booleans()):
+        wire = b"".join([draw(mutated(draw(frames()))) for _ in range(draw(st.integers(1, 10)))])
+        gaps = [draw(st.sampled_from([0.0, F9600.silence, 0.02, 1.5])) for _ in wire]
+    else:
+        wire = draw(st.binary(min_size=1, max_size=600))
+        gaps = [draw(st.sampled_from([0.0, 0.0, F9600.silence])) for _ in wire]
+    chunks, i, t = [], 0, 0.0
+    while i < len(wire):
+        n = draw(st.integers(1, 64))
+        t += sum(gaps[i : i + n]) + n * CHAR + draw(st.sampled_from([0.0, 0.016]))
+        chunks.append((wire[i : i + n], t))
+        i += n
+    return chunks
+
+
+# 100 examples by default (7 CPU-s for 300), the long profile's 2,000 on demand
+@settings(max_examples=max(100, settings().max_examples), deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(traffic())
+def test_the_sniffer_survives_any_bytes_and_accounts_for_every_one(
+        chunks: list[tuple[bytes, float]]) -> None:
+    view = BusView(KNOWN, LIBRARY)
+    seen: list[Transaction] = []
+    lines: list[str] = []
+
+    def sink(tx: Transaction, records: list[dict[str, Any]]) -> None:
+        seen.append(tx)
+        lines.append(frame_line(tx, view, records))
+        for r in records:  # a value is only ever decoded from a CRC-valid reply
+            if r.get("value") is not None:
+                assert tx.status == "ok" and tx.reply is not None and crc_ok(tx.reply.data)
+
+    session = Session(F9600, view, sink)
+    for data, t in chunks:
+        session.feed(data, t)
+        session.feed(b"", t + 0.05)
+    session.close()
+    fed = b"".join(d for d, _ in chunks)
+    back = sum(len(f.data) for tx in seen for f in (tx.request, tx.reply, tx.junk)
+               if f is not None)
+    assert back == len(fed)
+    assert all(isinstance(x, str) and "\n" not in x for x in lines)
+
+
+def test_a_crc_valid_read_of_128_registers_is_a_request_answered_only_by_an_exception(
+        ) -> None:
+    huge = with_crc(struct.pack(">BBHH", 1, 3, 0, 128))
+    seen: list[Transaction] = []
+    view = BusView(KNOWN, LIBRARY)
+    session = Session(F9600, view, lambda tx, recs: seen.append(tx))
+    session.feed(huge, 1.0)
+    session.feed(with_crc(bytes((1, 0x83, 2))), 1.01)
+    session.feed(huge, 1.1)
+    session.close()
+    assert [tx.status for tx in seen] == ["exception", "timeout"]

@@ -1,0 +1,266 @@
+"""The dashboard in a real browser: the distribution's headless chromium, driven by
+selenium, against ``rtupoll poll --http`` polling the simulator, and ``rtupoll web``
+reading a real mosquitto. What is checked is what the page shows (the DOM as
+rendered), and that the browser's console has no errors.
+
+Screenshots (light, dark, phone width) go to the test's directory; with
+``RTUPOLL_DOCS_SCREENSHOTS=1`` the demo's are also written to docs/ (docs/web.md
+shows them).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from rtupoll.sim.runner import SimulatedBus
+from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
+from tests.web_helpers import (
+    chromium,
+    color_scheme,
+    console_errors,
+    get_json,
+    have_chromium,
+    phone,
+    running,
+    until,
+)
+
+pytestmark = pytest.mark.skipif(not have_chromium(), reason="chromium and chromedriver "
+                                "(Debian: chromium, chromium-driver) are not installed")
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+IN_DOCS = {"web.png", "web-phone-dark.png", "web-fleet.png"}  # docs/web.md shows these
+DEMO = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "banner-ez-array@5",
+        "co2meter-an117@4"]
+
+# what the page shows, read from the DOM
+SHOWN = """
+return Array.from(document.querySelectorAll('.device')).map(c => ({
+  key: c.dataset.key, state: c.dataset.state, down: c.classList.contains('down'),
+  badge: c.querySelector('.state').textContent,
+  gateway: c.closest('.gateway').dataset.gateway,
+  gatewayDown: c.closest('.gateway').classList.contains('down'),
+  health: c.querySelector('.health').textContent,
+  fields: Array.from(c.querySelectorAll('tr.field')).map(r =>
+    [r.dataset.field, r.querySelector('td.val').textContent]),
+  badges: Array.from(c.querySelectorAll('tr.field')).map(r =>
+    [r.dataset.field, Array.from(r.querySelectorAll('.badge')).map(b =>
+      b.textContent + ':' + b.className)])}));
+"""
+
+
+# an open chart, read at once (it is redrawn with every reading)
+CHART = """
+const svg = document.querySelector('.device[data-key="' + arguments[0] + '"] svg.trend');
+if (!svg) return null;
+const line = svg.querySelector('polyline');
+return {points: Number(svg.dataset.points),
+        ys: line ? line.getAttribute('points').split(' ').map(p => Number(p.split(',')[1])) : [],
+        note: svg.parentNode.querySelector('.chart-note').textContent};
+"""
+
+
+def chart(driver: Any, key: str) -> dict[str, Any] | None:
+    got: dict[str, Any] | None = driver.execute_script(CHART, key)
+    return got
+
+
+def shown(driver: Any) -> dict[str, dict[str, Any]]:
+    out = {}
+    for d in driver.execute_script(SHOWN):  # fields as pairs: in the page's order
+        d["fields"], d["badges"] = dict(d["fields"]), dict(d["badges"])
+        out[d["key"]] = d
+    return out
+
+
+@pytest.fixture
+def browser() -> Iterator[Any]:
+    with chromium() as driver:
+        yield driver
+        # the page's event stream reconnecting to the server the test has stopped is not
+        # the page's error (seen when a loaded machine is slow to end the test)
+        errors = [e for e in console_errors(driver) if not (
+            "/api/events" in e.get("message", "") and "ERR_CONNECTION_REFUSED" in e["message"])]
+        assert not errors, f"errors in the browser console: {errors}"
+
+
+def screenshots(driver: Any, where: Path, name: str, *, docs: bool = False) -> None:
+    """Light, dark and phone-width (dark) screenshots of the page as it is."""
+    targets = [where]
+    if docs and os.environ.get("RTUPOLL_DOCS_SCREENSHOTS"):
+        targets.append(DOCS)
+    for scheme, small in (("light", False), ("dark", False), ("dark", True)):
+        color_scheme(driver, scheme)
+        phone(driver, small)
+        time.sleep(0.3)  # a frame or two to repaint
+        suffix = f"{'-phone' if small else ''}{'-dark' if scheme == 'dark' else ''}"
+        for t in targets:
+            if t == where or f"{name}{suffix}.png" in IN_DOCS:
+                driver.save_screenshot(str(t / f"{name}{suffix}.png"))
+    phone(driver, False)
+    color_scheme(driver, "light")
+
+
+def test_the_demo_every_device_and_a_chart(browser: Any, tmp_path: Path) -> None:
+    with running(["poll", "--simulate", "--format", "json", "--http", "127.0.0.1:0"],
+                 tmp_path) as p:
+        browser.get(p.url)
+        page = until(lambda: (s := shown(browser)) and all(
+            d["state"] == "online" for d in s.values()) and len(s) == 5 and s,
+            "the five demo devices online on the page")
+        assert sorted(page) == sorted(DEMO)
+        state = get_json(p.url + "api/state")
+        for dev in (d for gw in state["gateways"] for b in gw["buses"] for d in b["devices"]):
+            assert list(page[dev["key"]]["fields"]) == [f["name"] for f in dev["fields"]]
+            assert all(v.strip() for v in page[dev["key"]]["fields"].values()), dev["key"]
+        # two lines, as the demo is wired
+        assert browser.execute_script(
+            "return Array.from(document.querySelectorAll('.bus')).map(b => b.dataset.bus)"
+        ) == ["line1", "line2"]
+        assert "5 of 5 devices online" in browser.find_element("id", "summary").text
+        # a chart, opened by clicking the field, filled by the readings as they come
+        browser.find_element("css selector",
+                             '.device[data-key="huiwen-aq@3"] tr[data-field="co2"]').click()
+        until(lambda: (c := chart(browser, "huiwen-aq@3")) and c["points"] >= 3,
+              "three points in the co2 chart")
+        screenshots(browser, tmp_path, "web", docs=True)
+        assert (tmp_path / "web-phone-dark.png").stat().st_size > 10_000
+        # at a phone's width the page is one column and nothing sticks out sideways
+        phone(browser, True)
+        time.sleep(0.3)
+        assert browser.execute_script(
+            "return document.documentElement.scrollWidth <= window.innerWidth")
+        phone(browser, False)
+
+
+def test_the_simulators_values_a_changing_field_drawn(
+        browser: Any, sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3", "net-irnet-pro@1")
+    for name, value in {"co2": 777, "temperature": 21, "humidity": 40}.items():
+        bus.set(3, name, value)
+    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "--interval",
+                  "0.2", "--http", "127.0.0.1:0", "huiwen-aq@3", "net-irnet-pro@1"],
+                 tmp_path) as p:
+        browser.get(p.url)
+        page = until(lambda: (s := shown(browser)) and "huiwen-aq@3" in s and
+                     s["huiwen-aq@3"]["fields"]["co2"].startswith("777") and s,
+                     "the pinned co2 on the page")
+        air = page["huiwen-aq@3"]["fields"]
+        assert air["co2"] == "777ppm"  # value and unit, in their own elements
+        assert air["temperature"] == "21°C" and air["humidity"] == "40%RH"
+        level = bus.get(3, "co2_level")
+        assert page["huiwen-aq@3"]["badges"]["co2_level"][0].startswith(f"{level.value}:badge")
+        assert set(page) == {"huiwen-aq@3", "net-irnet-pro@1"}
+        # the field changes; its chart draws each 2 s step's point
+        browser.find_element("css selector",
+                             '.device[data-key="huiwen-aq@3"] tr[data-field="co2"]').click()
+        values = [700, 900, 650, 1100, 800, 950]
+
+        def drawn() -> dict[str, Any] | None:
+            bus.set(3, "co2", values[int(time.monotonic() / 2) % len(values)])
+            c = chart(browser, "huiwen-aq@3")
+            return c if c and c["points"] >= 4 else None
+
+        got = until(drawn, "four points of the changing co2 drawn", every=0.25)
+        ys = got["ys"]
+        assert len(ys) == got["points"] and len(set(ys)) >= 2, ys  # a line that moves
+        assert got["note"].startswith(f"{len(ys)} points · min ") and got["note"].endswith("ppm")
+        trend = get_json(p.url + "api/trend?device=huiwen-aq%403&field=co2")
+        assert len(trend["v"]) >= len(ys) - 1
+        # a second click closes it
+        browser.find_element("css selector",
+                             '.device[data-key="huiwen-aq@3"] tr[data-field="co2"]').click()
+        assert not browser.find_elements("css selector", "svg.trend")
+
+
+def test_a_dead_device_greys_out_and_comes_back(
+        browser: Any, sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    # radar-level at 4 stops answering at its 4th request, and answers again from its 12th
+    bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead@4-11"])
+    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "--interval",
+                  "0.3", "--timeout", "0.1", "--http", "127.0.0.1:0", "huiwen-aq@3",
+                  "radar-level@4"], tmp_path) as p:
+        browser.get(p.url)
+        until(lambda: shown(browser)["radar-level@4"]["state"] == "online", "radar online")
+        dead = until(lambda: (d := shown(browser)["radar-level@4"])["down"] and d,
+                     "radar greyed out", every=0.05)
+        assert dead["state"] in ("retrying", "offline")
+        assert dead["badge"].startswith(dead["state"] + ", ")  # next try in N s, or trying
+        assert all(not v[:1].isdigit() for v in dead["fields"].values()), dead["fields"]
+        assert "no reply" in " ".join(dead["fields"].values())
+        assert "(last " in " ".join(dead["fields"].values())  # its last good value, dated
+        assert not shown(browser)["huiwen-aq@3"]["down"]  # the other one carries on
+        back = until(lambda: not (d := shown(browser)["radar-level@4"])["down"] and
+                     d["state"] == "online" and d, "radar back by itself")
+        assert all(v[:1].isdigit() for k, v in back["fields"].items() if k != "status")
+        assert "timeouts" in back["health"] and "timeouts 0" not in back["health"]
+
+
+# -- a fleet on one broker --------------------------------------------------------------
+
+def info(gateway: str, devices: dict[str, dict[str, Any]]) -> str:
+    return json.dumps({"gateway": gateway, "version": "0.1.0", "base": f"rtupoll/{gateway}",
+                       "devices": devices})
+
+
+AIR = {"profile": "huiwen-aq", "address": 3, "bus": "line1", "fields": {
+    "co2": {"label": "CO2", "unit": "ppm", "kind": "number", "precision": 0},
+    "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None},
+    "temperature": {"label": "temperature", "unit": "°C", "kind": "number", "precision": 1}}}
+
+
+def publish(broker: Broker, topic: str, payload: str, *, retain: bool = True) -> None:
+    subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
+                    *(["-r"] if retain else []), "-t", topic, "-m", payload], check=True,
+                   timeout=30)
+
+
+def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
+                                             tmp_path: Path) -> None:
+    now = time.strftime("%Y-%m-%dT%H:%M:%S.000Z", time.gmtime())
+    for gw, co2, temp in (("building-a", 612, 21.5), ("building-b", 1480, 23.4)):
+        publish(broker, f"rtupoll/{gw}/bridge/info", info(gw, {"huiwen-aq@3": AIR}))
+        publish(broker, f"rtupoll/{gw}/bridge/state", "online")
+        publish(broker, f"rtupoll/{gw}/huiwen-aq_3/availability", "online")
+        publish(broker, f"rtupoll/{gw}/huiwen-aq_3", json.dumps(
+            {"co2": co2, "co2_level": "GOOD" if co2 < 1000 else "POOR", "temperature": temp,
+             "last_seen": now, "_rtupoll": {"status": "ok"}}))
+    publish(broker, "rtupoll/stray/thing", "not a gateway's")  # no bridge/info: ignored
+    with running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                 name="web") as p:
+        browser.get(p.url)
+        page = until(lambda: len(s := shown(browser)) == 2 and s, "two gateways' devices")
+        a, b = page["rtupoll/building-a/huiwen-aq@3"], page["rtupoll/building-b/huiwen-aq@3"]
+        assert (a["gateway"], b["gateway"]) == ("building-a", "building-b")
+        assert a["fields"] == {"co2": "612ppm", "co2_level": "GOOD", "temperature": "21.5°C"}
+        assert b["fields"]["co2"] == "1480ppm" and b["fields"]["temperature"] == "23.4°C"
+        assert b["badges"]["co2_level"][0].startswith("POOR:badge")
+        assert "2 gateways · 2 of 2 devices online" in browser.find_element("id", "summary").text
+        # live: a new reading of one building, that building's card only
+        publish(broker, "rtupoll/building-b/huiwen-aq_3", json.dumps(
+            {"co2": 990, "co2_level": "GOOD", "temperature": 23.0, "last_seen": now}))
+        until(lambda: shown(browser)["rtupoll/building-b/huiwen-aq@3"]["fields"]["co2"]
+              == "990ppm", "building b's new co2")
+        assert shown(browser)["rtupoll/building-a/huiwen-aq@3"]["fields"]["co2"] == "612ppm"
+        # one gateway goes away (its last will): its section greys out, the other stays
+        publish(broker, "rtupoll/building-a/bridge/state", "offline")
+        publish(broker, "rtupoll/building-a/huiwen-aq_3/availability", "offline")
+        gone = until(lambda: (s := shown(browser))["rtupoll/building-a/huiwen-aq@3"][
+            "gatewayDown"] and s, "building a greyed out")
+        assert gone["rtupoll/building-a/huiwen-aq@3"]["down"]
+        # its retained values are no readings now: the last ones, dated, not as fresh
+        assert gone["rtupoll/building-a/huiwen-aq@3"]["fields"]["co2"].startswith(
+            "offline (last 612 ppm at ")
+        assert not gone["rtupoll/building-b/huiwen-aq@3"]["gatewayDown"]
+        assert "1 of 2 devices online" in browser.find_element("id", "summary").text
+        screenshots(browser, tmp_path, "web-fleet", docs=True)
+        state = get_json(p.url + "api/state")
+        assert state["mode"] == "fleet" and state["broker"] == "connected"
+        assert [g["id"] for g in state["gateways"]] == ["building-a", "building-b"]
