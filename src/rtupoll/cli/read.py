@@ -132,14 +132,16 @@ def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | 
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         rows = run_on_bus(settings, lambda bus: read_raw(bus, target.unit, specs, max_regs,
                                                          timing),
-                          on_timeout=speed_note(settings, target.profile, baudrate))
+                          on_timeout=speed_note(settings, target.profile, baudrate),
+                          blocking=True)
     else:
         assert target.profile is not None
         fields = fields_of(target.profile, items, force)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         try:
             rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing),
-                              on_timeout=speed_note(settings, target.profile, baudrate))
+                              on_timeout=speed_note(settings, target.profile, baudrate),
+                              blocking=True)
         except PartialRead as partial:  # every field that answered, then exit 5
             emit(target, partial.rows, fmt, hex_)
             raise partial.error from None

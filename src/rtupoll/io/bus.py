@@ -46,7 +46,6 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import serial
@@ -55,7 +54,7 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 from rtupoll.errors import PortError
 from rtupoll.io import serialport
 from rtupoll.io.interface import LineBus, raise_failed
-from rtupoll.rtu import Framing
+from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
     OUTCOMES,
@@ -84,27 +83,6 @@ if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked
 def pymodbus_logging(level: int = logging.DEBUG) -> None:
     """Let pymodbus's own log through (``--debug``); it is silent by default."""
     _PYMODBUS_LOG.setLevel(level)
-
-
-@dataclass(frozen=True)
-class PortSettings:
-    port: str  # "/dev/ttyUSB0", a pty path, or "tcp://HOST:PORT" (RTU over a TCP gateway)
-    baudrate: int = 9600
-    parity: str = "N"
-    bytesize: int = 8
-    stopbits: int = 1
-    deassert_dtr: bool = False  # open with DTR/RTS deasserted (CO2Meter boards reset on DTR)
-    echo: bool = False  # the adapter echoes each request: the line consumes the echo
-    rs485: serialport.Rs485 | None = None  # drive the transceiver's direction (RTS)
-
-    @property
-    def framing(self) -> Framing:
-        return Framing(self.baudrate, self.bytesize, self.parity, self.stopbits)
-
-    @property
-    def gateway(self) -> tuple[str, int] | None:
-        """(host, port) for ``tcp://HOST:PORT``, None for a serial port."""
-        return serialport.gateway(self.port)
 
 
 class Bus(LineBus):
