@@ -8,6 +8,10 @@ alone for ``--seconds``, then all ``N`` together for as long; the figure is each
 transactions per second together divided by its own rate alone in the same round (the
 goal: at least 0.95). Rounds interleave the two, so the machine's drift hits both.
 
+``--before`` also polls them together as the previous version did, holding the event
+loop for up to 2 ms of each silence however many buses share it (``io/bus.py``
+``_SLEEP_SHARED`` set to ``_SLEEP_MAX`` for that run), in the same rounds.
+
 Run: .venv/bin/python benchmarks/poll_buses.py [--buses 4] [--seconds 4] [--rounds 3]
 """
 
@@ -22,6 +26,7 @@ import time
 
 from poll_common import cpu_seconds, seed_site, simulator
 
+import rtupoll.io.bus as bus_module
 from rtupoll.config.site import Site
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
@@ -36,9 +41,23 @@ def site_of(ports: list[str]) -> Site:
     return Site(tuple(buses))
 
 
-async def rates(ports: list[str], seconds: float) -> tuple[list[float], float]:
-    """Each bus's transactions per second over ``seconds`` of saturated polling, and
-    this process's CPU seconds per transaction."""
+HELD = [0.0]  # seconds this process spent in time.sleep (the event loop held)
+_sleep = time.sleep
+
+
+def _counted_sleep(seconds: float) -> None:
+    start = time.perf_counter()
+    _sleep(seconds)
+    HELD[0] += time.perf_counter() - start
+
+
+time.sleep = _counted_sleep  # only the poller runs in this process (the simulators do not)
+
+
+async def rates(ports: list[str], seconds: float) -> tuple[list[float], float, float]:
+    """Each bus's transactions per second over ``seconds`` of saturated polling, this
+    process's CPU seconds per transaction, and the share of the time the event loop was
+    held in ``time.sleep``."""
     scheduler = Scheduler(site_of(ports))
     stop = asyncio.Event()
 
@@ -49,15 +68,16 @@ async def rates(ports: list[str], seconds: float) -> tuple[list[float], float]:
     try:
         await scheduler.scan_once(sink)  # warm-up
         before = [bp.load.transactions for bp in scheduler.buses]
-        cpu0, wall0 = cpu_seconds(), time.monotonic()
+        cpu0, wall0, held0 = cpu_seconds(), time.monotonic(), HELD[0]
         task = asyncio.create_task(scheduler.run(sink, stop))
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(asyncio.shield(task), seconds)
         done = [bp.load.transactions - b for bp, b in zip(scheduler.buses, before, strict=True)]
         cpu, wall = cpu_seconds() - cpu0, time.monotonic() - wall0
+        held = (HELD[0] - held0) / wall
         stop.set()
         await task
-        return [n / wall for n in done], cpu / max(1, sum(done))
+        return [n / wall for n in done], cpu / max(1, sum(done)), held
     finally:
         await scheduler.close()
 
@@ -67,8 +87,13 @@ def main() -> None:
     ap.add_argument("--buses", type=int, default=4)
     ap.add_argument("--seconds", type=float, default=4.0, help="per measurement")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--before", action="store_true",
+                    help="also together as the previous version held the loop")
     args = ap.parse_args()
     ratios: list[list[float]] = []  # per round, per bus
+    before: list[list[float]] = []
+    held: list[float] = []  # the share of the time the loop was held, together
+    held_before: list[float] = []
     alone_cpu: list[float] = []
     together_cpu: list[float] = []
     with contextlib.ExitStack() as stack:
@@ -76,15 +101,27 @@ def main() -> None:
         for r in range(args.rounds):
             alone = []
             for port in ports:
-                (rate,), cpu = asyncio.run(rates([port], args.seconds))
+                (rate,), cpu, _ = asyncio.run(rates([port], args.seconds))
                 alone.append(rate)
                 alone_cpu.append(cpu)
-            together, cpu = asyncio.run(rates(ports, args.seconds))
+            together, cpu, hold = asyncio.run(rates(ports, args.seconds))
             together_cpu.append(cpu)
+            held.append(hold)
             ratios.append([t / a for t, a in zip(together, alone, strict=True)])
+            if args.before:
+                shared, bus_module._SLEEP_SHARED = bus_module._SLEEP_SHARED, bus_module._SLEEP_MAX
+                try:
+                    old, _, hold = asyncio.run(rates(ports, args.seconds))
+                    held_before.append(hold)
+                finally:
+                    bus_module._SLEEP_SHARED = shared
+                before.append([t / a for t, a in zip(old, alone, strict=True)])
+                print("  before: ratios " + ", ".join(f"{x:.2f}" for x in before[-1])
+                      + f"; loop held {held_before[-1]:.0%}", flush=True)
             print(f"round {r + 1}: alone " + ", ".join(f"{a:.0f}" for a in alone)
                   + " /s; together " + ", ".join(f"{t:.0f}" for t in together)
-                  + " /s; ratios " + ", ".join(f"{x:.2f}" for x in ratios[-1]), flush=True)
+                  + " /s; ratios " + ", ".join(f"{x:.2f}" for x in ratios[-1])
+                  + f"; loop held {held[-1]:.0%}", flush=True)
     flat = sorted(x for row in ratios for x in row)
     per_round = [statistics.median(row) for row in ratios]
     print(f"\n{args.buses} buses at {BAUD} baud, {args.rounds} rounds of {args.seconds:g} s: "
@@ -92,7 +129,13 @@ def main() -> None:
           f"{statistics.median(flat):.2f}, max {flat[-1]:.2f} (rounds' medians: "
           + ", ".join(f"{x:.2f}" for x in per_round) + "); CPU per transaction alone "
           f"{1e6 * statistics.median(alone_cpu):.0f} µs, together "
-          f"{1e6 * statistics.median(together_cpu):.0f} µs")
+          f"{1e6 * statistics.median(together_cpu):.0f} µs; the event loop held in "
+          f"time.sleep {statistics.median(held):.0%} of the time together")
+    if before:
+        old = sorted(x for row in before for x in row)
+        print(f"the previous version in the same rounds: min {old[0]:.2f}, median "
+              f"{statistics.median(old):.2f}, max {old[-1]:.2f}; the loop held "
+              f"{statistics.median(held_before):.0%} of the time")
 
 
 if __name__ == "__main__":

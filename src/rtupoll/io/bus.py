@@ -21,8 +21,11 @@ and ``time.monotonic()``.
   timer callback (the waiting task is woken only by the answer). asyncio times in whole
   milliseconds and would overshoot, so the last 2 ms at most are slept with
   ``time.sleep``: no CPU, one wake-up, and the event loop held for that long (the
-  3.5-character silence itself above 19200 baud, 1.75 ms). Bytes that arrived
-  meanwhile are taken in before the frame goes, and the silence starts again.
+  3.5-character silence itself above 19200 baud, 1.75 ms). With other buses open in
+  the process, whose replies wait while the loop is held, 1 ms at most (the timer wakes
+  the bus up to 1 ms before the end, never after it): ``benchmarks/poll_buses.py``.
+  Bytes that arrived meanwhile are taken in before the frame goes, and the silence
+  starts again.
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
@@ -45,6 +48,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -72,6 +76,10 @@ __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 # (epoll waits in whole milliseconds) would overshoot it, and wake the process twice where
 # once is enough (each wake costs about as much CPU as the transaction's own work)
 _SLEEP_MAX = 0.002
+# with other buses open in the process, the loop is held for less: the timer wakes the bus
+# at most 1 ms before the silence ends (it never fires early), and only that rest is slept
+_SLEEP_SHARED = 0.001
+_OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()  # the buses open in this process
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 
@@ -122,6 +130,7 @@ class Bus(LineBus):
 
     async def close(self) -> None:
         async with self._lock:
+            _OPEN.discard(self)
             if self._port is not None:
                 self._port.close()
                 self._port = None
@@ -165,6 +174,7 @@ class Bus(LineBus):
         except Exception:  # pymodbus, pyserial (ValueError: unknown URL)
             ok = False
         if ok and self.connected:
+            _OPEN.add(self)
             self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
         self._port.close()
@@ -247,8 +257,9 @@ class Bus(LineBus):
         def send() -> None:
             nonlocal timer
             delay = tx.ready_at() - time.monotonic()
-            if delay > _SLEEP_MAX:  # the event loop's timer, which fires up to 1 ms late,
-                timer = loop.call_later(delay - _SLEEP_MAX, send)  # for all but the end
+            hold = _SLEEP_MAX if len(_OPEN) < 2 else _SLEEP_SHARED
+            if delay > hold:  # the event loop's timer, which fires up to 1 ms late,
+                timer = loop.call_later(delay - hold, send)  # for all but the end
                 return
             if delay > 0:
                 time.sleep(delay)
