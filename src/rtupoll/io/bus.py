@@ -19,13 +19,13 @@ and ``time.monotonic()``.
   (``Line.hazard_until``) *before* taking the lock: other devices go on meanwhile.
 - **Silence**: each request goes at ``Line.ready_at``, after a long wait written by a
   timer callback (the waiting task is woken only by the answer). asyncio times in whole
-  milliseconds and would overshoot, so the last 2 ms at most are slept with
-  ``time.sleep``: no CPU, one wake-up, and the event loop held for that long (the
-  3.5-character silence itself above 19200 baud, 1.75 ms). With other buses open in
-  the process, whose replies wait while the loop is held, 1 ms at most (the timer wakes
-  the bus up to 1 ms before the end, never after it): ``benchmarks/poll_buses.py``.
-  Bytes that arrived meanwhile are taken in before the frame goes, and the silence
-  starts again.
+  milliseconds and would overshoot, so the last 2 ms at most are waited in ``select``
+  on the port (bytes arriving end it): no CPU, one wake-up, and the event loop held
+  for that long (the 3.5-character silence itself above 19200 baud, 1.75 ms). With
+  other buses open in the process, whose replies wait while the loop is held, 1 ms at
+  most (the timer wakes the bus up to 1 ms before the end, never after it):
+  ``benchmarks/poll_buses.py``. Bytes that arrived meanwhile are taken in before the
+  frame goes, and the silence starts again.
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import select
 import time
 import weakref
 from collections.abc import Callable
@@ -261,11 +262,9 @@ class Bus(LineBus):
             if delay > hold:  # the event loop's timer, which fires up to 1 ms late,
                 timer = loop.call_later(delay - hold, send)  # for all but the end
                 return
-            if delay > 0:
-                time.sleep(delay)
-                if self._took_input():  # bytes came meanwhile: the silence starts again
-                    timer = loop.call_soon(send)
-                    return
+            if delay > 0 and self._quiet(delay):  # bytes came: the silence starts again
+                timer = loop.call_soon(send)
+                return
             if not self.connected:
                 over.set_exception(PortError(f"{self.settings.port} went away"))
                 return
@@ -293,6 +292,21 @@ class Bus(LineBus):
             if timer is not None:
                 timer.cancel()
             self._tx = self._over = None
+
+    def _quiet(self, delay: float) -> bool:
+        """Wait the last ``delay`` seconds of the silence, holding the event loop, in
+        ``select`` on rtupoll's own ``Serial``: one system call that both waits and sees
+        a byte arrive. True when bytes came (they went to the line). A gateway keeps the
+        silence on its own line: a plain sleep."""
+        port = self._slot.port if self._slot is not None else None
+        if port is None or not port.is_open:
+            time.sleep(delay)
+            return False
+        try:
+            ready, _, _ = select.select([port.fileno()], [], [], delay)
+        except (OSError, ValueError):  # closed meanwhile: the write that follows says so
+            return False
+        return bool(ready) and self._took_input()
 
     def _took_input(self) -> bool:
         """Whether bytes arrived while the event loop slept: they go to the line now, so
