@@ -194,6 +194,8 @@ class SyncBus(LineBus):
             if not ready:
                 continue
             data = self._read()
+            if not data:  # nothing after all (the port is non-blocking)
+                continue
             over = tx.received(data, time.monotonic())
             if not ending or over:
                 return True
