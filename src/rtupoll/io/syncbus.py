@@ -36,10 +36,10 @@ from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
 from rtupoll.io import serialport
-from rtupoll.io.interface import LineBus, raise_failed
+from rtupoll.io.interface import LineBus
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
-from rtupoll.rtu.transaction import BusStats, Done, Failed, Send, Transaction
+from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
 
 T = TypeVar("T")
 
@@ -146,28 +146,24 @@ class SyncBus(LineBus):
         started = time.monotonic()
         outcome: str | None = None
         try:
-            while True:
-                step = tx.next()
-                if isinstance(step, Done):
-                    return step
-                if isinstance(step, Failed):
-                    raise_failed(step)
-                if isinstance(step, Send):
-                    if tx.attempts and not self.connected:
-                        raise PortError(f"{self.settings.port} went away during the "
-                                        "transaction")
-                    self.connect()
-                    if self._wait(tx, step.at, ending=False):
-                        continue  # bytes came meanwhile: the silence starts again
-                    tx.sent(time.monotonic())
-                    self._write(step.frame)
-                else:
-                    self._wait(tx, step.until, ending=True)
+            return await self._drive(tx)
         except PortError:
             outcome = "port"
             raise
         finally:
             self.stats.add(tx, time.monotonic() - started, outcome=outcome)
+
+    async def _step(self, tx: Transaction, step: Send | Await) -> None:
+        if isinstance(step, Await):
+            self._wait(tx, step.until, ending=True)
+            return
+        if tx.attempts and not self.connected:
+            raise PortError(f"{self.settings.port} went away during the transaction")
+        self.connect()
+        if self._wait(tx, step.at, ending=False):
+            return  # bytes came meanwhile: the silence starts again (ask next() again)
+        tx.sent(time.monotonic())
+        self._write(step.frame)
 
     def _wait_hazard(self, tx: Transaction) -> None:
         """Until no earlier request's late reply could be taken for ``tx``'s answer
