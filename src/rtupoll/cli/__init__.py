@@ -17,7 +17,7 @@ import sys
 from types import FrameType
 
 # errors.Interrupted.exit_code, for the handler below: it is in place before rtupoll's own
-# modules are imported, errors.py among them (tests/test_hostile_files.py checks the two)
+# modules are imported, errors.py among them (tests/config/test_hostile_files.py checks the two)
 EARLY_EXIT = 130
 
 
@@ -73,7 +73,11 @@ def exit_codes_text() -> str:
     return "\n".join(lines) + "\n"
 
 
-EXIT_CODES = exit_codes_text()
+def __getattr__(name: str) -> str:
+    """``EXIT_CODES``, the epilog, made when asked for (a command that runs never is)."""
+    if name == "EXIT_CODES":
+        return exit_codes_text()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class LazyGroup(click.Group):
@@ -110,13 +114,17 @@ class LazyGroup(click.Group):
         assert isinstance(command, click.Command)
         return command
 
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        self.epilog = exit_codes_text()  # made for the help only
+        super().format_epilog(ctx, formatter)
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         # list commands without importing them
         with formatter.section("Commands"):
             formatter.write_dl([(name, COMMANDS[name][1]) for name in self.list_commands(ctx)])
 
 
-@click.group(cls=LazyGroup, epilog=EXIT_CODES,
+@click.group(cls=LazyGroup,
              context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="rtupoll")
 def cli() -> None:

@@ -379,31 +379,51 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
          services: Sequence[Service] = (), metrics: str | None = None,
          log_format: str | None = None, reload: Callable[[], Site] | None = None,
          http: HttpSettings | None = None, gateway: GatewayService | None = None) -> None:
-    from rich.console import Console
-
     from rtupoll.app.services import poll_services
     from rtupoll.jobs.scheduler import Scheduler
-    from rtupoll.ui.live import PollView
 
     scheduler = Scheduler(site)
     _adapter_warnings(site)
-    console = Console(stderr=fmt != "table" and output is None)
-    show_table = fmt == "table" or (output is not None and console.is_terminal)
+    show_table = _table_shown(fmt, output)
+    console: Console | None = None
+    if show_table:  # rich only for the table (records alone: less memory, faster start)
+        from rich.console import Console
+
+        console = Console(stderr=fmt != "table" and output is None)
     with _sink(fmt, output) as writer:
         services = poll_services(
             site, writer, services, gateway=gateway, once=once, table=show_table,
             metrics=metrics or site.metrics or None, log_format=log_format, reload=reload,
             http=http, title=title, say=lambda t: click.echo(f"rtupoll: {t}", err=True))
-        view = PollView(scheduler.buses, title=title, live=not once,
-                        footers=[s.footer for s in services])
+        view: PollView | None = None
+        if console is not None:
+            from rtupoll.ui.live import PollView
+
+            view = PollView(scheduler.buses, title=title, live=not once,
+                            footers=[s.footer for s in services])
         if once:
             readings = asyncio.run(_once(scheduler, writer, services))
-            if show_table:
+            if view is not None and console is not None:
                 console.print(view.render(width=console.width))
             _report_failures(site, readings)
         else:
-            asyncio.run(_forever(scheduler, writer, view if show_table else None, console,
-                                 services))
+            asyncio.run(_forever(scheduler, writer, view, console, services))
+
+
+def _table_shown(fmt: str, output: Path | None) -> bool:
+    """The live table is drawn for ``--format table``, and beside ``-o FILE`` when stdout
+    is a terminal (rich's test; asked only when it could say yes, so records alone never
+    import rich)."""
+    if fmt == "table":
+        return True
+    if output is None:
+        return False
+    if not sys.stdout.isatty() and not any(
+            os.environ.get(k) for k in ("FORCE_TERMINAL", "TTY_COMPATIBLE", "FORCE_COLOR")):
+        return False
+    from rich.console import Console
+
+    return bool(Console().is_terminal)
 
 
 def _adapter_warnings(site: Site) -> None:
@@ -484,9 +504,7 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
 
 
 async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: PollView | None,
-                   console: Console, services: Sequence[Service]) -> None:
-    from rich.live import Live
-
+                   console: Console | None, services: Sequence[Service]) -> None:
     stop = _stop_event()
 
     def sink(dev: DevicePoller, readings: list[Reading]) -> None:
@@ -504,6 +522,8 @@ async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: Poll
         if view is None:
             await scheduler.run(sink, stop)
             return
+        from rich.live import Live
+
         with Live(view, console=console, auto_refresh=False, transient=False,
                   redirect_stdout=False, redirect_stderr=False) as live:
             painter = asyncio.create_task(_paint(live, stop))

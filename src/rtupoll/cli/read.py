@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
@@ -31,9 +31,11 @@ from rtupoll.jobs.device import timing as device_timing
 from rtupoll.model.codec import ByteOrder, words_to_hex
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
-from rtupoll.model.raw import RegisterSpec, parse_spec, split_reads
 from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import READ_KEYS, record
+
+if TYPE_CHECKING:
+    from rtupoll.model.raw import RegisterSpec
 
 F = TypeVar("F", bound=Callable[..., object])
 TYPES = ["u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64", "string"]
@@ -71,6 +73,8 @@ def specs_of(target: Target, items: Sequence[str], addressing: str, type_name: s
              order: str | None) -> list[RegisterSpec]:
     if not items:
         raise UsageError("--raw needs at least one TABLE:START[:COUNT] (e.g. input:0x0006:2)")
+    from rtupoll.model.raw import parse_spec
+
     # like a profile's own fields: its byte_order is for values wider than one register
     wide = type_name in ("u32", "i32", "u64", "i64", "f32", "f64")
     bo = ByteOrder(order.upper()) if order else (
@@ -132,14 +136,16 @@ def read(device: str, items: tuple[str, ...], port: str | None, baudrate: int | 
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         rows = run_on_bus(settings, lambda bus: read_raw(bus, target.unit, specs, max_regs,
                                                          timing),
-                          on_timeout=speed_note(settings, target.profile, baudrate))
+                          on_timeout=speed_note(settings, target.profile, baudrate),
+                          blocking=True)
     else:
         assert target.profile is not None
         fields = fields_of(target.profile, items, force)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         try:
             rows = run_on_bus(settings, lambda bus: read_named(bus, target, fields, timing),
-                              on_timeout=speed_note(settings, target.profile, baudrate))
+                              on_timeout=speed_note(settings, target.profile, baudrate),
+                              blocking=True)
         except PartialRead as partial:  # every field that answered, then exit 5
             emit(target, partial.rows, fmt, hex_)
             raise partial.error from None
@@ -186,6 +192,8 @@ async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timi
 
 async def read_raw(bus: Any, unit: int, specs: list[RegisterSpec], max_registers: int,
                    timing: Timing) -> list[Row]:
+    from rtupoll.model.raw import split_reads
+
     rows: list[Row] = []
     for spec in specs:
         words: list[int] = []

@@ -7,7 +7,6 @@ bus: ``--help``, ``--dry-run`` and refusals never pay for them.
 
 from __future__ import annotations
 
-import asyncio
 import sys
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
@@ -23,7 +22,8 @@ from rtupoll.model.profile import Profile
 from rtupoll.numbers import parse_unit
 
 if TYPE_CHECKING:
-    from rtupoll.io.bus import Bus, PortSettings
+    from rtupoll.io.bus import Bus
+    from rtupoll.io.serialport import PortSettings
 
 F = TypeVar("F", bound=Callable[..., object])
 T = TypeVar("T")
@@ -76,7 +76,7 @@ def need_port(port: str | None) -> str:
 def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
                   stopbits: str | None) -> PortSettings:
     """The profile's serial settings (9600 8N1 without one), each overridable."""
-    from rtupoll.io.bus import PortSettings
+    from rtupoll.io.serialport import PortSettings
 
     s = profile.serial if profile else None
     return PortSettings(
@@ -144,17 +144,26 @@ def speed_note(settings: PortSettings, profile: Profile | None, baudrate: int | 
 
 
 def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
-               on_timeout: str = "") -> T:
+               on_timeout: str = "", blocking: bool = False) -> T:
     """Open the port, run ``job`` with the bus, close the port (whatever happens).
 
-    ``on_timeout`` is added to a no-response error (``speed_note``)."""
-    from rtupoll.io.bus import Bus
-
-    async def main() -> T:
-        async with Bus(settings) as bus:
-            return await job(bus)
-
+    ``on_timeout`` is added to a no-response error (``speed_note``). ``blocking``: a job
+    that awaits only the bus's own methods runs on ``rtupoll.io.syncbus.SyncBus``, with
+    no event loop (no asyncio, no pymodbus imported: a one-shot read starts faster)."""
     try:
+        if blocking:
+            from rtupoll.io import syncbus
+
+            with syncbus.SyncBus(settings) as sync:
+                return syncbus.run(job(sync))  # type: ignore[arg-type]  # a BusLike, not a Bus
+        import asyncio
+
+        from rtupoll.io.bus import Bus
+
+        async def main() -> T:
+            async with Bus(settings) as bus:
+                return await job(bus)
+
         return asyncio.run(main())
     except DeviceTimeout as exc:
         if not on_timeout:

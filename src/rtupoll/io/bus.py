@@ -2,7 +2,7 @@
 
 The only module that imports pymodbus, and a thin one: it uses pymodbus's public
 transport surface only (docs/architecture.md, "pymodbus": each behaviour relied on is
-pinned by tests/test_pymodbus_surface.py). pymodbus's transport opens the port (a
+pinned by tests/io/test_pymodbus_surface.py). pymodbus's transport opens the port (a
 serial port through rtupoll's own pyserial URL handler, ``rtupoll://``, so the
 ``Serial`` object is rtupoll's; or an RTU-over-TCP gateway) and delivers what
 arrives. What a transaction does -- checks, attempts, retries, outcome, statistics --
@@ -19,10 +19,14 @@ and ``time.monotonic()``.
   (``Line.hazard_until``) *before* taking the lock: other devices go on meanwhile.
 - **Silence**: each request goes at ``Line.ready_at``, after a long wait written by a
   timer callback (the waiting task is woken only by the answer). asyncio times in whole
-  milliseconds and would overshoot, so the last 2 ms at most are slept with
-  ``time.sleep``: no CPU, one wake-up, and the event loop held for that long (the
-  3.5-character silence itself above 19200 baud, 1.75 ms). Bytes that arrived
-  meanwhile are taken in before the frame goes, and the silence starts again.
+  milliseconds and would overshoot, so the last 2 ms at most are waited in ``select``
+  on the port (bytes arriving end it): no CPU, one wake-up, and the event loop held
+  for that long (the 3.5-character silence itself above 19200 baud, 1.75 ms). With
+  other buses open in the process, whose replies wait while the loop is held, 0.5 ms
+  at most (the timer is set 0.5 ms before the end and fires within 1 ms after its
+  time, so the frame goes at most 0.5 ms late): ``benchmarks/poll_buses.py``. Bytes
+  that arrived meanwhile are taken in before the frame goes, and the silence starts
+  again.
 - **Timeout and retries per transaction**: each attempt is bounded by the timeout
   plus the frames' wire time (slow baud rates do not eat the device's time); the
   bus retries itself.
@@ -44,9 +48,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import select
 import time
+import weakref
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import serial
@@ -55,7 +60,7 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 from rtupoll.errors import PortError
 from rtupoll.io import serialport
 from rtupoll.io.interface import LineBus, raise_failed
-from rtupoll.rtu import Framing
+from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
     OUTCOMES,
@@ -73,6 +78,12 @@ __all__ = ["OUTCOMES", "Bus", "BusStats", "PortSettings", "pymodbus_logging"]
 # (epoll waits in whole milliseconds) would overshoot it, and wake the process twice where
 # once is enough (each wake costs about as much CPU as the transaction's own work)
 _SLEEP_MAX = 0.002
+# with other buses open in the process, the loop is held for less: the timer, which fires
+# within 1 ms after its time, is set 0.5 ms before the silence ends, so the bus holds the
+# loop at most 0.5 ms (waking early) or sends at most 0.5 ms late (benchmarks/poll_buses.py:
+# 0.93 of each bus's rate alone, against 0.91 holding 1 ms and 0.89 holding none)
+_SLEEP_SHARED = 0.0005
+_OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()  # the buses open in this process
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 
@@ -84,27 +95,6 @@ if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked
 def pymodbus_logging(level: int = logging.DEBUG) -> None:
     """Let pymodbus's own log through (``--debug``); it is silent by default."""
     _PYMODBUS_LOG.setLevel(level)
-
-
-@dataclass(frozen=True)
-class PortSettings:
-    port: str  # "/dev/ttyUSB0", a pty path, or "tcp://HOST:PORT" (RTU over a TCP gateway)
-    baudrate: int = 9600
-    parity: str = "N"
-    bytesize: int = 8
-    stopbits: int = 1
-    deassert_dtr: bool = False  # open with DTR/RTS deasserted (CO2Meter boards reset on DTR)
-    echo: bool = False  # the adapter echoes each request: the line consumes the echo
-    rs485: serialport.Rs485 | None = None  # drive the transceiver's direction (RTS)
-
-    @property
-    def framing(self) -> Framing:
-        return Framing(self.baudrate, self.bytesize, self.parity, self.stopbits)
-
-    @property
-    def gateway(self) -> tuple[str, int] | None:
-        """(host, port) for ``tcp://HOST:PORT``, None for a serial port."""
-        return serialport.gateway(self.port)
 
 
 class Bus(LineBus):
@@ -144,6 +134,7 @@ class Bus(LineBus):
 
     async def close(self) -> None:
         async with self._lock:
+            _OPEN.discard(self)
             if self._port is not None:
                 self._port.close()
                 self._port = None
@@ -187,6 +178,7 @@ class Bus(LineBus):
         except Exception:  # pymodbus, pyserial (ValueError: unknown URL)
             ok = False
         if ok and self.connected:
+            _OPEN.add(self)
             self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
         self._port.close()
@@ -269,14 +261,13 @@ class Bus(LineBus):
         def send() -> None:
             nonlocal timer
             delay = tx.ready_at() - time.monotonic()
-            if delay > _SLEEP_MAX:  # the event loop's timer, which fires up to 1 ms late,
-                timer = loop.call_later(delay - _SLEEP_MAX, send)  # for all but the end
+            hold = _SLEEP_MAX if len(_OPEN) < 2 else _SLEEP_SHARED
+            if delay > hold:  # the event loop's timer, which fires up to 1 ms late,
+                timer = loop.call_later(delay - hold, send)  # for all but the end
                 return
-            if delay > 0:
-                time.sleep(delay)
-                if self._took_input():  # bytes came meanwhile: the silence starts again
-                    timer = loop.call_soon(send)
-                    return
+            if delay > 0 and self._quiet(delay):  # bytes came: the silence starts again
+                timer = loop.call_soon(send)
+                return
             if not self.connected:
                 over.set_exception(PortError(f"{self.settings.port} went away"))
                 return
@@ -304,6 +295,21 @@ class Bus(LineBus):
             if timer is not None:
                 timer.cancel()
             self._tx = self._over = None
+
+    def _quiet(self, delay: float) -> bool:
+        """Wait the last ``delay`` seconds of the silence, holding the event loop, in
+        ``select`` on rtupoll's own ``Serial``: one system call that both waits and sees
+        a byte arrive. True when bytes came (they went to the line). A gateway keeps the
+        silence on its own line: a plain sleep."""
+        port = self._slot.port if self._slot is not None else None
+        if port is None or not port.is_open:
+            time.sleep(delay)
+            return False
+        try:
+            ready, _, _ = select.select([port.fileno()], [], [], delay)
+        except (OSError, ValueError):  # closed meanwhile: the write that follows says so
+            return False
+        return bool(ready) and self._took_input()
 
     def _took_input(self) -> bool:
         """Whether bytes arrived while the event loop slept: they go to the line now, so

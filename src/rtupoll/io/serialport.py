@@ -35,13 +35,10 @@ gateway refused / unreachable / not answering.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import errno
-import glob
 import itertools
 import os
-import socket
 import sys
 import time
 import weakref
@@ -53,6 +50,7 @@ import serial
 import serial.rs485
 
 from rtupoll.errors import UsageError
+from rtupoll.rtu import Framing
 
 SCHEME = "nodtr"
 _PREFIX = f"{SCHEME}://"
@@ -116,6 +114,30 @@ def direction_control(port: Any, rs485: Rs485) -> tuple[str, RtsToggle | None]:
                          "with RTS wired to the transceiver's DE/RE, or an adapter that "
                          "switches direction by itself (then leave --rs485 out)") from None
     return "rts", RtsToggle(port, rs485)
+
+
+@dataclass(frozen=True)
+class PortSettings:
+    """One bus's port and line settings (both drivers take them: ``rtupoll.io.bus.Bus``,
+    ``rtupoll.io.syncbus.SyncBus``)."""
+
+    port: str  # "/dev/ttyUSB0", a pty path, or "tcp://HOST:PORT" (RTU over a TCP gateway)
+    baudrate: int = 9600
+    parity: str = "N"
+    bytesize: int = 8
+    stopbits: int = 1
+    deassert_dtr: bool = False  # open with DTR/RTS deasserted (CO2Meter boards reset on DTR)
+    echo: bool = False  # the adapter echoes each request: the line consumes the echo
+    rs485: Rs485 | None = None  # drive the transceiver's direction (RTS)
+
+    @property
+    def framing(self) -> Framing:
+        return Framing(self.baudrate, self.bytesize, self.parity, self.stopbits)
+
+    @property
+    def gateway(self) -> tuple[str, int] | None:
+        """(host, port) for ``tcp://HOST:PORT``, None for a serial port."""
+        return gateway(self.port)
 
 
 @dataclass
@@ -265,6 +287,8 @@ def open_error(port: str, exc: BaseException) -> str:
         return f"permission denied opening {path}{join}"
     if code in (errno.ENOENT, errno.ENXIO, errno.ENODEV) or (
             code is None and not os.path.exists(path) and "://" not in path):
+        import glob
+
         seen = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
         hint = f" (serial ports present: {', '.join(seen)})" if seen else \
             " (is the adapter plugged in?)"
@@ -279,12 +303,14 @@ def open_error(port: str, exc: BaseException) -> str:
 
 def gateway_error(host: str, port: int, exc: BaseException, timeout: float) -> str:
     """One line saying why an RTU-over-TCP gateway did not accept a connection."""
+    import socket
+
     where = f"gateway {host}:{port}"
     if isinstance(exc, ConnectionRefusedError):
         return f"{where} refused the connection (wrong port, or the gateway allows one client)"
     if isinstance(exc, socket.gaierror):
         return f"{where}: cannot resolve {host!r}"
-    if isinstance(exc, (TimeoutError, asyncio.TimeoutError)):
+    if isinstance(exc, TimeoutError):  # asyncio's too (3.11+)
         return f"{where} did not answer within {timeout:g} s (unreachable or filtered)"
     code = getattr(exc, "errno", None)
     if code in (errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN):
@@ -307,6 +333,8 @@ def diagnose_serial(url: str, **settings: Any) -> str | None:
 
 async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
     """Try a plain TCP connection; why it fails, or None if it connects."""
+    import asyncio
+
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
     except (TimeoutError, OSError) as exc:
