@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import termios
 import threading
 import time
@@ -122,7 +123,9 @@ class SimulatedBus:
         """Stop serving, close the pty/socket and join the thread. Idempotent."""
         thread, loop, stop = self._thread, self._loop, self._stop
         if thread is not None and thread.is_alive() and loop is not None and stop is not None:
-            loop.call_soon_threadsafe(stop.set)
+            if not loop.is_closed():  # closed: the thread is ending (stopped from elsewhere)
+                with contextlib.suppress(RuntimeError):  # it closed since the check
+                    loop.call_soon_threadsafe(stop.set)
             thread.join(timeout=10)
         with _RUNNING_LOCK:
             _RUNNING.discard(self)
