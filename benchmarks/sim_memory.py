@@ -120,11 +120,11 @@ def watch(pid: int, minutes: float, label: str) -> list[float]:
     """RSS at start (after 5 s of warm-up) and at the end of every minute."""
     time.sleep(5)
     samples = [rss_mb(pid)]
-    print(f"  {label}: start {samples[0]:.1f} MB", flush=True)
+    print(f"  {label}: start {samples[0]:.2f} MB", flush=True)
     for m in range(1, int(minutes) + 1):
         time.sleep(60)
         samples.append(rss_mb(pid))
-        print(f"  {label}: minute {m:>2} {samples[-1]:.1f} MB", flush=True)
+        print(f"  {label}: minute {m:>2} {samples[-1]:.2f} MB", flush=True)
     return samples
 
 
@@ -200,6 +200,16 @@ def table(rows: Sequence[tuple[str, Sequence[float]]]) -> str:
     return "\n".join(lines)
 
 
+def by_minute(rows: Sequence[tuple[str, Sequence[float]]]) -> str:
+    """Every sample: a row per minute, a column per run (MB)."""
+    lines = ["| minute | " + " | ".join(name for name, _ in rows) + " |",
+             "|---" * (len(rows) + 1) + "|"]
+    for m in range(max(len(s) for _, s in rows)):
+        cells = [f"{s[m]:.2f}" if m < len(s) else "" for _, s in rows]
+        lines.append(f"| {'start' if m == 0 else m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=30, help="for link and inprocess")
@@ -219,6 +229,7 @@ def main() -> int:
         replay = run_replay(args.replay_minutes, sizes)
         rows += [(f"`simulate --replay`, {mb:g} MB capture", s) for mb, s in replay.items()]
     print(table(rows))
+    print(by_minute(rows))
     ok = all(growth(s) <= GROWTH_LIMIT for _, s in rows)
     if len(replay) > 1:
         peaks = [max(s) for s in replay.values()]

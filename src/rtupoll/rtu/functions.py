@@ -201,7 +201,7 @@ def words(data: bytes) -> tuple[int, ...]:
 
 def bits(data: bytes, count: int) -> tuple[int, ...]:
     """The first ``count`` bits (as many as ``data`` holds), least significant bit first."""
-    return tuple((data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data))))
+    return tuple([(data[i // 8] >> (i % 8)) & 1 for i in range(min(count, 8 * len(data)))])
 
 
 def pack_bits(values: Sequence[int]) -> bytes:

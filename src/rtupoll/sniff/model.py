@@ -283,6 +283,6 @@ class BusView:
     def _outcome(self, u: Unit, f: Field) -> tuple[int, ...] | DeviceException | None:
         words = [u.image.get((f.table, r)) for r in range(f.address, f.end)]
         if all(w is not None for w in words):
-            return tuple(w for w in words if w is not None)
+            return tuple([w for w in words if w is not None])
         code = u.refused.get((f.table, f.address))
         return DeviceException(code, unit=u.unit) if code is not None else None
