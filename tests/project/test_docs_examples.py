@@ -32,6 +32,7 @@ examples", says the same):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -225,6 +226,8 @@ def _run(ex: Example, where: Path) -> str | None:
             reader = threading.Thread(target=_drain, args=(terminal[0], seen), daemon=True)
             reader.start()
         why = _wait(proc, ex, seen, err)
+        with contextlib.suppress(ProcessLookupError):  # what it left in the background
+            os.killpg(proc.pid, signal.SIGKILL)
         if terminal is not None:
             reader.join(timeout=10)
             os.close(terminal[0])
