@@ -187,7 +187,11 @@ def chromium(width: int = 1280, height: int = 1000) -> Iterator[Any]:
 
 
 def console_errors(driver: Any) -> list[dict[str, Any]]:
-    return [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
+    """The browser's errors, but the event stream's reconnection refused once the test's
+    server is stopped (the page retries every 2 s; a slow teardown sees one or two)."""
+    refused = "/api/events - Failed to load resource: net::ERR_CONNECTION_REFUSED"
+    return [e for e in driver.get_log("browser")
+            if e.get("level") == "SEVERE" and refused not in str(e.get("message"))]
 
 
 def color_scheme(driver: Any, scheme: str) -> None:

@@ -140,13 +140,10 @@
   }
 
   function renderDevice(gw, dev) {
-    const card = el("article", "device st-" + dev.state + (down(dev) ? " down" : ""));
+    const card = el("article", cardClass(dev));
     card.dataset.key = dev.key;
     card.dataset.state = dev.state;
-    const head = el("header");
-    head.appendChild(el("span", "name", dev.name));
-    head.appendChild(el("span", "badge state st-" + dev.state, stateText(dev)));
-    card.appendChild(head);
+    card.appendChild(renderHeader(dev));
     card.appendChild(el("div", "model", [dev.model, dev.profile + "@" + dev.address].filter(Boolean).join(" · ")));
     const t = el("table", "fields");
     const body = el("tbody");
@@ -165,22 +162,37 @@
     return card;
   }
 
-  // in place: the rows stay the same elements (focus, a click under way, open charts)
-  function updateDevice(card, gw, dev) {
-    const fresh = renderDevice(gw, dev);
+  function cardClass(dev) { return "device st-" + dev.state + (down(dev) ? " down" : ""); }
+
+  function renderHeader(dev) {
+    const head = el("header");
+    head.appendChild(el("span", "name", dev.name));
+    head.appendChild(el("span", "badge state st-" + dev.state, stateText(dev)));
+    return head;
+  }
+
+  // in place: the rows stay the same elements (focus, a click under way, open charts);
+  // only the rows of the fields in `changed` (a Set of names, or null: all) are redrawn
+  function updateDevice(card, gw, dev, changed) {
     const rows = card.querySelectorAll("tr.field");
-    if (rows.length !== dev.fields.length) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
-    card.className = fresh.className;
-    card.dataset.state = fresh.dataset.state;
-    card.replaceChild(fresh.querySelector("header"), card.querySelector("header"));
-    const newRows = fresh.querySelectorAll("tr.field");
+    let same = rows.length === dev.fields.length;
+    for (let i = 0; same && i < rows.length; i++) same = rows[i].dataset.field === dev.fields[i].name;
+    if (!same) {
+      const fresh = renderDevice(gw, dev);
+      card.replaceWith(fresh);
+      drawCharts(fresh);
+      return fresh;
+    }
+    card.className = cardClass(dev);
+    card.dataset.state = dev.state;
+    card.replaceChild(renderHeader(dev), card.querySelector("header"));
     for (let i = 0; i < rows.length; i++) {
-      const row = rows[i], nr = newRows[i];
-      if (row.dataset.field !== nr.dataset.field) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
-      row.className = nr.className;
+      if (changed && !changed.has(dev.fields[i].name)) continue;
+      const row = rows[i], nr = renderField(dev, dev.fields[i]);
+      row.className = nr.className + (row.classList.contains("open") ? " open" : "");
       row.replaceChild(nr.children[1], row.children[1]);
     }
-    card.replaceChild(fresh.querySelector(".health"), card.querySelector(".health"));
+    card.replaceChild(renderHealth(dev), card.querySelector(".health"));
     drawCharts(card);
     return card;
   }
@@ -401,12 +413,15 @@
   // reading changed, and every field's reading time); the cards that changed are drawn
   // once per frame: a page in a background tab (no frames) holds a set of keys, never
   // a backlog, and the layout is computed once per frame, not once per event
-  const dirty = new Map(); // device key -> the newest reading time of its last event
+  const dirty = new Map(); // device key -> {t: newest reading time, changed: Set of names | null}
   let scheduled = false;
   function queue(msg) {
     const t = merge(msg);
     if (t === null) return;
-    dirty.set(msg.device.key, t);
+    const d = dirty.get(msg.device.key);
+    const names = msg.device.fields ? msg.device.fields.map(function (f) { return f.name; }) : [];
+    if (d) { d.t = t; if (d.changed) for (const n of names) d.changed.add(n); }
+    else dirty.set(msg.device.key, { t: t, changed: new Set(names) });
     if (!scheduled) { scheduled = true; requestAnimationFrame(flush); }
   }
   function flush() {
@@ -414,15 +429,15 @@
     const started = performance.now();
     const cards = [];
     let all = false;
-    for (const key of dirty.keys()) {
+    for (const [key, d] of dirty) {
       const at = findDevice(key);
       if (!at) continue;
       const old = app.querySelector('.device[data-key="' + CSS.escape(key) + '"]');
-      if (old) cards.push(updateDevice(old, at.gw, at.dev));
+      if (old) cards.push(updateDevice(old, at.gw, at.dev, d.changed));
       else all = true;
     }
     const n = dirty.size;
-    const polled = Array.from(dirty.values());
+    const polled = Array.from(dirty.values(), function (d) { return d.t; });
     perf.events += n;
     dirty.clear();
     if (all) renderAll();
