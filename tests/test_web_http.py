@@ -134,6 +134,14 @@ def test_state_events_trend_and_metrics_of_a_polling_process(
         conn.request("POST", "/api/state", body=b"{}")
         assert conn.getresponse().status == 405
         conn.close()
+        # a reconnection, with the id a browser's EventSource would send back, starts
+        # with a snapshot again: whatever it missed is in it
+        again = Events(url, headers={"Last-Event-ID": "41"})
+        try:
+            kind, snap = next(iter(again))
+        finally:
+            again.close()
+        assert kind == "state" and field(devices(snap)["huiwen-aq@3"], "co2")["value"] == 901
         # a browser still connected when poll stops: it stops anyway, cleanly
         held = Events(url)
         code = p.stop()
