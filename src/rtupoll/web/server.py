@@ -110,7 +110,7 @@ class Hub:
         self._timer: asyncio.TimerHandle | None = None
 
     def publish(self, key: str, event: str, data: str | Callable[[], str]) -> None:
-        if not self.clients:
+        if not self.clients or self.closed:
             return
         self.pending[key] = (event, data)
         if self._timer is None:
