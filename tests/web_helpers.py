@@ -133,6 +133,30 @@ def field(state_or_device: dict[str, Any], name: str) -> dict[str, Any]:
     return next(f for f in state_or_device["fields"] if f["name"] == name)
 
 
+def merge(state: dict[str, Any], event: dict[str, Any]) -> dict[str, Any] | None:
+    """A ``device`` event into a snapshot, as docs/web.md says a client merges it (the
+    page's merge, in app.js, is tested against ``/api/state`` in the browser); the
+    merged device, or None for a device not in the snapshot."""
+    delta = event["device"]
+    dev = devices(state).get(delta["key"])
+    if dev is None:
+        return None
+    index = {f["name"]: i for i, f in enumerate(dev["fields"])}
+    for f in delta.get("fields", []):
+        if f["name"] in index:
+            i = index[f["name"]]
+            dev["fields"][i] = {**dev["fields"][i], **f}
+    for i, t in enumerate(delta.get("times") or []):
+        if t is not None:
+            dev["fields"][i]["time"] = t
+    for k, v in delta.items():
+        if k == "health":
+            dev["health"].update(v)
+        elif k not in ("fields", "times"):
+            dev[k] = v
+    return dev
+
+
 def have_chromium() -> bool:
     return Path(CHROMIUM).exists() and Path(CHROMEDRIVER).exists() and \
         shutil.which("chromium") is not None
@@ -163,7 +187,11 @@ def chromium(width: int = 1280, height: int = 1000) -> Iterator[Any]:
 
 
 def console_errors(driver: Any) -> list[dict[str, Any]]:
-    return [e for e in driver.get_log("browser") if e.get("level") == "SEVERE"]
+    """The browser's errors, but the event stream's reconnection refused once the test's
+    server is stopped (the page retries every 2 s; a slow teardown sees one or two)."""
+    refused = "/api/events - Failed to load resource: net::ERR_CONNECTION_REFUSED"
+    return [e for e in driver.get_log("browser")
+            if e.get("level") == "SEVERE" and refused not in str(e.get("message"))]
 
 
 def color_scheme(driver: Any, scheme: str) -> None:

@@ -23,9 +23,11 @@ import pytest
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
 from tests.web_helpers import (
+    Events,
     chromium,
     color_scheme,
     console_errors,
+    devices,
     get_json,
     have_chromium,
     phone,
@@ -201,6 +203,52 @@ def test_a_dead_device_greys_out_and_comes_back(
                      d["state"] == "online" and d, "radar back by itself")
         assert all(v[:1].isdigit() for k, v in back["fields"].items() if k != "status")
         assert "timeouts" in back["health"] and "timeouts 0" not in back["health"]
+
+
+def comparable(state: dict[str, Any]) -> dict[str, Any]:
+    """Every device as the snapshot has it, without the reply-time percentiles (only in
+    ``/api/state``: the events leave them out)."""
+    out = {}
+    for dev in devices(state).values():
+        dev = json.loads(json.dumps(dev))
+        for k in ("p50", "p95"):
+            dev["health"].pop(k, None)
+        out[dev["key"]] = dev
+    return out
+
+
+def test_the_pages_model_after_many_delta_events_is_the_servers_snapshot(
+        browser: Any, tmp_path: Path) -> None:
+    with running(["poll", "--simulate", "--format", "json", "--interval", "1", "--http",
+                  "127.0.0.1:0"], tmp_path) as p:
+        browser.get(p.url)
+        merged = "return window.rtupollPerf.events"
+        until(lambda: browser.execute_script(merged) >= 30, "30 device events merged",
+              every=0.2)
+        # another client joins: every stream gets whole device events again, then deltas
+        other = Events(p.url)
+        kind, _ = next(iter(other))
+        assert kind == "state"
+        seen = browser.execute_script(merged)
+        until(lambda: browser.execute_script(merged) >= seen + 30, "30 more", every=0.2)
+        other.close()
+        # each device, page and server read back to back until neither changed between
+        # (a device changes only in its cycles, once a second): equal, to the last key
+        left = set(DEMO)
+        diff: dict[str, Any] = {}
+        deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
+        while left and time.monotonic() < deadline:
+            page = comparable(browser.execute_script("return window.rtupollModel()"))
+            server = comparable(get_json(p.url + "api/state"))
+            for key in list(left):
+                if page[key] == server[key]:
+                    left.discard(key)
+                else:
+                    diff[key] = [(k, page[key][k], server[key][k]) for k in server[key]
+                                 if page[key].get(k) != server[key][k]]
+            time.sleep(0.1)
+        assert not left, {k: diff[k] for k in left}
+        assert browser.execute_script(merged) >= seen + 30
 
 
 # -- a fleet on one broker --------------------------------------------------------------

@@ -19,7 +19,7 @@ from click.testing import CliRunner
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import free_port
-from tests.web_helpers import Events, devices, field, get, get_json, running, until
+from tests.web_helpers import Events, devices, field, get, get_json, merge, running, until
 
 POLL = ["poll", "--format", "json", "--interval", "0.2", "--timeout", "0.1"]
 
@@ -71,26 +71,38 @@ def test_state_events_trend_and_metrics_of_a_polling_process(
         flags = [f for f in devs["net-irnet-pro@1"]["fields"] if f["kind"] == "flags"]
         assert flags and all(isinstance(f["value"], list) for f in flags)
 
-        # the event stream: the snapshot first, then one event per device cycle
+        # the event stream: the snapshot first, then one event per device cycle, with
+        # every field's time but only the fields whose reading changed
         events = Events(url)
         try:
             it = iter(events)
-            kind, first = next(it)
-            assert kind == "state" and devices(first).keys() == devs.keys()
+            kind, model = next(it)
+            assert kind == "state" and devices(model).keys() == devs.keys()
             seen: dict[str, int] = {}
             values: set[float] = set()
+            sent: list[set[str]] = []  # the fields of each event of the gas sensor
             bus.set(3, "co2", 901)
             for kind, data in it:
                 if kind == "device":
                     key = data["device"]["key"]
                     seen[key] = seen.get(key, 0) + 1
+                    assert "p50" not in data["device"]["health"]
+                    dev = merge(model, data)
+                    assert dev is not None
+                    assert len(data["device"]["times"]) == len(dev["fields"])
                     if key == "huiwen-aq@3":
-                        values.add(field(data["device"], "co2")["value"])
+                        values.add(field(dev, "co2")["value"])
+                        sent.append({f["name"] for f in data["device"]["fields"]})
                 if 901 in values and len(seen) == 3 and min(seen.values()) >= 1 and \
                         seen["huiwen-aq@3"] >= 3:
                     break
         finally:
             events.close()
+        # the first event after the snapshot has every field; then only what changed:
+        # temperature and humidity are held, co2 changed (at most) once
+        assert sent[0] == {f["name"] for f in air["fields"]}
+        assert all("temperature" not in s and "humidity" not in s for s in sent[1:])
+        assert sum("co2" in s for s in sent[1:]) <= 1
         assert 901 in values
 
         # the trend of co2: a point per 2 s step it was polled in, the newest last
@@ -122,6 +134,14 @@ def test_state_events_trend_and_metrics_of_a_polling_process(
         conn.request("POST", "/api/state", body=b"{}")
         assert conn.getresponse().status == 405
         conn.close()
+        # a reconnection, with the id a browser's EventSource would send back, starts
+        # with a snapshot again: whatever it missed is in it
+        again = Events(url, headers={"Last-Event-ID": "41"})
+        try:
+            kind, snap = next(iter(again))
+        finally:
+            again.close()
+        assert kind == "state" and field(devices(snap)["huiwen-aq@3"], "co2")["value"] == 901
         # a browser still connected when poll stops: it stops anyway, cleanly
         held = Events(url)
         code = p.stop()

@@ -1,5 +1,5 @@
 """The dashboard's pure parts: trend rings (bounded, in order), ``--http`` settings and the
-site file's ``http:``, the authentication check, the event mailbox, and the fleet's
+site file's ``http:``, the authentication check, the event hub, and the fleet's
 reading of MQTT messages (fed directly: the broker side is in test_web_browser)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from rtupoll.config.http_settings import HttpSettings, from_options, merge, pars
 from rtupoll.config.site import load_site
 from rtupoll.errors import ConfigError, UsageError
 from rtupoll.web.fleet import MAX_WAITING, Fleet
-from rtupoll.web.server import COOKIE, Hub, Mailbox, authorised, cookie_value
+from rtupoll.web.server import BEHIND, COOKIE, Hub, authorised, cookie_value
 from rtupoll.web.trend import BYTES_PER_FIELD, POINTS, SPAN, STEP, Trend, TrendStore
 
 # -- trend rings -------------------------------------------------------------------------
@@ -171,7 +171,7 @@ def test_authorised() -> None:
                           none, none)
 
 
-def test_a_mailbox_keeps_the_latest_event_per_key_made_once_for_all() -> None:
+def test_the_hub_makes_each_event_once_and_gives_every_stream_the_same_bytes() -> None:
     async def run() -> None:
         hub = Hub()
         calls: list[int] = []
@@ -181,16 +181,45 @@ def test_a_mailbox_keeps_the_latest_event_per_key_made_once_for_all() -> None:
             return "2"
 
         hub.publish("d:a", "device", data)  # nobody listens: never made
-        one, two = Mailbox(), Mailbox()
-        hub.clients |= {one, two}
+        assert hub.pending == {}
+        one = hub.join()
+        two = hub.join()
+        assert hub.epoch == 2  # a snapshot per client: the next device events are whole
         hub.publish("d:a", "device", "1")
         hub.publish("d:b", "device", "x")
-        hub.publish("d:a", "device", data)
-        assert one.wake.is_set() and two.wake.is_set() and calls == []
+        hub.publish("d:a", "device", data)  # the latest of a key, in its first place
+        assert calls == [] and not one.wake.is_set()  # nothing until the flush
+        hub.flush()  # what the timer does BATCH seconds after the first publish
+        assert one.wake.is_set() and two.wake.is_set() and calls == [1]
         expected = b"event: device\ndata: 2\n\nevent: device\ndata: x\n\n"
         assert one.take() == expected and two.take() == expected
-        assert calls == [1]  # made once, when first sent, for both
         assert not one.wake.is_set() and one.take() == b""
+        hub.close()
+
+    asyncio.run(run())
+
+
+def test_a_stream_that_stops_reading_gets_a_snapshot_not_a_backlog() -> None:
+    async def run() -> None:
+        hub = Hub()
+        slow, live = hub.join(), hub.join()
+        chunk = "x" * 100_000
+        for _ in range(BEHIND // len(chunk) + 2):
+            hub.publish("d:a", "device", chunk)
+            hub.flush()
+            live.take()  # this one reads
+        assert slow.behind and slow.queue == [] and slow.wake.is_set()
+        assert not live.behind
+        hub.publish("d:a", "device", "y")
+        hub.flush()
+        assert slow.queue == [] and live.take() == b"event: device\ndata: y\n\n"
+        epoch = hub.epoch
+        hub.rejoin(slow)
+        assert not slow.behind and hub.epoch == epoch + 1
+        hub.publish("d:a", "device", "z")
+        hub.flush()
+        assert slow.take() == live.take() == b"event: device\ndata: z\n\n"
+        hub.close()
 
     asyncio.run(run())
 

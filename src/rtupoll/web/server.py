@@ -12,9 +12,11 @@ Read-only: every other method is 405. Optional authentication (``HttpSettings``)
 bearer token (``Authorization: Bearer TOKEN``; a browser opens ``/?token=TOKEN`` once
 and keeps a cookie) and/or users for basic authentication.
 
-An event stream never holds up polling: a reading only replaces the latest pending
-event of its device in each client's mailbox (so a slow browser skips intermediate
-states, never gets a backlog), and each client's own task writes its mailbox out.
+An event stream never holds up polling: a reading only marks its device's event due;
+every ``BATCH`` seconds the due events are made once (a device's event carries only
+the fields whose reading changed, ``rtupoll.web.state``) and the same bytes go to every
+stream, each written by its own task. A browser that stops reading gets a snapshot
+when it reads again, never a backlog.
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
-BATCH = 0.25  # seconds an event stream gathers events before it writes them
+BATCH = 0.25  # seconds the events gather before they are written, the same to every stream
+BEHIND = 4 << 20  # bytes a stream may fall behind before it is given a snapshot instead
 CLOSE_WAIT = 0.5  # seconds open requests get to finish when the authentication changes
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -55,57 +58,93 @@ SECURITY_HEADERS = {
     "X-Frame-Options": "DENY"}
 
 
-class Item:
-    """One event, serialised once, when the first client sends it, for every client."""
+class Client:
+    """One event stream's bytes to write, in order; a client that falls ``BEHIND`` bytes
+    behind (a browser that stopped reading) drops them and gets a fresh snapshot when it
+    reads again, never a backlog."""
 
-    __slots__ = ("_bytes", "_make", "event")
-
-    def __init__(self, event: str, data: str | Callable[[], str]) -> None:
-        self.event = event
-        self._make = data if callable(data) else lambda: data
-        self._bytes: bytes | None = None
-
-    def encode(self) -> bytes:
-        if self._bytes is None:
-            self._bytes = f"event: {self.event}\ndata: {self._make()}\n\n".encode()
-        return self._bytes
-
-
-class Mailbox:
-    """One event-stream client's pending events: the latest per key, in arrival order."""
+    __slots__ = ("behind", "queue", "size", "wake")
 
     def __init__(self) -> None:
-        self.pending: dict[str, Item] = {}
+        self.queue: list[bytes] = []
+        self.size = 0
+        self.behind = False
         self.wake = asyncio.Event()
 
-    def put(self, key: str, item: Item) -> None:
-        self.pending[key] = item
+    def put(self, data: bytes) -> None:
+        if self.behind:
+            return
+        self.queue.append(data)
+        self.size += len(data)
+        if self.size > BEHIND:
+            self.queue.clear()
+            self.size, self.behind = 0, True
         self.wake.set()
 
     def take(self) -> bytes:
-        out = b"".join(item.encode() for item in self.pending.values())
-        self.pending.clear()
+        out = b"".join(self.queue)
+        self.queue.clear()
+        self.size = 0
         self.wake.clear()
         return out
 
 
+def encode(event: str, data: str) -> bytes:
+    return f"event: {event}\ndata: {data}\n\n".encode()
+
+
 class Hub:
-    """Every connected event stream; ``publish`` is cheap with none, and an event's data
-    (a function) is made at most once, when it is sent, however many listen."""
+    """Every connected event stream. ``publish`` keeps the latest event of each key (a
+    device, the buses) until the next flush, ``BATCH`` seconds after the first one; the
+    flush makes each event's data (a function) once, when it is due, and gives the same
+    bytes to every client. With nobody listening, ``publish`` does nothing.
+
+    ``epoch`` counts the snapshots sent (a client that joined or fell behind): a device
+    event made after a new snapshot carries every field, so deltas against the last
+    flush never miss what changed between that flush and the snapshot."""
 
     def __init__(self) -> None:
-        self.clients: set[Mailbox] = set()
+        self.clients: set[Client] = set()
+        self.pending: dict[str, tuple[str, str | Callable[[], str]]] = {}
         self.closed = False
+        self.epoch = 0
+        self._timer: asyncio.TimerHandle | None = None
 
     def publish(self, key: str, event: str, data: str | Callable[[], str]) -> None:
-        if not self.clients:
+        if not self.clients or self.closed:
             return
-        item = Item(event, data)
+        self.pending[key] = (event, data)
+        if self._timer is None:
+            self._timer = asyncio.get_running_loop().call_later(BATCH, self.flush)
+
+    def flush(self) -> None:
+        self._timer = None
+        pending, self.pending = self.pending, {}
+        if not self.clients or not pending:
+            return
+        out = b"".join(encode(event, data if isinstance(data, str) else data())
+                       for event, data in pending.values())
         for c in self.clients:
-            c.put(key, item)
+            c.put(out)
+
+    def join(self) -> Client:
+        """A new client, before its snapshot is made (in the same step of the loop)."""
+        c = Client()
+        self.clients.add(c)
+        self.epoch += 1
+        return c
+
+    def rejoin(self, client: Client) -> None:
+        """A client that fell behind starts afresh, before its new snapshot is made."""
+        client.take()
+        client.behind = False
+        self.epoch += 1
 
     def close(self) -> None:
         self.closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
         for c in self.clients:
             c.wake.set()
 
@@ -312,25 +351,27 @@ class Server:
         return web.Response(text=to_json(obj), content_type="application/json",
                                  headers={"Cache-Control": "no-store"})
 
+    def _snapshot(self) -> bytes:
+        return encode("state", to_json(self.source.snapshot()))
+
     async def _events(self, request: web.Request) -> web.StreamResponse:
         hub = self.source.hub
         resp = web.StreamResponse(headers={
             "Content-Type": "text/event-stream", "Cache-Control": "no-store",
             "X-Accel-Buffering": "no", **SECURITY_HEADERS})
         await resp.prepare(request)
-        box = Mailbox()
-        hub.clients.add(box)
+        box = hub.join()  # and its snapshot at once, in the same step
         try:
-            await resp.write(f"retry: 2000\nevent: state\ndata: "
-                             f"{to_json(self.source.snapshot())}\n\n".encode())
+            await resp.write(b"retry: 2000\n" + self._snapshot())
             while not hub.closed:
                 await box.wake.wait()
                 if hub.closed:
                     break
-                # what else comes meanwhile goes in the same write: at most 1/BATCH
-                # writes a second per client, however fast the devices are polled
-                await asyncio.sleep(BATCH)
-                await resp.write(box.take())
+                if box.behind:  # it stopped reading for a while: a snapshot, no backlog
+                    hub.rejoin(box)
+                    await resp.write(self._snapshot())
+                else:
+                    await resp.write(box.take())
         except (ConnectionError, RuntimeError):  # the browser went away
             pass
         finally:

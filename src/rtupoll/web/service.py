@@ -1,11 +1,12 @@
 """``rtupoll poll --http HOST:PORT``: the dashboard of this process, as a ``Service``.
 
 Fed like the other services (``rtupoll.jobs.services``): every device cycle's readings
-go into the trend rings and, when a browser listens, become one ``device`` event (the
-device's fields and health, serialised once for every listener). Every ``BUS_EVERY``
-seconds a ``buses`` event carries the buses' load and the gateway's clients and queue.
-``/metrics`` is served here too, from ``outputs.metrics``'s collector, when
-``prometheus_client`` is installed.
+go into the trend rings and, when a browser listens, mark the device's ``device`` event
+due: made once for every listener when the events are written, with the device's state,
+health and reading times and only the fields whose reading changed since its last event.
+Every ``BUS_EVERY`` seconds a ``buses`` event carries the buses' load and the gateway's
+clients and queue. ``/metrics`` is served here too, from ``outputs.metrics``'s
+collector, when ``prometheus_client`` is installed.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from rtupoll.config.http_settings import merge
 from rtupoll.jobs.services import Service
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub, Server
-from rtupoll.web.state import Clocks, buses_event, device_state, gateway_id, number, poll_state
+from rtupoll.web.state import Clocks, buses_event, device_delta, gateway_id, number, poll_state
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
@@ -58,6 +59,8 @@ class WebService(Service):
         self._bus_of: dict[str, BusPoller] = {}
         self._prom: MetricsService | None = None
         self._ticker: asyncio.Task[None] | None = None
+        # per device: the hub's epoch and the signatures of the fields last sent
+        self._sent: dict[str, tuple[int, dict[str, object]]] = {}
 
     @property
     def address(self) -> str:
@@ -87,10 +90,7 @@ class WebService(Service):
             self._bus_of = {d.config.name: bp for bp in sched.buses for d in bp.devices}
             bus = self._bus_of.get(name)
         if bus is not None:
-            b = bus.config.name
-            self.hub.publish("d:" + name, "device", lambda: to_json(
-                {"gateway": self.gateway,
-                 "device": device_state(b, dev, Clocks(), latency=False)}))
+            self.hub.publish("d:" + name, "device", lambda: self._delta(dev))
 
     async def on_reload(self, site: Site) -> WebReload:
         """A changed ``http:``: a new address bound first (a reload that cannot bind it is
@@ -101,7 +101,8 @@ class WebService(Service):
         """The scheduler took a new site: other devices, perhaps other buses."""
         self._bus_of = {}
         self.trends.forget({d.config.name for d in scheduler.pollers()})
-        self.hub.publish("state", "state", lambda: to_json(self.snapshot()))
+        self._sent.clear()
+        self.hub.publish("state", "state", self._state_event)
 
     async def stop(self) -> None:
         if self._ticker is not None:
@@ -150,6 +151,20 @@ class WebService(Service):
         while True:
             await asyncio.sleep(BUS_EVERY)
             self.hub.publish("buses", "buses", self._buses)
+
+    def _state_event(self) -> str:
+        self.hub.epoch += 1  # every device's next event carries every field
+        return to_json(self.snapshot())
+
+    def _delta(self, dev: DevicePoller) -> str:
+        """The device's event, made when it is sent: the fields changed since its last
+        event, or every field after a snapshot went out (``Hub.epoch``)."""
+        name, epoch = dev.config.name, self.hub.epoch
+        got = self._sent.get(name)
+        if got is None or got[0] != epoch:
+            got = self._sent[name] = (epoch, {})
+        return to_json({"gateway": self.gateway,
+                        "device": device_delta(dev, Clocks(), got[1])})
 
     def _buses(self) -> str:
         assert self._scheduler is not None

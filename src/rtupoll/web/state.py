@@ -144,26 +144,73 @@ class Clocks:
         return self.wall + (mono - self.mono)
 
 
-def device_state(bus: str, dev: DevicePoller, clocks: Clocks, *, latency: bool = True
+def health_state(dev: DevicePoller, clocks: Clocks, *, latency: bool = True
                  ) -> dict[str, Any]:
-    """``latency=False`` (the events, sent after every cycle): without the p50 and p95
-    reply times (their sorting) and without the fields' unchanging parts."""
+    """``latency=False`` (the events, after every cycle): without ``p50`` and ``p95``
+    (sorting the reply times)."""
+    cfg, st = dev.config, dev.stats
+    waiting = st.state in (State.RETRYING, State.OFFLINE)
+    out = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
+           "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
+           "failures": st.failures, "timeout": st.timeout,
+           "timeout_source": st.timeout_source, "last_seen": st.last_good_time,
+           "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,
+           "interval": cfg.interval}
+    if latency:
+        out.update(p50=st.p50(), p95=st.p95())
+    return out
+
+
+def device_state(bus: str, dev: DevicePoller, clocks: Clocks) -> dict[str, Any]:
     cfg, st = dev.config, dev.stats
     p = cfg.profile
-    waiting = st.state in (State.RETRYING, State.OFFLINE)
-    health = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
-              "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
-              "failures": st.failures, "timeout": st.timeout,
-              "timeout_source": st.timeout_source,
-              "p50": st.p50() if latency else None, "p95": st.p95() if latency else None,
-              "last_seen": st.last_good_time,
-              "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,
-              "interval": cfg.interval}
-    fields = [field_state(f, st.latest.get(f.name), st.last_good.get(f.name), meta=latency)
+    fields = [field_state(f, st.latest.get(f.name), st.last_good.get(f.name))
               for f in cfg.fields]
     return {"key": cfg.name, "name": cfg.name, "profile": p.id,
             "model": " ".join(x for x in (p.vendor, p.model) if x), "address": cfg.address,
-            "bus": bus, "state": st.state.value, "health": health, "fields": fields}
+            "bus": bus, "state": st.state.value, "health": health_state(dev, clocks),
+            "fields": fields}
+
+
+_NEW = object()  # no signature sent yet
+
+
+def reading_signature(latest: Reading | None, last_good: Reading | None) -> object:
+    """What ``field_state`` shows of a reading, but its time: equal signatures give equal
+    fields (the text follows from the value), without formatting anything."""
+    if latest is None:
+        return None
+    fv = latest.value
+    if fv is not None:
+        return ("v", fv.value, fv.severity, fv.sentinel)
+    return ("x", latest.status, latest.error, None if last_good is None else last_good.time)
+
+
+def device_delta(dev: DevicePoller, clocks: Clocks, sent: dict[str, object]
+                 ) -> dict[str, Any]:
+    """A device's event after a cycle: its ``key``, ``state`` and ``health`` (without
+    ``p50``/``p95``), ``times`` (every field's reading time, in the snapshot's field
+    order; null before the first) and ``fields``: only those whose reading changed since
+    the signatures in ``sent`` (which it updates), each without the unchanging parts
+    and the time. Merged into the snapshot's device, it gives the snapshot's device."""
+    cfg, st = dev.config, dev.stats
+    latest, good = st.latest, st.last_good
+    times: list[float | None] = []
+    fields: list[dict[str, Any]] = []
+    for f in cfg.fields:
+        name = f.name
+        r = latest.get(name)
+        g = good.get(name)
+        times.append(None if r is None else r.time)
+        sig = reading_signature(r, g)
+        if sent.get(name, _NEW) != sig:
+            sent[name] = sig
+            out = field_state(f, r, g, meta=False)
+            out.pop("time", None)
+            fields.append(out)
+    return {"key": cfg.name, "state": st.state.value,
+            "health": health_state(dev, clocks, latency=False), "times": times,
+            "fields": fields}
 
 
 def bus_state(bp: BusPoller, clocks: Clocks, served: dict[str, dict[str, Any]],

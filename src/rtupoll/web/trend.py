@@ -36,18 +36,20 @@ class Trend:
         self._head = 0  # once full: the index of the oldest point
 
     def add(self, tick: int, value: float) -> None:
-        n = len(self.times)
+        times = self.times
+        n = len(times)
         if n:
-            last = (self._head - 1) % n if n == POINTS else n - 1
-            if tick // STEP_TICKS == self.times[last] // STEP_TICKS:  # the same step:
-                self.times[last], self.values[last] = tick, value  # the newer reading
+            last = self._head - 1  # the newest point (-1: the end, until the ring wraps)
+            if tick // STEP_TICKS == times[last] // STEP_TICKS:  # the same step:
+                times[last], self.values[last] = tick, value  # the newer reading
                 return
         if n < POINTS:
-            self.times.append(tick)
+            times.append(tick)
             self.values.append(value)
         else:
-            self.times[self._head], self.values[self._head] = tick, value
-            self._head = (self._head + 1) % POINTS
+            head = self._head
+            times[head], self.values[head] = tick, value
+            self._head = head + 1 if head + 1 < POINTS else 0
 
     def points(self, since: int = 0) -> tuple[list[int], list[float]]:
         """Ticks and values from ``since`` on, oldest first."""
@@ -87,13 +89,13 @@ class TrendStore:
 
     def add(self, device: str, field: str, wall: float, value: float) -> bool:
         """Keep a point; False (nothing kept) for a value that is no number to draw."""
-        if not math.isfinite(value) or abs(value) > 3.4e38:  # beyond a float32
+        if not -3.4e38 <= value <= 3.4e38:  # NaN, infinite or beyond a float32
             return False
-        key = (device, field)
-        ring = self.rings.get(key)
+        ring = self.rings.get((device, field))
         if ring is None:
-            ring = self.rings[key] = Trend()
-        ring.add(self.tick(wall), value)
+            ring = self.rings[(device, field)] = Trend()
+        tick = round((wall - self.epoch) / TICK)
+        ring.add(tick if tick > 0 else 0, value)
         return True
 
     def series(self, device: str, field: str, now: float) -> dict[str, list[float]]:

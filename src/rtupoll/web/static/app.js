@@ -14,6 +14,7 @@
   // page updated, and milliseconds the update took (the last PERF of each)
   const PERF = 2000;
   const perf = window.rtupollPerf = { latency: [], update: [], events: 0 };
+  window.rtupollModel = function () { return state; }; // the merged model (the tests read it)
   function note(list, v) { list.push(v); if (list.length > PERF) list.shift(); }
 
   function now() { return Date.now() / 1000 + offset; }
@@ -139,13 +140,10 @@
   }
 
   function renderDevice(gw, dev) {
-    const card = el("article", "device st-" + dev.state + (down(dev) ? " down" : ""));
+    const card = el("article", cardClass(dev));
     card.dataset.key = dev.key;
     card.dataset.state = dev.state;
-    const head = el("header");
-    head.appendChild(el("span", "name", dev.name));
-    head.appendChild(el("span", "badge state st-" + dev.state, stateText(dev)));
-    card.appendChild(head);
+    card.appendChild(renderHeader(dev));
     card.appendChild(el("div", "model", [dev.model, dev.profile + "@" + dev.address].filter(Boolean).join(" · ")));
     const t = el("table", "fields");
     const body = el("tbody");
@@ -164,22 +162,37 @@
     return card;
   }
 
-  // in place: the rows stay the same elements (focus, a click under way, open charts)
-  function updateDevice(card, gw, dev) {
-    const fresh = renderDevice(gw, dev);
+  function cardClass(dev) { return "device st-" + dev.state + (down(dev) ? " down" : ""); }
+
+  function renderHeader(dev) {
+    const head = el("header");
+    head.appendChild(el("span", "name", dev.name));
+    head.appendChild(el("span", "badge state st-" + dev.state, stateText(dev)));
+    return head;
+  }
+
+  // in place: the rows stay the same elements (focus, a click under way, open charts);
+  // only the rows of the fields in `changed` (a Set of names, or null: all) are redrawn
+  function updateDevice(card, gw, dev, changed) {
     const rows = card.querySelectorAll("tr.field");
-    if (rows.length !== dev.fields.length) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
-    card.className = fresh.className;
-    card.dataset.state = fresh.dataset.state;
-    card.replaceChild(fresh.querySelector("header"), card.querySelector("header"));
-    const newRows = fresh.querySelectorAll("tr.field");
+    let same = rows.length === dev.fields.length;
+    for (let i = 0; same && i < rows.length; i++) same = rows[i].dataset.field === dev.fields[i].name;
+    if (!same) {
+      const fresh = renderDevice(gw, dev);
+      card.replaceWith(fresh);
+      drawCharts(fresh);
+      return fresh;
+    }
+    card.className = cardClass(dev);
+    card.dataset.state = dev.state;
+    card.replaceChild(renderHeader(dev), card.querySelector("header"));
     for (let i = 0; i < rows.length; i++) {
-      const row = rows[i], nr = newRows[i];
-      if (row.dataset.field !== nr.dataset.field) { card.replaceWith(fresh); drawCharts(fresh); return fresh; }
-      row.className = nr.className;
+      if (changed && !changed.has(dev.fields[i].name)) continue;
+      const row = rows[i], nr = renderField(dev, dev.fields[i]);
+      row.className = nr.className + (row.classList.contains("open") ? " open" : "");
       row.replaceChild(nr.children[1], row.children[1]);
     }
-    card.replaceChild(fresh.querySelector(".health"), card.querySelector(".health"));
+    card.replaceChild(renderHealth(dev), card.querySelector(".health"));
     drawCharts(card);
     return card;
   }
@@ -396,46 +409,72 @@
     return null;
   }
 
-  // device events are applied once per frame, the latest of each device: a page in a
-  // background tab (no frames) holds one pending event per device, never a backlog,
-  // and the layout is computed once per frame, not once per event
-  const pending = new Map();
+  // a device event is merged into the model at once (it carries only the fields whose
+  // reading changed, and every field's reading time); the cards that changed are drawn
+  // once per frame: a page in a background tab (no frames) holds a set of keys, never
+  // a backlog, and the layout is computed once per frame, not once per event
+  const dirty = new Map(); // device key -> {t: newest reading time, changed: Set of names | null}
   let scheduled = false;
   function queue(msg) {
-    pending.set(msg.device.key, msg);
+    const t = merge(msg);
+    if (t === null) return;
+    const d = dirty.get(msg.device.key);
+    const names = msg.device.fields ? msg.device.fields.map(function (f) { return f.name; }) : [];
+    if (d) { d.t = t; if (d.changed) for (const n of names) d.changed.add(n); }
+    else dirty.set(msg.device.key, { t: t, changed: new Set(names) });
     if (!scheduled) { scheduled = true; requestAnimationFrame(flush); }
   }
   function flush() {
     scheduled = false;
     const started = performance.now();
     const cards = [];
-    const polled = [];
-    for (const msg of pending.values()) {
-      const card = onDevice(msg);
-      if (card) cards.push(card);
-      let t = 0;
-      for (const f of msg.device.fields) if (f.time && f.time > t) t = f.time;
-      if (t) polled.push(t);
+    let all = false;
+    for (const [key, d] of dirty) {
+      const at = findDevice(key);
+      if (!at) continue;
+      const old = app.querySelector('.device[data-key="' + CSS.escape(key) + '"]');
+      if (old) cards.push(updateDevice(old, at.gw, at.dev, d.changed));
+      else all = true;
     }
-    const n = pending.size;
+    const n = dirty.size;
+    const polled = Array.from(dirty.values(), function (d) { return d.t; });
     perf.events += n;
-    pending.clear();
+    dirty.clear();
+    if (all) renderAll();
     for (const c of cards) fit(c);
     summary();
     const done = Date.now() / 1000;
-    for (const t of polled) note(perf.latency, done - t);
+    for (const t of polled) if (t) note(perf.latency, done - t);
     if (n) note(perf.update, (performance.now() - started) / n);
   }
 
-  function onDevice(msg) {
-    const dev = msg.device;
-    const at = findDevice(dev.key);
+  // an event's device into the snapshot's: its fields replace those of the same name
+  // (keeping their label, unit, kind ...), the others stay; `times` sets every field's
+  // reading time (in the snapshot's field order), `health` is merged, the rest replaced
+  function merge(msg) {
+    const d = msg.device;
+    const at = findDevice(d.key);
     if (!at) return null; // not in the snapshot (a reload sends a new one)
-    // an event's fields carry the reading; the rest (label, unit, kind) is the snapshot's
-    const meta = {};
-    for (const f of at.dev.fields) meta[f.name] = f;
-    dev.fields = dev.fields.map(function (f) { return Object.assign({}, meta[f.name], f); });
-    at.bus.devices[at.i] = dev;
+    const dev = at.dev;
+    const index = new Map();
+    dev.fields.forEach(function (f, i) { index.set(f.name, i); });
+    let t = 0;
+    for (const f of d.fields || []) {
+      const i = index.get(f.name);
+      if (i !== undefined) dev.fields[i] = Object.assign({}, dev.fields[i], f);
+      if (f.time && f.time > t) t = f.time;
+    }
+    if (d.times) {
+      d.times.forEach(function (time, i) {
+        if (time !== null && i < dev.fields.length) dev.fields[i].time = time;
+        if (time && time > t) t = time;
+      });
+    }
+    for (const k of Object.keys(d)) {
+      if (k === "fields" || k === "times") continue;
+      if (k === "health" && dev.health && d.health) Object.assign(dev.health, d.health);
+      else dev[k] = d[k];
+    }
     const span = state.span;
     for (const f of dev.fields) {
       const k = dev.key + SEP + f.name;
@@ -448,10 +487,7 @@
         while (s.t.length && s.t[0] < now() - span) { s.t.shift(); s.v.shift(); }
       }
     }
-    const old = app.querySelector('.device[data-key="' + CSS.escape(dev.key) + '"]');
-    if (old) return updateDevice(old, at.gw, dev);
-    renderAll();
-    return null;
+    return t;
   }
 
   function onBuses(msg) {
@@ -502,7 +538,7 @@
     es.addEventListener("open", function () { conn.dataset.state = "live"; conn.textContent = "live"; });
     es.addEventListener("error", function () { conn.dataset.state = "lost"; conn.textContent = "reconnecting…"; });
     es.addEventListener("state", function (e) {
-      pending.clear();
+      dirty.clear();
       state = JSON.parse(e.data);
       offset = state.time - Date.now() / 1000;
       renderAll();
