@@ -110,6 +110,7 @@ class Subscriber:
 
     def close(self) -> None:
         _end(self.proc)
+        self._thread.join(timeout=10)  # the process is gone, so its output has ended
         if self.proc.stdout is not None:
             self.proc.stdout.close()
 
