@@ -4,19 +4,18 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
-from rich import box
-from rich.console import Console
-from rich.markup import escape
-from rich.table import Table as RichTable
-from rich.text import Text
 
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import load_library, load_one, load_profile
 from rtupoll.config.paths import bundled_dir
 from rtupoll.errors import ProfileError, RtupollError, UsageError
 from rtupoll.model.profile import Choice, Field, Profile
+
+if TYPE_CHECKING:  # rich loads only where a table for people is printed: not for --format json
+    from rich.text import Text
 
 
 @click.group()
@@ -144,6 +143,10 @@ def _print_profiles(rows: list[Profile], fmt: str, title: str,
                 rec["match"] = why[p.id]
             click.echo(json.dumps(rec, ensure_ascii=False))
         return
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table as RichTable
+    from rich.text import Text
     t = RichTable(title=title, box=box.SIMPLE_HEAD, pad_edge=False)
     t.add_column("kind / id", no_wrap=True, style="bold")
     t.add_column("device", ratio=1)
@@ -179,6 +182,10 @@ def show(profile_id: str, profile_dirs: tuple[Path, ...]) -> None:
     Tables are abbreviated as for 'read --raw': co coil, di discrete input, ir input
     register, hr holding register.
     """
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table as RichTable
+    from rich.text import Text
     p = load_one(profile_id, profile_dirs)
     console = Console()
     console.print(_summary(p), highlight=False)
@@ -261,6 +268,7 @@ def _summary(p: Profile) -> str:
             f"{p.set_address.field} via FC{p.set_address.function:02d}" if p.set_address.field
             else f"not supported: {p.set_address.unsupported}"),
     ]
+    from rich.markup import escape
     v = p.provenance
     style = "green" if v.level.value == "vendor document" else "yellow" if v.verified \
         else "bold red"
@@ -282,6 +290,7 @@ _LEVEL_SHORT = {"vendor document": "vendor doc", "two independent implementation
 
 def level_text(p: Profile, short: bool = True) -> Text:
     """A profile's verification level, coloured: unverified stands out."""
+    from rich.text import Text
     v = p.provenance
     text = _LEVEL_SHORT[v.level.value] if short else v.label
     return Text(text, style="green" if v.level.value == "vendor document"
