@@ -146,6 +146,21 @@ class RawPort:
 
 
 @pytest.fixture
+def dtr_states(monkeypatch: pytest.MonkeyPatch) -> list[tuple[bool, bool]]:
+    """(DTR, RTS) as each rtupoll-opened port sets them when it opens, in order."""
+    from rtupoll.io import serialport
+
+    states: list[tuple[bool, bool]] = []
+    real = serialport.Serial._update_dtr_state
+
+    def spy(self: Any) -> None:
+        states.append((self._dtr_state, self._rts_state))
+        real(self)
+    monkeypatch.setattr(serialport.Serial, "_update_dtr_state", spy)
+    return states
+
+
+@pytest.fixture
 def raw_port() -> Iterator[Callable[..., RawPort]]:
     """Factory: ``port = raw_port(bus.port[, baudrate])``; closed after the test."""
     opened: list[RawPort] = []

@@ -160,15 +160,10 @@ def test_port_vanishes_and_returns(sim: Sim, tmp_path: Path) -> None:
     assert seen[3:] == [(777,), 2]
 
 
-def test_dtr_and_rts_are_deasserted_before_open(sim: Sim, monkeypatch: Any) -> None:
+def test_dtr_and_rts_are_deasserted_before_open(
+        sim: Sim, dtr_states: list[tuple[bool, bool]]) -> None:
     """pymodbus opens the port itself; through rtupoll:// it is our Serial that opens it."""
-    states: list[tuple[bool, bool]] = []
-    real = serialport.Serial._update_dtr_state
-
-    def spy(self: Any) -> None:
-        states.append((self._dtr_state, self._rts_state))
-        real(self)
-    monkeypatch.setattr(serialport.Serial, "_update_dtr_state", spy)
+    states = dtr_states
     bus_sim = sim("co2meter-an117@5", tick=None)
 
     async def go(deassert: bool) -> tuple[int, ...]:

@@ -17,7 +17,6 @@ import pytest
 import serial
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError
-from rtupoll.io import serialport
 from rtupoll.io.serialport import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.jobs.holes import read_all
@@ -136,14 +135,9 @@ def test_a_port_that_goes_away_mid_transaction(sim: Sim, tmp_path: Path) -> None
         assert bus.stats.outcomes["port"] == 1 and not bus.connected
 
 
-def test_dtr_and_rts_are_deasserted_before_open(sim: Sim, monkeypatch: Any) -> None:
-    states: list[tuple[bool, bool]] = []
-    real = serialport.Serial._update_dtr_state
-
-    def spy(self: Any) -> None:
-        states.append((self._dtr_state, self._rts_state))
-        real(self)
-    monkeypatch.setattr(serialport.Serial, "_update_dtr_state", spy)
+def test_dtr_and_rts_are_deasserted_before_open(
+        sim: Sim, dtr_states: list[tuple[bool, bool]]) -> None:
+    states = dtr_states
     bus_sim = sim("co2meter-an117@5", tick=None)
     with SyncBus(PortSettings(bus_sim.port, baudrate=115200, deassert_dtr=True)) as bus:
         assert run(bus.read(5, Table.INPUT, 1, 1, timeout=0.5)) == \
