@@ -312,6 +312,7 @@ def _unit(f: Field) -> str:
         parts.append(f"raw x {f.layout.scale:g}")
     if f.layout.offset:
         parts.append(f"{f.layout.offset:+g}")
+    parts += [f"x {name}" for name in f.scale_by]  # scale_by: x a ratio read with it
     return " ".join(parts)
 
 

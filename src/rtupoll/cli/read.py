@@ -25,7 +25,7 @@ from rtupoll.cli.target import (
     speed_note,
     timing_options,
 )
-from rtupoll.errors import RefusedError, UsageError
+from rtupoll.errors import FrameError, RefusedError, UsageError
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.model.codec import ByteOrder, words_to_hex
@@ -166,6 +166,7 @@ async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timi
     from rtupoll.jobs.device import probe_variant
     from rtupoll.jobs.holes import FieldsRefused, read_all
     from rtupoll.model.planner import plan
+    from rtupoll.model.scaling import scale_values
     from rtupoll.rtu import exception_name
 
     profile = target.profile
@@ -183,10 +184,17 @@ async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timi
                                      timeout=timing.timeout, retries=timing.retries)
     for f, exc in refused:
         missing[f.name] = f"refused: exception {exc.code:02d} {exception_name(exc.code)}"
+    values, unscaled = scale_values(values, missing)  # scale_by: x the factors read
+    for u in unscaled:
+        missing[u.field.name] = f"not scaled: {u.reason}"
     by_name = {fv.field.name: fv for fv in values}
     rows = [(f, by_name.get(f.name), missing.get(f.name, "")) for f in fields]
     if refused:  # printed, then exit 5 (``read``)
         raise PartialRead(rows, FieldsRefused(refused))
+    if unscaled:  # a factor that reads no ratio: printed, then exit 7
+        u = unscaled[0]
+        raise PartialRead(rows, FrameError(f"unit {target.unit}: {u.field.name} not scaled: "
+                                           f"{u.reason}"))
     return rows
 
 

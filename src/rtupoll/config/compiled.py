@@ -49,7 +49,8 @@ MAX_BYTES = 8 << 20  # a larger cache file is not read (the largest bundled one:
 _MODEL = {m.__name__: m for m in (profile, codec, functions)}
 _HERE = os.path.dirname(__file__)
 _CODE = (*(str(m.__file__) for m in _MODEL.values()),
-         *(os.path.join(_HERE, name) for name in ("profile_file.py", "yamlsrc.py", "compiled.py")))
+         *(os.path.join(_HERE, name) for name in ("profile_file.py", "scale_by.py", "yamlsrc.py",
+                                                     "compiled.py")))
 
 
 class Source(NamedTuple):

@@ -15,6 +15,7 @@ from typing import TypeVar
 
 import yaml
 
+from rtupoll.config import scale_by
 from rtupoll.config.compiled import Source
 from rtupoll.config.paths import find_parent
 from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
@@ -53,7 +54,7 @@ _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing",
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
-               "interval", "counter", "typical"}
+               "interval", "counter", "typical", "scale_by"}
 
 
 def read_profile(path: Path) -> tuple[Profile, list[Source]]:
@@ -82,6 +83,7 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
     anchor = top.get("fields") or root
     _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]), [fields[i] for i in plain])
     _check_shared(field_nodes, fields)
+    scale_by.check(field_nodes, fields)
     by_name = {f.name: f for f in fields}
 
     profile = Profile(
@@ -356,6 +358,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         precision=m["precision"].integer(-6, 9) if "precision" in m else None,
         interval=_opt(m, "interval", _interval, None), counter=counter,
         typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
+        scale_by=scale_by.names(m["scale_by"]) if "scale_by" in m else (),
     )
 
 

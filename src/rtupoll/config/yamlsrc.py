@@ -103,6 +103,16 @@ class Node:
                               path=self.path) from None
         return list(self.node.value)
 
+    def key(self, name: str) -> Node | None:
+        """The value of ``name`` in a mapping ``mapping`` has read (merge keys resolved, so
+        the node's own key, listed last, wins); None when it has no such key."""
+        found = None
+        if isinstance(self.node, yaml.MappingNode):
+            for knode, vnode in self.node.value:
+                if isinstance(knode, yaml.ScalarNode) and str(knode.value) == name:
+                    found = self._child(vnode, name)
+        return found
+
     def items(self) -> Iterator[tuple[Node, Node]]:
         """Key and value nodes of a mapping whose keys are data (enum codes, flag bits)."""
         for knode, vnode in self._pairs():

@@ -17,6 +17,7 @@ from rtupoll.io.interface import BusLike
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field, Limits, Profile
+from rtupoll.model.scaling import scale_values
 
 __all__ = ["Timing", "probe_variant", "read_block", "read_fields", "timing"]
 
@@ -50,13 +51,18 @@ async def read_fields(bus: BusLike, profile: Profile, unit: int, fields: Sequenc
     """Read ``fields`` in the fewest requests the profile allows; values in request order.
 
     ``variant`` (from ``probe_variant``) drops fields the device does not have; None
-    reads every field asked for. The first failing block raises its bus error.
+    reads every field asked for. The first failing block raises its bus error; a field
+    whose ``scale_by`` factor reads no ratio (0, a sentinel) raises ``FrameError``.
     """
     t = timing(profile, timeout, retries)
-    by_name: dict[str, FieldValue] = {}
+    got: list[FieldValue] = []
     for block in plan(fields, profile, variant=variant):
-        for fv in await read_block(bus, unit, block, timeout=t.timeout, retries=t.retries):
-            by_name[fv.field.name] = fv
+        got += await read_block(bus, unit, block, timeout=t.timeout, retries=t.retries)
+    values, unscaled = scale_values(got)
+    if unscaled:  # a factor (scale_by) read, but it is no ratio: no value, an error
+        raise FrameError(f"unit {unit}: {unscaled[0].field.name} not scaled: "
+                         f"{unscaled[0].reason}")
+    by_name = {fv.field.name: fv for fv in values}
     out: list[FieldValue] = []
     for f in fields:
         if f.name in by_name:  # a field asked for twice comes back once

@@ -31,7 +31,7 @@ import random
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from rtupoll.backoff import after_failures
@@ -50,8 +50,10 @@ from rtupoll.jobs.device import probe_variant, read_block
 from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
+from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
+from rtupoll.model.scaling import scale
 from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
 
 T = TypeVar("T")
@@ -178,6 +180,7 @@ class DevicePoller:
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
         self.resume = policy.resume()
+        scaled(out)
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
         readings = [out[f.name] for f in cfg.fields if f.name in out]
@@ -296,6 +299,19 @@ class DevicePoller:
             self.next_due = self._clock() + backoff.delay(st.failures, self.config.interval,
                                                            rand)
             st.state = State.OFFLINE if st.failures >= backoff.offline_after else State.RETRYING
+
+
+def scaled(out: dict[str, Reading]) -> None:
+    """This cycle's readings of fields with ``scale_by``, multiplied by the factors read in
+    the same cycle; a field whose factor has no value gets none either (``unscaled``)."""
+    for name, r in out.items():
+        if r.value is None or not r.field.scale_by:
+            continue
+        got = {n: out[n].value or f"{out[n].status}: {out[n].error}"
+               for n in r.field.scale_by if n in out}
+        res = scale(r.value, got)
+        out[name] = replace(r, value=res) if isinstance(res, FieldValue) else \
+            Reading(r.time, r.device, r.field, None, Status.UNSCALED, res.reason)
 
 
 class BusPoller:

@@ -39,6 +39,7 @@ class Status(str, enum.Enum):
     SKIPPED = "skipped"  # not asked: the device stopped answering earlier in the cycle
     PORT = "port"  # the port was gone (adapter unplugged, gateway down)
     ABSENT = "absent"  # this variant of the device has no such field
+    UNSCALED = "unscaled"  # read, but a field it is multiplied by (scale_by) has no value
 
     def __str__(self) -> str:
         return self.value

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from rtupoll.errors import FrameError, RefusedError
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Poll, Profile
+from rtupoll.model.scaling import with_factors
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_BITS
 
@@ -82,7 +83,8 @@ def plan(fields: Sequence[Field], profile: Profile, *,
          holes: Collection[tuple[Table, int]] = ()) -> tuple[Block, ...]:
     """The fewest block reads covering ``fields`` within ``profile``'s limits.
 
-    Fields are deduplicated by name; with ``variant`` given, fields newer than it are
+    The fields a wanted field is scaled by (``scale_by``) are read with it. Fields are
+    deduplicated by name; with ``variant`` given, fields newer than it are
     dropped. Blocks come in a stable order (table, then address) so a caller can
     resume a scan at the block that failed. Raises ``RefusedError`` when a field
     cannot be read at all: its function is not supported, it is wider than one read,
@@ -94,7 +96,7 @@ def plan(fields: Sequence[Field], profile: Profile, *,
     are still read.
     """
     wanted: dict[str, Field] = {}
-    for f in for_variant(fields, variant):
+    for f in for_variant(with_factors(fields, profile), variant):  # factors: scale_by
         wanted.setdefault(f.name, f)
     forbidden = _registers(profile.forbidden())
     learned = frozenset(holes)

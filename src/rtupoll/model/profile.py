@@ -112,6 +112,9 @@ class Field:
     # ``total_increasing`` (Home Assistant) or as a counter (Prometheus)
     counter: bool = False
     typical: float | str | None = None  # an everyday value: where the simulator starts
+    # fields of the same device the value is multiplied by (a CT or VT ratio): the
+    # registers hold the meter's terminal-side value (``model.scaling``)
+    scale_by: tuple[str, ...] = ()
     line: int = 0
 
     @property
