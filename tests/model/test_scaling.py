@@ -10,10 +10,14 @@ from textwrap import dedent
 import pytest
 
 from rtupoll.config.library import load_profile
+from rtupoll.model.carried import Carried, carried
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.planner import decode_block, plan
 from rtupoll.model.profile import Profile
 from rtupoll.model.scaling import Unscaled, factors, scale, scale_values, with_factors
+from rtupoll.rtu import Table
+from rtupoll.rtu.capture import decode_stream
+from rtupoll.rtu.functions import read_request, read_response
 
 METER = """\
 id: ct-meter
@@ -157,3 +161,33 @@ def test_one_read_is_scaled_whole_and_the_unscaled_are_named(meter: Profile) -> 
                                     {"ct": "refused: exception 02"})
     assert {u.field.name for u in unscaled} == {"current", "power"}
     assert unscaled[0].reason == "ct (scale_by) not read: refused: exception 02"
+
+
+def _exchange(p: Profile, start: int, values: dict[str, float | int]) -> list[Carried]:
+    """``decode --profile``: one read of ``values``' fields (from ``start``), captured."""
+    fields = [p.field(n) for n in values]
+    count = max(f.end for f in fields) - start
+    regs = [0] * count
+    for f in fields:
+        regs[f.address - start:f.end - start] = field_words(f, values[f.name])
+    wire = read_request(1, Table.HOLDING, start, count) + read_response(1, 3, regs)
+    _, reply = decode_stream([wire])
+    return carried(reply, p)
+
+
+def test_decode_scales_a_field_whose_ratio_is_in_the_same_frame(tmp_path: Path) -> None:
+    path = tmp_path / "ct-meter.yaml"  # the same meter with its ratios next to the values
+    path.write_text(dedent(METER).replace("0x0006", "0x2008").replace("0x0007", "0x2009"),
+                    encoding="utf-8")
+    near = load_profile(path)
+    got = _exchange(near, 0x2008, {"ct": 200, "vt": 10.0, "current": 0.035, "power": 8.0})
+    assert {c.name: (c.value, c.text) for c in got} == {
+        "ct": (200, "200"), "vt": (10.0, "10.0"), "current": (7.0, "7.000 A"),
+        "power": (16000.0, "16000.0 W")}
+
+
+def test_decode_never_shows_a_terminal_value_as_the_reading(meter: Profile) -> None:
+    (c,) = _exchange(meter, 0x200C, {"current": 0.035})
+    assert c.value is None and c.severity == "warning"
+    assert c.text == "0.035 A at the terminals, not scaled: ct (scale_by) was not read"
+    assert c.raw == tuple(field_words(meter.field("current"), 0.035))

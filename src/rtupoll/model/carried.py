@@ -2,7 +2,9 @@
 
 ``rtupoll.rtu.capture`` splits and decodes the frames (registers, bits, notes); this
 module puts a profile on them: which fields lie in a frame's address range and, where
-the frame carries their registers, their values.
+the frame carries their registers, their values. A field with ``scale_by`` is scaled
+when its factors are in the same frame; otherwise it has no value, and the text says
+what the terminals read and why it is not the reading.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Profile
+from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu.capture import Frame
 
 
@@ -41,6 +44,10 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
     lo, hi = frame.start, frame.start + count
     has_data = bool(frame.values) and (frame.kind == "response" or frame.function in (5, 6, 15, 16))
     out: list[Carried] = []
+    # every field the frame carries whole, decoded: a scaled field's factors may be among them
+    got = {f.name: interpret(f, frame.values[f.address - lo : f.end - lo])
+           for f in profile.fields if has_data and f.table is frame.table
+           and lo <= f.address and f.end <= min(hi, lo + len(frame.values))}
     for f in profile.fields:
         if f.table is not frame.table or f.end <= lo or f.address >= hi:
             continue
@@ -52,7 +59,13 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
             out.append(Carried(f.name, written, f.unit))
             continue
         raw = frame.values[f.address - lo : f.end - lo]
-        fv = interpret(f, raw)
+        fv = scale(got[f.name], got)
+        if isinstance(fv, Unscaled):  # its ratio is not in this frame: no value, and why
+            terminals = got[f.name].text + (f" {f.unit}" if f.unit else "")
+            out.append(Carried(f.name, written, f.unit, raw, None,
+                               f"{terminals} at the terminals, not scaled: {fv.reason}",
+                               "warning"))
+            continue
         # a sentinel ("not available") is its name, never the number its registers spell
         text = fv.text + (f" {f.unit}" if f.unit and fv.present else "")
         out.append(Carried(f.name, written, f.unit, raw, fv.output, text, fv.severity.value))

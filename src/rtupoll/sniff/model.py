@@ -21,6 +21,7 @@ from rtupoll.figures import iso_time, quantile
 from rtupoll.model.identify import check_passes
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
+from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu import messages
 from rtupoll.rtu.functions import READ_FUNCTIONS, Table
 from rtupoll.rtu.stream import Transaction
@@ -220,12 +221,23 @@ class BusView:
             return []
         fields = [f for f in k.profile.fields if f.table is req.table
                   and f.address < req.start + req.count and f.end > req.start]
+        fields.sort(key=lambda f: bool(f.scale_by))  # a frame's factors before what they scale
         out: list[dict[str, Any]] = []
         stamp = iso_time(end)
         for f in fields:
             inside = f.address >= req.start and f.end <= req.start + req.count
             if got is not None and inside:
                 fv = interpret(f, got[f.address - req.start : f.end - req.start])
+                # scale_by: times the factors' latest values seen (the other master reads them)
+                scaled = scale(fv, {n: v for n, (_, v) in u.latest.items()})
+                if isinstance(scaled, Unscaled):
+                    u.latest.pop(f.name, None)
+                    u.failed[f.name] = (end, "unscaled")
+                    out.append(poll_record(stamp, failed_record(
+                        k.name, k.profile.id, k.address, f.name, f.unit), "unscaled",
+                        scaled.reason))
+                    continue
+                fv = scaled
                 u.latest[f.name] = (end, fv)
                 u.failed.pop(f.name, None)
                 out.append(poll_record(stamp, record(k.name, k.profile.id, k.address, fv)))
