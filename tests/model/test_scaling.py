@@ -10,7 +10,7 @@ from textwrap import dedent
 import pytest
 
 from rtupoll.config.library import load_profile
-from rtupoll.model.carried import Carried, carried
+from rtupoll.model.carried import Carried, carried, carried_in
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.planner import decode_block, plan
 from rtupoll.model.profile import Profile
@@ -191,3 +191,24 @@ def test_decode_never_shows_a_terminal_value_as_the_reading(meter: Profile) -> N
     assert c.value is None and c.severity == "warning"
     assert c.text == "0.035 A at the terminals, not scaled: ct (scale_by) was not read"
     assert c.raw == tuple(field_words(meter.field("current"), 0.035))
+
+
+def test_the_product_is_taken_before_the_fields_precision(meter: Profile) -> None:
+    fv = value(meter, "current", 0.0354)
+    assert fv.value == 0.035  # shown at 3 decimals ...
+    got = scale(fv, {"ct": value(meter, "ct", 200)})
+    assert isinstance(got, FieldValue) and got.value == 7.08  # ... but 0.0354 x 200
+
+
+def test_a_capture_scales_a_value_by_the_ratio_read_before_it_by_the_same_unit(
+        meter: Profile) -> None:
+    cur, ct = meter.field("current"), meter.field("ct")
+    amps = read_request(1, Table.HOLDING, cur.address, 2) + \
+        read_response(1, 3, list(field_words(cur, 0.035)))
+    ratio = read_request(1, Table.HOLDING, ct.address, 1) + read_response(1, 3, [200])
+    other = read_request(2, Table.HOLDING, ct.address, 1) + read_response(2, 3, [5])
+    frames = decode_stream([amps, ratio, other, amps])
+    found = [c for fields in carried_in(frames, meter) for c in fields if c.name == "current"]
+    # the reply before any ratio: no value; after unit 1's ratio (not unit 2's): 7.0 A
+    assert [c.value for c in found] == [None, None, None, 7.0]
+    assert found[1].text.endswith("not scaled: ct (scale_by) was not read")

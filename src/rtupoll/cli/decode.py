@@ -18,7 +18,7 @@ import click
 from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.config.library import load_one
 from rtupoll.errors import FrameError, UsageError
-from rtupoll.model.carried import Carried, carried
+from rtupoll.model.carried import Carried, carried_in
 from rtupoll.model.profile import Profile
 from rtupoll.numbers import parse_int
 from rtupoll.rtu.capture import Frame, decode_stream, parse_hex
@@ -70,8 +70,9 @@ def decode(hex_bytes: tuple[str, ...], profile_id: str | None, start: str | None
         raise UsageError(f"--start {start!r} is not an address (decimal or 0x hex)") from None
     profile = load_one(profile_id, profile_dirs) if profile_id else None
     frames = decode_stream(chunks, start=first)
-    for frame in frames:
-        fields = carried(frame, profile) if profile else []
+    # with a profile: each frame's fields (a ratio read earlier scales the values after it)
+    found = carried_in(frames, profile) if profile else [[] for _ in frames]
+    for frame, fields in zip(frames, found, strict=True):
         if fmt == "json":
             click.echo(json.dumps(json_safe(frame_record(frame, fields, profile)),
                                   ensure_ascii=False, allow_nan=False))

@@ -3,16 +3,18 @@
 ``rtupoll.rtu.capture`` splits and decodes the frames (registers, bits, notes); this
 module puts a profile on them: which fields lie in a frame's address range and, where
 the frame carries their registers, their values. A field with ``scale_by`` is scaled
-when its factors are in the same frame; otherwise it has no value, and the text says
+by its factors from the same frame or, in a capture (``carried_in``), the latest earlier
+frame of the same unit that carried them; otherwise it has no value, and the text says
 what the terminals read and why it is not the reading.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from rtupoll.model.codec import Value
-from rtupoll.model.interpret import interpret
+from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Profile
 from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu.capture import Frame
@@ -32,22 +34,33 @@ class Carried:
     partial: bool = False
 
 
-def carried(frame: Frame, profile: Profile) -> list[Carried]:
+def carried_in(frames: Sequence[Frame], profile: Profile) -> list[list[Carried]]:
+    """``carried`` for each frame of a capture, in order: a scaled field takes the latest
+    values of its factors the capture has shown for the same unit (a ratio read before)."""
+    seen: dict[int | None, dict[str, FieldValue]] = {}
+    out = []
+    for frame in frames:
+        mine = seen.setdefault(frame.unit, {})
+        out.append(carried(frame, profile, mine))
+        mine.update(_whole(frame, profile))
+    return out
+
+
+def carried(frame: Frame, profile: Profile, seen: Mapping[str, FieldValue] | None = None
+            ) -> list[Carried]:
     """The fields of ``profile`` inside the frame's address range, decoded where it has data.
 
     A field only partly inside is listed as partial (reading half a float is a classic
-    cause of nonsense values), with no value.
+    cause of nonsense values), with no value. ``seen``: fields decoded from earlier frames
+    of the same unit, for the factors of a ``scale_by`` field this frame does not carry.
     """
     if frame.table is None or frame.start is None or frame.kind not in ("request", "response"):
         return []
     count = frame.count if frame.count is not None else len(frame.values)
     lo, hi = frame.start, frame.start + count
-    has_data = bool(frame.values) and (frame.kind == "response" or frame.function in (5, 6, 15, 16))
+    has_data = _has_data(frame)
     out: list[Carried] = []
-    # every field the frame carries whole, decoded: a scaled field's factors may be among them
-    got = {f.name: interpret(f, frame.values[f.address - lo : f.end - lo])
-           for f in profile.fields if has_data and f.table is frame.table
-           and lo <= f.address and f.end <= min(hi, lo + len(frame.values))}
+    got = {**(seen or {}), **_whole(frame, profile)}  # a scaled field's factors among them
     for f in profile.fields:
         if f.table is not frame.table or f.end <= lo or f.address >= hi:
             continue
@@ -60,7 +73,7 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
             continue
         raw = frame.values[f.address - lo : f.end - lo]
         fv = scale(got[f.name], got)
-        if isinstance(fv, Unscaled):  # its ratio is not in this frame: no value, and why
+        if isinstance(fv, Unscaled):  # its ratio is not in the capture: no value, and why
             terminals = got[f.name].text + (f" {f.unit}" if f.unit else "")
             out.append(Carried(f.name, written, f.unit, raw, None,
                                f"{terminals} at the terminals, not scaled: {fv.reason}",
@@ -70,3 +83,19 @@ def carried(frame: Frame, profile: Profile) -> list[Carried]:
         text = fv.text + (f" {f.unit}" if f.unit and fv.present else "")
         out.append(Carried(f.name, written, f.unit, raw, fv.output, text, fv.severity.value))
     return out
+
+
+def _has_data(frame: Frame) -> bool:
+    return bool(frame.values) and (frame.kind == "response" or frame.function in (5, 6, 15, 16))
+
+
+def _whole(frame: Frame, profile: Profile) -> dict[str, FieldValue]:
+    """Every field the frame carries whole, decoded as stored."""
+    if frame.table is None or frame.start is None or not _has_data(frame):
+        return {}
+    lo = frame.start
+    end = lo + min(len(frame.values), frame.count if frame.count is not None
+                   else len(frame.values))
+    return {f.name: interpret(f, frame.values[f.address - lo : f.end - lo])
+            for f in profile.fields if f.table is frame.table and lo <= f.address
+            and f.end <= end}

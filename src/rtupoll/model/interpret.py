@@ -104,16 +104,20 @@ def field_words(field: Field, value: Value, current: Sequence[int] | None = None
     return encode(value, field.layout, current)
 
 
-def _rounded(field: Field, words: tuple[int, ...]) -> Value:
-    """The decoded value; a float at the precision its type carries (an f32 296.15 is
-    296.15, not 296.1499938964844), then at the field's ``precision`` when it has one."""
+def unrounded(field: Field, words: Sequence[int]) -> Value:
+    """The decoded value, a float at the precision its type carries (an f32 296.15 is
+    296.15, not 296.1499938964844), before the field's ``precision``: what a ``scale_by``
+    ratio multiplies (0.0354 kWh x 200 is 7.08, not 0.04 x 200)."""
     layout = field.layout
     if layout.type is DataType.F32:  # decoded once: the stored float, at its own precision
         stored = short_f32(float(decode_raw(words, layout)))
-        value: Value = round(stored * layout.scale + layout.offset, 9) if layout.scaled \
-            else stored
-    else:
-        value = decode(words, layout)
+        return round(stored * layout.scale + layout.offset, 9) if layout.scaled else stored
+    return decode(words, layout)
+
+
+def _rounded(field: Field, words: tuple[int, ...]) -> Value:
+    """The decoded value (``unrounded``), then at the field's ``precision`` when it has one."""
+    value = unrounded(field, words)
     if not isinstance(value, float) or not math.isfinite(value):
         return value
     if field.precision is not None and math.isfinite(value):

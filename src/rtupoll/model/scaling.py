@@ -9,7 +9,8 @@ ratio (0, a sentinel, outside its documented range), leaves the field with no va
 and a reason: never the terminal-side number as if it were the reading.
 
 The product is taken on the decimals the two values show (0.035 x 200 is 7.0, not
-7.000000000000001), then rounded to the field's one precision (``decimals``).
+7.000000000000001), the field's value before its ``precision`` (0.0354 x 200 is 7.08,
+not 0.04 x 200), then rounded to the field's one precision (``decimals``).
 
 Pure: no I/O, inputs never mutated.
 """
@@ -22,7 +23,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from decimal import Decimal
 
-from rtupoll.model.interpret import FieldValue, decimals
+from rtupoll.model.interpret import FieldValue, decimals, unrounded
 from rtupoll.model.profile import Field, Profile
 
 __all__ = ["Unscaled", "factors", "scale", "scale_values", "with_factors"]
@@ -59,7 +60,7 @@ def scale(fv: FieldValue, got: Mapping[str, FieldValue | str]) -> FieldValue | U
     f = fv.field
     if not f.scale_by or fv.sentinel is not None:
         return fv
-    value = fv.value
+    value = unrounded(f, fv.raw)  # the field's precision applies to the product
     assert isinstance(value, (int, float))  # a scaled field is a number (config.scale_by)
     for name in f.scale_by:
         factor = got.get(name)
