@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
 from virtual import simulated
 
 from rtupoll.config.site import from_specs
+from rtupoll.errors import FrameError
+from rtupoll.jobs.device import read_fields
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import Reading
 
@@ -62,3 +65,17 @@ def test_energies_read_once_a_minute_are_scaled_by_the_ratio_of_their_cycle() ->
     energy = [c["import_active_energy"] for c in got if "import_active_energy" in c]
     assert energy and all(r.value is not None and r.value.value == 9182.0 for r in energy)
     assert all(set(c) <= {"import_active_energy"} for c in got)  # the ratios not reported
+
+
+def test_read_fields_for_mqtt_get_scales_and_refuses_a_zero_ratio() -> None:
+    bus, _ = simulated([f"{DEV}@1"])
+    meter = bus.engine.device(1)
+    meter.pin("current_ratio", 200)
+    meter.pin("current_l1", 0.035)
+    p = meter.config.profile
+    (fv,) = asyncio.run(read_fields(bus, p, 1, [p.field("current_l1")]))
+    assert fv.value == 7.0
+    meter.pin("current_ratio", 0)
+    with pytest.raises(FrameError, match=r"^unit 1: current_l1 not scaled: current_ratio "
+                                         r"\(scale_by\) reads 0, not a ratio$"):
+        asyncio.run(read_fields(bus, p, 1, [p.field("current_l1")]))
