@@ -74,7 +74,7 @@ def test_good_provenance_is_shown_by_show_and_list(tmp_path: Path) -> None:
     recs = {r["id"]: r for r in map(json.loads, listed.stdout.splitlines())}
     assert recs["mine"]["verification"] == "vendor document"
     assert recs["mine"]["sources"] == ["TH1 Modbus manual (rev 3) <https://example.com/th1.pdf>"]
-    assert recs["schneider-atv12"]["verification"] == "unverified"
+    assert recs["md02"]["verification"] == "unverified"
 
 
 def test_a_profile_without_provenance_is_shown_as_unverified(tmp_path: Path) -> None:
@@ -92,24 +92,24 @@ def test_list_table_shows_each_level() -> None:
             if line.startswith("   ") and line.strip()}
     assert rows["eastron-sdm630"].rstrip().endswith("vendor doc")
     assert rows["carlo-gavazzi-em24"].rstrip().endswith("2 impls")
-    assert rows["schneider-atv12"].rstrip().endswith("UNVERIFIED")
+    assert rows["md02"].rstrip().endswith("UNVERIFIED")
 
 
 def test_using_an_unverified_profile_warns_once_in_one_line() -> None:
-    assert load_one("schneider-atv12").provenance.level is Verification.UNVERIFIED
-    with simulated_bus(["schneider-atv12@1", "schneider-atv12@3", "eastron-sdm630@2"],
+    assert load_one("md02").provenance.level is Verification.UNVERIFIED
+    with simulated_bus(["md02@1", "md02@3", "eastron-sdm630@2"],
                        tcp=True, tick=None) as bus:
         proc = subprocess.run(
             [sys.executable, "-m", "rtupoll", "poll", "--port", bus.port, "--once",
-             "--format", "json", "schneider-atv12@1", "schneider-atv12@3"],
+             "--format", "json", "md02@1", "md02@3"],
             capture_output=True, text=True, timeout=120)
         verified = subprocess.run(
             [sys.executable, "-m", "rtupoll", "read", "--port", bus.port, "--format", "json",
              "eastron-sdm630@2", "voltage_l1"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    warnings = [line for line in proc.stderr.splitlines() if "schneider-atv12" in line]
+    warnings = [line for line in proc.stderr.splitlines() if "md02" in line]
     assert len(warnings) == 1
-    assert "profile schneider-atv12 is unverified" in warnings[0]
+    assert "profile md02 is unverified" in warnings[0]
     assert verified.returncode == 0, verified.stderr
     assert "unverified" not in verified.stderr
 
