@@ -23,8 +23,13 @@ examples", says the same):
   ``$RTUPOLL_PORT`` is line 1).
 - Each block runs against a fresh demo, so a block that changes addresses affects only
   itself. Commands that run until stopped (``poll`` without ``--once``, ``simulate``,
-  ``scripts/poll``) get SIGINT once they printed something and ``RUN_FOR`` has passed,
-  and must then exit with their status.
+  ``scripts/poll``) get SIGINT as soon as they have shown what they show (``shown``: a
+  live table with a scan's readings, a record, the simulator's banner to "Press Ctrl-C
+  to stop."), as a person would press Ctrl-C, and must then exit with their status.
+- An example printed again elsewhere (README and a guide showing the same command) runs
+  where it is printed first, when it is self-contained (``_repeat_key``: no demo port,
+  no file of the working directory but the documents' own, no shell syntax): it does
+  the same there and leaves nothing the examples after it see. It is listed as skipped.
 - ```text blocks (synopses, transcripts that need a person) are not run. Examples that
   name a fixed network port (``127.0.0.1:9464``, also in a ``file:`` block they use)
   never run at the same time as each other.
@@ -39,6 +44,7 @@ import hashlib
 import os
 import pty
 import re
+import resource
 import signal
 import subprocess
 import sys
@@ -58,8 +64,8 @@ ROOT = Path(__file__).parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SHELLS = {"sh", "bash", "shell", "console"}
 COMMANDS = ("rtupoll", "scripts/", "mbpoll", ".venv/bin/")
-RUN_FOR = 1.0  # seconds a command that runs until stopped is left running, at least
-STARTED_BY = 20.0  # ... and at most, when it prints nothing (writes only a file)
+RUN_FOR = 1.0  # seconds one that runs until stopped and shows only stderr lines runs
+SHOWN_BY = 60.0  # a command that runs until stopped and has shown nothing by then: stuck
 CAP = 120.0  # a command that should end and has not by then is stuck (a failure)
 PORTS = {"/dev/ttyUSB0": "ttyUSB0", "/dev/ttyUSB1": "ttyUSB1"}
 COMMENT = re.compile(r"^\s*<!--\s*(.*?)\s*-->\s*$")
@@ -208,7 +214,8 @@ def run(ex: Example, where: Path, docfiles: dict[str, str]) -> str | None:
 def _run(ex: Example, where: Path) -> str | None:
     env = {**os.environ, "COLUMNS": "100", "LINES": "50",
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES"):
+    for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES",
+                 "PYTHONDONTWRITEBYTECODE"):  # (Python compiles rtupoll once, not each time)
         env.pop(name, None)
     if ex.script:
         env["RTUPOLL_PORT"] = str(where / "ttyUSB0")
@@ -216,6 +223,7 @@ def _run(ex: Example, where: Path) -> str | None:
     # table draws at once, and "it has started" can be seen
     terminal = pty.openpty() if ex.runs_until_stopped else None
     seen: list[bytes] = []
+    arrived = threading.Event()  # set by the reader when the terminal shows more
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(["bash", "-c", ported(ex.command, where)], cwd=where,
                                 env=env, stdin=subprocess.DEVNULL,
@@ -223,9 +231,10 @@ def _run(ex: Example, where: Path) -> str | None:
                                 text=True, start_new_session=True)
         if terminal is not None:
             os.close(terminal[1])
-            reader = threading.Thread(target=_drain, args=(terminal[0], seen), daemon=True)
+            reader = threading.Thread(target=_drain, args=(terminal[0], seen, arrived),
+                                      daemon=True)
             reader.start()
-        why = _wait(proc, ex, seen, err)
+        why = _wait(proc, ex, seen, arrived, err)
         with contextlib.suppress(ProcessLookupError):  # what it left in the background
             os.killpg(proc.pid, signal.SIGKILL)
         if terminal is not None:
@@ -243,34 +252,55 @@ def _run(ex: Example, where: Path) -> str | None:
     return f"{why}:\n      {tail}"
 
 
-def _drain(fd: int, into: list[bytes]) -> None:
+def _drain(fd: int, into: list[bytes], arrived: threading.Event) -> None:
     """Read a terminal's output until the program is gone (EIO on Linux)."""
     while True:
         try:
             data = os.read(fd, 65536)
         except OSError:
-            return
+            data = b""
         if not data:
+            arrived.set()
             return
         into.append(data)
+        arrived.set()
 
 
-def _started(seen: list[bytes], err: IO[str]) -> bool:
-    """Whether the command itself has printed something: on the terminal, or on stderr
-    beyond what the set-up scripts say before they hand over (``setup: ...``, ``poll: no
-    arguments ...``), which a loaded machine may print seconds before rtupoll runs."""
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+LIVE = re.compile(r"(\d+)/(\d+)\s+online\b.*?·\s*(\d+)\s+scans?\b", re.S)  # may wrap
+
+
+def shown(terminal: str) -> bool:
+    """Whether what a command that runs until stopped shows is on its terminal, so a
+    person would now press Ctrl-C: the simulator's banner to its "Press Ctrl-C to
+    stop."; a live table whose header counts a complete scan (or no device to poll: a
+    gateway only); else (records, a report) a complete line."""
+    text = ANSI.sub("", terminal).replace("\r", "")
+    if text.startswith("Simulating "):
+        return "Ctrl-C to stop." in text
+    heads = LIVE.findall(text)
+    if heads:
+        return any(int(scans) > 0 or total == "0" for _, total, scans in heads)
+    return "\n" in text
+
+
+def _stderr_only(seen: list[bytes], err: IO[str]) -> bool:
+    """Whether a command that shows nothing on its terminal has said something on stderr
+    beyond what the set-up scripts say before they hand over (``setup: ...``, ``poll:
+    no arguments ...``), which a loaded machine may print seconds before rtupoll runs."""
     if seen:
-        return True
+        return False
     fd = err.fileno()
     text = os.pread(fd, os.fstat(fd).st_size, 0).decode(errors="replace")
     return any(line and not line.startswith(("setup: ", "poll: "))
                for line in text.splitlines())
 
 
-def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[str]
-          ) -> str | None:
-    """Let the example finish; one that runs until stopped gets Ctrl-C once it has
-    started (it printed something) and ``RUN_FOR`` has passed."""
+def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes],
+          arrived: threading.Event, err: IO[str]) -> str | None:
+    """Let the example finish; one that runs until stopped gets Ctrl-C as soon as it
+    has shown what it shows (``shown``; one silent on its terminal: once it said
+    something on stderr and ``RUN_FOR`` has passed), as a person would press it."""
     if not ex.runs_until_stopped:
         try:
             proc.wait(timeout=CAP)
@@ -282,9 +312,15 @@ def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[s
     start = time.monotonic()
     while proc.poll() is None:
         waited = time.monotonic() - start
-        if waited > STARTED_BY or (_started(seen, err) and waited > RUN_FOR):
+        if waited > SHOWN_BY:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return f"showed nothing to stop on (a scan, a record, its banner) in {SHOWN_BY:.0f} s"
+        if shown(b"".join(seen).decode(errors="replace")) or (
+                waited > RUN_FOR and _stderr_only(seen, err)):
             break
-        time.sleep(0.1)
+        arrived.wait(0.1)
+        arrived.clear()
     if proc.poll() is not None:
         return None  # it ended by itself: its status is checked as documented
     os.killpg(proc.pid, signal.SIGINT)
@@ -316,15 +352,22 @@ def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where
     failures = []
     with demo(where):
         for ex in todo:
-            t0 = time.monotonic()
+            t0, c0 = time.monotonic(), _cpu()
             why = run(ex, where, docfiles)
             if os.environ.get("RTUPOLL_DOCS_TIMES"):  # a file: where the time goes
                 with open(os.environ["RTUPOLL_DOCS_TIMES"], "a", encoding="utf-8") as log:
-                    log.write(f"{time.monotonic() - t0:6.1f} s  {ex.where}: "
-                              f"{ex.command[:60]}\n")
+                    log.write(f"{time.monotonic() - t0:6.1f} s {_cpu() - c0:6.2f} CPU-s  "
+                              f"{ex.where}: {ex.command[:60]}\n")
             if why:
                 failures.append(f"{ex.where}: {ex.command}\n    {why}")
     return failures
+
+
+def _cpu() -> float:
+    """CPU seconds of this process (the demo's threads) and its ended children."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), \
+        resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def doc_examples(doc: Path) -> Iterator[Example]:
@@ -363,8 +406,8 @@ def _blocks_of(doc: Path, text: str) -> list[Block]:
         tmp.unlink()
 
 
-def _runnable(b: Block) -> tuple[list[Example], list[str]]:
-    """A block's examples that run here, and why the others do not."""
+def _runs_here(b: Block) -> tuple[list[Example], list[str]]:
+    """A block's examples that can run here, and why the others cannot."""
     todo, skipped = [], []
     for ex in examples(b):
         if ex.needs:
@@ -374,6 +417,60 @@ def _runnable(b: Block) -> tuple[list[Example], list[str]]:
         else:
             todo.append(ex)
     return todo, skipped
+
+
+SHELL_SYNTAX = re.compile(r"[|&;<>$`(]")
+WRITES_HERE = re.compile(r"(?:^|\s)(?:-o|--output|--write-config|--capture)[\s=](?!/)")
+NAMES_A_FILE = re.compile(r"(?:^|\s)(?![\w.-]*/)([\w.-]+\.[a-z]{2,6})\b")
+
+
+def _repeat_key(ex: Example, docfiles: dict[str, str]) -> tuple[str, ...] | None:
+    """What an example proves, if that is nothing but its own text: no script, no
+    shell syntax, no demo port (also in the documents' files it names), no other file
+    of the working directory read or written. Such an example does the same wherever
+    it is printed and leaves nothing that the examples after it see, so a repeat of it
+    (README and a guide showing the same command) is the same proof; None otherwise."""
+    uses = {n: t for n, t in docfiles.items() if n in ex.command}
+    if ex.script or SHELL_SYNTAX.search(ex.command) or WRITES_HERE.search(ex.command):
+        return None
+    if any(dev in ex.command + "".join(uses.values()) for dev in PORTS):
+        return None
+    if any(name not in uses for name in NAMES_A_FILE.findall(ex.command)):
+        return None
+    return (ex.command, str(ex.exit), *(f"{n}\n{t}" for n, t in sorted(uses.items())))
+
+
+def _first_runs() -> dict[tuple[str, ...], str]:
+    """Where each self-contained example runs first (README, then docs/ in order)."""
+    global _FIRST
+    if _FIRST is None:
+        _FIRST = {}
+        for doc in DOCS:
+            docfiles = files(blocks(doc))
+            for b in blocks(doc):
+                for ex in _runs_here(b)[0]:
+                    if (key := _repeat_key(ex, docfiles)) is not None:
+                        _FIRST.setdefault(key, ex.where)
+    return _FIRST
+
+
+_FIRST: dict[tuple[str, ...], str] | None = None
+
+
+def _runnable(b: Block) -> tuple[list[Example], list[str]]:
+    """A block's examples that run here, and why the others do not (they cannot, or
+    they repeat a self-contained example that runs where it is printed first)."""
+    todo, skipped = _runs_here(b)
+    docfiles = files(blocks(b.doc))
+    kept = []
+    for ex in todo:
+        key = _repeat_key(ex, docfiles)
+        first = ex.where if key is None else _first_runs()[key]
+        if first == ex.where:
+            kept.append(ex)
+        else:
+            skipped.append(f"{ex.where}: runs as {first}: {ex.command[:70]}")
+    return kept, skipped
 
 
 # one test per block with examples that run here (each against its own demo), so the
