@@ -45,6 +45,7 @@ import os
 import pty
 import re
 import resource
+import shlex
 import signal
 import subprocess
 import sys
@@ -56,6 +57,7 @@ from pathlib import Path
 from typing import IO
 
 import pytest
+from forked_cli import Forked, ForkServer
 
 from rtupoll.sim.runner import SimulatedLines, simulated_lines
 from rtupoll.sim.scenario import build
@@ -201,34 +203,66 @@ NETWORK_FILE = Path(tempfile.gettempdir()) / "rtupoll-docs-examples.lock"  # (pr
 FIXED_PORT = re.compile(r"(\d{1,3}(\.\d{1,3}){3}|localhost|\[::1?\]):[1-9]\d{1,4}\b")
 
 
-def run(ex: Example, where: Path, docfiles: dict[str, str]) -> str | None:
+def run(ex: Example, where: Path, docfiles: dict[str, str], forks: ForkServer | None = None
+        ) -> str | None:
     """Run one example; None if it did what the document says, else why not."""
     uses = ex.command + "".join(t for n, t in docfiles.items() if n in ex.command)
     if FIXED_PORT.search(uses):
         with NETWORK, NETWORK_FILE.open("a") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)  # also across pytest-xdist workers
-            return _run(ex, where)
-    return _run(ex, where)
+            return _run(ex, where, forks)
+    return _run(ex, where, forks)
 
 
-def _run(ex: Example, where: Path) -> str | None:
+def examples_env() -> dict[str, str]:
+    """The environment the examples run in: a reader's, with this venv's commands."""
     env = {**os.environ, "COLUMNS": "100", "LINES": "50",
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES",
                  "PYTHONDONTWRITEBYTECODE"):  # (Python compiles rtupoll once, not each time)
         env.pop(name, None)
+    return env
+
+
+NOT_FORKED = re.compile(r"[|&;<>$`()*?\[\]{}~\\]")  # what needs bash to mean what it says
+
+
+def forkable(command: str) -> list[str] | None:
+    """``rtupoll ARGS`` with nothing for a shell to do but split the words: its argv for
+    the fork server (the console script's path first, as a shell would start it)."""
+    if NOT_FORKED.search(command):
+        return None
+    argv = shlex.split(command)
+    if not argv or argv[0] != "rtupoll":
+        return None
+    return [str(Path(sys.executable).parent / "rtupoll"), *argv[1:]]
+
+
+FORKED_CPU = [0.0]  # CPU seconds of the forked commands so far (they are the server's children)
+
+
+def _run(ex: Example, where: Path, forks: ForkServer | None) -> str | None:
+    env = examples_env()
     if ex.script:
         env["RTUPOLL_PORT"] = str(where / "ttyUSB0")
+    command = ported(ex.command, where)
+    argv = None if forks is None or ex.script else forkable(command)
     # a command that runs until stopped writes to a terminal, as for a person: so a live
     # table draws at once, and "it has started" can be seen
     terminal = pty.openpty() if ex.runs_until_stopped else None
     seen: list[bytes] = []
     arrived = threading.Event()  # set by the reader when the terminal shows more
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(["bash", "-c", ported(ex.command, where)], cwd=where,
-                                env=env, stdin=subprocess.DEVNULL,
-                                stdout=terminal[1] if terminal else out, stderr=err,
-                                text=True, start_new_session=True)
+        proc: subprocess.Popen[str] | Forked
+        if argv is not None and forks is not None:
+            with open(os.devnull, "rb") as nothing:
+                proc = forks.spawn(argv, where, env, nothing.fileno(),
+                                   terminal[1] if terminal else out.fileno(), err.fileno())
+        else:
+            proc = subprocess.Popen(["bash", "-c", command], cwd=where, env=env,
+                                    stdin=subprocess.DEVNULL,
+                                    stdout=terminal[1] if terminal else out, stderr=err,
+                                    text=True, start_new_session=True)
         if terminal is not None:
             os.close(terminal[1])
             reader = threading.Thread(target=_drain, args=(terminal[0], seen, arrived),
@@ -240,6 +274,8 @@ def _run(ex: Example, where: Path) -> str | None:
         if terminal is not None:
             reader.join(timeout=10)
             os.close(terminal[0])
+        if isinstance(proc, Forked):
+            FORKED_CPU[0] += proc.cpu
         out.seek(0)
         err.seek(0)
         stdout = b"".join(seen).decode(errors="replace") or out.read()
@@ -296,7 +332,7 @@ def _stderr_only(seen: list[bytes], err: IO[str]) -> bool:
                for line in text.splitlines())
 
 
-def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes],
+def _wait(proc: subprocess.Popen[str] | Forked, ex: Example, seen: list[bytes],
           arrived: threading.Event, err: IO[str]) -> str | None:
     """Let the example finish; one that runs until stopped gets Ctrl-C as soon as it
     has shown what it shows (``shown``; one silent on its terminal: once it said
@@ -342,8 +378,8 @@ def demo(where: Path) -> SimulatedLines:
     return lines
 
 
-def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where: Path
-              ) -> list[str]:
+def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where: Path,
+              forks: ForkServer | None = None) -> list[str]:
     where.mkdir(parents=True)
     for name, text in docfiles.items():
         (where / name).write_text(ported(text, where), encoding="utf-8")
@@ -353,7 +389,7 @@ def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where
     with demo(where):
         for ex in todo:
             t0, c0 = time.monotonic(), _cpu()
-            why = run(ex, where, docfiles)
+            why = run(ex, where, docfiles, forks)
             if os.environ.get("RTUPOLL_DOCS_TIMES"):  # a file: where the time goes
                 with open(os.environ["RTUPOLL_DOCS_TIMES"], "a", encoding="utf-8") as log:
                     log.write(f"{time.monotonic() - t0:6.1f} s {_cpu() - c0:6.2f} CPU-s  "
@@ -367,7 +403,16 @@ def _cpu() -> float:
     """CPU seconds of this process (the demo's threads) and its ended children."""
     own, kids = resource.getrusage(resource.RUSAGE_SELF), \
         resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime + FORKED_CPU[0]
+
+
+@pytest.fixture(scope="session")
+def forks() -> Iterator[ForkServer]:
+    """``rtupoll ARGS`` examples run forked from one server that imported rtupoll once
+    (tests/forked_cli.py): the same command in a process of its own, without Python's
+    and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash."""
+    with ForkServer(examples_env()) as server:
+        yield server
 
 
 def doc_examples(doc: Path) -> Iterator[Example]:
@@ -491,9 +536,64 @@ def test_every_document_has_examples_that_run(capsys: pytest.CaptureFixture[str]
 
 @pytest.mark.parametrize("block", BLOCKS,
                          ids=[f"{b.doc.relative_to(ROOT)}:{b.line}" for b in BLOCKS])
-def test_every_example_works_as_printed(block: Block, tmp_path: Path) -> None:
+def test_every_example_works_as_printed(block: Block, tmp_path: Path, forks: ForkServer
+                                        ) -> None:
     todo, _ = _runnable(block)
     build()  # the profiles parsed once, here, before the demo's thread starts
-    failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block")
+    failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block", forks)
     assert not failures, f"{len(failures)} of {len(todo)} examples failed:\n" + \
         "\n".join(failures)
+
+
+def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: bool
+                ) -> tuple[int, str, str]:
+    """Exit status, output and stderr of ``rtupoll ...`` started fresh by bash (``forks``
+    None) or forked; on a terminal it gets Ctrl-C once it has shown what it shows."""
+    env = examples_env()
+    seen: list[bytes] = []
+    arrived = threading.Event()
+    tty = pty.openpty() if terminal else None
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            open(os.devnull, "rb") as nothing:
+        stdout = tty[1] if tty else out.fileno()
+        argv = forkable(command)
+        assert argv is not None
+        proc: subprocess.Popen[bytes] | Forked = (
+            forks.spawn(argv, where, env, nothing.fileno(), stdout, err.fileno()) if forks
+            else subprocess.Popen(["bash", "-c", command], cwd=where, env=env, stdin=nothing,
+                                  stdout=stdout, stderr=err, start_new_session=True))
+        if tty is not None:
+            os.close(tty[1])
+            reader = threading.Thread(target=_drain, args=(tty[0], seen, arrived))
+            reader.start()
+            while not shown(b"".join(seen).decode(errors="replace")) and proc.poll() is None:
+                arrived.wait(0.1)
+                arrived.clear()
+            os.killpg(proc.pid, signal.SIGINT)
+        code = proc.wait(timeout=CAP)
+        if tty is not None:
+            reader.join(timeout=10)
+            os.close(tty[0])
+        out.seek(0)
+        err.seek(0)
+        text = b"".join(seen) or out.read()
+        return code, text.decode(errors="replace"), err.read().decode(errors="replace")
+
+
+@pytest.mark.parametrize(("command", "terminal"), [
+    ("rtupoll decode 01 04 00 06 00 02 91 CA 01 04 04 00 00 A0 C1 42 14 --profile net-irnet-pro",
+     False),
+    ("rtupoll read -p ttyUSB9 huiwen-aq@3", False),  # no such port: exit 3, one line
+    ("rtupoll profiles show huiwen-aq", True),  # rich on a terminal: colours, width
+    ("rtupoll simulate huiwen-aq@3 --seed 1", True),  # Ctrl-C once it has started
+], ids=["decode", "read-no-port", "profiles-show-on-a-terminal", "simulate-ctrl-c"])
+def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool, forks: ForkServer,
+                                         tmp_path: Path) -> None:
+    """What the examples' fork server runs is what a fresh ``rtupoll`` does: the same
+    exit status, output and stderr (on a terminal too, stopped by Ctrl-C)."""
+    fresh = _transcript(command, None, tmp_path, terminal)
+    forked = _transcript(command, forks, tmp_path, terminal)
+    pts = re.compile(r"/dev/pts/\d+")  # each run's own pseudo-terminal
+    assert [pts.sub("PTS", x) if isinstance(x, str) else x for x in forked] == \
+        [pts.sub("PTS", x) if isinstance(x, str) else x for x in fresh]
+    assert fresh[1].strip() or fresh[2].strip()  # (it said something to compare)
