@@ -30,6 +30,11 @@ examples", says the same):
   where it is printed first, when it is self-contained (``_repeat_key``: no demo port,
   no file of the working directory but the documents' own, no shell syntax): it does
   the same there and leaves nothing the examples after it see. It is listed as skipped.
+- A plain ``rtupoll ARGS`` line (no shell syntax) runs forked from a server that has
+  imported rtupoll once (``forks``, tests/forked_cli.py): the same command in a process
+  and session of its own, as a shell would start it, without Python's and rtupoll's
+  start-up each time; ``test_a_forked_command_is_a_fresh_one`` compares the two. The
+  other lines run with bash.
 - ```text blocks (synopses, transcripts that need a person) are not run. Examples that
   name a fixed network port (``127.0.0.1:9464``, also in a ``file:`` block they use)
   never run at the same time as each other.
@@ -407,10 +412,14 @@ def _cpu() -> float:
 
 
 @pytest.fixture(scope="session")
-def forks() -> Iterator[ForkServer]:
+def forks() -> Iterator[ForkServer | None]:
     """``rtupoll ARGS`` examples run forked from one server that imported rtupoll once
     (tests/forked_cli.py): the same command in a process of its own, without Python's
-    and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash."""
+    and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash,
+    and all of them where the server cannot wait for its children (no pidfd: not Linux)."""
+    if not hasattr(os, "pidfd_open"):
+        yield None
+        return
     with ForkServer(examples_env()) as server:
         yield server
 
@@ -536,8 +545,8 @@ def test_every_document_has_examples_that_run(capsys: pytest.CaptureFixture[str]
 
 @pytest.mark.parametrize("block", BLOCKS,
                          ids=[f"{b.doc.relative_to(ROOT)}:{b.line}" for b in BLOCKS])
-def test_every_example_works_as_printed(block: Block, tmp_path: Path, forks: ForkServer
-                                        ) -> None:
+def test_every_example_works_as_printed(block: Block, tmp_path: Path,
+                                        forks: ForkServer | None) -> None:
     todo, _ = _runnable(block)
     build()  # the profiles parsed once, here, before the demo's thread starts
     failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block", forks)
@@ -587,10 +596,12 @@ def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: b
     ("rtupoll profiles show huiwen-aq", True),  # rich on a terminal: colours, width
     ("rtupoll simulate huiwen-aq@3 --seed 1", True),  # Ctrl-C once it has started
 ], ids=["decode", "read-no-port", "profiles-show-on-a-terminal", "simulate-ctrl-c"])
-def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool, forks: ForkServer,
-                                         tmp_path: Path) -> None:
+def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool,
+                                         forks: ForkServer | None, tmp_path: Path) -> None:
     """What the examples' fork server runs is what a fresh ``rtupoll`` does: the same
     exit status, output and stderr (on a terminal too, stopped by Ctrl-C)."""
+    if forks is None:
+        pytest.skip("no fork server here (no pidfd): every example starts a fresh rtupoll")
     fresh = _transcript(command, None, tmp_path, terminal)
     forked = _transcript(command, forks, tmp_path, terminal)
     pts = re.compile(r"/dev/pts/\d+")  # each run's own pseudo-terminal
