@@ -27,11 +27,13 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
 import re
 import select
+import signal
 import socket
 import subprocess
 import sys
@@ -116,7 +118,7 @@ class ForkServer:
         proc.returncode, proc.cpu = message["status"], message["cpu"]
 
     def close(self) -> None:
-        self._sock.close()  # the server sees the end, waits for its children, exits
+        self._sock.close()  # the server sees the end, ends what is left of its children
         try:
             self._proc.wait(timeout=60)
         except subprocess.TimeoutExpired:
@@ -153,8 +155,10 @@ def _serve(sock: socket.socket) -> tuple[dict[str, Any], list[int]] | None:
         for fd in ready:
             if fd == sock.fileno():
                 data, fds, _, _ = socket.recv_fds(sock, _MESSAGE, 3)
-                if not data:
+                if not data:  # the client is done: what still runs is left over
                     for pidfd, pid in children.items():
+                        with contextlib.suppress(ProcessLookupError):
+                            os.killpg(pid, signal.SIGKILL)
                         os.waitpid(pid, 0)
                         os.close(pidfd)
                     return None

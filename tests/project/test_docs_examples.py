@@ -575,7 +575,9 @@ def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: b
             os.close(tty[1])
             reader = threading.Thread(target=_drain, args=(tty[0], seen, arrived))
             reader.start()
-            while not shown(b"".join(seen).decode(errors="replace")) and proc.poll() is None:
+            start = time.monotonic()
+            while not shown(b"".join(seen).decode(errors="replace")) and proc.poll() is None \
+                    and time.monotonic() - start < SHOWN_BY:
                 arrived.wait(0.1)
                 arrived.clear()
             os.killpg(proc.pid, signal.SIGINT)
