@@ -71,7 +71,7 @@ ROOT = Path(__file__).parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SHELLS = {"sh", "bash", "shell", "console"}
 COMMANDS = ("rtupoll", "scripts/", "mbpoll", ".venv/bin/")
-RUN_FOR = 1.0  # seconds one that runs until stopped and shows only stderr lines runs
+RUN_FOR = 1.0  # how long one that runs until stopped runs when it writes only to stderr
 SHOWN_BY = 60.0  # a command that runs until stopped and has shown nothing by then: stuck
 CAP = 120.0  # a command that should end and has not by then is stuck (a failure)
 PORTS = {"/dev/ttyUSB0": "ttyUSB0", "/dev/ttyUSB1": "ttyUSB1"}
@@ -229,13 +229,13 @@ def examples_env() -> dict[str, str]:
     return env
 
 
-NOT_FORKED = re.compile(r"[|&;<>$`()*?\[\]{}~\\]")  # what needs bash to mean what it says
+SHELL_SYNTAX = re.compile(r"[|&;<>$`()*?\[\]{}~\\]")  # what needs bash to mean what it says
 
 
 def forkable(command: str) -> list[str] | None:
     """``rtupoll ARGS`` with nothing for a shell to do but split the words: its argv for
     the fork server (the console script's path first, as a shell would start it)."""
-    if NOT_FORKED.search(command):
+    if SHELL_SYNTAX.search(command):
         return None
     argv = shlex.split(command)
     if not argv or argv[0] != "rtupoll":
@@ -473,7 +473,6 @@ def _runs_here(b: Block) -> tuple[list[Example], list[str]]:
     return todo, skipped
 
 
-SHELL_SYNTAX = re.compile(r"[|&;<>$`(]")
 WRITES_HERE = re.compile(r"(?:^|\s)(?:-o|--output|--write-config|--capture)[\s=](?!/)")
 NAMES_A_FILE = re.compile(r"(?:^|\s)(?![\w.-]*/)([\w.-]+\.[a-z]{2,6})\b")
 
