@@ -23,8 +23,18 @@ examples", says the same):
   ``$RTUPOLL_PORT`` is line 1).
 - Each block runs against a fresh demo, so a block that changes addresses affects only
   itself. Commands that run until stopped (``poll`` without ``--once``, ``simulate``,
-  ``scripts/poll``) get SIGINT once they printed something and ``RUN_FOR`` has passed,
-  and must then exit with their status.
+  ``scripts/poll``) get SIGINT as soon as they have shown what they show (``shown``: a
+  live table with a scan's readings, a record, the simulator's banner to "Press Ctrl-C
+  to stop."), as a person would press Ctrl-C, and must then exit with their status.
+- An example printed again elsewhere (README and a guide showing the same command) runs
+  where it is printed first, when it is self-contained (``_repeat_key``: no demo port,
+  no file of the working directory but the documents' own, no shell syntax): it does
+  the same there and leaves nothing the examples after it see. It is listed as skipped.
+- A plain ``rtupoll ARGS`` line (no shell syntax) runs forked from a server that has
+  imported rtupoll once (``forks``, tests/forked_cli.py): the same command in a process
+  and session of its own, as a shell would start it, without Python's and rtupoll's
+  start-up each time; ``test_a_forked_command_is_a_fresh_one`` compares the two. The
+  other lines run with bash.
 - ```text blocks (synopses, transcripts that need a person) are not run. Examples that
   name a fixed network port (``127.0.0.1:9464``, also in a ``file:`` block they use)
   never run at the same time as each other.
@@ -39,6 +49,8 @@ import hashlib
 import os
 import pty
 import re
+import resource
+import shlex
 import signal
 import subprocess
 import sys
@@ -50,6 +62,7 @@ from pathlib import Path
 from typing import IO
 
 import pytest
+from forked_cli import Forked, ForkServer
 
 from rtupoll.sim.runner import SimulatedLines, simulated_lines
 from rtupoll.sim.scenario import build
@@ -58,8 +71,8 @@ ROOT = Path(__file__).parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 SHELLS = {"sh", "bash", "shell", "console"}
 COMMANDS = ("rtupoll", "scripts/", "mbpoll", ".venv/bin/")
-RUN_FOR = 1.0  # seconds a command that runs until stopped is left running, at least
-STARTED_BY = 20.0  # ... and at most, when it prints nothing (writes only a file)
+RUN_FOR = 1.0  # how long one that runs until stopped runs when it writes only to stderr
+SHOWN_BY = 60.0  # a command that runs until stopped and has shown nothing by then: stuck
 CAP = 120.0  # a command that should end and has not by then is stuck (a failure)
 PORTS = {"/dev/ttyUSB0": "ttyUSB0", "/dev/ttyUSB1": "ttyUSB1"}
 COMMENT = re.compile(r"^\s*<!--\s*(.*?)\s*-->\s*$")
@@ -195,42 +208,79 @@ NETWORK_FILE = Path(tempfile.gettempdir()) / "rtupoll-docs-examples.lock"  # (pr
 FIXED_PORT = re.compile(r"(\d{1,3}(\.\d{1,3}){3}|localhost|\[::1?\]):[1-9]\d{1,4}\b")
 
 
-def run(ex: Example, where: Path, docfiles: dict[str, str]) -> str | None:
+def run(ex: Example, where: Path, docfiles: dict[str, str], forks: ForkServer | None = None
+        ) -> str | None:
     """Run one example; None if it did what the document says, else why not."""
     uses = ex.command + "".join(t for n, t in docfiles.items() if n in ex.command)
     if FIXED_PORT.search(uses):
         with NETWORK, NETWORK_FILE.open("a") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)  # also across pytest-xdist workers
-            return _run(ex, where)
-    return _run(ex, where)
+            return _run(ex, where, forks)
+    return _run(ex, where, forks)
 
 
-def _run(ex: Example, where: Path) -> str | None:
+def examples_env() -> dict[str, str]:
+    """The environment the examples run in: a reader's, with this venv's commands."""
     env = {**os.environ, "COLUMNS": "100", "LINES": "50",
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES"):
+    for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES",
+                 "PYTHONDONTWRITEBYTECODE"):  # (Python compiles rtupoll once, not each time)
         env.pop(name, None)
+    return env
+
+
+SHELL_SYNTAX = re.compile(r"[|&;<>$`()*?\[\]{}~\\]")  # what needs bash to mean what it says
+
+
+def forkable(command: str) -> list[str] | None:
+    """``rtupoll ARGS`` with nothing for a shell to do but split the words: its argv for
+    the fork server (the console script's path first, as a shell would start it)."""
+    if SHELL_SYNTAX.search(command):
+        return None
+    argv = shlex.split(command)
+    if not argv or argv[0] != "rtupoll":
+        return None
+    return [str(Path(sys.executable).parent / "rtupoll"), *argv[1:]]
+
+
+FORKED_CPU = [0.0]  # CPU seconds of the forked commands so far (they are the server's children)
+
+
+def _run(ex: Example, where: Path, forks: ForkServer | None) -> str | None:
+    env = examples_env()
     if ex.script:
         env["RTUPOLL_PORT"] = str(where / "ttyUSB0")
+    command = ported(ex.command, where)
+    argv = None if forks is None or ex.script else forkable(command)
     # a command that runs until stopped writes to a terminal, as for a person: so a live
     # table draws at once, and "it has started" can be seen
     terminal = pty.openpty() if ex.runs_until_stopped else None
     seen: list[bytes] = []
+    arrived = threading.Event()  # set by the reader when the terminal shows more
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(["bash", "-c", ported(ex.command, where)], cwd=where,
-                                env=env, stdin=subprocess.DEVNULL,
-                                stdout=terminal[1] if terminal else out, stderr=err,
-                                text=True, start_new_session=True)
+        proc: subprocess.Popen[str] | Forked
+        if argv is not None and forks is not None:
+            with open(os.devnull, "rb") as nothing:
+                proc = forks.spawn(argv, where, env, nothing.fileno(),
+                                   terminal[1] if terminal else out.fileno(), err.fileno())
+        else:
+            proc = subprocess.Popen(["bash", "-c", command], cwd=where, env=env,
+                                    stdin=subprocess.DEVNULL,
+                                    stdout=terminal[1] if terminal else out, stderr=err,
+                                    text=True, start_new_session=True)
         if terminal is not None:
             os.close(terminal[1])
-            reader = threading.Thread(target=_drain, args=(terminal[0], seen), daemon=True)
+            reader = threading.Thread(target=_drain, args=(terminal[0], seen, arrived),
+                                      daemon=True)
             reader.start()
-        why = _wait(proc, ex, seen, err)
+        why = _wait(proc, ex, seen, arrived, err)
         with contextlib.suppress(ProcessLookupError):  # what it left in the background
             os.killpg(proc.pid, signal.SIGKILL)
         if terminal is not None:
             reader.join(timeout=10)
             os.close(terminal[0])
+        if isinstance(proc, Forked):
+            FORKED_CPU[0] += proc.cpu
         out.seek(0)
         err.seek(0)
         stdout = b"".join(seen).decode(errors="replace") or out.read()
@@ -243,34 +293,55 @@ def _run(ex: Example, where: Path) -> str | None:
     return f"{why}:\n      {tail}"
 
 
-def _drain(fd: int, into: list[bytes]) -> None:
+def _drain(fd: int, into: list[bytes], arrived: threading.Event) -> None:
     """Read a terminal's output until the program is gone (EIO on Linux)."""
     while True:
         try:
             data = os.read(fd, 65536)
         except OSError:
-            return
+            data = b""
         if not data:
+            arrived.set()
             return
         into.append(data)
+        arrived.set()
 
 
-def _started(seen: list[bytes], err: IO[str]) -> bool:
-    """Whether the command itself has printed something: on the terminal, or on stderr
-    beyond what the set-up scripts say before they hand over (``setup: ...``, ``poll: no
-    arguments ...``), which a loaded machine may print seconds before rtupoll runs."""
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+LIVE = re.compile(r"(\d+)/(\d+)\s+online\b.*?·\s*(\d+)\s+scans?\b", re.S)  # may wrap
+
+
+def shown(terminal: str) -> bool:
+    """Whether what a command that runs until stopped shows is on its terminal, so a
+    person would now press Ctrl-C: the simulator's banner to its "Press Ctrl-C to
+    stop."; a live table whose header counts a complete scan (or no device to poll: a
+    gateway only); else (records, a report) a complete line."""
+    text = ANSI.sub("", terminal).replace("\r", "")
+    if text.startswith("Simulating "):
+        return "Ctrl-C to stop." in text
+    heads = LIVE.findall(text)
+    if heads:
+        return any(int(scans) > 0 or total == "0" for _, total, scans in heads)
+    return "\n" in text
+
+
+def _stderr_only(seen: list[bytes], err: IO[str]) -> bool:
+    """Whether a command that shows nothing on its terminal has said something on stderr
+    beyond what the set-up scripts say before they hand over (``setup: ...``, ``poll:
+    no arguments ...``), which a loaded machine may print seconds before rtupoll runs."""
     if seen:
-        return True
+        return False
     fd = err.fileno()
     text = os.pread(fd, os.fstat(fd).st_size, 0).decode(errors="replace")
     return any(line and not line.startswith(("setup: ", "poll: "))
                for line in text.splitlines())
 
 
-def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[str]
-          ) -> str | None:
-    """Let the example finish; one that runs until stopped gets Ctrl-C once it has
-    started (it printed something) and ``RUN_FOR`` has passed."""
+def _wait(proc: subprocess.Popen[str] | Forked, ex: Example, seen: list[bytes],
+          arrived: threading.Event, err: IO[str]) -> str | None:
+    """Let the example finish; one that runs until stopped gets Ctrl-C as soon as it
+    has shown what it shows (``shown``; one silent on its terminal: once it said
+    something on stderr and ``RUN_FOR`` has passed), as a person would press it."""
     if not ex.runs_until_stopped:
         try:
             proc.wait(timeout=CAP)
@@ -282,9 +353,15 @@ def _wait(proc: subprocess.Popen[str], ex: Example, seen: list[bytes], err: IO[s
     start = time.monotonic()
     while proc.poll() is None:
         waited = time.monotonic() - start
-        if waited > STARTED_BY or (_started(seen, err) and waited > RUN_FOR):
+        if waited > SHOWN_BY:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return f"showed nothing to stop on (a scan, a record, its banner) in {SHOWN_BY:.0f} s"
+        if shown(b"".join(seen).decode(errors="replace")) or (
+                waited > RUN_FOR and _stderr_only(seen, err)):
             break
-        time.sleep(0.1)
+        arrived.wait(0.1)
+        arrived.clear()
     if proc.poll() is not None:
         return None  # it ended by itself: its status is checked as documented
     os.killpg(proc.pid, signal.SIGINT)
@@ -306,8 +383,8 @@ def demo(where: Path) -> SimulatedLines:
     return lines
 
 
-def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where: Path
-              ) -> list[str]:
+def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where: Path,
+              forks: ForkServer | None = None) -> list[str]:
     where.mkdir(parents=True)
     for name, text in docfiles.items():
         (where / name).write_text(ported(text, where), encoding="utf-8")
@@ -316,15 +393,35 @@ def run_block(block: Block, todo: list[Example], docfiles: dict[str, str], where
     failures = []
     with demo(where):
         for ex in todo:
-            t0 = time.monotonic()
-            why = run(ex, where, docfiles)
+            t0, c0 = time.monotonic(), _cpu()
+            why = run(ex, where, docfiles, forks)
             if os.environ.get("RTUPOLL_DOCS_TIMES"):  # a file: where the time goes
                 with open(os.environ["RTUPOLL_DOCS_TIMES"], "a", encoding="utf-8") as log:
-                    log.write(f"{time.monotonic() - t0:6.1f} s  {ex.where}: "
-                              f"{ex.command[:60]}\n")
+                    log.write(f"{time.monotonic() - t0:6.1f} s {_cpu() - c0:6.2f} CPU-s  "
+                              f"{ex.where}: {ex.command[:60]}\n")
             if why:
                 failures.append(f"{ex.where}: {ex.command}\n    {why}")
     return failures
+
+
+def _cpu() -> float:
+    """CPU seconds of this process (the demo's threads) and its ended children."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), \
+        resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime + FORKED_CPU[0]
+
+
+@pytest.fixture(scope="session")
+def forks() -> Iterator[ForkServer | None]:
+    """``rtupoll ARGS`` examples run forked from one server that imported rtupoll once
+    (tests/forked_cli.py): the same command in a process of its own, without Python's
+    and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash,
+    and all of them where the server cannot wait for its children (no pidfd: not Linux)."""
+    if not hasattr(os, "pidfd_open"):
+        yield None
+        return
+    with ForkServer(examples_env()) as server:
+        yield server
 
 
 def doc_examples(doc: Path) -> Iterator[Example]:
@@ -363,8 +460,8 @@ def _blocks_of(doc: Path, text: str) -> list[Block]:
         tmp.unlink()
 
 
-def _runnable(b: Block) -> tuple[list[Example], list[str]]:
-    """A block's examples that run here, and why the others do not."""
+def _runs_here(b: Block) -> tuple[list[Example], list[str]]:
+    """A block's examples that can run here, and why the others cannot."""
     todo, skipped = [], []
     for ex in examples(b):
         if ex.needs:
@@ -374,6 +471,59 @@ def _runnable(b: Block) -> tuple[list[Example], list[str]]:
         else:
             todo.append(ex)
     return todo, skipped
+
+
+WRITES_HERE = re.compile(r"(?:^|\s)(?:-o|--output|--write-config|--capture)[\s=](?!/)")
+NAMES_A_FILE = re.compile(r"(?:^|\s)(?![\w.-]*/)([\w.-]+\.[a-z]{2,6})\b")
+
+
+def _repeat_key(ex: Example, docfiles: dict[str, str]) -> tuple[str, ...] | None:
+    """What an example proves, if that is nothing but its own text: no script, no
+    shell syntax, no demo port (also in the documents' files it names), no other file
+    of the working directory read or written. Such an example does the same wherever
+    it is printed and leaves nothing that the examples after it see, so a repeat of it
+    (README and a guide showing the same command) is the same proof; None otherwise."""
+    uses = {n: t for n, t in docfiles.items() if n in ex.command}
+    if ex.script or SHELL_SYNTAX.search(ex.command) or WRITES_HERE.search(ex.command):
+        return None
+    if any(dev in ex.command + "".join(uses.values()) for dev in PORTS):
+        return None
+    if any(name not in uses for name in NAMES_A_FILE.findall(ex.command)):
+        return None
+    return (ex.command, str(ex.exit), *(f"{n}\n{t}" for n, t in sorted(uses.items())))
+
+
+def _first_runs() -> dict[tuple[str, ...], str]:
+    """Where each self-contained example runs first (README, then docs/ in order)."""
+    global _FIRST
+    if _FIRST is None:
+        _FIRST = {}
+        for doc in DOCS:
+            docfiles = files(blocks(doc))
+            for b in blocks(doc):
+                for ex in _runs_here(b)[0]:
+                    if (key := _repeat_key(ex, docfiles)) is not None:
+                        _FIRST.setdefault(key, ex.where)
+    return _FIRST
+
+
+_FIRST: dict[tuple[str, ...], str] | None = None
+
+
+def _runnable(b: Block) -> tuple[list[Example], list[str]]:
+    """A block's examples that run here, and why the others do not (they cannot, or
+    they repeat a self-contained example that runs where it is printed first)."""
+    todo, skipped = _runs_here(b)
+    docfiles = files(blocks(b.doc))
+    kept = []
+    for ex in todo:
+        key = _repeat_key(ex, docfiles)
+        first = ex.where if key is None else _first_runs()[key]
+        if first == ex.where:
+            kept.append(ex)
+        else:
+            skipped.append(f"{ex.where}: runs as {first}: {ex.command[:70]}")
+    return kept, skipped
 
 
 # one test per block with examples that run here (each against its own demo), so the
@@ -394,9 +544,68 @@ def test_every_document_has_examples_that_run(capsys: pytest.CaptureFixture[str]
 
 @pytest.mark.parametrize("block", BLOCKS,
                          ids=[f"{b.doc.relative_to(ROOT)}:{b.line}" for b in BLOCKS])
-def test_every_example_works_as_printed(block: Block, tmp_path: Path) -> None:
+def test_every_example_works_as_printed(block: Block, tmp_path: Path,
+                                        forks: ForkServer | None) -> None:
     todo, _ = _runnable(block)
     build()  # the profiles parsed once, here, before the demo's thread starts
-    failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block")
+    failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block", forks)
     assert not failures, f"{len(failures)} of {len(todo)} examples failed:\n" + \
         "\n".join(failures)
+
+
+def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: bool
+                ) -> tuple[int, str, str]:
+    """Exit status, output and stderr of ``rtupoll ...`` started fresh by bash (``forks``
+    None) or forked; on a terminal it gets Ctrl-C once it has shown what it shows."""
+    env = examples_env()
+    seen: list[bytes] = []
+    arrived = threading.Event()
+    tty = pty.openpty() if terminal else None
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            open(os.devnull, "rb") as nothing:
+        stdout = tty[1] if tty else out.fileno()
+        argv = forkable(command)
+        assert argv is not None
+        proc: subprocess.Popen[bytes] | Forked = (
+            forks.spawn(argv, where, env, nothing.fileno(), stdout, err.fileno()) if forks
+            else subprocess.Popen(["bash", "-c", command], cwd=where, env=env, stdin=nothing,
+                                  stdout=stdout, stderr=err, start_new_session=True))
+        if tty is not None:
+            os.close(tty[1])
+            reader = threading.Thread(target=_drain, args=(tty[0], seen, arrived))
+            reader.start()
+            start = time.monotonic()
+            while not shown(b"".join(seen).decode(errors="replace")) and proc.poll() is None \
+                    and time.monotonic() - start < SHOWN_BY:
+                arrived.wait(0.1)
+                arrived.clear()
+            os.killpg(proc.pid, signal.SIGINT)
+        code = proc.wait(timeout=CAP)
+        if tty is not None:
+            reader.join(timeout=10)
+            os.close(tty[0])
+        out.seek(0)
+        err.seek(0)
+        text = b"".join(seen) or out.read()
+        return code, text.decode(errors="replace"), err.read().decode(errors="replace")
+
+
+@pytest.mark.parametrize(("command", "terminal"), [
+    ("rtupoll decode 01 04 00 06 00 02 91 CA 01 04 04 00 00 A0 C1 42 14 --profile net-irnet-pro",
+     False),
+    ("rtupoll read -p ttyUSB9 huiwen-aq@3", False),  # no such port: exit 3, one line
+    ("rtupoll profiles show huiwen-aq", True),  # rich on a terminal: colours, width
+    ("rtupoll simulate huiwen-aq@3 --seed 1", True),  # Ctrl-C once it has started
+], ids=["decode", "read-no-port", "profiles-show-on-a-terminal", "simulate-ctrl-c"])
+def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool,
+                                         forks: ForkServer | None, tmp_path: Path) -> None:
+    """What the examples' fork server runs is what a fresh ``rtupoll`` does: the same
+    exit status, output and stderr (on a terminal too, stopped by Ctrl-C)."""
+    if forks is None:
+        pytest.skip("no fork server here (no pidfd): every example starts a fresh rtupoll")
+    fresh = _transcript(command, None, tmp_path, terminal)
+    forked = _transcript(command, forks, tmp_path, terminal)
+    pts = re.compile(r"/dev/pts/\d+")  # each run's own pseudo-terminal
+    assert [pts.sub("PTS", x) if isinstance(x, str) else x for x in forked] == \
+        [pts.sub("PTS", x) if isinstance(x, str) else x for x in fresh]
+    assert fresh[1].strip() or fresh[2].strip()  # (it said something to compare)
