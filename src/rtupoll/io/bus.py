@@ -86,6 +86,7 @@ _SLEEP_SHARED = 0.0005
 _OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()  # the buses open in this process
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
+_CHUNK = 1024  # bytes read at most at once (as pymodbus's transport reads)
 
 _PYMODBUS_LOG = logging.getLogger("pymodbus")
 if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked for it
@@ -124,6 +125,7 @@ class Bus(LineBus):
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight
         self._over: asyncio.Future[None] | None = None  # set when that attempt is over
+        self._loop: asyncio.AbstractEventLoop | None = None  # the port's, once open
 
     # -- opening and closing -------------------------------------------------
 
@@ -179,6 +181,7 @@ class Bus(LineBus):
             ok = False
         if ok and self.connected:
             _OPEN.add(self)
+            self._loop = asyncio.get_running_loop()  # the port's callbacks run on it
             self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
         self._port.close()
@@ -254,7 +257,7 @@ class Bus(LineBus):
         turn of the event loop less per transaction)."""
         if not self.connected:
             raise PortError(f"{self.settings.port} is not open")
-        loop = asyncio.get_running_loop()
+        loop = self._loop or asyncio.get_running_loop()  # (asking costs a system call)
         over: asyncio.Future[None] = loop.create_future()
         timer: asyncio.Handle | None = None
 
@@ -316,9 +319,8 @@ class Bus(LineBus):
         the silence is counted from them (read from rtupoll's own ``Serial``; a gateway
         keeps the silence on its own line)."""
         port = self._slot.port if self._slot is not None else None
-        try:
-            waiting = port.in_waiting if port is not None and port.is_open else 0
-            data = port.read(waiting) if waiting and port is not None else b""
+        try:  # non-blocking (pymodbus's transport set the timeout to 0): what waits
+            data = port.read(_CHUNK) if port is not None and port.is_open else b""
         except (OSError, serial.SerialException):  # the write that follows fails too
             return False
         if data:
