@@ -486,17 +486,12 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
         for s in services:
             s.on_readings(dev, readings)
 
+    from rtupoll.jobs.race import first_of
+
     stop = _stop_event()
-    async with _started(scheduler, services):
-        scan = asyncio.create_task(scheduler.scan_once(sink))
-        stopper = asyncio.create_task(stop.wait())
-        await asyncio.wait([scan, stopper], return_when=asyncio.FIRST_COMPLETED)
-        stopper.cancel()
-        if not scan.done():
-            scan.cancel()
-            await asyncio.gather(scan, return_exceptions=True)
+    async with _started(scheduler, services):  # the scan, unless a signal comes first
+        if await first_of(scheduler.scan_once(sink), stop.wait()) != 0:
             raise KeyboardInterrupt
-        scan.result()
     readings = [r for d in scheduler.pollers() for r in got.get(d.config.name, [])]
     if writer is not None:  # one device at a time, with its state (influx's ``state``)
         for d in scheduler.pollers():
