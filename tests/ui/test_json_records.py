@@ -92,3 +92,29 @@ def test_a_device_renamed_or_moved_gets_new_fragments() -> None:
     second = records.line(Reading(1.0, moved, field, fv, Status.OK))
     assert '"device":"boiler"' in second and '"address":9' in second
     assert second == _expected(Reading(1.0, moved, field, fv, Status.OK)) != first
+
+
+@given(words=st.lists(st.integers(0, 3), min_size=2, max_size=30))
+def test_a_field_read_again_and_again_says_each_readings_own_value(words: list[int]) -> None:
+    """One writer, one field, values that repeat and change back (the value's part is
+    kept while the reading stays the same): every line is that reading's record."""
+    records = JsonRecords()
+    pairs = [p for p in _devices() if p[1].words == 1][:3]
+    for i, word in enumerate(words):
+        device, field = pairs[i % len(pairs)]
+        r = Reading(1_700_000_000.0 + i, device, field, interpret(field, [word]), Status.OK)
+        assert records.line(r) == _expected(r)
+
+
+def test_a_field_redefined_by_a_reload_reads_anew_from_the_same_registers() -> None:
+    """The same registers, the field's scale changed (a reload of its profile): the new
+    value, not the line kept for the old definition."""
+    records = JsonRecords()
+    device, field = next(p for p in _devices() if p[1].words == 1
+                         and p[1].layout.type.value == "u16" and not p[1].enum
+                         and not p[1].flags and not p[1].sentinels)
+    before = Reading(1.0, device, field, interpret(field, [100]), Status.OK)
+    rescaled = dataclasses.replace(field, layout=dataclasses.replace(field.layout, scale=0.5))
+    after = Reading(1.0, device, rescaled, interpret(rescaled, [100]), Status.OK)
+    assert records.line(before) == _expected(before)
+    assert records.line(after) == _expected(after) != _expected(before)

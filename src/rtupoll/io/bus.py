@@ -64,11 +64,9 @@ from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
     OUTCOMES,
-    Await,
     BusStats,
     Done,
     Failed,
-    Send,
     Transaction,
 )
 
@@ -206,37 +204,38 @@ class Bus(LineBus):
         """``tx`` under the lock, once no earlier request's late reply could be mistaken
         for its answer (waited for without the lock)."""
         while True:
-            await self._hazard_clear(tx)  # returns at once when there is none
+            now = time.monotonic()
+            if tx.hazard_until(now) > now:
+                await self._hazard_clear(tx)
             await self._lock.acquire()
             now = time.monotonic()
             if tx.hazard_until(now) <= now:
                 break
             self._lock.release()  # another task's request made one: wait again
-        started = time.monotonic()
+        started = now
         outcome: str | None = None
         try:
-            while True:  # LineBus._drive, flat: one coroutine frame less per wake-up
+            while True:  # LineBus._drive and its _step, flat: coroutine frames less per wake-up
                 step = tx.next()
                 if isinstance(step, Done):
                     return step
                 if isinstance(step, Failed):
                     raise_failed(step)
-                await self._step(tx, step)
+                # an attempt, start to end (``_attempt`` both sends and waits)
+                if not self.connected:
+                    if tx.attempts:
+                        raise PortError(f"{self.settings.port} went away during the "
+                                        "transaction")
+                    await self._connect()
+                await self._attempt(tx)
+                if not tx.heard and not self.connected:
+                    raise PortError(f"{self.settings.port} went away during the transaction")
         except PortError:
             outcome = "port"
             raise
         finally:
             self.stats.add(tx, time.monotonic() - started, outcome=outcome)
             self._lock.release()
-
-    async def _step(self, tx: Transaction, step: Send | Await) -> None:
-        """An attempt, start to end (``_attempt`` both sends and waits)."""
-        if tx.attempts and not self.connected:
-            raise PortError(f"{self.settings.port} went away during the transaction")
-        await self._connect()
-        await self._attempt(tx)
-        if not tx.heard and not self.connected:
-            raise PortError(f"{self.settings.port} went away during the transaction")
 
     async def _hazard_clear(self, tx: Transaction) -> None:
         """Wait (without holding the bus) until no earlier request's late reply could be
