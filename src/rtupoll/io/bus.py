@@ -318,8 +318,11 @@ class Bus(LineBus):
         the silence is counted from them (read from rtupoll's own ``Serial``; a gateway
         keeps the silence on its own line)."""
         port = self._slot.port if self._slot is not None else None
-        try:  # non-blocking (pymodbus's transport set the timeout to 0): what waits
-            data = port.read(_CHUNK) if port is not None and port.is_open else b""
+        try:  # what waits: one read on the non-blocking port pymodbus's transport made
+            if port is None or not port.is_open:
+                data = b""
+            else:  # (a timeout other than 0 would block: then only what waits is asked)
+                data = port.read(_CHUNK if port.timeout == 0 else port.in_waiting)
         except (OSError, serial.SerialException):  # the write that follows fails too
             return False
         if data:
