@@ -122,10 +122,12 @@ async def bare_pymodbus(port: str, baud: int, seconds: float, silence: float = 0
         client.close()
 
 
-def command(port: str, baud: int, seconds: float) -> tuple[float, float, int]:
+def command(port: str, baud: int, seconds: float, source: str | None = None
+            ) -> tuple[float, float, int]:
     """(cpu seconds, wall seconds, transactions) of the real command, JSON to a file,
     in steady state: measured from its first hundred records on (start-up, paid once
-    per process, is left out), CPU from /proc/PID/stat."""
+    per process, is left out), CPU from /proc/PID/stat. ``source``: run rtupoll from
+    that source tree instead (``--baseline``: another version, in the same rounds)."""
     site = seed_site(port, baud, DEVICES)
     blocks = {d.config.name: len(d.blocks) for d in Scheduler(site, open_bus=_no_bus).pollers()}
     fields = {d.name: len(d.fields) for _, d in site.devices()}
@@ -140,10 +142,13 @@ def command(port: str, baud: int, seconds: float) -> tuple[float, float, int]:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "readings.jsonl"
         with out.open("w") as fh:
+            env = dict(os.environ)
+            if source is not None:
+                env["PYTHONPATH"] = source
             proc = subprocess.Popen(
                 [sys.executable, "-m", "rtupoll", "poll", "--port", port, "--baudrate",
                  str(baud), "--interval", "0", "--format", "json", *DEVICES],
-                stdout=fh, stderr=subprocess.PIPE)
+                stdout=fh, stderr=subprocess.PIPE, env=env)
             deadline = time.monotonic() + 30
             while len(out.read_text().splitlines()) < 100:
                 if proc.poll() is not None or time.monotonic() > deadline:
@@ -176,12 +181,17 @@ def main() -> None:
     ap.add_argument("--baud", type=int, default=115200)
     ap.add_argument("--seconds", type=float, default=5.0, help="per measurement")
     ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--baseline", metavar="SRC",
+                    help="also run the command from this source tree (another version's "
+                         "src/, e.g. from 'git archive'), in the same rounds")
     args = ap.parse_args()
     names = {"peer": "peer: a bare pymodbus async client over the same blocks",
              "quiet": "peer keeping the silence: the same, asyncio.sleep(t3.5) before each",
              "bus": "bare Bus.read loop (line discipline + pymodbus as transport)",
              "core": "scheduler + bus (readings decoded, not written)",
              "command": "command 'rtupoll poll --format json', steady state"}
+    if args.baseline:
+        names["baseline"] = f"the same command from {args.baseline}"
     per_tx: dict[str, list[float]] = {name: [] for name in names}
     rates: dict[str, list[float]] = {name: [] for name in names}
     busy: list[float] = []
@@ -198,6 +208,8 @@ def main() -> None:
                     silence = Framing(args.baud).silence if name == "quiet" else 0.0
                     cpu, wall, tx = asyncio.run(bare_pymodbus(port, args.baud, args.seconds,
                                                               silence))
+                elif name == "baseline":
+                    cpu, wall, tx = command(port, args.baud, args.seconds, args.baseline)
                 else:
                     cpu, wall, tx = command(port, args.baud, args.seconds)
                 per_tx[name].append(cpu / tx)
@@ -206,17 +218,23 @@ def main() -> None:
                 f"{name} {1e6 * per_tx[name][-1]:.0f} µs" for name in names), flush=True)
     print(f"\n{args.baud} baud, {args.rounds} rounds of {args.seconds:g} s each; the "
           f"scheduler's bus {statistics.median(busy):.0%} busy; medians, and the ratios to "
-          "the two peers (the median of the rounds' ratios in brackets):")
+          "the two peers (in brackets: the median of the rounds' ratios, and their range):")
     for name, what in names.items():
         cost = statistics.median(per_tx[name])
         ratios = []
         for peer in ("peer", "quiet"):
-            by_round = statistics.median(c / q for c, q in zip(per_tx[name], per_tx[peer],
-                                                               strict=True))
-            ratios.append(f"x{cost / statistics.median(per_tx[peer]):.2f} (x{by_round:.2f})")
+            rounds = [c / q for c, q in zip(per_tx[name], per_tx[peer], strict=True)]
+            ratios.append(f"x{cost / statistics.median(per_tx[peer]):.2f} "
+                          f"(x{statistics.median(rounds):.2f}, "
+                          f"x{min(rounds):.2f}-{max(rounds):.2f})")
         print(f"  {what}: {1e6 * cost:.0f} µs CPU per transaction "
               f"({statistics.median(rates[name]):.0f} transactions/s), "
               f"{ratios[0]} the bare pymodbus client, {ratios[1]} the one keeping the silence")
+    if args.baseline:
+        rounds = [c / b for c, b in zip(per_tx["command"], per_tx["baseline"], strict=True)]
+        print("  the command against the baseline, round by round: "
+              + ", ".join(f"x{x:.2f}" for x in rounds)
+              + f" (median x{statistics.median(rounds):.2f})")
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ gateway and the outputs, which all use them."""
 from __future__ import annotations
 
 import heapq
+import math
 from collections.abc import Collection
 from datetime import UTC, datetime
 from functools import lru_cache
@@ -12,9 +13,25 @@ from functools import lru_cache
 
 @lru_cache(maxsize=64)  # the readings of one block share their time
 def iso_time(t: float) -> str:
-    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere."""
-    stamp = datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")
-    return stamp.replace("+00:00", "Z")
+    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere.
+
+    ``datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")`` with ``Z``,
+    character for character (tests/jobs/test_figures.py), without building a datetime per
+    stamp: ``t`` is rounded to the microsecond half to even, as ``fromtimestamp`` rounds
+    it, and cut to the millisecond, as ``isoformat`` cuts it; the date and time to the
+    second are made once a second."""
+    fraction, whole = math.modf(t)
+    micro = round(fraction * 1e6)
+    if micro >= 1_000_000:
+        micro, whole = micro - 1_000_000, whole + 1
+    elif micro < 0:  # before 1970
+        micro, whole = micro + 1_000_000, whole - 1
+    return f"{_seconds(int(whole))}.{micro // 1000:03d}Z"
+
+
+@lru_cache(maxsize=4)
+def _seconds(whole: int) -> str:
+    return datetime.fromtimestamp(whole, UTC).isoformat(timespec="seconds")[:-6]  # +00:00
 
 
 def quantile(data: Collection[float], q: float) -> float | None:

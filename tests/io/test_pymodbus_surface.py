@@ -87,8 +87,9 @@ def test_a_serial_port_is_opened_through_pyserials_url_handlers(sim: Sim) -> Non
 
 
 def test_a_nonblocking_port_reads_only_what_waits(sim: Sim) -> None:
-    """pymodbus sets the port's read timeout to 0: reading ``in_waiting`` bytes from
-    rtupoll's Serial never blocks the event loop."""
+    """pymodbus sets the port's read and write timeouts to 0: reading what waits in
+    rtupoll's Serial never blocks the event loop, and both take the one-system-call
+    path (``io.serialport.Serial.read``/``write``)."""
     bus = sim("co2meter-an117@5", tick=None)
     url, slot = serialport.claim(bus.port, deassert_dtr=False)
 
@@ -96,11 +97,12 @@ def test_a_nonblocking_port_reads_only_what_waits(sim: Sim) -> None:
         proto = Recorder(_serial_params(url))
         assert await proto.connect()
         assert slot is not None and slot.port is not None
-        timeout, data = slot.port.timeout, slot.port.read(16)  # nothing waits
+        port = slot.port
+        timeouts, data = (port.timeout, port.write_timeout), port.read(16)  # nothing waits
         proto.close()
-        return timeout, data
+        return timeouts, data
 
-    assert asyncio.run(go()) == (0, b"")
+    assert asyncio.run(go()) == ((0, 0), b"")
     serialport.release(url)
 
 

@@ -46,6 +46,9 @@ class Quiet:
 
     adapter_latency = 0.0
 
+    def late(self, unit: int) -> int:
+        return 0
+
     def evidence(self, unit: int) -> Evidence:
         return Evidence()
 
@@ -94,6 +97,9 @@ def test_the_scheduler_side_keeps_the_profiles_patience() -> None:
 
     class Patient:  # a bus that tells reply times (BusLike.evidence), as the buses do
         adapter_latency = 0.0
+
+        def late(self, unit: int) -> int:
+            return 0
 
         def evidence(self, unit: int) -> Evidence:
             return Evidence()
@@ -456,3 +462,34 @@ def test_the_estimators_sorted_window_gives_the_percentile_of_its_last_samples()
         assert slow is not None
         assert est.target() == min(est.ceiling, max(est.floor, MARGIN * slow)), i
     assert len(est.samples) == WINDOW
+
+
+def test_one_evidence_read_per_transaction_and_a_late_reply_between_still_counts() -> None:
+    """``after`` reads the bus's evidence; ``before`` reads only the count of late replies
+    unless it moved, so steady polling costs one evidence read a transaction, and a late
+    reply heard between two transactions still raises the next one's timeout."""
+
+    class Counting(Quiet):
+        def __init__(self) -> None:
+            self.reads, self.late_replies = 0, 0
+
+        def late(self, unit: int) -> int:
+            return self.late_replies
+
+        def evidence(self, unit: int) -> Evidence:
+            self.reads += 1
+            return Evidence(late=self.late_replies, reply_time=0.01,
+                            late_reply_time=0.3 if self.late_replies else None)
+
+    bus, timing = Counting(), DeviceTiming(0.5, silence=0.004)
+    for _ in range(10):
+        timing.before(bus, 1)
+        timing.after(bus, 1, answered=True)
+    reads = bus.reads
+    for _ in range(20):
+        assert timing.before(bus, 1) < 0.5  # learned from the 10 ms answers
+        timing.after(bus, 1, answered=True)
+    assert bus.reads - reads == 20
+    bus.late_replies = 1  # a late reply, heard while another device's request was out
+    assert timing.before(bus, 1) == pytest.approx(MARGIN * 0.3)
+    assert bus.reads - reads == 21

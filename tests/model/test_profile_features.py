@@ -207,6 +207,9 @@ class CountingTransport:
 
     adapter_latency = 0.0  # BusLike: no USB adapter
 
+    def late(self, unit: int) -> int:
+        return 0  # no late replies
+
     def evidence(self, unit: int) -> Evidence:
         return Evidence()  # nothing measured
 

@@ -34,7 +34,7 @@ from rtupoll.cli.serve_options import from_options, serve_options
 from rtupoll.config.site import DEFAULT_INTERVAL, BusConfig, Site, from_specs, load_site
 from rtupoll.errors import ScanIncomplete, UsageError
 from rtupoll.ui.outfile import OutputFile
-from rtupoll.ui.records import POLL_KEYS, CsvWriter, reading_record, to_json
+from rtupoll.ui.records import POLL_KEYS, CsvWriter, JsonRecords, reading_record
 from rtupoll.web.options import http_options, pop_http
 
 if TYPE_CHECKING:
@@ -63,6 +63,7 @@ class RecordWriter:
         self.out, self.fmt, self.path = out, fmt, path
         self._buf = io.StringIO()
         self._csv = CsvWriter(self._buf, POLL_KEYS, header=header) if fmt == "csv" else None
+        self._json = JsonRecords()
         self.buses: dict[str, str] = {}  # device name -> bus name (influx's bus tag)
         self._influx = None
         if fmt == "influx":
@@ -83,17 +84,18 @@ class RecordWriter:
             self._csv = CsvWriter(self._buf, POLL_KEYS, header=self.out.fresh)
 
     def write(self, readings: Sequence[Reading], state: str = "") -> None:
-        if self._influx is not None:
-            self._buf.write(self._influx.format(readings, state))
-            readings = ()
-        for r in readings:
-            if self._csv is not None:
-                self._csv.write(reading_record(r))
-            else:
-                self._buf.write(to_json(reading_record(r)) + "\n")
-        text = self._buf.getvalue()
-        self._buf.seek(0)
-        self._buf.truncate()
+        if self._influx is None and self._csv is None:
+            line = self._json.line
+            text = "".join([line(r) for r in readings])
+        else:
+            if self._influx is not None:
+                self._buf.write(self._influx.format(readings, state))
+            elif self._csv is not None:
+                for r in readings:
+                    self._csv.write(reading_record(r))
+            text = self._buf.getvalue()
+            self._buf.seek(0)
+            self._buf.truncate()
         if text:
             self.out.write(text)
             self.out.flush()
@@ -484,17 +486,12 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
         for s in services:
             s.on_readings(dev, readings)
 
+    from rtupoll.jobs.race import first_of
+
     stop = _stop_event()
-    async with _started(scheduler, services):
-        scan = asyncio.create_task(scheduler.scan_once(sink))
-        stopper = asyncio.create_task(stop.wait())
-        await asyncio.wait([scan, stopper], return_when=asyncio.FIRST_COMPLETED)
-        stopper.cancel()
-        if not scan.done():
-            scan.cancel()
-            await asyncio.gather(scan, return_exceptions=True)
+    async with _started(scheduler, services):  # the scan, unless a signal comes first
+        if await first_of(scheduler.scan_once(sink), stop.wait()) != 0:
             raise KeyboardInterrupt
-        scan.result()
     readings = [r for d in scheduler.pollers() for r in got.get(d.config.name, [])]
     if writer is not None:  # one device at a time, with its state (influx's ``state``)
         for d in scheduler.pollers():

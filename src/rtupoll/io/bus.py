@@ -64,11 +64,9 @@ from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
     OUTCOMES,
-    Await,
     BusStats,
     Done,
     Failed,
-    Send,
     Transaction,
 )
 
@@ -86,6 +84,7 @@ _SLEEP_SHARED = 0.0005
 _OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()  # the buses open in this process
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
+_CHUNK = 1024  # bytes read at most at once (as pymodbus's transport reads)
 
 _PYMODBUS_LOG = logging.getLogger("pymodbus")
 if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked for it
@@ -124,6 +123,7 @@ class Bus(LineBus):
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight
         self._over: asyncio.Future[None] | None = None  # set when that attempt is over
+        self._loop: asyncio.AbstractEventLoop | None = None  # the port's, once open
 
     # -- opening and closing -------------------------------------------------
 
@@ -179,6 +179,7 @@ class Bus(LineBus):
             ok = False
         if ok and self.connected:
             _OPEN.add(self)
+            self._loop = asyncio.get_running_loop()  # the port's callbacks run on it
             self.line.opened(time.monotonic())  # a fresh port: count the silence from now
             return
         self._port.close()
@@ -203,37 +204,38 @@ class Bus(LineBus):
         """``tx`` under the lock, once no earlier request's late reply could be mistaken
         for its answer (waited for without the lock)."""
         while True:
-            await self._hazard_clear(tx)  # returns at once when there is none
+            now = time.monotonic()
+            if tx.hazard_until(now) > now:
+                await self._hazard_clear(tx)
             await self._lock.acquire()
             now = time.monotonic()
             if tx.hazard_until(now) <= now:
                 break
             self._lock.release()  # another task's request made one: wait again
-        started = time.monotonic()
+        started = now
         outcome: str | None = None
         try:
-            while True:  # LineBus._drive, flat: one coroutine frame less per wake-up
+            while True:  # LineBus._drive and its _step, flat: coroutine frames less per wake-up
                 step = tx.next()
                 if isinstance(step, Done):
                     return step
                 if isinstance(step, Failed):
                     raise_failed(step)
-                await self._step(tx, step)
+                # an attempt, start to end (``_attempt`` both sends and waits)
+                if not self.connected:
+                    if tx.attempts:
+                        raise PortError(f"{self.settings.port} went away during the "
+                                        "transaction")
+                    await self._connect()
+                await self._attempt(tx)
+                if not tx.heard and not self.connected:
+                    raise PortError(f"{self.settings.port} went away during the transaction")
         except PortError:
             outcome = "port"
             raise
         finally:
             self.stats.add(tx, time.monotonic() - started, outcome=outcome)
             self._lock.release()
-
-    async def _step(self, tx: Transaction, step: Send | Await) -> None:
-        """An attempt, start to end (``_attempt`` both sends and waits)."""
-        if tx.attempts and not self.connected:
-            raise PortError(f"{self.settings.port} went away during the transaction")
-        await self._connect()
-        await self._attempt(tx)
-        if not tx.heard and not self.connected:
-            raise PortError(f"{self.settings.port} went away during the transaction")
 
     async def _hazard_clear(self, tx: Transaction) -> None:
         """Wait (without holding the bus) until no earlier request's late reply could be
@@ -254,7 +256,7 @@ class Bus(LineBus):
         turn of the event loop less per transaction)."""
         if not self.connected:
             raise PortError(f"{self.settings.port} is not open")
-        loop = asyncio.get_running_loop()
+        loop = self._loop or asyncio.get_running_loop()  # (asking costs a system call)
         over: asyncio.Future[None] = loop.create_future()
         timer: asyncio.Handle | None = None
 
@@ -316,9 +318,11 @@ class Bus(LineBus):
         the silence is counted from them (read from rtupoll's own ``Serial``; a gateway
         keeps the silence on its own line)."""
         port = self._slot.port if self._slot is not None else None
-        try:
-            waiting = port.in_waiting if port is not None and port.is_open else 0
-            data = port.read(waiting) if waiting and port is not None else b""
+        try:  # what waits: one read on the non-blocking port pymodbus's transport made
+            if port is None or not port.is_open:
+                data = b""
+            else:  # (a timeout other than 0 would block: then only what waits is asked)
+                data = port.read(_CHUNK if port.timeout == 0 else port.in_waiting)
         except (OSError, serial.SerialException):  # the write that follows fails too
             return False
         if data:

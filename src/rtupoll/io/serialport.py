@@ -185,9 +185,39 @@ class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hin
                 self.close()
                 raise serial.SerialException(slot.error) from None
 
+    def read(self, size: int = 1) -> bytes:
+        """pyserial's ``read``; on a non-blocking port (``timeout`` 0, as pymodbus's
+        transport sets it and reads once the event loop saw bytes waiting) one
+        ``os.read`` of what waits, without pyserial's per-call ``Timeout`` and
+        ``select``: one system call less each. Nothing read (the port, VMIN 0, says
+        the same when nothing waits and when it was hung up) is pyserial's to judge:
+        its ``select`` tells the two apart, and a port gone raises as it always did."""
+        if self.timeout != 0 or not self.is_open:
+            return super().read(size)  # type: ignore[no-any-return]
+        try:
+            data = os.read(self.fd, size)
+        except BlockingIOError:
+            data = b""
+        except OSError as exc:  # the adapter unplugged (EIO), ...: pyserial's error
+            raise serial.SerialException(f"read failed: {exc}") from None
+        if data:
+            return data
+        return super().read(size)  # type: ignore[no-any-return]
+
     def write(self, data: bytes) -> int | None:
+        """pyserial's ``write``; on a non-blocking port (``write_timeout`` 0, as pymodbus's
+        transport sets it) with no RTS to toggle, one ``os.write``: what fitted is
+        returned (0 when the port's buffer is full, where pyserial would spin until
+        all of it went), the caller hands the rest to the transport."""
         if self._toggle is None:
-            return super().write(data)  # type: ignore[no-any-return]
+            if self.write_timeout != 0 or not self.is_open:
+                return super().write(data)  # type: ignore[no-any-return]
+            try:
+                return os.write(self.fd, data)
+            except BlockingIOError:
+                return 0
+            except OSError as exc:
+                raise serial.SerialException(f"write failed: {exc}") from None
         return self._toggle.write(super().write, data)
 
 

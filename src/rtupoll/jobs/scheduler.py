@@ -48,6 +48,7 @@ from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
 from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
+from rtupoll.jobs.race import first_of
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
 from rtupoll.model.interpret import FieldValue
@@ -442,12 +443,7 @@ class BusPoller:
 
     async def _idle(self, stop: asyncio.Event, wait: float) -> None:
         """Sleep up to ``wait`` s; ``stop``, ``poll_now`` or ``submit`` end it early."""
-        waits = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(self._wake.wait())]
-        try:
-            await asyncio.wait(waits, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for w in waits:
-                w.cancel()
+        await first_of(stop.wait(), self._wake.wait(), timeout=wait)
 
     def reconfigure(self, config: BusConfig) -> list[str]:
         """``Scheduler.reload`` for this bus (same port and settings): what changed."""

@@ -60,6 +60,8 @@ class TimeoutEstimator:
     ceiling: float = CEILING
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
     _sorted: list[float] = field(default_factory=list, init=False, repr=False)  # samples, sorted
+    # (samples, the index of the slow end among them): the rank, once per window size
+    _rank: tuple[int, int] = field(default=(0, 0), init=False, repr=False)
     learned: bool = False  # some evidence has moved it from the start
     late_replies: int = 0
     current: float = 0.0
@@ -95,8 +97,10 @@ class TimeoutEstimator:
         """An answer (or an exception reply) came ``reply_time`` s after the request."""
         self._sample(max(0.0, reply_time))
         self.learned = True
-        target = self.target()
-        assert target is not None
+        ranked = self._sorted  # target(), inline: this runs once per transaction
+        if len(ranked) != self._rank[0]:
+            self._rank = (len(ranked), nearest_rank(len(ranked), QUANTILE) - 1)
+        target = min(self.ceiling, max(self.floor, MARGIN * ranked[self._rank[1]]))
         if MARGIN * reply_time > self.current:  # slower than allowed for: up at once
             self.current = self._clamp(MARGIN * reply_time)
         elif target >= self.current:
@@ -135,6 +139,7 @@ class DeviceTiming:
         self.estimator = TimeoutEstimator(start, floor=FLOOR + silence,
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None
+        self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
 
     @property
     def timeout(self) -> float:
@@ -152,15 +157,25 @@ class DeviceTiming:
         """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
         ``ceiling``: the device's configuration now, which a reload may change). The
         bus's evidence (``BusLike.evidence``: a value) is read; the patience a late
-        reply is still expected with is told back (``BusLike.set_patience``)."""
+        reply is still expected with is told back (``BusLike.set_patience``). The
+        evidence itself (``after`` reads it once per transaction) is read here only when
+        the count of late replies moved: one read per transaction."""
         self.pinned = pinned
-        self.estimator.ceiling = CEILING if ceiling is None else ceiling
+        est = self.estimator
+        top = CEILING if ceiling is None else ceiling
         if bus is None:
+            est.ceiling, self._bounds = top, None
             return self.timeout
-        self.estimator.set_floor(FLOOR + self.silence + bus.adapter_latency)
-        self._take_late(bus.evidence(unit))
-        bus.set_patience(unit, self.patience)  # a late reply stays expected that long
-        return self.timeout
+        bounds = (FLOOR + self.silence + bus.adapter_latency, top)
+        if bounds != self._bounds:  # the first time, a reload, the adapter's latency known
+            est.ceiling = top
+            est.set_floor(bounds[0])
+            self._bounds = bounds
+        if bus.late(unit) != self._late_seen:  # the evidence is read only when a late
+            self._take_late(bus.evidence(unit))  # reply came (and the first time)
+        timeout = self.timeout
+        bus.set_patience(unit, max(est.start, timeout))  # a late reply stays expected that long
+        return timeout
 
     @property
     def patience(self) -> float:
