@@ -46,7 +46,7 @@ def test_a_value_read_is_the_same_line_as_the_general_record(pick: int, words: l
     floats = [pair for pair in fields if pair[1].layout.type.value == "f32"]
     records = JsonRecords()
     for device, field in (fields[pick % len(fields)], floats[pick % len(floats)]):
-        fv = interpret(field, words[:field.words])
+        fv = interpret(field, (words + [0] * field.words)[:field.words])  # strings: longer
         r = Reading(when, device, field, fv, Status.OK)
         assert records.line(r) == _expected(r)
         assert records.line(r) == _expected(r)  # the fragments' second use
