@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TypeVar
 
@@ -28,6 +28,7 @@ from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.config.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
+from rtupoll.frozen import frozen
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
@@ -42,7 +43,7 @@ T = TypeVar("T")
 Fail = Callable[[str, str], RtupollError]  # (key, message) -> the error to raise
 
 
-@dataclass(frozen=True)
+@frozen
 class DeviceConfig:
     """One device to poll: a profile at an address, what to read and how often."""
 
@@ -69,7 +70,7 @@ class DeviceConfig:
         return self.profile.limits.retries if self.retries is None else self.retries
 
 
-@dataclass(frozen=True)
+@frozen
 class BusConfig:
     """One RS-485 line (a serial port or an RTU-over-TCP gateway) and its devices."""
 
@@ -99,7 +100,7 @@ class BusConfig:
         return f"{self.baudrate} {self.bytesize}{self.parity}{self.stopbits}"
 
 
-@dataclass(frozen=True)
+@frozen
 class Site:
     buses: tuple[BusConfig, ...]
     source: str = "command line"

@@ -7,15 +7,14 @@ the frame carries their registers, their values.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Profile
 from rtupoll.rtu.capture import Frame
 
 
-@dataclass(frozen=True)
+@frozen
 class Carried:
     """A profile field that a frame carries (a reply, a write) or asks for (a read request)."""
 

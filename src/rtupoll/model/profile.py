@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, Layout
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
@@ -74,7 +74,7 @@ class Poll(str, enum.Enum):
     NEVER = "never"
 
 
-@dataclass(frozen=True)
+@frozen
 class Choice:
     """One enum code or flag bit: its name, severity and meaning."""
 
@@ -83,7 +83,7 @@ class Choice:
     description: str = ""
 
 
-@dataclass(frozen=True)
+@frozen
 class Field:
     name: str
     table: Table
@@ -137,7 +137,7 @@ class Field:
         return self.minimum is not None and self.maximum is not None
 
 
-@dataclass(frozen=True)
+@frozen
 class Serial:
     baudrate: int = 9600
     parity: str = "N"
@@ -147,7 +147,7 @@ class Serial:
     deassert_dtr: bool = False  # open the port with DTR and RTS deasserted (DTR resets some boards)
 
 
-@dataclass(frozen=True)
+@frozen
 class Limits:
     max_registers: int = MAX_REGISTERS  # per read request
     max_gap: int = 0  # unread registers a block may bridge (0: blocks only over adjacent fields)
@@ -159,7 +159,7 @@ class Limits:
     lost_after_powerup: int = 0  # requests a freshly powered device may drop
 
 
-@dataclass(frozen=True)
+@frozen
 class Addresses:
     lo: int = 1
     hi: int = 247
@@ -180,7 +180,7 @@ class Addresses:
         return None
 
 
-@dataclass(frozen=True)
+@frozen
 class Check:
     """One identify check: read ``field`` and test it."""
 
@@ -191,7 +191,7 @@ class Check:
     exception: int | None = None  # this exception code also counts as a match
 
 
-@dataclass(frozen=True)
+@frozen
 class AddressChange:
     """How the device's own address is changed, or why it cannot be from here."""
 
@@ -201,7 +201,7 @@ class AddressChange:
     unsupported: str = ""  # what the manual says instead, when field is None
 
 
-@dataclass(frozen=True)
+@frozen
 class Variant:
     """A register that tells which generation of the map the device has."""
 
@@ -219,7 +219,7 @@ class Verification(str, enum.Enum):
     UNVERIFIED = "unverified"  # nobody could check it: values may be wrong
 
 
-@dataclass(frozen=True)
+@frozen
 class Document:
     """One document a profile was written from."""
 
@@ -232,7 +232,7 @@ class Document:
             + f" <{self.where}>"
 
 
-@dataclass(frozen=True)
+@frozen
 class Provenance:
     """Where a profile's facts come from, and how far they are verified."""
 
@@ -250,7 +250,7 @@ class Provenance:
         return self.level.value if self.given else "unverified (no provenance)"
 
 
-@dataclass(frozen=True)
+@frozen
 class Profile:
     id: str
     vendor: str
