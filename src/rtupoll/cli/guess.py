@@ -7,7 +7,6 @@ reason a value "makes no sense". Offline, ``--words`` takes the registers as hex
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Sequence
 
 import click
@@ -78,6 +77,8 @@ def guess(args: tuple[str, ...], port: str | None, unit: int | None, offline: bo
             raise UsageError("reading needs --port and --address (or use --words offline)")
         table, start, count = _spec(args[0])
         settings = (port, baudrate, parity.upper(), int(stopbits))
+        import asyncio  # here: --words reads no device
+
         first, words = asyncio.run(_read(settings, unit, table, start, count, timeout))
         source = f"unit {unit}"
     ranked = interpretations(words, first, start, count)
