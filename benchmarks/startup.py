@@ -37,6 +37,8 @@ from rtupoll.sim.runner import simulated_bus
 
 ROOT = Path(__file__).resolve().parents[1]
 DEVICES = ["huiwen-aq@1", "xy-md02@2"]
+# also timed with RTUPOLL_NO_PROFILE_CACHE=1: one profile, and all 24 bundled ones
+UNCACHED = ("read", "profiles list")
 
 
 def commands(port: str) -> dict[str, list[str]]:
@@ -129,19 +131,23 @@ def main() -> None:
 
 def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, Path],
             cmds: dict[str, list[str]]) -> None:
-    cases: dict[tuple[str, str], list[str]] = {}
+    cases: dict[tuple[str, str], tuple[list[str], dict[str, str]]] = {}
+    uncached = {**env, "RTUPOLL_NO_PROFILE_CACHE": "1"}
     for which, python in installs.items():
-        cases[(which, "python -c pass")] = [str(python), "-c", "pass"]
-        cases[(which, "import click, serial")] = [str(python), "-c", "import click, serial"]
+        cases[(which, "python -c pass")] = ([str(python), "-c", "pass"], env)
+        cases[(which, "import click, serial")] = ([str(python), "-c", "import click, serial"],
+                                                  env)
         for name, argv in cmds.items():
             if not args.only or name in args.only:
-                cases[(which, name)] = [str(python.parent / "rtupoll"), *argv]
-    for argv in cases.values():  # warm-up: .pyc files, the profile cache
-        run(argv, env)
+                cases[(which, name)] = ([str(python.parent / "rtupoll"), *argv], env)
+                if name in UNCACHED:  # does the profile cache pay?
+                    cases[(which, f"{name}, no cache")] = (cases[(which, name)][0], uncached)
+    for argv, cenv in cases.values():  # warm-up: .pyc files, the profile cache
+        run(argv, cenv)
     got: dict[tuple[str, str], list[tuple[float, float, float]]] = {k: [] for k in cases}
     for _ in range(args.runs):  # interleaved, so the machine's drift hits all alike
-        for key, argv in cases.items():
-            got[key].append(run(argv, env))
+        for key, (argv, cenv) in cases.items():
+            got[key].append(run(argv, cenv))
 
     def med(key: tuple[str, str], i: int) -> float:
         return statistics.median(r[i] for r in got[key])
