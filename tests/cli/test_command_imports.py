@@ -58,3 +58,14 @@ def test_only_the_csv_format_imports_csv(sim: Callable[..., SimulatedBus], fmt: 
     modules = imported("read", "--port", bus.port, "--format", fmt, "huiwen-aq@1", "co2")
     assert "rtupoll.io.syncbus" in modules  # it read
     assert ("csv" in modules) is has_csv
+
+
+def test_a_write_runs_on_the_blocking_bus(sim: Callable[..., SimulatedBus]) -> None:
+    """A write awaits only the bus, as a read does: no event loop, no pymodbus."""
+    bus = sim("xy-md02@2", tick=None)
+    load_one("xy-md02")
+    modules = imported("write", "--port", bus.port, "--yes", "--format", "json", "xy-md02@2",
+                       "temperature_correction=1.5")
+    assert "rtupoll.io.syncbus" in modules and "rtupoll.jobs.writes" in modules
+    assert [p for p in (*NO_LOOP, "rtupoll.io.bus", "yaml", "rich") if loaded(modules, p)] == []
+    assert bus.get(2, "temperature_correction").value == 1.5  # and it wrote
