@@ -69,3 +69,11 @@ def test_a_write_runs_on_the_blocking_bus(sim: Callable[..., SimulatedBus]) -> N
     assert "rtupoll.io.syncbus" in modules and "rtupoll.jobs.writes" in modules
     assert [p for p in (*NO_LOOP, "rtupoll.io.bus", "yaml", "rich") if loaded(modules, p)] == []
     assert bus.get(2, "temperature_correction").value == 1.5  # and it wrote
+
+
+def test_guess_reads_on_the_blocking_bus(sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("huiwen-aq@1", tick=None)
+    modules = imported("guess", "--port", bus.port, "--address", "1", "--format", "json",
+                       "input:30009:1")
+    assert "rtupoll.io.syncbus" in modules and "rtupoll.model.guess" in modules
+    assert [p for p in (*NO_LOOP, "rtupoll.io.bus") if loaded(modules, p)] == []
