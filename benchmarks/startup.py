@@ -11,6 +11,7 @@ Run from the repository root::
 
     .venv/bin/python benchmarks/startup.py                     # 7 runs each
     .venv/bin/python benchmarks/startup.py --before main --runs 11
+    .venv/bin/python benchmarks/startup.py --editable --only read   # the editable install
 
 CPU is the child's user + system time (``os.wait4``), the figure that does not grow with
 other processes' load as wall time does; peak memory is its maximum resident set
@@ -118,6 +119,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=7, help="runs of each command (default 7)")
     ap.add_argument("--before", metavar="REV", help="also time this git revision, interleaved")
     ap.add_argument("--only", action="append", default=[], help="only these commands")
+    ap.add_argument("--editable", action="store_true",
+                    help="also time this checkout's development install (an editable one)")
     args = ap.parse_args()
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,6 +128,8 @@ def main() -> None:
         installs = {"after": plain_install(Path(tmp) / "after", env)}
         if args.before:
             installs["before"] = install_revision(args.before, Path(tmp) / "before", env)
+        if args.editable:  # its import hook: the before/after of a plain install
+            installs["editable"] = Path(sys.executable)
         with simulated_bus(DEVICES, tick=None) as sim:
             measure(args, env, installs, commands(sim.port))
 
@@ -153,19 +158,20 @@ def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, P
         return statistics.median(r[i] for r in got[key])
 
     names = list(dict.fromkeys(name for _, name in cases))
+    others = [w for w in installs if w != "after"]
     print(f"{args.runs} runs each, medians; CPU = user + system of the process")
     head = f"{'command':24s} {'CPU ms':>7s} {'wall ms':>8s} {'MiB':>6s} {'x pass':>7s}"
-    if "before" in installs:
-        head += f" {'before CPU':>11s} {'before MiB':>11s} {'after/before':>13s}"
+    for other in others:
+        head += f" {other + ' CPU':>15s} {other + ' MiB':>15s} {'after/' + other:>17s}"
     print(head)
     for name in names:
         a = ("after", name)
         line = (f"{name:24s} {med(a, 0) * 1e3:7.1f} {med(a, 1) * 1e3:8.1f} {med(a, 2):6.1f} "
                 f"{med(a, 0) / med(('after', 'python -c pass'), 0):7.2f}")
-        if "before" in installs:
-            b = ("before", name)
+        for other in others:
+            b = (other, name)
             ratios = sorted(x[0] / y[0] for x, y in zip(got[a], got[b], strict=True))
-            line += (f" {med(b, 0) * 1e3:11.1f} {med(b, 2):11.1f} "
+            line += (f" {med(b, 0) * 1e3:15.1f} {med(b, 2):15.1f} "
                      f"{statistics.median(ratios):7.2f} ({ratios[0]:.2f}-{ratios[-1]:.2f})")
         print(line)
     print(f"load average at the end: {os.getloadavg()[0]:.1f}", file=sys.stderr)
