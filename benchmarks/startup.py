@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import statistics
 import subprocess
@@ -119,6 +120,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=7, help="runs of each command (default 7)")
     ap.add_argument("--before", metavar="REV", help="also time this git revision, interleaved")
     ap.add_argument("--only", action="append", default=[], help="only these commands")
+    ap.add_argument("--mbpoll", default=shutil.which("mbpoll"),
+                    help="the mbpoll to time beside read (default: the one on PATH)")
     ap.add_argument("--editable", action="store_true",
                     help="also time this checkout's development install (an editable one)")
     args = ap.parse_args()
@@ -131,11 +134,11 @@ def main() -> None:
         if args.editable:  # its import hook: the before/after of a plain install
             installs["editable"] = Path(sys.executable)
         with simulated_bus(DEVICES, tick=None) as sim:
-            measure(args, env, installs, commands(sim.port))
+            measure(args, env, installs, commands(sim.port), sim.port)
 
 
 def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, Path],
-            cmds: dict[str, list[str]]) -> None:
+            cmds: dict[str, list[str]], port: str) -> None:
     cases: dict[tuple[str, str], tuple[list[str], dict[str, str]]] = {}
     uncached = {**env, "RTUPOLL_NO_PROFILE_CACHE": "1"}
     for which, python in installs.items():
@@ -147,6 +150,10 @@ def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, P
                 cases[(which, name)] = ([str(python.parent / "rtupoll"), *argv], env)
                 if name in UNCACHED:  # does the profile cache pay?
                     cases[(which, f"{name}, no cache")] = (cases[(which, name)][0], uncached)
+    if args.mbpoll:  # the C peer reading the same register as ``read``
+        cases[("after", "mbpoll (C)")] = ([args.mbpoll, "-m", "rtu", "-b", "9600", "-P", "none",
+                                          "-a", "1", "-t", "3", "-r", "30009", "-0", "-c", "1",
+                                          "-1", port], env)
     for argv, cenv in cases.values():  # warm-up: .pyc files, the profile cache
         run(argv, cenv)
     got: dict[tuple[str, str], list[tuple[float, float, float]]] = {k: [] for k in cases}
@@ -157,7 +164,7 @@ def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, P
     def med(key: tuple[str, str], i: int) -> float:
         return statistics.median(r[i] for r in got[key])
 
-    names = list(dict.fromkeys(name for _, name in cases))
+    names = [n for n in dict.fromkeys(name for _, name in cases) if n != "mbpoll (C)"]
     others = [w for w in installs if w != "after"]
     print(f"{args.runs} runs each, medians; CPU = user + system of the process")
     head = f"{'command':24s} {'CPU ms':>7s} {'wall ms':>8s} {'MiB':>6s} {'x pass':>7s}"
@@ -174,6 +181,15 @@ def measure(args: argparse.Namespace, env: dict[str, str], installs: dict[str, P
             line += (f" {med(b, 0) * 1e3:15.1f} {med(b, 2):15.1f} "
                      f"{statistics.median(ratios):7.2f} ({ratios[0]:.2f}-{ratios[-1]:.2f})")
         print(line)
+    if args.mbpoll and ("after", "read") in got:
+        theirs = got[("after", "mbpoll (C)")]
+        print(f"mbpoll reading the same register: {med(('after', 'mbpoll (C)'), 0) * 1e3:.1f} ms "
+              f"CPU, {med(('after', 'mbpoll (C)'), 1) * 1e3:.1f} ms wall")
+        for which in installs:
+            ours = got[(which, "read")]
+            walls = sorted(x[1] / y[1] for x, y in zip(ours, theirs, strict=True))
+            print(f"  read, {which}, wall against mbpoll's, run by run: median "
+                  f"x{statistics.median(walls):.2f} ({walls[0]:.2f}-{walls[-1]:.2f})")
     print(f"load average at the end: {os.getloadavg()[0]:.1f}", file=sys.stderr)
 
 
