@@ -250,6 +250,10 @@ class Provenance:
         return self.level.value if self.given else "unverified (no provenance)"
 
 
+def _not_said() -> AddressChange:
+    return AddressChange(unsupported="the profile does not say")
+
+
 @frozen
 class Profile:
     id: str
@@ -258,17 +262,19 @@ class Profile:
     manual: str
     addressing: Addressing
     fields: tuple[Field, ...]
-    serial: Serial = Serial()
-    limits: Limits = Limits()
-    addresses: Addresses = Addresses()
+    # the sections a file may leave out: made when a profile is, not at import (a cached
+    # profile is unpickled whole, and then these classes are never called)
+    serial: Serial = dataclasses.field(default_factory=Serial)
+    limits: Limits = dataclasses.field(default_factory=Limits)
+    addresses: Addresses = dataclasses.field(default_factory=Addresses)
     byte_order: ByteOrder = ByteOrder.ABCD
     identify: tuple[Check, ...] = ()
-    set_address: AddressChange = AddressChange(unsupported="the profile does not say")
+    set_address: AddressChange = dataclasses.field(default_factory=_not_said)
     variant: Variant | None = None
     notes: str = ""
     kind: str = ""  # what sort of device: energy meter, gas sensor, solar charger, ...
     extends: str = ""  # the id of the profile this one was built on
-    provenance: Provenance = Provenance()
+    provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
 
     def line_setting(self, field: Field) -> str:
