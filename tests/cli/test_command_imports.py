@@ -5,7 +5,8 @@ rtupoll pays for what it imports, a person's and each of the test suite's ~285.
   a dry run of set-address, guess on given words, decode;
 - no YAML parser where no YAML is read: poll of named devices (no site file), decode,
   a read whose profile is in the profile cache;
-- no csv module but for the csv format; no profile library for decode without --profile.
+- no csv module but for the csv format; no profile library for decode without --profile;
+  the profile cache reads with the C unpickler alone (not pickle.py).
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ def test_only_the_csv_format_imports_csv(sim: Callable[..., SimulatedBus], fmt: 
     modules = imported("read", "--port", bus.port, "--format", fmt, "huiwen-aq@1", "co2")
     assert "rtupoll.io.syncbus" in modules  # it read
     assert ("csv" in modules) is has_csv
+    # the profile came from the cache through the C unpickler, without pickle.py around it
+    assert "_pickle" in modules and "pickle" not in modules
 
 
 def test_a_write_runs_on_the_blocking_bus(sim: Callable[..., SimulatedBus]) -> None:
