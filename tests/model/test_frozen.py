@@ -8,6 +8,7 @@ import pickle
 import subprocess
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -113,9 +114,9 @@ def test_an_unpickled_object_works_before_any_was_made() -> None:
     script = ("import pickle, sys; sys.path.insert(0, sys.argv[1]); import test_frozen as t; "
               "item = pickle.loads(bytes.fromhex(sys.argv[2])); "
               "print(item, item == t.Lazy('x', 3), hash(t.Checked(1, 2)) == hash(t.Checked(1, 2)))")
-    out = subprocess.run([sys.executable, "-c", script, str(__import__("pathlib").Path(
-        __file__).parent), pickle.dumps(Lazy("x", 3)).hex()], capture_output=True, text=True,
-        check=True, timeout=60).stdout
+    out = subprocess.run([sys.executable, "-c", script, str(Path(__file__).parent),
+                          pickle.dumps(Lazy("x", 3)).hex()], capture_output=True, text=True,
+                         check=True, timeout=60).stdout
     assert out == "Lazy(name='x', size=3, tags=['a']) True True\n"
 
 
