@@ -113,8 +113,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="polling before the reading")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--before", metavar="PYTHON",
+                    help="also poll with this interpreter's rtupoll (another checkout's venv) "
+                         "in each round: before and after in the same run")
     args = ap.parse_args()
-    ratios, ours, theirs = [], [], []
+    ratios, ours, theirs, before = [], [], [], []
     with contextlib.ExitStack() as stack:
         ports = [stack.enter_context(simulator(BAUD, devices(b))) for b in range(BUSES)]
         tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
@@ -134,10 +137,18 @@ def main() -> None:
             ratios.append(mine[0] / peer[0])
             print(f"round {r + 1}: rtupoll {mine[0]:.1f} MB (peak {mine[1]:.1f}), peer "
                   f"{peer[0]:.1f} MB (peak {peer[1]:.1f}): x{ratios[-1]:.2f}", flush=True)
+            if args.before:
+                then = run_for([args.before, "-m", "rtupoll", "poll", "-c", str(site),
+                                "--format", "json", "-o", str(tmp / "before.jsonl")],
+                               args.seconds)
+                before.append(then[0] / peer[0])
+                print(f"  before: rtupoll {then[0]:.1f} MB (peak {then[1]:.1f}): "
+                      f"x{before[-1]:.2f}", flush=True)
     print(f"\n{BUSES * PER_BUS} devices on {BUSES} buses at {BAUD} baud, after "
           f"{args.seconds:g} s of polling: rtupoll {statistics.median(m[0] for m in ours):.1f} "
           f"MB, the bare pymodbus poller {statistics.median(p[0] for p in theirs):.1f} MB; "
-          f"ratio min x{min(ratios):.2f}, median x{statistics.median(ratios):.2f}")
+          f"ratio min x{min(ratios):.2f}, median x{statistics.median(ratios):.2f}"
+          + (f"; before: median x{statistics.median(before):.2f}" if before else ""))
 
 
 if __name__ == "__main__":

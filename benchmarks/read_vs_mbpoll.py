@@ -73,16 +73,17 @@ def main() -> None:
         measure(args, env, mbpoll, python)
 
 
-def plain_install(venv: Path, env: dict[str, str]) -> Path:
-    """A venv with rtupoll installed from this checkout as a wheel; its dependencies are
-    this environment's (a .pth line), so nothing is downloaded but the build backend."""
+def plain_install(venv: Path, env: dict[str, str], root: Path | None = None) -> Path:
+    """A venv with rtupoll installed from this checkout (or ``root``) as a wheel; its
+    dependencies are this environment's (a .pth line), so nothing is downloaded but the
+    build backend."""
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     python = venv / "bin" / "python"
     purelib = subprocess.run([str(python), "-c", "import sysconfig; "
                               "print(sysconfig.get_paths()['purelib'])"],
                              check=True, capture_output=True, text=True).stdout.strip()
     (Path(purelib) / "rtupoll-deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    root = Path(__file__).resolve().parents[1]
+    root = root or Path(__file__).resolve().parents[1]
     built = subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-deps", str(root)],
                            capture_output=True, text=True, env=env)
     if built.returncode:

@@ -45,6 +45,10 @@ pytest_plugins = ("pytester",)
 _CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
 os.environ["XDG_CACHE_HOME"] = _CACHE
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+# the ~285 rtupoll processes the suite starts reuse compiled bytecode, as scripts/test
+# has them do, also when pytest is run directly where the environment turns caching
+# off: compiling rtupoll's modules anew cost each start 40-80 ms of CPU (a third)
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 # few examples, and the same ones every run, by default; a long, random search on demand.
 # No deadline: an example's wall-clock time says how busy the machine is (a hang is

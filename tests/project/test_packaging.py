@@ -18,6 +18,11 @@ def test_wheel_contains_bundled_profiles_and_entry_point(tmp_path: Path) -> None
     names = set(zipfile.ZipFile(wheel).namelist())
     for profile in (ROOT / "profiles").glob("*.yaml"):
         assert f"rtupoll/profiles/{profile.name}" in names
+    # every module, each package listed in pyproject.toml (rtupoll.app once was not)
+    src = ROOT / "src"
+    missing = [str(m.relative_to(src)) for m in src.rglob("*.py")
+               if str(m.relative_to(src)) not in names]
+    assert missing == []
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     text = zipfile.ZipFile(wheel).read(entry).decode()
     assert "rtupoll = rtupoll.cli:main" in text

@@ -8,12 +8,11 @@ technician needs is what was and was not changed.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -42,6 +41,9 @@ from rtupoll.model.addressing import Change, address_field, refuse, shared_reser
 from rtupoll.model.profile import Profile
 from rtupoll.numbers import parse_unit
 from rtupoll.ui.records import json_safe
+
+if TYPE_CHECKING:
+    import asyncio
 
 
 @click.command("set-address")
@@ -195,6 +197,8 @@ def _interactive(target: Target, first: int | None, settings: Any,
                  commissioner: Callable[[Any], Commissioner], avoid: Mapping[int, str]
                  ) -> None:
     """Connect a sensor, press Enter, it gets the next free address; a summary as it goes."""
+    import asyncio  # here: a dry run or a plan file needs no event loop
+
     from rtupoll.io.bus import Bus
 
     profile, old = target.profile, target.unit
@@ -248,6 +252,8 @@ def _interactive(target: Target, first: int | None, settings: Any,
 
 def _shutdown(loop: asyncio.AbstractEventLoop, bus: Any) -> None:
     """Cancel what Ctrl-C interrupted (it may hold the bus), then close the port."""
+    import asyncio
+
     pending = asyncio.all_tasks(loop)
     for task in pending:
         task.cancel()

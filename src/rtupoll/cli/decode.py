@@ -16,7 +16,6 @@ from typing import Any
 import click
 
 from rtupoll.cli.options import format_option, profiles_option
-from rtupoll.config.library import load_one
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.model.carried import Carried, carried_in
 from rtupoll.model.profile import Profile
@@ -68,7 +67,11 @@ def decode(hex_bytes: tuple[str, ...], profile_id: str | None, start: str | None
         first = parse_int(start) if start is not None else None
     except ValueError:
         raise UsageError(f"--start {start!r} is not an address (decimal or 0x hex)") from None
-    profile = load_one(profile_id, profile_dirs) if profile_id else None
+    profile = None
+    if profile_id:
+        from rtupoll.config.library import load_one
+
+        profile = load_one(profile_id, profile_dirs)
     frames = decode_stream(chunks, start=first)
     # with a profile: each frame's fields (a ratio read earlier scales the values after it)
     found = carried_in(frames, profile) if profile else [[] for _ in frames]

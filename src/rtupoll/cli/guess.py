@@ -7,8 +7,8 @@ reason a value "makes no sense". Offline, ``--words`` takes the registers as hex
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import click
 
@@ -20,6 +20,9 @@ from rtupoll.model.raw import SYNTAX, parse_spec
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import to_json
+
+if TYPE_CHECKING:
+    from rtupoll.io.interface import BusLike
 
 DEFAULT_COUNT = 4  # registers when COUNT is omitted: room for an f64 at START
 
@@ -78,7 +81,7 @@ def guess(args: tuple[str, ...], port: str | None, unit: int | None, offline: bo
             raise UsageError("reading needs --port and --address (or use --words offline)")
         table, start, count = _spec(args[0])
         settings = (port, baudrate, parity.upper(), int(stopbits))
-        first, words = asyncio.run(_read(settings, unit, table, start, count, timeout))
+        first, words = _read(settings, unit, table, start, count, timeout)
         source = f"unit {unit}"
     ranked = interpretations(words, first, start, count)
     shown = ranked if top <= 0 else [g for g in ranked if g.score >= 0.1][:top]
@@ -99,25 +102,30 @@ def _spec(text: str) -> tuple[Table, int, int]:
     return spec.table, spec.address, count
 
 
-async def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int,
-                count: int, timeout: float) -> tuple[int, tuple[int, ...]]:
-    """The registers around START: one more on each side when the device allows it."""
-    from rtupoll.cli.target import line_settings
-    from rtupoll.io.bus import Bus, PortSettings
+def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int,
+          count: int, timeout: float) -> tuple[int, tuple[int, ...]]:
+    """The registers around START: one more on each side when the device allows it.
+    Read on the blocking bus (no event loop), as ``rtupoll read`` does."""
+    from rtupoll.cli.target import line_settings, run_on_bus
+    from rtupoll.io.serialport import PortSettings
 
     port, baudrate, parity, stopbits = serial
     # DTR deasserted: some boards (CO2Meter) are held in reset while it is asserted
     settings = PortSettings(port=port, baudrate=baudrate, parity=parity, stopbits=stopbits,
                             deassert_dtr=True, **line_settings())
     tries = [(start - 1, count + 2), (start, count + 1), (start, count)]
-    async with Bus(settings) as bus:
-        for i, (first, n) in enumerate(t for t in tries if t[0] >= 0 and t[0] + t[1] <= 0x10000):
+
+    async def job(bus: BusLike) -> tuple[int, tuple[int, ...]]:
+        for i, (first, n) in enumerate(t for t in tries
+                                       if t[0] >= 0 and t[0] + t[1] <= 0x10000):
             try:
                 return first, await bus.read(unit, table, first, n, timeout=timeout, retries=1)
             except DeviceException as exc:
                 if exc.code != 2 or i == len(tries) - 1 or (first, n) == (start, count):
                     raise
-    raise AssertionError("unreachable")
+        raise AssertionError("unreachable")
+
+    return run_on_bus(settings, job, blocking=True)
 
 
 def _record(table: Table, g: Guess) -> dict[str, object]:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
 import click
+
+from rtupoll.frozen import frozen
 
 F = TypeVar("F", bound=Callable[..., object])
 
@@ -23,7 +24,7 @@ def format_option(*choices: str) -> Callable[[F], F]:
                         default=choices[0], show_default=True, help="Output format.")
 
 
-@dataclass(frozen=True)
+@frozen
 class LineOptions:
     """--echo and --rs485: how the adapter meets the line (``line_options``)."""
 

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import click
 
+from rtupoll.frozen import frozen
 from rtupoll.numbers import parse_unit
 
 
-@dataclass(frozen=True)
+@frozen
 class DeviceSpec:
     """``PROFILE@ADDRESS``: a profile id (or YAML path) and a unit address."""
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Awaitable, Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -18,6 +17,7 @@ import click
 from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_one, note_use
 from rtupoll.errors import DeviceTimeout, RefusedError, UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.profile import Profile
 from rtupoll.numbers import parse_unit
 
@@ -29,7 +29,7 @@ F = TypeVar("F", bound=Callable[..., object])
 T = TypeVar("T")
 
 
-@dataclass(frozen=True)
+@frozen
 class Target:
     """One device: its profile (None for a bare unit address) and its unit address."""
 

@@ -124,7 +124,8 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
         with _applied_if_interrupted(sent):
             rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing, sent),
-                              on_timeout=speed_note(settings, target.profile, baudrate))
+                              on_timeout=speed_note(settings, target.profile, baudrate),
+                              blocking=True)
     else:
         ops = plan_fields(target, assignments)
         confirm_now(yes)  # refused before the port opens when nobody can confirm
@@ -140,7 +141,7 @@ def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | 
 
         with _applied_if_interrupted(sent):
             rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
-                                                                   baudrate))
+                                                                   baudrate), blocking=True)
     who = target.name if target.profile else f"unit {target.unit}"
     emit(target, rows, fmt, False, title=f"{who} after writing (read back)")
 

@@ -27,11 +27,12 @@ cannot call anything else.
 
 from __future__ import annotations
 
+# the C pickler itself: pickle.py around it costs each start a millisecond more
+import _pickle as pickle
 import binascii
 import dataclasses
 import io
 import os
-import pickle
 import stat
 from collections.abc import Sequence
 from pathlib import Path
@@ -87,8 +88,8 @@ def store(path: Path, built: Profile, sources: Sequence[Source]) -> None:
     key = os.path.abspath(path)
     try:
         chain = tuple((str(s.path.resolve()), s.data, s.extends) for s in sources)
-        payload = pickle.dumps(built, pickle.HIGHEST_PROTOCOL)
-        data = pickle.dumps((_stamp(), key, chain, payload), pickle.HIGHEST_PROTOCOL)
+        payload = pickle.dumps(built, -1)
+        data = pickle.dumps((_stamp(), key, chain, payload), -1)
         if len(data) <= MAX_BYTES:
             _write(_file(key), data)
     except OSError:  # no home, a read-only cache, a full disk: read the file next time

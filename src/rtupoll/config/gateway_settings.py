@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import ipaddress
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 
 if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node
@@ -25,7 +26,7 @@ SERVE_KEYS = {"listen", "allow", "read_only", "cache", "broadcast", "setup_write
               "timeout"}
 
 
-@dataclass(frozen=True)
+@frozen
 class ServeConfig:
     host: str
     port: int

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import ipaddress
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import field, replace
 from typing import TYPE_CHECKING
 
 from rtupoll.config.gateway_settings import LOOPBACK, host_port
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 
 if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node
@@ -24,7 +25,7 @@ HTTP_KEYS = {"listen", "token", "users"}
 MIN_SECRET = 8  # characters a token or password has at least
 
 
-@dataclass(frozen=True)
+@frozen
 class HttpSettings:
     host: str
     port: int

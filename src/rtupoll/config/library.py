@@ -10,11 +10,11 @@ does not import the YAML parser at all.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 from rtupoll.config.paths import bundled_dir, search_path
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.profile import Profile
 
 
@@ -49,7 +49,7 @@ def note_use(profile: Profile) -> Profile:
     return profile
 
 
-@dataclass(frozen=True)
+@frozen
 class Library:
     """Every profile on the search path, by id; a user's profile shadows a bundled one."""
 

@@ -12,12 +12,13 @@ import os
 import re
 import socket
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 
 # the gateway's identity in topics and ids (docs/mqtt.md)
 ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
@@ -52,7 +53,7 @@ PUBLISH_MODES = ("every_scan", "on_change")
 _TOPIC_TEXT = re.compile(r"^[^#+\x00]+$")
 
 
-@dataclass(frozen=True)
+@frozen
 class DeviceOptions:
     """How one device is published (site file: ``mqtt.devices.NAME``, else the defaults)."""
 
@@ -62,7 +63,7 @@ class DeviceOptions:
     allow: tuple[str, ...] = ()  # address / baud-rate fields that MQTT may write
 
 
-@dataclass(frozen=True)
+@frozen
 class MqttSettings:
     host: str
     port: int = 1883

@@ -13,11 +13,10 @@ Pure: reads files, opens no port, imports no pymodbus.
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from rtupoll.config.gateway_settings import ServeConfig, host_port
 from rtupoll.config.gateway_settings import from_node as serve_from_node
@@ -26,12 +25,15 @@ from rtupoll.config.http_settings import from_node as http_from_node
 from rtupoll.config.library import load_one, note_use
 from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.config.mqtt_settings import parse_section as parse_mqtt
-from rtupoll.config.yamlsrc import Node, load
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
+from rtupoll.frozen import frozen
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
 from rtupoll.rtu import Framing
+
+if TYPE_CHECKING:  # the YAML parser: only when a site file is read
+    from rtupoll.config.yamlsrc import Node
 
 DEFAULT_INTERVAL = 1.0  # seconds between scans of a device
 # the serial defaults of a bus with no devices (only served to gateway clients)
@@ -42,7 +44,7 @@ T = TypeVar("T")
 Fail = Callable[[str, str], RtupollError]  # (key, message) -> the error to raise
 
 
-@dataclass(frozen=True)
+@frozen
 class DeviceConfig:
     """One device to poll: a profile at an address, what to read and how often."""
 
@@ -69,7 +71,7 @@ class DeviceConfig:
         return self.profile.limits.retries if self.retries is None else self.retries
 
 
-@dataclass(frozen=True)
+@frozen
 class BusConfig:
     """One RS-485 line (a serial port or an RTU-over-TCP gateway) and its devices."""
 
@@ -99,7 +101,7 @@ class BusConfig:
         return f"{self.baudrate} {self.bytesize}{self.parity}{self.stopbits}"
 
 
-@dataclass(frozen=True)
+@frozen
 class Site:
     buses: tuple[BusConfig, ...]
     source: str = "command line"
@@ -126,6 +128,8 @@ _DEVICE_KEYS = {"name", "profile", "address", "interval", "fields", "timeout", "
 
 def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
     """Read and check a site file. ``profile_dirs`` (from --profiles) come first."""
+    from rtupoll.config.yamlsrc import load
+
     root = load(path, ConfigError)
     top = root.mapping(_TOP_KEYS, {"buses"})
     extra = list(profile_dirs)
@@ -287,6 +291,8 @@ def _field(profile: Profile, name: str, fail: Callable[[str], RtupollError]) -> 
                 raise fail(f"{name} is never polled: reading it has side effects "
                            f"({f.description or 'see the profile'}); use 'rtupoll read'")
             return f
+    import difflib
+
     hint = difflib.get_close_matches(name, profile.names(), n=1)
     raise fail(f"{profile.id} has no field {name!r}"
                + (f" (did you mean {hint[0]!r}?)" if hint else ""))
@@ -402,6 +408,8 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
     known = sorted({n for p in profiles for n in p.names()})
     for f in wanted:
         if f not in known:
+            import difflib
+
             hint = difflib.get_close_matches(f, known, n=1)
             raise UsageError(f"--fields: no device here has a field {f!r}"
                              + (f" (did you mean {hint[0]!r}?)" if hint else ""))

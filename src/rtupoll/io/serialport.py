@@ -50,6 +50,7 @@ import serial
 import serial.rs485
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.rtu import Framing
 
 SCHEME = "nodtr"
@@ -58,7 +59,7 @@ OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
 _OWN_PREFIX = f"{OWN}://"
 
 
-@dataclass(frozen=True)
+@frozen
 class Rs485:
     """Direction control for a transceiver whose DE/RE pin is on RTS: RTS is raised
     ``before`` seconds before a frame's first bit and dropped ``after`` seconds after
@@ -116,7 +117,7 @@ def direction_control(port: Any, rs485: Rs485) -> tuple[str, RtsToggle | None]:
     return "rts", RtsToggle(port, rs485)
 
 
-@dataclass(frozen=True)
+@frozen
 class PortSettings:
     """One bus's port and line settings (both drivers take them: ``rtupoll.io.bus.Bus``,
     ``rtupoll.io.syncbus.SyncBus``)."""

@@ -22,7 +22,6 @@ or with a matching identity) is "already done", which makes plans safe to re-run
 
 from __future__ import annotations
 
-import asyncio
 import enum
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
@@ -219,6 +218,8 @@ class Commissioner:
         return "echo" if echoed else "none or not an echo"
 
     async def _verify(self, change: Change) -> None:
+        import asyncio  # loaded by then (a coroutine runs in a loop): a dry run never is
+
         p, old, new = change.profile, change.old, change.new
         at_new = Presence.SILENT
         for attempt in range(VERIFY_ATTEMPTS):
@@ -258,6 +259,8 @@ async def run_plan(commissioner: Commissioner, changes: list[Change],
     ``written, unverified`` if its write may have gone out, else ``not run``, like the
     rest; then ``PlanInterrupted`` (a KeyboardInterrupt) carries the results.
     """
+    import asyncio  # loaded by then (a coroutine runs in a loop): a dry run never is
+
     results: list[Result] = []
     failed = interrupted = False
     for change in changes:

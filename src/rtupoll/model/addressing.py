@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 
 from rtupoll.errors import RefusedError
+from rtupoll.frozen import frozen
 from rtupoll.model.profile import Field, Profile
 
 
-@dataclass(frozen=True)
+@frozen
 class Change:
     """One address change: the device ``profile`` at ``old`` gets ``new``."""
 

@@ -11,8 +11,8 @@ what the terminals read and why it is not the reading.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Profile
@@ -20,7 +20,7 @@ from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu.capture import Frame
 
 
-@dataclass(frozen=True)
+@frozen
 class Carried:
     """A profile field that a frame carries (a reply, a write) or asks for (a read request)."""
 

@@ -18,9 +18,9 @@ import enum
 import math
 import struct
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 
 from rtupoll.errors import EncodeError
+from rtupoll.frozen import frozen
 
 Value = int | float | str | bool | list[str]
 
@@ -80,7 +80,7 @@ class ByteOrder(str, enum.Enum):
                 (False, True): cls.CDAB, (True, True): cls.DCBA}[(swap_b, swap_w)]
 
 
-@dataclass(frozen=True)
+@frozen
 class Layout:
     """How one value sits in registers."""
 

@@ -20,16 +20,16 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, DataType, Layout, decode_raw
 
 ORDERS = tuple(ByteOrder)
 NUMERIC = (DataType.U32, DataType.I32, DataType.F32, DataType.F64)
 
 
-@dataclass(frozen=True)
+@frozen
 class Guess:
     """One way to read the registers starting at ``address``."""
 

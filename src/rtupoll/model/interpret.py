@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import (
     DataType,
     Value,
@@ -27,7 +27,7 @@ from rtupoll.model.codec import (
 from rtupoll.model.profile import Choice, Field, Severity
 
 
-@dataclass(frozen=True)
+@frozen
 class FieldValue:
     """One decoded field."""
 

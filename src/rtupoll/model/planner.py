@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Collection, Iterable, Sequence
-from dataclasses import dataclass
 
 from rtupoll.errors import FrameError, RefusedError
+from rtupoll.frozen import frozen
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.model.scaling import with_factors
@@ -39,7 +39,7 @@ from rtupoll.rtu.functions import MAX_BITS
 _TABLE_ORDER = {t: i for i, t in enumerate(Table)}
 
 
-@dataclass(frozen=True)
+@frozen
 class Block:
     """One read request: ``count`` registers (or bits) from ``address`` in ``table``."""
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, Layout
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
@@ -74,7 +74,7 @@ class Poll(str, enum.Enum):
     NEVER = "never"
 
 
-@dataclass(frozen=True)
+@frozen
 class Choice:
     """One enum code or flag bit: its name, severity and meaning."""
 
@@ -83,7 +83,7 @@ class Choice:
     description: str = ""
 
 
-@dataclass(frozen=True)
+@frozen
 class Field:
     name: str
     table: Table
@@ -140,7 +140,7 @@ class Field:
         return self.minimum is not None and self.maximum is not None
 
 
-@dataclass(frozen=True)
+@frozen
 class Serial:
     baudrate: int = 9600
     parity: str = "N"
@@ -150,7 +150,7 @@ class Serial:
     deassert_dtr: bool = False  # open the port with DTR and RTS deasserted (DTR resets some boards)
 
 
-@dataclass(frozen=True)
+@frozen
 class Limits:
     max_registers: int = MAX_REGISTERS  # per read request
     max_gap: int = 0  # unread registers a block may bridge (0: blocks only over adjacent fields)
@@ -162,7 +162,7 @@ class Limits:
     lost_after_powerup: int = 0  # requests a freshly powered device may drop
 
 
-@dataclass(frozen=True)
+@frozen
 class Addresses:
     lo: int = 1
     hi: int = 247
@@ -183,7 +183,7 @@ class Addresses:
         return None
 
 
-@dataclass(frozen=True)
+@frozen
 class Check:
     """One identify check: read ``field`` and test it."""
 
@@ -194,7 +194,7 @@ class Check:
     exception: int | None = None  # this exception code also counts as a match
 
 
-@dataclass(frozen=True)
+@frozen
 class AddressChange:
     """How the device's own address is changed, or why it cannot be from here."""
 
@@ -204,7 +204,7 @@ class AddressChange:
     unsupported: str = ""  # what the manual says instead, when field is None
 
 
-@dataclass(frozen=True)
+@frozen
 class Variant:
     """A register that tells which generation of the map the device has."""
 
@@ -222,7 +222,7 @@ class Verification(str, enum.Enum):
     UNVERIFIED = "unverified"  # nobody could check it: values may be wrong
 
 
-@dataclass(frozen=True)
+@frozen
 class Document:
     """One document a profile was written from."""
 
@@ -235,7 +235,7 @@ class Document:
             + f" <{self.where}>"
 
 
-@dataclass(frozen=True)
+@frozen
 class Provenance:
     """Where a profile's facts come from, and how far they are verified."""
 
@@ -253,7 +253,11 @@ class Provenance:
         return self.level.value if self.given else "unverified (no provenance)"
 
 
-@dataclass(frozen=True)
+def _not_said() -> AddressChange:
+    return AddressChange(unsupported="the profile does not say")
+
+
+@frozen
 class Profile:
     id: str
     vendor: str
@@ -261,17 +265,19 @@ class Profile:
     manual: str
     addressing: Addressing
     fields: tuple[Field, ...]
-    serial: Serial = Serial()
-    limits: Limits = Limits()
-    addresses: Addresses = Addresses()
+    # the sections a file may leave out: made when a profile is, not at import (a cached
+    # profile is unpickled whole, and then these classes are never called)
+    serial: Serial = dataclasses.field(default_factory=Serial)
+    limits: Limits = dataclasses.field(default_factory=Limits)
+    addresses: Addresses = dataclasses.field(default_factory=Addresses)
     byte_order: ByteOrder = ByteOrder.ABCD
     identify: tuple[Check, ...] = ()
-    set_address: AddressChange = AddressChange(unsupported="the profile does not say")
+    set_address: AddressChange = dataclasses.field(default_factory=_not_said)
     variant: Variant | None = None
     notes: str = ""
     kind: str = ""  # what sort of device: energy meter, gas sensor, solar charger, ...
     extends: str = ""  # the id of the profile this one was built on
-    provenance: Provenance = Provenance()
+    provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
 
     def line_setting(self, field: Field) -> str:

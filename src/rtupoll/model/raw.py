@@ -15,9 +15,9 @@ fields and print the same JSON/CSV.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, DataType, Layout
 from rtupoll.model.profile import Addressing, Field
 from rtupoll.numbers import parse_int
@@ -35,7 +35,7 @@ MODICON_PREFIX: dict[int, Table] = {0: Table.COIL, 1: Table.DISCRETE, 3: Table.I
 SYNTAX = "TABLE:START[:COUNT] (TABLE: coil, discrete, input or holding; e.g. input:0x0006:2)"
 
 
-@dataclass(frozen=True)
+@frozen
 class RegisterSpec:
     """A run of ``count`` values of one type, starting at wire address ``address``."""
 

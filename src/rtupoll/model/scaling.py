@@ -20,15 +20,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 
+from rtupoll.frozen import frozen
 from rtupoll.model.interpret import FieldValue, decimals, unrounded
 from rtupoll.model.profile import Field, Profile
 
 __all__ = ["Unscaled", "factors", "scale", "scale_values", "with_factors"]
 
 
-@dataclass(frozen=True)
+@frozen
 class Unscaled:
     """A field that has no value because one of its factors has none: why."""
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 import enum
 import struct
 from collections.abc import Sequence
-from dataclasses import dataclass
 
+from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import with_crc
 
 MAX_FRAME = 256  # the RTU maximum, address to CRC
@@ -63,7 +63,7 @@ EXCEPTION_NAMES: dict[int, str] = {
 
 
 
-@dataclass(frozen=True)
+@frozen
 class Length:
     """How long a frame is: ``fixed`` bytes, or a byte count at ``count_at`` plus
     ``count_at + 1`` header bytes and the CRC. ``known`` is False where the standard
@@ -85,7 +85,7 @@ class Length:
         return None
 
 
-@dataclass(frozen=True)
+@frozen
 class Function:
     code: int
     name: str

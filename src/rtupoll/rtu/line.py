@@ -80,6 +80,7 @@ from __future__ import annotations
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
 from rtupoll.rtu.functions import MAX_FRAME, reply_length
 from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
@@ -103,7 +104,7 @@ class Outstanding:
     expires: float  # after this no answer to it is expected any more
 
 
-@dataclass(frozen=True)
+@frozen
 class Answer:
     frame: bytes
     # seconds from the end of the (oldest matching) request on the wire to the reply's
@@ -111,7 +112,7 @@ class Answer:
     reply_time: float = field(default=0.0, compare=False)
 
 
-@dataclass(frozen=True)
+@frozen
 class Garbled:
     why: str
 

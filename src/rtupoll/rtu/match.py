@@ -19,13 +19,12 @@ reason about a wire capture.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
+from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
 from rtupoll.rtu.functions import EXCEPTION_LENGTH, READ_FUNCTIONS, answer_length, reply_length
 
 
-@dataclass(frozen=True)
+@frozen
 class Expect:
     """The answer one request allows: a normal reply or the function's exception reply."""
 

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 
+from rtupoll.frozen import frozen
 
-@dataclass(frozen=True)
+
+@frozen
 class Framing:
     """Serial character framing, for timing: 1 start bit + data + parity + stop bits."""
 

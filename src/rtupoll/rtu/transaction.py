@@ -45,6 +45,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.functions import (
     FUNCTION_NAMES,
@@ -91,7 +92,7 @@ class Done:
     reply_time: float | None = None  # the answer's (``Answer.reply_time``)
 
 
-@dataclass(frozen=True)
+@frozen
 class Failed:
     """No answer: ``kind`` is timeout, frame (garbled) or exception (``code``)."""
 
@@ -259,7 +260,7 @@ class BusStats:
         self.outcomes[outcome or tx.outcome] += 1
 
 
-@dataclass(frozen=True)
+@frozen
 class Evidence:
     """What the line knows of one unit's reply times (``rtupoll.jobs.timeouts``)."""
 

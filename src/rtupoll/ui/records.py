@@ -11,7 +11,6 @@ metrics, Influx) goes through ``finite`` / ``json_safe`` / ``to_json`` for this.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from collections.abc import Mapping
@@ -188,6 +187,8 @@ class CsvWriter:
 
     def __init__(self, out: TextIO, keys: tuple[str, ...], *, header: bool = True) -> None:
         """``header=False``: the output already has one (appending to a CSV file)."""
+        import csv  # only the csv format's: the others do not pay for it
+
         self.out, self.keys = out, keys
         self._writer = csv.DictWriter(out, fieldnames=list(keys), extrasaction="ignore")
         self._header = not header
