@@ -40,7 +40,7 @@ from hypothesis import settings
 
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
-pytest_plugins = ("pytester",)
+pytest_plugins = ("pytester", "cpu_report")
 
 _CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
 os.environ["XDG_CACHE_HOME"] = _CACHE

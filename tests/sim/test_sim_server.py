@@ -75,7 +75,9 @@ def test_starting_five_devices_in_a_fresh_process() -> None:
 
 def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(pytester: pytest.Pytester
                                                                ) -> None:
-    pytester.makeconftest((Path(__file__).parents[1] / "conftest.py").read_text())
+    tests = Path(__file__).parents[1]
+    pytester.makeconftest((tests / "conftest.py").read_text())
+    pytester.makepyfile(cpu_report=(tests / "cpu_report.py").read_text())  # its plugin
     pytester.makepyfile(textwrap.dedent("""
         from rtupoll.sim.runner import simulated_bus
 
