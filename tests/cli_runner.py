@@ -11,8 +11,11 @@ subprocess: 0.15-0.4 CPU-s). Devices are the simulator's, on real ptys or TCP.
 What a process has and a run must not leave behind is saved before and put back after:
 the environment, the working directory, the standard streams, the handlers of every
 signal, the ``rtupoll`` loggers' handlers and levels (and the root logger's), warning
-filters, the asyncio event loop policy, the profile-by-id cache the simulator keeps
-(its key has the environment's RTUPOLL_PROFILES, not the files' contents).
+filters, the asyncio event loop policy. What a new process would not have yet is
+not there while a command runs: logging's handlers (pytest's capture among them), the
+simulator's profile-by-id cache (its key has the
+environment's RTUPOLL_PROFILES, not the files' contents) and the unverified profiles
+already warned about (once a process).
 tests/cli/test_cli_runner.py proves two runs do not leak into each other.
 
 Standard input, output and error are not terminals (as in a subprocess with pipes).
@@ -48,7 +51,6 @@ __all__ = ["RTUPOLL", "Ran", "isolated", "rtupoll", "rtupoll_process"]
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))  # the console script
 # every signal a command may handle (SIGKILL and SIGSTOP cannot be)
 _SIGNALS = [s for s in signal.valid_signals() if s not in (signal.SIGKILL, signal.SIGSTOP)]
-_LOGGERS = ("", "rtupoll")
 
 
 @dataclass(frozen=True)
@@ -62,9 +64,20 @@ class Ran:
     cpu: float  # CPU seconds of the test's thread while the command ran
 
 
+def _loggers() -> dict[str, logging.Logger]:
+    """The root logger and every ``rtupoll`` logger that exists now."""
+    named = logging.root.manager.loggerDict
+    return {"": logging.getLogger(), **{name: log for name, log in named.items()
+                                        if isinstance(log, logging.Logger)
+                                        and name.split(".")[0] == "rtupoll"}}
+
+
 @contextlib.contextmanager
 def isolated(cwd: str | Path | None = None) -> Iterator[None]:
-    """Everything process-wide a command may change, put back afterwards."""
+    """Everything process-wide a command may change, put back afterwards; and what a
+    process remembers from its start (the profile-by-id cache, the unverified profiles
+    it already warned about), empty while the command runs, as in a new process."""
+    from rtupoll.config import library
     from rtupoll.sim import scenario
 
     environ = dict(os.environ)
@@ -72,9 +85,20 @@ def isolated(cwd: str | Path | None = None) -> Iterator[None]:
     streams = sys.stdin, sys.stdout, sys.stderr
     handlers = {s: signal.getsignal(s) for s in _SIGNALS}
     loggers = {name: (list(log.handlers), log.level, log.propagate, log.disabled)
-               for name in _LOGGERS for log in [logging.getLogger(name)]}
+               for name, log in _loggers().items()}
+    disabled = logging.root.manager.disable
     policy = asyncio.get_event_loop_policy()
-    profiles = dict(scenario._CACHE)
+    remembered = [(memory, memory.copy()) for memory in (scenario._CACHE, library._WARNED)]
+    for memory, _ in remembered:
+        memory.clear()
+    # logging as a new process has it: no handlers (a warning goes to stderr through
+    # logging's last resort, not to pytest's capture), the root at WARNING
+    for log in _loggers().values():
+        log.handlers[:] = []
+        log.setLevel(logging.NOTSET)
+        log.propagate, log.disabled = True, False
+    logging.getLogger().setLevel(logging.WARNING)
+    logging.disable(logging.NOTSET)
     try:
         with warnings.catch_warnings():
             if cwd is not None:
@@ -88,14 +112,16 @@ def isolated(cwd: str | Path | None = None) -> Iterator[None]:
         for s, handler in handlers.items():
             if handler is not None and signal.getsignal(s) is not handler:
                 signal.signal(s, handler)
-        for name, (hs, level, propagate, disabled) in loggers.items():
-            log = logging.getLogger(name)
+        for name, log in _loggers().items():
+            hs, level, propagate, off = loggers.get(name, ([], logging.NOTSET, True, False))
             log.handlers[:] = hs
             log.setLevel(level)
-            log.propagate, log.disabled = propagate, disabled
+            log.propagate, log.disabled = propagate, off
+        logging.disable(disabled)
         asyncio.set_event_loop_policy(policy)
-        scenario._CACHE.clear()
-        scenario._CACHE.update(profiles)
+        for memory, was in remembered:
+            memory.clear()
+            memory.update(was)
 
 
 def rtupoll(*args: str, input: str | bytes | None = None,

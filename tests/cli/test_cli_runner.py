@@ -84,3 +84,13 @@ def test_in_process_and_as_a_process_the_command_says_the_same(
         # a record's time stamp is the only thing that may differ
         assert [line.split(",", 1)[-1] for line in inside.stdout.splitlines()] == \
             [line.split(",", 1)[-1] for line in outside.stdout.splitlines()], args
+
+
+def test_each_run_warns_about_an_unverified_profile_as_a_new_process_would(
+        sim: Callable[..., SimulatedBus]) -> None:
+    bus = sim("schneider-atv12@1", tick=None)
+    args = ("read", "-p", bus.port, "--format", "json", "schneider-atv12@1")
+    for _ in range(2):
+        ran = rtupoll(*args)
+        assert ran.returncode == 0, ran.stderr
+        assert "profile schneider-atv12 is unverified" in ran.stderr

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import pytest
+from cli_runner import Ran, rtupoll
 
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field, Poll
@@ -238,10 +239,9 @@ def test_a_site_file_names_the_port_the_speed_and_the_devices(sim: Sim, tmp_path
     assert (rec["device"], rec["field"], rec["value"]) == ("air", "co2", 900)
 
 
-def rtupoll_run(*args: str) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
-    return subprocess.run([RTUPOLL, *args], capture_output=True, text=True, timeout=60,
-                          env=env, check=False)
+def rtupoll_run(*args: str) -> Ran:
+    """In this process (tests/cli_runner.py), without the RTUPOLL_ variables."""
+    return rtupoll(*args, env={k: None for k in os.environ if k.startswith("RTUPOLL_")})
 
 
 def test_usage_mistakes_are_one_line(tmp_path: Path) -> None:
