@@ -132,9 +132,8 @@ def test_sniffing_mbpoll_decodes_every_field_of_the_five_seed_devices(
                             "raw", "severity", "text", "status", "error"}
 
     # the capture, read back offline, gives the same records
-    offline = subprocess.run([RTUPOLL, "sniff", "--read", str(capture), "--format", "json",
-                              *devices], capture_output=True, text=True, timeout=30,
-                             check=True)
+    offline = rtupoll("sniff", "--read", str(capture), "--format", "json", *devices)
+    assert offline.returncode == 0, offline.stderr
     assert records(offline.stdout.splitlines()) == recs
 
 
@@ -163,9 +162,9 @@ def test_faults_are_reported_as_faults_and_never_as_values(sim: Sim, tmp_path: P
     assert "NO REPLY: no reply within 0.5 s" in text
     assert "EXCEPTION: exception 04 SERVER DEVICE FAILURE" in text
 
-    offline = subprocess.run([RTUPOLL, "sniff", "--read", str(capture), "--format", "json",
-                              "huiwen-aq@3", "radar-level@2", "net-irnet-pro@1"],
-                             capture_output=True, text=True, timeout=30, check=True)
+    offline = rtupoll("sniff", "--read", str(capture), "--format", "json",
+                      "huiwen-aq@3", "radar-level@2", "net-irnet-pro@1")
+    assert offline.returncode == 0, offline.stderr
     recs = records(offline.stdout.splitlines())
     statuses = [(r["device"], r["field"], r["status"]) for r in recs]
     assert statuses == [
