@@ -83,6 +83,7 @@ class _Report:
             row[1] += kids
         self.tests[report.nodeid][2] += report.duration
 
+    @pytest.hookimpl(optionalhook=True)  # pytest-xdist's: not there without it
     def pytest_testnodedown(self, node: Any, error: Any) -> None:
         start = getattr(node, "workeroutput", {}).get(_KEY)
         if start is not None:
