@@ -7,7 +7,6 @@ the simulator (in this process, over TCP, with pinned values; or ``--simulate``)
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_runner import rtupoll
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import (
@@ -283,22 +283,20 @@ def test_a_broker_restart_does_not_stop_polling(broker: Broker, polls: Callable[
 
 def test_bad_credentials_are_one_line_and_exit_10(tmp_path: Path) -> None:
     with Broker(tmp_path / "auth", users={"gw": "right"}) as b:
-        done = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--format", "json",
-                               "--mqtt", f"mqtt://gw:wrong@127.0.0.1:{b.port}"],
-                              capture_output=True, text=True, timeout=60)
+        # --once: each ends by itself, so in this process (tests/cli_runner.py)
+        done = rtupoll("poll", "--simulate", "--once", "--format", "json",
+                       "--mqtt", f"mqtt://gw:wrong@127.0.0.1:{b.port}")
         assert done.returncode == 10
         assert done.stderr.splitlines() == [
             f"rtupoll: mqtt://127.0.0.1:{b.port}: the broker refused the credentials "
             "(user 'gw'): [code:135] Not authorized"]
-        env = {**os.environ, "RTUPOLL_MQTT_PASSWORD": "right"}
-        ok = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--format", "json",
-                             "--mqtt", f"mqtt://gw@127.0.0.1:{b.port}/x"],
-                            capture_output=True, text=True, timeout=60, env=env)
+        ok = rtupoll("poll", "--simulate", "--once", "--format", "json",
+                     "--mqtt", f"mqtt://gw@127.0.0.1:{b.port}/x",
+                     env={"RTUPOLL_MQTT_PASSWORD": "right"})
         assert ok.returncode == 0, ok.stderr
         assert b.retained("x/bridge/state", user="gw", password="right") == "offline"
-        tls = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--mqtt",
-                              f"mqtts://gw:right@127.0.0.1:{b.port}"],
-                             capture_output=True, text=True, timeout=60)
+        tls = rtupoll("poll", "--simulate", "--once", "--mqtt",
+                      f"mqtts://gw:right@127.0.0.1:{b.port}")
         assert tls.returncode == 10
         assert tls.stderr.splitlines() == [
             f"rtupoll: mqtts://127.0.0.1:{b.port}: TLS handshake refused: the connection was "
@@ -307,9 +305,7 @@ def test_bad_credentials_are_one_line_and_exit_10(tmp_path: Path) -> None:
 
 def test_no_broker_is_one_line_and_exit_10() -> None:
     port = free_port()
-    done = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--mqtt",
-                           f"mqtt://127.0.0.1:{port}"], capture_output=True, text=True,
-                          timeout=60)
+    done = rtupoll("poll", "--simulate", "--once", "--mqtt", f"mqtt://127.0.0.1:{port}")
     assert done.returncode == 10
     assert done.stderr.splitlines() == [
         f"rtupoll: mqtt://127.0.0.1:{port}: connection refused (is the broker running on "
