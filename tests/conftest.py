@@ -37,6 +37,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+# hypothesis runs the "hypothesis" entry points of every installed package when imported:
+# trio's (installed for selenium) imports trio, a fifth of a second in every process
+os.environ.setdefault("HYPOTHESIS_NO_PLUGINS", "1")
 from hypothesis import settings
 
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
