@@ -383,15 +383,13 @@ def test_tls_with_the_site_files_ca_and_a_refused_handshake(
         url = f"mqtts://127.0.0.1:{b.tls_port}"
         site = site_yaml(tmp_path, plant.port, url, SITE.replace(
             "  allow_writes: true\n", f"  tls: {{{{ca: {b.ca}}}}}\n"))
-        ok = subprocess.run([*RTUPOLL, "poll", "-c", str(site), "--once", "--format", "json"],
-                            capture_output=True, text=True, timeout=60)
+        ok = rtupoll("poll", "-c", str(site), "--once", "--format", "json")
         assert ok.returncode == 0, ok.stderr
         assert b.retained("plant/air") is None  # the state is not retained by default
         assert b.retained("plant/bridge/state") == "offline"
         assert b.retained("homeassistant/device/rtupoll_plant_air/config") is not None
         # without the CA the server certificate cannot be verified: one line, exit 10
-        bad = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--mqtt", url],
-                             capture_output=True, text=True, timeout=60)
+        bad = rtupoll("poll", "--simulate", "--once", "--mqtt", url)
         assert bad.returncode == 10
         (line,) = bad.stderr.splitlines()
         assert line.startswith(f"rtupoll: {url}: TLS handshake refused: ")
