@@ -196,9 +196,7 @@ def test_state_discovery_commands_and_a_clean_stop(
     n = len(sub.messages)
     publish(broker, "plant/curtain/set", '{"measurement_1": 3}')
     refused = payload(sub.wait(lambda m: m.topic == "plant/curtain/set/result", after=n))
-    cli = subprocess.run([*RTUPOLL, "write", "-p", plant.port, "banner-ez-array@5",
-                          "measurement_1=3", "--yes"], capture_output=True, text=True,
-                         timeout=30)
+    cli = rtupoll("write", "-p", plant.port, "banner-ez-array@5", "measurement_1=3", "--yes")
     assert refused["status"] == "refused"
     assert refused["exit_code"] == cli.returncode == 8
     assert cli.stderr.strip() == f"rtupoll: {refused['error']}"
@@ -341,8 +339,7 @@ def test_discovery_follows_the_site_file_and_can_be_removed(
     sub.wait(lambda m: m.topic == gas and m.payload == "", after=n)
     assert run.stop() == 0
     # --mqtt-remove-discovery: every config of this gateway goes, nothing is polled
-    done = subprocess.run([*RTUPOLL, "poll", "-c", str(site), "--mqtt-remove-discovery"],
-                          capture_output=True, text=True, timeout=60)
+    done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr
     assert "removed 3 Home Assistant discovery configs" in done.stderr
     assert broker.retained(air) is None
