@@ -11,11 +11,10 @@ subprocess: 0.15-0.4 CPU-s). Devices are the simulator's, on real ptys or TCP.
 What a process has and a run must not leave behind is saved before and put back after:
 the environment, the working directory, the standard streams, the handlers of every
 signal, the ``rtupoll`` loggers' handlers and levels (and the root logger's), warning
-filters, the asyncio event loop policy. What a new process would not have yet is
-not there while a command runs: logging's handlers (pytest's capture among them), the
-simulator's profile-by-id cache (its key has the
-environment's RTUPOLL_PROFILES, not the files' contents) and the unverified profiles
-already warned about (once a process).
+filters, the asyncio event loop policy. What a new process would not have yet is not
+there while a command runs: logging's handlers (pytest's capture among them), the
+simulator's profile-by-id cache (its key has the environment's RTUPOLL_PROFILES, not the
+files' contents) and the unverified profiles already warned about (once a process).
 tests/cli/test_cli_runner.py proves two runs do not leak into each other.
 
 Standard input, output and error are not terminals (as in a subprocess with pipes).
