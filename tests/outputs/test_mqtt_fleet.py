@@ -14,7 +14,6 @@ from cli_runner import rtupoll
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
 from tests.outputs.test_mqtt_cli import (  # noqa: F401  (fixtures: plant, polls)
-    RTUPOLL,
     Poll,
     plant_fixture,
     polls_fixture,
