@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from cli_runner import rtupoll
+from cli_runner import Ran, rtupoll
 from click.testing import CliRunner
 from rich.console import Console
 
@@ -76,9 +76,11 @@ def test_simulate_prints_hints_that_work_as_printed() -> None:
             words = hint.split()
             if words[:2] == ["rtupoll", "poll"]:
                 words.append("--once")  # as printed, it polls until Ctrl-C
-            run = subprocess.run([str(BIN / words[0]) if words[0] == "rtupoll"
-                                  else words[0], *words[1:]],
-                                 capture_output=True, text=True, timeout=60, check=False)
+            if words[0] == "rtupoll":  # the command, in this process (tests/cli_runner.py)
+                run: subprocess.CompletedProcess[str] | Ran = rtupoll(*words[1:])
+            else:
+                run = subprocess.run(words, capture_output=True, text=True, timeout=60,
+                                     check=False)
             assert run.returncode == 0, f"{hint}\n{run.stdout}{run.stderr}"
             if words[0] == "mbpoll":
                 assert re.search(r"^\[4\]:\s+0x[0-9A-F]{4}$", run.stdout, re.M), run.stdout
