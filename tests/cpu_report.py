@@ -13,6 +13,7 @@ files (30 by default), and the children's share.
 from __future__ import annotations
 
 import resource
+import time
 from collections import defaultdict
 from collections.abc import Generator
 from typing import Any
@@ -40,14 +41,24 @@ class _Report:
         self.tests: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0])
         self.start: list[tuple[float, float]] = []  # each worker's before its first test
         self.first: tuple[float, float] | None = None
+        # a worker's (seconds from its first test to its last, seconds in tests)
+        self.began = 0.0
+        self.busy = 0.0
+        self.workers: list[tuple[float, float]] = []
 
     @pytest.hookimpl(wrapper=True)
     def pytest_runtest_protocol(self, item: pytest.Item) -> Generator[None, Any, Any]:
         if self.first is None:
             self.first = _cpu()
+            self.began = time.monotonic()
             if hasattr(self.config, "workeroutput"):
                 self.config.workeroutput[_KEY] = self.first
-        return (yield)
+        try:
+            return (yield)
+        finally:
+            if hasattr(self.config, "workeroutput"):
+                self.config.workeroutput[_KEY + "_wall"] = (time.monotonic() - self.began,
+                                                            self.busy)
 
     @pytest.hookimpl(wrapper=True)
     def pytest_runtest_setup(self, item: pytest.Item) -> Generator[None, Any, Any]:
@@ -74,6 +85,7 @@ class _Report:
 
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         if hasattr(self.config, "workeroutput"):
+            self.busy += report.duration
             return  # the main process counts
         ours = [v for name, v in report.user_properties if name == _KEY]
         if ours:  # this phase's entry is the last one
@@ -85,9 +97,12 @@ class _Report:
 
     @pytest.hookimpl(optionalhook=True)  # pytest-xdist's: not there without it
     def pytest_testnodedown(self, node: Any, error: Any) -> None:
-        start = getattr(node, "workeroutput", {}).get(_KEY)
+        output = getattr(node, "workeroutput", {})
+        start = output.get(_KEY)
         if start is not None:
             self.start.append(tuple(start))
+        if output.get(_KEY + "_wall") is not None:
+            self.workers.append(tuple(output[_KEY + "_wall"]))
 
     def pytest_terminal_summary(self, terminalreporter: Any) -> None:
         if hasattr(self.config, "workeroutput"):
@@ -102,6 +117,9 @@ class _Report:
         tr.write_line(f"tests: {me:.1f} + children {kids:.1f} = {me + kids:.1f} CPU-s over "
                       f"{len(self.tests)} tests; before the first test: {start:.1f} CPU-s "
                       f"in {len(self.start)} process(es); total {me + kids + start:.1f}")
+        if self.workers:
+            tr.write_line("workers, from the first test to the last: " + ", ".join(
+                f"{w:.0f} s ({busy / w:.0%} in tests)" for w, busy in sorted(self.workers)))
         files: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0, 0.0, 0.0])
         for nodeid, (a, b, wall) in self.tests.items():
             f = files[nodeid.split("::")[0]]
