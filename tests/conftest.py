@@ -33,14 +33,19 @@ import termios
 import time
 import tty
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
+
+# hypothesis runs the "hypothesis" entry points of every installed package when imported:
+# trio's (installed for selenium) imports trio, a fifth of a second in every process
+os.environ.setdefault("HYPOTHESIS_NO_PLUGINS", "1")
 from hypothesis import settings
 
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
-pytest_plugins = ("pytester",)
+pytest_plugins = ("pytester", "cpu_report")
 
 _CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
 os.environ["XDG_CACHE_HOME"] = _CACHE
@@ -56,6 +61,26 @@ os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 settings.register_profile("short", max_examples=25, derandomize=True, deadline=None)
 settings.register_profile("long", max_examples=2000, derandomize=False, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "short"))
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """The ``timing`` group alone (``-m timing``, scripts/test) imports only the test files
+    that say ``mark.timing``: the group runs serially, so importing the other 100 files
+    would be its wall time. Every other run checks that each test so marked says it
+    in its file (``pytest_collection_modifyitems``)."""
+    if (config.getoption("markexpr") == "timing" and collection_path.suffix == ".py"
+            and collection_path.name.startswith("test_")
+            and "mark.timing" not in collection_path.read_text(encoding="utf-8")):
+        return True
+    return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    unsaid = sorted({str(item.path) for item in items if item.get_closest_marker("timing")
+                     and "mark.timing" not in item.path.read_text(encoding="utf-8")})
+    if unsaid:
+        raise pytest.UsageError("tests marked timing in files that do not say 'mark.timing' "
+                                "(-m timing would not run them): " + ", ".join(unsaid))
 
 
 @pytest.fixture(scope="session")

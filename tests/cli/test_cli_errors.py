@@ -1,4 +1,5 @@
-"""Usage mistakes through the real console script: one line each, exit 2, no traceback."""
+"""Usage mistakes: one line each, exit 2, no traceback (in this process, and plain
+``rtupoll`` through the real console script)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,19 @@ import subprocess
 import sys
 
 import pytest
+from cli_runner import Ran
+from cli_runner import rtupoll as run
 
 
 def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
     return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
                           text=True, timeout=60, env=env)
+
+
+def in_process(*args: str) -> Ran:
+    """The same command in this process (tests/cli_runner.py)."""
+    return run(*args, env={k: None for k in os.environ if k.startswith("RTUPOLL_")})
 
 
 @pytest.mark.parametrize(("args", "line"), [
@@ -26,7 +34,7 @@ def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
      "rtupoll: address 300 is outside 0..255 in 'huiwen-aq@300'"),
 ])
 def test_usage_mistakes_are_one_line_and_exit_2(args: list[str], line: str) -> None:
-    proc = rtupoll(*args)
+    proc = in_process(*args)
     assert proc.returncode == 2
     assert len(proc.stderr.splitlines()) == 1, proc.stderr
     assert proc.stderr.strip() == line
@@ -41,7 +49,7 @@ def test_plain_rtupoll_prints_the_help() -> None:
 
 
 def test_a_file_that_is_not_a_serial_port_says_so() -> None:
-    proc = rtupoll("read", "-p", "/dev/null", "huiwen-aq@1", "co2")
+    proc = in_process("read", "-p", "/dev/null", "huiwen-aq@1", "co2")
     assert proc.returncode == 3
     assert proc.stderr == "rtupoll: /dev/null is not a serial port\n"
 

@@ -4,12 +4,11 @@ each addressing form, the output formats, and the failures a technician meets.""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from cli_runner import rtupoll
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
@@ -221,8 +220,7 @@ def test_garbled_reply_is_exit_7(sim: Sim) -> None:
 
 
 def test_missing_port_is_exit_3_one_line_no_traceback() -> None:
-    proc = subprocess.run([sys.executable, "-m", "rtupoll", "read", "-p", "/dev/ttyNOPE0",
-                           "huiwen-aq@1", "co2"], capture_output=True, text=True, timeout=30)
+    proc = rtupoll("read", "-p", "/dev/ttyNOPE0", "huiwen-aq@1", "co2")
     assert proc.returncode == 3
     assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("rtupoll: ")
     assert "Traceback" not in proc.stderr and proc.stdout == ""

@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 import yaml
+from cli_runner import Ran, rtupoll, rtupoll_process
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -233,9 +234,9 @@ COMMANDS = {  # kind -> the command line that loads such a file ({} is the file)
 def test_commands_given_mutated_files(kind: str, data: st.DataObject) -> None:
     """A few whole command runs: one line on stderr with file:line, exit 2; no traceback.
     A mutated file that still loads is run with its port missing (exit 3) or served
-    until the timeout stops it (the simulator)."""
+    until the timeout stops it (the simulator, which serves until a signal: a process of
+    its own; the others run in this process, tests/cli_runner.py)."""
     import subprocess
-    import sys
 
     content = data.draw(mutated(LOADERS[kind][2]) | st.binary(max_size=300))
     name = LOADERS[kind][0]
@@ -243,16 +244,13 @@ def test_commands_given_mutated_files(kind: str, data: st.DataObject) -> None:
         path = Path(tmp) / name
         path.write_bytes(content)
         args = [a.replace("{}", str(path)) for a in COMMANDS[kind]]
-        try:
-            proc = subprocess.run([str(Path(sys.executable).with_name("rtupoll")), *args],
-                                  capture_output=True, text=True,
-                                  # a served scenario is stopped after 8 s; any other
-                                  # command must end by itself (a loaded machine once
-                                  # took 8 s to start one: 60 s only catches a hang)
-                                  timeout=8 if kind == "scenario" else 60)
-        except subprocess.TimeoutExpired:
-            assert kind == "scenario"  # a valid scenario is served until stopped
-            return
+        if kind != "scenario":
+            proc: subprocess.CompletedProcess[str] | Ran = rtupoll(*args)
+        else:
+            try:  # a served scenario is stopped after 8 s
+                proc = rtupoll_process(*args, timeout=8)
+            except subprocess.TimeoutExpired:
+                return  # a valid scenario is served until stopped
     assert "Traceback" not in proc.stderr, proc.stderr
     if proc.returncode == 2 and str(path) in proc.stderr:
         assert re.search(rf"{re.escape(str(path))}:[1-9]\d*: ", proc.stderr), proc.stderr

@@ -23,6 +23,7 @@ from typing import Any
 
 import click
 import pytest
+from cli_runner import RTUPOLL, Ran, rtupoll, rtupoll_process
 from click.testing import CliRunner
 
 import rtupoll.cli as rtupoll_cli
@@ -37,7 +38,6 @@ from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
 from rtupoll.ui.records import CsvWriter, finite, json_safe, nonfinite_text, to_json
 
-RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
 BUNDLED = Path(__file__).parents[2] / "profiles"
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "hostile"
 # CPU seconds any one hostile file may take (the worst measured: ~1.5 s): CPU time, which
@@ -379,12 +379,7 @@ def test_poll_json_of_a_nan_register_is_strict_json(sim: Callable[..., Simulated
 
 # -- the command line ----------------------------------------------------------------
 
-def rtupoll(*args: str, timeout: float = 30, **kw: Any) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([RTUPOLL, *args], capture_output=True, text=True, timeout=timeout,
-                          **kw)
-
-
-def one_line(proc: subprocess.CompletedProcess[str]) -> str:
+def one_line(proc: subprocess.CompletedProcess[str] | Ran) -> str:
     assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -427,13 +422,28 @@ def test_every_command_that_loads_a_file_gives_its_line(kind: str, args: list[st
     path = tmp_path / LOADERS[kind][0]
     content = WHOLE_FILES[case][0]
     path.write_bytes(content.encode() if isinstance(content, str) else content)
-    cpu = children_cpu()
-    proc = rtupoll(*[a.replace("{}", str(path)) for a in args])
-    assert children_cpu() - cpu < LIMIT + 5  # the whole command, start-up included
+    proc = rtupoll(*[a.replace("{}", str(path)) for a in args])  # in this process
+    assert proc.cpu < LIMIT
+    assert_gives_its_line(proc, path)
+
+
+def assert_gives_its_line(proc: subprocess.CompletedProcess[str] | Ran, path: Path) -> None:
     assert proc.returncode == 2, proc.stderr
     assert re.search(rf"{re.escape(str(path))}:[1-9]\d*: ", proc.stderr), proc.stderr
     assert "Traceback" not in proc.stderr
     assert sum(str(path) in line for line in proc.stderr.splitlines()) == 1, proc.stderr
+
+
+@pytest.mark.parametrize("case", ["binary-garbage", "deep-flow-nesting"])
+def test_the_installed_command_gives_a_hostile_files_line(case: str, tmp_path: Path) -> None:
+    """The same, as a process of its own (the rest run in this one: tests/cli_runner.py)."""
+    path = tmp_path / LOADERS["site"][0]
+    content = WHOLE_FILES[case][0]
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    cpu = children_cpu()
+    proc = rtupoll_process("poll", "-c", str(path), "--once")
+    assert children_cpu() - cpu < LIMIT + 5  # the whole command, start-up included
+    assert_gives_its_line(proc, path)
 
 
 def test_a_full_disk_is_one_line(tmp_path: Path) -> None:

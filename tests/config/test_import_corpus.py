@@ -12,13 +12,12 @@ from __future__ import annotations
 import json
 import math
 import struct
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
+from cli_runner import rtupoll
 from import_peers import (
     TG_FORMATS,
     Responder,
@@ -36,11 +35,6 @@ HA_VALUES: dict[str, int | float | str] = {
 WIDE = {"int32", "uint32", "int64", "uint64", "float32", "float64"}
 COUNT = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "int64": 4, "uint64": 4,
          "float32": 2, "float64": 4, "string": 4}
-
-
-def rtupoll(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
-                          text=True, cwd=cwd, timeout=120)
 
 
 def poll_site(out: Path, device: Responder) -> dict[tuple[str, str], Any]:

@@ -5,10 +5,9 @@ error, and a complex YAML key is named in words, not as ``[ScalarNode(...)]``.""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
+from cli_runner import rtupoll
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
@@ -29,8 +28,7 @@ def profile(directory: Path, pid: str, edit: tuple[str, str] | None = None) -> P
 def test_a_fifo_is_refused_without_being_read(tmp_path: Path) -> None:
     fifo = tmp_path / "pipe.yaml"
     os.mkfifo(fifo)
-    done = subprocess.run([sys.executable, "-m", "rtupoll", "profiles", "check", str(fifo)],
-                          capture_output=True, text=True, timeout=30)  # it used to hang
+    done = rtupoll("profiles", "check", str(fifo))  # it used to hang
     assert done.returncode == 2
     assert done.stderr.splitlines()[0] == f"{fifo}: not a regular file; not read"
 

@@ -4,11 +4,10 @@ rtupoll says about it (profiles list/show, scan, a warning when an unverified on
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from cli_runner import rtupoll
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
@@ -99,13 +98,10 @@ def test_using_an_unverified_profile_warns_once_in_one_line() -> None:
     assert load_one("md02").provenance.level is Verification.UNVERIFIED
     with simulated_bus(["md02@1", "md02@3", "eastron-sdm630@2"],
                        tcp=True, tick=None) as bus:
-        proc = subprocess.run(
-            [sys.executable, "-m", "rtupoll", "poll", "--port", bus.port, "--once",
-             "--format", "json", "md02@1", "md02@3"],
-            capture_output=True, text=True, timeout=120)
-        verified = subprocess.run(
-            [sys.executable, "-m", "rtupoll", "read", "--port", bus.port, "--format", "json",
-             "eastron-sdm630@2", "voltage_l1"], capture_output=True, text=True, timeout=120)
+        proc = rtupoll("poll", "--port", bus.port, "--once", "--format", "json",
+                       "md02@1", "md02@3")
+        verified = rtupoll("read", "--port", bus.port, "--format", "json",
+                           "eastron-sdm630@2", "voltage_l1")
     assert proc.returncode == 0, proc.stderr
     warnings = [line for line in proc.stderr.splitlines() if "md02" in line]
     assert len(warnings) == 1

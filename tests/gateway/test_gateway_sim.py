@@ -45,7 +45,8 @@ class Harness:
         return self.service.gateways[0]
 
     async def client(self) -> AsyncModbusTcpClient:
-        c = AsyncModbusTcpClient("127.0.0.1", port=self.port, timeout=3, retries=0)
+        # 30 s: a hang guard (a loaded machine has taken more than 3 s to answer), no claim
+        c = AsyncModbusTcpClient("127.0.0.1", port=self.port, timeout=30, retries=0)
         assert await c.connect()
         return c
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from cli_runner import rtupoll as in_process
 from click.testing import CliRunner
 
 from rtupoll.cli import cli
@@ -251,9 +252,8 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
                                 stderr=subprocess.PIPE, text=True)
         assert proc.stderr is not None
         assert "listening on" in proc.stderr.readline()
-        read = subprocess.run([rtupoll, "read", "-p", bus.port, "--echo", "radar-level@2",
-                               "level_cm", "--format", "json"], capture_output=True,
-                              text=True, timeout=30, check=False)
+        read = in_process("read", "-p", bus.port, "--echo", "radar-level@2", "level_cm",
+                          "--format", "json")
         proc.send_signal(signal.SIGINT)
         out, _err = proc.communicate(timeout=10)
     finally:

@@ -117,7 +117,9 @@ async def scans_logged(scheduler: Scheduler, scans: int) -> None:
 def test_a_device_failing_every_scan_is_logged_on_change_only(
         sim: Callable[..., SimulatedBus], caplog: pytest.LogCaptureFixture) -> None:
     bus = sim("huiwen-aq@3", faults=["3:dead@3-6"])  # one read per cycle: 2 good, 4 dead
-    site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["co2"], timeout=0.05, retries=0)
+    # the answered reads must beat the timeout on a real pty: 0.5 s, not 0.05 s (a busy
+    # machine's simulator thread answered later than 50 ms); the 4 dead ones wait it out
+    site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["co2"], timeout=0.5, retries=0)
     scheduler = Scheduler(site)
     with caplog.at_level(logging.INFO, logger="rtupoll"):
         asyncio.run(scans_logged(scheduler, 9))

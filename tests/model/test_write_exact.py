@@ -72,7 +72,7 @@ def test_a_value_the_type_holds_is_planned_and_reads_back_as_itself(
     assert interpret(f, op.words).value == value
 
 
-@settings(max_examples=400, deadline=None, derandomize=True)
+@settings(max_examples=max(400, settings().max_examples), deadline=None, derandomize=True)
 @given(st.sampled_from(["u16", "i16", "u32", "i32", "f32", "f64"]),
        st.sampled_from([1.0, 0.1, 0.01, 10.0]),
        st.one_of(st.integers(-2**40, 2**40), st.floats(allow_nan=False, allow_infinity=False,

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import math
 import signal
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -30,8 +30,8 @@ from jinja2.sandbox import ImmutableSandboxedEnvironment
 from rtupoll.config.library import load_one
 from rtupoll.model.codec import DataType
 from rtupoll.outputs import homeassistant as ha
-from rtupoll.sim.runner import SimulatedBus
-from tests.brokers import Broker, Subscriber, broker_fixture  # noqa: F401  (the broker fixture)
+from rtupoll.sim.runner import simulated_bus
+from tests.brokers import Broker, Subscriber, have_mosquitto
 from tests.outputs.test_mqtt_cli import Poll
 
 SITE = """\
@@ -67,25 +67,35 @@ def render(env: Any, template: str, payload: str) -> str:
     return str(env.from_string(template).render(value=payload, value_json=json.loads(payload)))
 
 
-@pytest.fixture
-def run(broker: Broker, sim: Callable[..., SimulatedBus], tmp_path: Path
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory
         ) -> Iterator[tuple[dict[str, Any], dict[str, list[str]]]]:
-    """(discovery config by device, state payloads by device) of a run with faults."""
-    bus = sim("huiwen-aq@3", "net-irnet-pro@1", "banner-ez-array@5", "eastron-sdm120@7",
-              "xy-md02@8", "radar-level@2", tcp=True,
-              faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's PM2.5 failure code; the radar
-              sets=["net-irnet-pro@1.error=48",  # undocumented codes
-                    "banner-ez-array@5.measurement_1_mode=200"])
-    site = tmp_path / "site.yaml"
-    site.write_text(SITE.format(port=bus.port, url=broker.url))
-    sub = broker.subscribe("plant/#", "homeassistant/#")
-    p = Poll(tmp_path, "-c", str(site), "--format", "json", "-o", str(tmp_path / "out.jsonl"))
+    """(discovery config by device, state payloads by device) of a run with faults: one
+    run that the tests of this module read, none of them changes."""
+    if not have_mosquitto():
+        pytest.skip("mosquitto is not installed (scripts/test installs it)")
+    tmp_path = tmp_path_factory.mktemp("ha-run")
+    broker = Broker(tmp_path / "broker").start()
     try:
-        configs, states = collect(sub, p)
+        with simulated_bus(
+                ["huiwen-aq@3", "net-irnet-pro@1", "banner-ez-array@5", "eastron-sdm120@7",
+                 "xy-md02@8", "radar-level@2"], tcp=True,
+                faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's PM2.5 failure code; the radar
+                sets=["net-irnet-pro@1.error=48",  # undocumented codes
+                      "banner-ez-array@5.measurement_1_mode=200"]) as bus:
+            site = tmp_path / "site.yaml"
+            site.write_text(SITE.format(port=bus.port, url=broker.url))
+            sub = broker.subscribe("plant/#", "homeassistant/#")
+            p = Poll(tmp_path, "-c", str(site), "--format", "json", "-o",
+                     str(tmp_path / "out.jsonl"))
+            try:
+                configs, states = collect(sub, p)
+            finally:
+                if p.proc.poll() is None:
+                    p.stop(signal.SIGKILL)
+        yield configs, states
     finally:
-        if p.proc.poll() is None:
-            p.stop(signal.SIGKILL)
-    yield configs, states
+        broker.close()
 
 
 def collect(sub: Subscriber, p: Poll) -> tuple[dict[str, Any], dict[str, list[str]]]:

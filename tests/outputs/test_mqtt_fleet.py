@@ -9,10 +9,11 @@ import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
+from cli_runner import rtupoll
+
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
 from tests.outputs.test_mqtt_cli import (  # noqa: F401  (fixtures: plant, polls)
-    RTUPOLL,
     Poll,
     plant_fixture,
     polls_fixture,
@@ -32,16 +33,15 @@ def test_two_gateways_share_a_broker_and_a_base_is_held_by_one(
     assert info["devices"]["huiwen-aq_3"]["fields"]["co2"]["label"] == "CO2 concentration"
     assert broker.retained("rtupoll/north/bridge/info") is not None
     # a second gateway with its own id: its own topics and Home Assistant ids
-    south = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--format", "json",
-                            "--mqtt", broker.url, "--mqtt-id", "south"],
-                           capture_output=True, text=True, timeout=60)
+    # (the --once runs end by themselves: in this process, tests/cli_runner.py)
+    south = rtupoll("poll", "--simulate", "--once", "--format", "json",
+                    "--mqtt", broker.url, "--mqtt-id", "south")
     assert south.returncode == 0, south.stderr
     assert broker.retained("homeassistant/device/rtupoll_south_huiwen-aq_3/config")
     assert broker.retained("homeassistant/device/rtupoll_north_huiwen-aq_3/config")
     # a gateway that would publish under north's base: refused, one line, exit 10
-    clash = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--format", "json",
-                            "--mqtt", f"{broker.url}/rtupoll/north", "--mqtt-id", "south"],
-                           capture_output=True, text=True, timeout=60)
+    clash = rtupoll("poll", "--simulate", "--once", "--format", "json",
+                    "--mqtt", f"{broker.url}/rtupoll/north", "--mqtt-id", "south")
     assert clash.returncode == 10
     assert clash.stderr.splitlines() == [
         f"rtupoll: mqtt://127.0.0.1:{broker.port}: gateway 'north' is online under the base "
@@ -51,9 +51,8 @@ def test_two_gateways_share_a_broker_and_a_base_is_held_by_one(
     assert broker.retained("rtupoll/north/bridge/state") == "online"  # north untouched
     # once north has stopped, its base is free
     assert north.stop(signal.SIGTERM) == 0
-    again = subprocess.run([*RTUPOLL, "poll", "--simulate", "--once", "--format", "json",
-                            "--mqtt", f"{broker.url}/rtupoll/north", "--mqtt-id", "south"],
-                           capture_output=True, text=True, timeout=60)
+    again = rtupoll("poll", "--simulate", "--once", "--format", "json",
+                    "--mqtt", f"{broker.url}/rtupoll/north", "--mqtt-id", "south")
     assert again.returncode == 0, again.stderr
     assert json.loads(broker.retained("rtupoll/north/bridge/info") or "{}")["gateway"] == "south"
 

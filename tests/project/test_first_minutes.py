@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from cli_runner import Ran, rtupoll
 from click.testing import CliRunner
 from rich.console import Console
 
@@ -35,11 +36,6 @@ BIN = Path(sys.executable).parent
 def demo() -> Iterator[SimulatedLines]:
     with simulated_lines(tick=None) as lines:
         yield lines
-
-
-def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
-                          text=True, timeout=120, check=False)
 
 
 # -- the demo is a bus that could exist ---------------------------------------------
@@ -80,9 +76,11 @@ def test_simulate_prints_hints_that_work_as_printed() -> None:
             words = hint.split()
             if words[:2] == ["rtupoll", "poll"]:
                 words.append("--once")  # as printed, it polls until Ctrl-C
-            run = subprocess.run([str(BIN / words[0]) if words[0] == "rtupoll"
-                                  else words[0], *words[1:]],
-                                 capture_output=True, text=True, timeout=60, check=False)
+            if words[0] == "rtupoll":  # the command, in this process (tests/cli_runner.py)
+                run: subprocess.CompletedProcess[str] | Ran = rtupoll(*words[1:])
+            else:
+                run = subprocess.run(words, capture_output=True, text=True, timeout=60,
+                                     check=False)
             assert run.returncode == 0, f"{hint}\n{run.stdout}{run.stderr}"
             if words[0] == "mbpoll":
                 assert re.search(r"^\[4\]:\s+0x[0-9A-F]{4}$", run.stdout, re.M), run.stdout
@@ -400,13 +398,10 @@ def test_the_readme_commissioning_script_runs_against_the_simulator_the_readme_n
 
 
 def test_scan_takes_its_port_from_rtupoll_port_and_says_so() -> None:
-    env = {k: v for k, v in os.environ.items() if k != "RTUPOLL_PORT"}
-    run = subprocess.run([str(BIN / "rtupoll"), "scan"], capture_output=True, text=True,
-                         env=env, timeout=60, check=False)
+    run = rtupoll("scan", env={"RTUPOLL_PORT": None})
     assert run.returncode == 2
     assert run.stderr.strip().endswith("or set $RTUPOLL_PORT")
-    helped = subprocess.run([str(BIN / "rtupoll"), "scan", "--help"], capture_output=True,
-                            text=True, timeout=60, check=False).stdout
+    helped = rtupoll("scan", "--help").stdout
     assert "$RTUPOLL_PORT" in helped and "[required]" not in helped
 
 

@@ -88,7 +88,7 @@ def test_every_reply_parses_back(req: Request, data: st.DataObject) -> None:
     assert answering == len(normal.frame())
 
 
-@settings(max_examples=2000)
+@settings(max_examples=max(300, settings().max_examples))
 @given(st.binary(max_size=300), st.one_of(st.none(), units))
 def test_any_bytes_parse_or_are_refused_with_a_reason(data: bytes, unit: int | None) -> None:
     try:
@@ -100,7 +100,7 @@ def test_any_bytes_parse_or_are_refused_with_a_reason(data: bytes, unit: int | N
         assert parse_request(req.frame()) == req
 
 
-@settings(max_examples=1000)
+@settings(max_examples=max(300, settings().max_examples))
 @given(requests(), st.binary(max_size=300), st.booleans())
 def test_any_bytes_answer_a_request_or_are_refused(req: Request, data: bytes,
                                                    framed: bool) -> None:
@@ -114,7 +114,7 @@ def test_any_bytes_answer_a_request_or_are_refused(req: Request, data: bytes,
         assert parse_reply(req, reply.frame()) == reply
 
 
-@settings(max_examples=1000)
+@settings(max_examples=max(300, settings().max_examples))
 @given(st.binary(max_size=300), st.sampled_from(Direction), st.booleans())
 def test_frame_at_says_length_need_more_or_not_a_frame(data: bytes, direction: Direction,
                                                         final: bool) -> None:

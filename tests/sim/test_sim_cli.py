@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from cli_runner import rtupoll
 from conftest import RawPort
 
 from rtupoll import rtu
@@ -135,7 +136,6 @@ def test_tcp(simulate: Callable[..., Simulator], raw_port: Raw) -> None:
     (["--tcp", "127.0.0.1:0", "--link", "/tmp/x"], "cannot be used with --tcp"),
 ])
 def test_mistakes_are_one_line_and_exit_2(args: list[str], message: str) -> None:
-    run = subprocess.run([sys.executable, "-m", "rtupoll", "simulate", *args],
-                         capture_output=True, text=True, timeout=20, check=False)
+    run = rtupoll("simulate", *args)  # in this process: refused before it serves
     assert run.returncode == 2
     assert message in run.stderr and len(run.stderr.strip().splitlines()) == 1, run.stderr

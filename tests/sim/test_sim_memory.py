@@ -82,7 +82,7 @@ def test_serving_requests_does_not_grow_the_memory() -> None:
     async def run() -> tuple[int, int]:
         served = Served(engine)
         first = await served.serve(frames, 2 * WIRE_LOG)  # the window is full
-        second = await served.serve(frames, 6 * WIRE_LOG)
+        second = await served.serve(frames, 2 * WIRE_LOG)
         return first, second
 
     tracemalloc.start()
@@ -90,7 +90,7 @@ def test_serving_requests_does_not_grow_the_memory() -> None:
         first, second = asyncio.run(run())
     finally:
         tracemalloc.stop()
-    # each request used to keep two frames (~430 bytes): 12000 requests, ~5 MB
+    # each request used to keep two frames (~430 bytes): 2000 more requests, ~0.9 MB
     assert second - first < 50_000, (first, second)
 
 
@@ -147,11 +147,12 @@ def replay_peak(path: Path, serve_requests: int) -> tuple[int, list[bytes]]:
 def test_a_replayed_capture_costs_the_same_memory_whatever_its_length(tmp_path: Path) -> None:
     short, long = tmp_path / "short.pcapng", tmp_path / "long.pcapng"
     write_capture(short, 1_000)
-    write_capture(long, 20_000)
-    assert long.stat().st_size > 15 * short.stat().st_size
+    write_capture(long, 8_000)
+    assert long.stat().st_size > 7 * short.stat().st_size
     small, answers_short = replay_peak(short, 500)
     big, answers_long = replay_peak(long, 500)
-    # loaded whole, the long one held ~20000 answers more (several MB)
+    # loaded whole, the long one held 7000 answers more (a bytes object alone is 33
+    # bytes and more: several times the allowance)
     assert big - small < 200_000, (small, big)
     assert answers_short == answers_long  # the same start of the same story
 

@@ -73,16 +73,22 @@ def test_starting_five_devices_in_a_fresh_process() -> None:
     assert out == ["5"]
 
 
-def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(pytester: pytest.Pytester
-                                                               ) -> None:
-    pytester.makeconftest((Path(__file__).parents[1] / "conftest.py").read_text())
+def test_the_leak_check_fails_a_test_that_leaves_a_bus_running(
+        pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
+    # run in this process: the conftest's module code sets its own profile cache
+    # directory, which this test's end puts back
+    monkeypatch.setenv("XDG_CACHE_HOME", os.environ["XDG_CACHE_HOME"])
+    tests = Path(__file__).parents[1]
+    pytester.makeconftest((tests / "conftest.py").read_text())
+    pytester.makepyfile(cpu_report=(tests / "cpu_report.py").read_text())  # its plugin
     pytester.makepyfile(textwrap.dedent("""
         from rtupoll.sim.runner import simulated_bus
 
         def test_leaks():
             simulated_bus(["huiwen-aq@3"]).start()
     """))
-    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-p", "no:hypothesispytest")
+    result = pytester.runpytest_inprocess("-p", "no:cacheprovider", "-p", "no:hypothesispytest",
+                                          "-p", "no:xdist")
     result.assert_outcomes(passed=1, errors=1)
     result.stdout.fnmatch_lines(["*left 1 simulated bus(es) running*"])
 

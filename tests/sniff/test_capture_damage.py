@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from cli_runner import rtupoll
 
 from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.sim.replay import load_replay
@@ -88,8 +89,7 @@ def test_a_short_enhanced_packet_block_ends_sniff_read_there_in_one_line(tmp_pat
                                                                           ) -> None:
     path = tmp_path / "short.pcapng"
     at = short_block(path)
-    done = subprocess.run([RTUPOLL, "sniff", "--read", str(path), "--format", "frames"],
-                          capture_output=True, text=True, timeout=30)
+    done = rtupoll("sniff", "--read", str(path), "--format", "frames")
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr and "struct.error" not in done.stderr
     assert done.stderr.strip() == (f"rtupoll: {path}: an enhanced packet block of 12 bytes "

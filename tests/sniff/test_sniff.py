@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import pytest
+from cli_runner import Ran, rtupoll
 
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field, Poll
@@ -131,9 +132,8 @@ def test_sniffing_mbpoll_decodes_every_field_of_the_five_seed_devices(
                             "raw", "severity", "text", "status", "error"}
 
     # the capture, read back offline, gives the same records
-    offline = subprocess.run([RTUPOLL, "sniff", "--read", str(capture), "--format", "json",
-                              *devices], capture_output=True, text=True, timeout=30,
-                             check=True)
+    offline = rtupoll("sniff", "--read", str(capture), "--format", "json", *devices)
+    assert offline.returncode == 0, offline.stderr
     assert records(offline.stdout.splitlines()) == recs
 
 
@@ -162,9 +162,9 @@ def test_faults_are_reported_as_faults_and_never_as_values(sim: Sim, tmp_path: P
     assert "NO REPLY: no reply within 0.5 s" in text
     assert "EXCEPTION: exception 04 SERVER DEVICE FAILURE" in text
 
-    offline = subprocess.run([RTUPOLL, "sniff", "--read", str(capture), "--format", "json",
-                              "huiwen-aq@3", "radar-level@2", "net-irnet-pro@1"],
-                             capture_output=True, text=True, timeout=30, check=True)
+    offline = rtupoll("sniff", "--read", str(capture), "--format", "json",
+                      "huiwen-aq@3", "radar-level@2", "net-irnet-pro@1")
+    assert offline.returncode == 0, offline.stderr
     recs = records(offline.stdout.splitlines())
     statuses = [(r["device"], r["field"], r["status"]) for r in recs]
     assert statuses == [
@@ -238,10 +238,9 @@ def test_a_site_file_names_the_port_the_speed_and_the_devices(sim: Sim, tmp_path
     assert (rec["device"], rec["field"], rec["value"]) == ("air", "co2", 900)
 
 
-def rtupoll_run(*args: str) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
-    return subprocess.run([RTUPOLL, *args], capture_output=True, text=True, timeout=60,
-                          env=env, check=False)
+def rtupoll_run(*args: str) -> Ran:
+    """In this process (tests/cli_runner.py), without the RTUPOLL_ variables."""
+    return rtupoll(*args, env={k: None for k in os.environ if k.startswith("RTUPOLL_")})
 
 
 def test_usage_mistakes_are_one_line(tmp_path: Path) -> None:

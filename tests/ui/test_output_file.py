@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from cli_runner import rtupoll
 
 from rtupoll.ui.outfile import OutputFile
 from tests.brokers import free_port
@@ -119,15 +120,13 @@ def test_a_partial_last_line_is_cut_off_before_anything_is_appended(tmp_path: Pa
 
 def test_poll_once_onto_a_file_an_earlier_run_cut_short(tmp_path: Path) -> None:
     out = tmp_path / "readings.csv"
-    first = subprocess.run([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                            "huiwen-aq@3", "--once", "--format", "csv", "-o", str(out)],
-                           capture_output=True, text=True, timeout=60)
+    first = rtupoll("poll", "--simulate", "huiwen-aq@3", "--once", "--format", "csv",
+                    "-o", str(out))
     assert first.returncode == 0, first.stderr
     lines = out.read_text().splitlines()
     out.write_bytes(out.read_bytes()[:-7])  # the last record half-written
-    again = subprocess.run([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                            "huiwen-aq@3", "--once", "--format", "csv", "-o", str(out)],
-                           capture_output=True, text=True, timeout=60)
+    again = rtupoll("poll", "--simulate", "huiwen-aq@3", "--once", "--format", "csv",
+                    "-o", str(out))
     assert again.returncode == 0, again.stderr
     assert "cut off a partial last line" in again.stderr
     now = out.read_text().splitlines()

@@ -23,6 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from cli_runner import rtupoll
 
 from rtupoll.sim.runner import SimulatedBus
 
@@ -126,10 +127,8 @@ def test_sniff_at_80x24_shows_health_and_line_trouble_first(sim: Sim, tmp_path: 
 
 
 def test_a_piped_poll_once_at_80_columns_keeps_every_column_and_one_header_row() -> None:
-    env = {**os.environ, "COLUMNS": "80"}
-    run = subprocess.run([RTUPOLL, "poll", "--simulate", "epever-tracer@2", "eastron-sdm630@1",
-                          "--once"], capture_output=True, text=True, env=env, timeout=60,
-                         check=False)
+    run = rtupoll("poll", "--simulate", "epever-tracer@2", "eastron-sdm630@1", "--once",
+                  env={"COLUMNS": "80"})  # piped: in this process (tests/cli_runner.py)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
     assert all(len(x) <= 80 for x in lines)

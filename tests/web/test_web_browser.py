@@ -82,15 +82,31 @@ def shown(driver: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
-@pytest.fixture
-def browser() -> Iterator[Any]:
+@pytest.fixture(scope="module")
+def one_chromium() -> Iterator[Any]:
+    """One headless chromium for the tests of this module (starting one is ~1 CPU-s);
+    each test's server is another origin, so no page sees another's storage."""
     with chromium() as driver:
+        yield driver
+
+
+@pytest.fixture
+def browser(one_chromium: Any) -> Iterator[Any]:
+    driver = one_chromium
+    driver.get("about:blank")
+    driver.get_log("browser")  # what an earlier test's page said is not this test's
+    try:
         yield driver
         # the page's event stream reconnecting to the server the test has stopped is not
         # the page's error (seen when a loaded machine is slow to end the test)
         errors = [e for e in console_errors(driver) if not (
             "/api/events" in e.get("message", "") and "ERR_CONNECTION_REFUSED" in e["message"])]
         assert not errors, f"errors in the browser console: {errors}"
+    finally:  # the next test gets a blank page, at full size, light, without cookies
+        driver.get("about:blank")
+        driver.delete_all_cookies()
+        phone(driver, False)
+        color_scheme(driver, "light")
 
 
 def screenshots(driver: Any, where: Path, name: str, *, docs: bool = False) -> None:
