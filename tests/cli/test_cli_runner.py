@@ -88,9 +88,9 @@ def test_in_process_and_as_a_process_the_command_says_the_same(
 
 def test_each_run_warns_about_an_unverified_profile_as_a_new_process_would(
         sim: Callable[..., SimulatedBus]) -> None:
-    bus = sim("schneider-atv12@1", tick=None)
-    args = ("read", "-p", bus.port, "--format", "json", "schneider-atv12@1")
+    bus = sim("md02@1", tick=None)
+    args = ("read", "-p", bus.port, "--format", "json", "md02@1")
     for _ in range(2):
         ran = rtupoll(*args)
         assert ran.returncode == 0, ran.stderr
-        assert "profile schneider-atv12 is unverified" in ran.stderr
+        assert "profile md02 is unverified" in ran.stderr
