@@ -8,9 +8,11 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+import pytest
 from click.testing import CliRunner, Result
 
 from rtupoll.cli import cli
+from rtupoll.config.library import load_one
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -116,11 +118,23 @@ def test_read_of_a_field_whose_ratio_is_no_ratio_prints_why_and_exits_7(sim: Sim
                                      "(scale_by) reads 0, not a ratio")
 
 
-def test_profiles_show_names_the_ratios_a_field_is_multiplied_by() -> None:
-    result = CliRunner(env={"COLUMNS": "200"}).invoke(cli, ["profiles", "show",
-                                                            "chint-dtsu666"])
+@pytest.mark.parametrize("columns", ["80", "200"])
+def test_profiles_show_names_the_ratios_a_field_is_multiplied_by(columns: str) -> None:
+    result = CliRunner(env={"COLUMNS": columns}).invoke(cli, ["profiles", "show",
+                                                              "chint-dtsu666"])
     assert result.exit_code == 0, result.output
-    lines = {line.split()[0]: line for line in result.stdout.splitlines() if line.strip()}
-    assert "A raw x 0.001 x current_ratio" in lines["current_l1"]
-    assert "W raw x 0.1 x current_ratio x voltage_ratio" in lines["total_power"]
-    assert "x current_ratio" not in lines["frequency"]
+    out = result.stdout.splitlines()
+    # every field's name whole (the ratios, a line each in the unit column, keep it narrow)
+    names = [line.split()[0] for line in out if line.strip()]
+    for f in load_one("chint-dtsu666").fields:
+        assert f.name in names, (columns, f.name)
+
+    def unit_lines(field: str) -> list[str]:  # the row's line and the two after it
+        at = next(i for i, line in enumerate(out) if line.split()[:1] == [field])
+        return out[at:at + 3]
+
+    current, power = unit_lines("current_l1"), unit_lines("total_power")
+    assert "A raw x 0.001" in current[0] and "x current_ratio" in current[1]
+    assert "W raw x 0.1" in power[0]
+    assert "x current_ratio" in power[1] and "x voltage_ratio" in power[2]
+    assert "ratio" not in unit_lines("frequency")[0]

@@ -312,8 +312,8 @@ def _unit(f: Field) -> str:
         parts.append(f"raw x {f.layout.scale:g}")
     if f.layout.offset:
         parts.append(f"{f.layout.offset:+g}")
-    parts += [f"x {name}" for name in f.scale_by]  # scale_by: x a ratio read with it
-    return " ".join(parts)
+    # scale_by: x a ratio read with it, a line each (the column stays narrow at 80)
+    return "\n".join([" ".join(parts), *(f"x {name}" for name in f.scale_by)]).strip()
 
 
 def _describe(f: Field) -> str:
