@@ -235,7 +235,8 @@ def comparable(state: dict[str, Any]) -> dict[str, Any]:
 
 def test_the_pages_model_after_many_delta_events_is_the_servers_snapshot(
         browser: Any, tmp_path: Path) -> None:
-    with running(["poll", "--simulate", "--format", "json", "--interval", "1", "--http",
+    # a cycle every 0.5 s, not 1 s: the 60 events come in half the time
+    with running(["poll", "--simulate", "--format", "json", "--interval", "0.5", "--http",
                   "127.0.0.1:0"], tmp_path) as p:
         browser.get(p.url)
         merged = "return window.rtupollPerf.events"
@@ -249,7 +250,7 @@ def test_the_pages_model_after_many_delta_events_is_the_servers_snapshot(
         until(lambda: browser.execute_script(merged) >= seen + 30, "30 more", every=0.2)
         other.close()
         # each device, page and server read back to back until neither changed between
-        # (a device changes only in its cycles, once a second): equal, to the last key
+        # (a device changes only in its cycles, twice a second): equal, to the last key
         left = set(DEMO)
         diff: dict[str, Any] = {}
         deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
