@@ -200,8 +200,9 @@ def test_the_simulators_values_a_changing_field_drawn(
 
 def test_a_dead_device_greys_out_and_comes_back(
         browser: Any, sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
-    # radar-level at 4 stops answering at its 4th request, and answers again from its 12th
-    bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead@4-11"])
+    # radar-level at 4 stops answering at its 4th request, and answers again from its 10th
+    # (from its 12th, one backoff step more, the test took 16 s, not 12)
+    bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead@4-9"])
     with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "--interval",
                   "0.3", "--timeout", "0.1", "--http", "127.0.0.1:0", "huiwen-aq@3",
                   "radar-level@4"], tmp_path) as p:
