@@ -11,7 +11,6 @@ from rtupoll.jobs.reload import ReloadService
 from rtupoll.jobs.services import Service
 from rtupoll.outputs.metrics import MetricsService
 from rtupoll.ui.systemd import Notifier
-from rtupoll.web.service import WebService
 
 
 class Counting(Service):
@@ -45,6 +44,9 @@ def test_once_runs_the_given_services_and_metrics_only(tmp_path: Path) -> None:
 
 def test_reload_follows_every_service_before_it_and_systemd_is_told_last(
         tmp_path: Path) -> None:
+    # here, not at the top: it imports aiohttp, 0.2 s that every xdist worker would pay
+    from rtupoll.web.service import WebService
+
     services = build(site(tmp_path, "http:\n  listen: 127.0.0.1:0\n"), once=False)
     kinds = [type(s) for s in services]
     assert kinds == [Counting, WebService, ReloadService, Notifier]

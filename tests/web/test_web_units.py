@@ -9,16 +9,21 @@ import base64
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from rtupoll.config.http_settings import HttpSettings, from_options, merge, parse_listen
 from rtupoll.config.site import load_site
 from rtupoll.errors import ConfigError, UsageError
-from rtupoll.web.fleet import MAX_WAITING, Fleet
-from rtupoll.web.server import BEHIND, COOKIE, Hub, authorised, cookie_value
 from rtupoll.web.trend import BYTES_PER_FIELD, POINTS, SPAN, STEP, Trend, TrendStore
+
+if TYPE_CHECKING:
+    from rtupoll.web.fleet import Fleet
+
+# rtupoll.web.server and .fleet import aiohttp (0.2 s): the tests that need them import
+# them, so an xdist worker that runs none of them does not pay for it at collection
+
 
 # -- trend rings -------------------------------------------------------------------------
 
@@ -149,6 +154,7 @@ def test_the_site_files_http_section(tmp_path: Path) -> None:
 
 
 def test_authorised() -> None:
+    from rtupoll.web.server import COOKIE, authorised, cookie_value
     s = HttpSettings("0.0.0.0", 1, token="the-token-1", users={"tech": "correct-horse"})
     none: dict[str, str] = {}
 
@@ -172,6 +178,7 @@ def test_authorised() -> None:
 
 
 def test_the_hub_makes_each_event_once_and_gives_every_stream_the_same_bytes() -> None:
+    from rtupoll.web.server import Hub
     async def run() -> None:
         hub = Hub()
         calls: list[int] = []
@@ -200,6 +207,7 @@ def test_the_hub_makes_each_event_once_and_gives_every_stream_the_same_bytes() -
 
 
 def test_a_stream_that_stops_reading_gets_a_snapshot_not_a_backlog() -> None:
+    from rtupoll.web.server import BEHIND, Hub
     async def run() -> None:
         hub = Hub()
         slow, live = hub.join(), hub.join()
@@ -241,6 +249,7 @@ def feed(fleet: Fleet, topic: str, payload: Any) -> None:
 
 
 def test_the_fleet_reads_a_gateways_topics() -> None:
+    from rtupoll.web.fleet import Fleet
     now = [1_800_000_000.0]
     fleet = Fleet("rtupoll", "mqtt://broker:1883/rtupoll", clock=lambda: now[0])
     # state before the gateway's bridge/info: held, then placed when the info comes
@@ -296,6 +305,7 @@ def test_the_fleet_reads_a_gateways_topics() -> None:
 
 
 def test_two_gateways_and_their_devices_never_mix() -> None:
+    from rtupoll.web.fleet import Fleet
     fleet = Fleet("rtupoll")
     for gw in ("a", "b"):
         feed(fleet, f"rtupoll/{gw}/bridge/info", {**INFO, "gateway": gw,
@@ -308,6 +318,7 @@ def test_two_gateways_and_their_devices_never_mix() -> None:
 
 
 def test_what_the_fleet_ignores() -> None:
+    from rtupoll.web.fleet import MAX_WAITING, Fleet
     fleet = Fleet("rtupoll")
     feed(fleet, "rtupoll/a/bridge/info", "not json")
     feed(fleet, "rtupoll/b/bridge/info", [1, 2])
