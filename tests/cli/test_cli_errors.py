@@ -75,3 +75,21 @@ def _subclasses(cls: type) -> list[type]:
     for sub in cls.__subclasses__():
         out += _subclasses(sub)
     return out
+
+
+@pytest.mark.parametrize("argv0, ours", [
+    ("/usr/lib/python3/site-packages/pytest/__main__.py", False),  # python -m pytest
+    ("/usr/local/bin/someapp", False),
+    ("/home/u/.venv/bin/rtupoll", True),  # the console script
+    (os.path.join("src", "rtupoll", "__main__.py"), True),  # python -m rtupoll
+])
+def test_the_early_signal_handler_is_only_installed_in_rtupolls_own_process(
+        argv0: str, ours: bool) -> None:
+    """Importing rtupoll's CLI in another program (pytest run as ``python -m pytest``)
+    leaves that program's Ctrl-C alone; rtupoll's own process gets the one-line exit."""
+    probe = ("import signal, sys; sys.argv[0] = sys.argv[1]; "
+             "before = signal.getsignal(signal.SIGINT); import rtupoll.cli; "
+             "print(signal.getsignal(signal.SIGINT) is before)")
+    out = subprocess.run([sys.executable, "-c", probe, argv0], capture_output=True,
+                         text=True, timeout=60, check=True).stdout.strip()
+    assert out == str(not ours)

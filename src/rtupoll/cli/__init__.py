@@ -31,8 +31,12 @@ def _interrupted_early(signum: int, frame: FrameType | None) -> None:
 
 
 # The console script imports this module first: from here on an early Ctrl-C or SIGTERM
-# is one line and exit 130, not a KeyboardInterrupt traceback or a silent kill.
-if os.path.basename(sys.argv[0] if sys.argv else "") in ("rtupoll", "__main__.py"):
+# is one line and exit 130, not a KeyboardInterrupt traceback or a silent kill. Only in
+# rtupoll's own process (the console script, ``python -m rtupoll``): another program that
+# imports rtupoll (``python -m pytest``) keeps its own Ctrl-C.
+_ARGV0 = sys.argv[0] if sys.argv else ""
+if os.path.basename(_ARGV0) == "rtupoll" or \
+        _ARGV0.endswith(os.path.join("rtupoll", "__main__.py")):
     for _sig in (_signal.SIGINT, _signal.SIGTERM):
         _signal.signal(_sig, _interrupted_early)
 
