@@ -556,10 +556,11 @@ def test_every_example_works_as_printed(block: Block, tmp_path: Path,
         "\n".join(failures)
 
 
-def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: bool
-                ) -> tuple[int, str, str]:
+def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: bool,
+                stop: bool) -> tuple[int, str, str]:
     """Exit status, output and stderr of ``rtupoll ...`` started fresh by bash (``forks``
-    None) or forked; on a terminal it gets Ctrl-C once it has shown what it shows."""
+    None) or forked, on a terminal or not; one that runs until stopped (``stop``) gets
+    Ctrl-C once it has shown what it shows, the others end by themselves."""
     env = examples_env()
     seen: list[bytes] = []
     arrived = threading.Event()
@@ -577,6 +578,7 @@ def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: b
             os.close(tty[1])
             reader = threading.Thread(target=_drain, args=(tty[0], seen, arrived))
             reader.start()
+        if stop:
             start = time.monotonic()
             while not shown(b"".join(seen).decode(errors="replace")) and proc.poll() is None \
                     and time.monotonic() - start < SHOWN_BY:
@@ -593,21 +595,21 @@ def _transcript(command: str, forks: ForkServer | None, where: Path, terminal: b
         return code, text.decode(errors="replace"), err.read().decode(errors="replace")
 
 
-@pytest.mark.parametrize(("command", "terminal"), [
+@pytest.mark.parametrize(("command", "terminal", "stop"), [
     ("rtupoll decode 01 04 00 06 00 02 91 CA 01 04 04 00 00 A0 C1 42 14 --profile net-irnet-pro",
-     False),
-    ("rtupoll read -p ttyUSB9 huiwen-aq@3", False),  # no such port: exit 3, one line
-    ("rtupoll profiles show huiwen-aq", True),  # rich on a terminal: colours, width
-    ("rtupoll simulate huiwen-aq@3 --seed 1", True),  # Ctrl-C once it has started
+     False, False),
+    ("rtupoll read -p ttyUSB9 huiwen-aq@3", False, False),  # no such port: exit 3, one line
+    ("rtupoll profiles show huiwen-aq", True, False),  # rich on a terminal: colours, width
+    ("rtupoll simulate huiwen-aq@3 --seed 1", True, True),  # Ctrl-C once it has started
 ], ids=["decode", "read-no-port", "profiles-show-on-a-terminal", "simulate-ctrl-c"])
-def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool,
+def test_a_forked_command_is_a_fresh_one(command: str, terminal: bool, stop: bool,
                                          forks: ForkServer | None, tmp_path: Path) -> None:
     """What the examples' fork server runs is what a fresh ``rtupoll`` does: the same
     exit status, output and stderr (on a terminal too, stopped by Ctrl-C)."""
     if forks is None:
         pytest.skip("no fork server here (no pidfd): every example starts a fresh rtupoll")
-    fresh = _transcript(command, None, tmp_path, terminal)
-    forked = _transcript(command, forks, tmp_path, terminal)
+    fresh = _transcript(command, None, tmp_path, terminal, stop)
+    forked = _transcript(command, forks, tmp_path, terminal, stop)
     pts = re.compile(r"/dev/pts/\d+")  # each run's own pseudo-terminal
     assert [pts.sub("PTS", x) if isinstance(x, str) else x for x in forked] == \
         [pts.sub("PTS", x) if isinstance(x, str) else x for x in fresh]
