@@ -237,6 +237,7 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
     """The echo is the master adapter's, not the line's: a sniffer on the line (the
     simulator's tap) sees each request once and decodes every value, while rtupoll
     reads through the echoing adapter with --echo."""
+    import select
     import signal
     import subprocess
     import sys
@@ -254,8 +255,15 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
         assert "listening on" in proc.stderr.readline()
         read = in_process("read", "-p", bus.port, "--echo", "radar-level@2", "level_cm",
                           "--format", "json")
+        assert proc.stdout is not None
+        first = ""  # the sniffer's record of that read (a hang guard, not a deadline)
+        while not first.startswith("{") and select.select([proc.stdout], [], [], 30)[0]:
+            first = proc.stdout.readline()
+            if not first:
+                break
         proc.send_signal(signal.SIGINT)
         out, _err = proc.communicate(timeout=10)
+        out = first + out
     finally:
         bus.stop()
     assert read.returncode == 0, read.stderr
