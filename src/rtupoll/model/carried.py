@@ -41,8 +41,9 @@ def carried_in(frames: Sequence[Frame], profile: Profile) -> list[list[Carried]]
     out = []
     for frame in frames:
         mine = seen.setdefault(frame.unit, {})
-        out.append(carried(frame, profile, mine))
-        mine.update(_whole(frame, profile))
+        whole = _whole(frame, profile)
+        out.append(_carried(frame, profile, {**mine, **whole}))
+        mine.update(whole)
     return out
 
 
@@ -54,13 +55,17 @@ def carried(frame: Frame, profile: Profile, seen: Mapping[str, FieldValue] | Non
     cause of nonsense values), with no value. ``seen``: fields decoded from earlier frames
     of the same unit, for the factors of a ``scale_by`` field this frame does not carry.
     """
+    return _carried(frame, profile, {**(seen or {}), **_whole(frame, profile)})
+
+
+def _carried(frame: Frame, profile: Profile, got: Mapping[str, FieldValue]) -> list[Carried]:
+    """``carried``, given the fields decoded so far (this frame's whole ones among them)."""
     if frame.table is None or frame.start is None or frame.kind not in ("request", "response"):
         return []
     count = frame.count if frame.count is not None else len(frame.values)
     lo, hi = frame.start, frame.start + count
     has_data = _has_data(frame)
     out: list[Carried] = []
-    got = {**(seen or {}), **_whole(frame, profile)}  # a scaled field's factors among them
     for f in profile.fields:
         if f.table is not frame.table or f.end <= lo or f.address >= hi:
             continue
