@@ -127,23 +127,37 @@ def _rounded(field: Field, words: tuple[int, ...]) -> Value:
     return value
 
 
-def _places(x: float) -> int:
-    """Decimal places a scale or offset has: 0.01 -> 2, 0.5 -> 1, 10 -> 0."""
-    text = f"{abs(x):.9f}".rstrip("0")
-    return len(text.partition(".")[2])
+def places(x: float) -> int:
+    """Decimal places a number has as written: 0.01 -> 2, 273.15 -> 2, 3600 -> 0,
+    1e-05 -> 5."""
+    text = repr(float(abs(x)))
+    if "e" in text:
+        mantissa, _, exponent = text.partition("e")
+        return max(0, places(float(mantissa)) - int(exponent))
+    return len(text.partition(".")[2].rstrip("0"))
 
 
 def decimals(field: Field) -> int | None:
     """The one number of decimal places a field is shown at, in every output: its
-    profile's ``precision``; for an integer type, what its scale and offset carry (a
-    u16 with scale 0.01 is 11.80, never 11.8 one scan and 11.77 the next); None for a
-    float without a precision (shown at the precision the type carries)."""
+    profile's ``precision``; for a scaled integer type, what its scale and offset carry
+    (a u16 with scale 0.01 is 11.80, never 11.8 one scan and 11.77 the next); None for
+    an unscaled integer (its value is an int) and for a float without a precision
+    (shown at the precision the type carries)."""
     if field.precision is not None:
         return max(field.precision, 0)
     layout = field.layout
     if layout.type.is_integer and layout.scaled:
-        return max(_places(layout.scale), _places(layout.offset))
+        return max(places(layout.scale), places(layout.offset))
     return None
+
+
+def number_decimals(field: Field) -> int | None:
+    """The decimals a field's numbers really have, for a consumer told them once (Home
+    Assistant's display precision, the metrics' rounding): ``decimals``, 0 for an
+    unscaled integer; None for a float type without a precision (its digits are its
+    own)."""
+    known = decimals(field)
+    return 0 if known is None and field.layout.type.is_integer else known
 
 
 # units shown in another unit on a person's screen: unit -> (shown unit, offset added)

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable
-from decimal import Decimal
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.model.codec import DataType
+from rtupoll.model.interpret import number_decimals
 
 if TYPE_CHECKING:
     from rtupoll.config.site import BusConfig, DeviceConfig
@@ -61,21 +61,9 @@ def kind(field: Field) -> str:
 
 
 def precision(field: Field) -> int | None:
-    """Decimal places a number is shown with: the profile's ``precision``, else what its
-    scale carries (0.001 -> 3; an integer register unscaled -> 0); None for a float
-    register with neither."""
-    if kind(field) != "number":
-        return None
-    if field.precision is not None:
-        return max(field.precision, 0)
-    layout = field.layout
-    if layout.type is DataType.F32:
-        return None
-    places = 0
-    for step in (layout.scale, layout.offset):
-        exponent = Decimal(repr(float(step))).normalize().as_tuple().exponent
-        places = max(places, -exponent if isinstance(exponent, int) else 0)
-    return min(places, 9)
+    """Decimal places a number is shown with (``number_decimals``); None for what is not
+    a number and for a float register without a precision."""
+    return number_decimals(field) if kind(field) == "number" else None
 
 
 def field_info(field: Field) -> dict[str, Any]:

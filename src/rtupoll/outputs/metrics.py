@@ -49,6 +49,7 @@ from rtupoll.errors import UsageError
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
+from rtupoll.model.interpret import number_decimals, places
 
 if TYPE_CHECKING:
     from prometheus_client import CollectorRegistry
@@ -141,25 +142,6 @@ class FieldMetric:
         return round(x, SIGNIFICANT - 1 - math.floor(math.log10(abs(x))))
 
 
-def _decimals(x: float) -> int:
-    """Decimal places of a number as written (0.01 -> 2, 273.15 -> 2, 3600 -> 0)."""
-    text = repr(float(x))
-    if "e" in text:
-        mantissa, _, exp = text.partition("e")
-        return max(0, _decimals(float(mantissa)) - int(exp))
-    return len(text.partition(".")[2].rstrip("0"))
-
-
-def field_decimals(f: Field) -> int | None:
-    """The decimals a field's value really has: its precision, else its scale's and
-    offset's; None for floats on the wire (their digits are their own)."""
-    if f.precision is not None:
-        return max(f.precision, 0)
-    if f.layout.type.value in ("f32", "f64"):
-        return None
-    return max(_decimals(f.layout.scale), _decimals(f.layout.offset))
-
-
 def field_metric(f: Field) -> FieldMetric:
     """The metric a profile field becomes (see the module docstring)."""
     base = _word(f.name) or "field"
@@ -172,7 +154,7 @@ def field_metric(f: Field) -> FieldMetric:
         return FieldMetric(PREFIX + base, "info", what)
     kind = "counter" if f.counter else "gauge"
     unit = f.unit.strip()
-    known = field_decimals(f)
+    known = number_decimals(f)
     if unit and base.endswith("_" + _word(unit)):  # level_cm: the name says the unit
         return FieldMetric(PREFIX + base, kind, f"{what}, in {unit}", decimals=known)
     word, scale, offset = UNITS.get(unit, (_word(unit), 1.0, 0.0))
@@ -181,7 +163,7 @@ def field_metric(f: Field) -> FieldMetric:
         base = f"_{base}_".replace(f"_{spelled}_", "_").strip("_") or "field"
     name = base if not word or base.endswith("_" + word) else f"{base}_{word}"
     decimals = None if known is None else \
-        max(known + (_decimals(scale) if scale < 1 else 0), _decimals(offset))
+        max(known + (places(scale) if scale < 1 else 0), places(offset))
     # the family's unit only: profiles with other units share the family (K and °C)
     note = f", in {word.replace('_', ' ')}" if word else ""
     return FieldMetric(PREFIX + name, kind, what + note, scale, offset, decimals)
