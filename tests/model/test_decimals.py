@@ -18,11 +18,13 @@ from rtupoll.model.interpret import (
     number_decimals,
     places,
 )
+from rtupoll.model.profile import Field
 from rtupoll.outputs.homeassistant import components
 from rtupoll.outputs.metrics import field_metric
 
-LIBRARY = load_library()
-FIELDS = [f for p in LIBRARY.profiles.values() for f in p.fields]
+
+def library_fields() -> list[Field]:
+    return [f for p in load_library().profiles.values() for f in p.fields]
 
 
 @pytest.mark.parametrize(("x", "n"), [(0.01, 2), (0.5, 1), (10, 0), (3600.0, 0),
@@ -33,7 +35,7 @@ def test_places_are_those_of_the_number_as_written(x: float, n: int) -> None:
 
 
 def test_every_consumer_is_told_the_same_decimals() -> None:
-    for field in FIELDS:
+    for field in library_fields():
         known = number_decimals(field)
         sensor = components(field, controls=False).get(field.name, {})
         if "suggested_display_precision" in sensor or known is None:
@@ -45,7 +47,7 @@ def test_every_consumer_is_told_the_same_decimals() -> None:
 
 def test_a_number_is_shown_at_its_decimals() -> None:
     shown = 0
-    for field in FIELDS:
+    for field in library_fields():
         places_shown = decimals(field)
         if places_shown is None or field.enum or field.flags \
                 or field.layout.type.value == "bool":
