@@ -90,7 +90,7 @@ def test_list_table_shows_each_level() -> None:
     rows = {line.split()[0]: line for line in out.splitlines()
             if line.startswith("   ") and line.strip()}
     assert rows["eastron-sdm630"].rstrip().endswith("vendor doc")
-    assert rows["carlo-gavazzi-em24"].rstrip().endswith("2 impls")
+    assert rows["schneider-iem3155"].rstrip().endswith("2 impls")
     assert rows["md02"].rstrip().endswith("UNVERIFIED")
 
 

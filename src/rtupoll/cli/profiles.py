@@ -312,8 +312,10 @@ def _unit(f: Field) -> str:
         parts.append(f"raw x {f.layout.scale:g}")
     if f.layout.offset:
         parts.append(f"{f.layout.offset:+g}")
-    # scale_by: x a ratio read with it, a line each (the column stays narrow at 80)
-    return "\n".join([" ".join(parts), *(f"x {name}" for name in f.scale_by)]).strip()
+    # scale_by: x a ratio read with it, a line each (the column stays narrow at 80);
+    # decode: the documented encoding the stored number is unfolded by
+    return "\n".join([" ".join(parts), *(f"x {name}" for name in f.scale_by),
+                      *([f"decode {f.transform.value}"] if f.transform else [])]).strip()
 
 
 def _describe(f: Field) -> str:

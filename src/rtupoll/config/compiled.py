@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from rtupoll.config.paths import find_parent
-from rtupoll.model import codec, profile
+from rtupoll.model import codec, profile, transforms
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import functions
 
@@ -47,11 +47,11 @@ OFF_ENV = "RTUPOLL_NO_PROFILE_CACHE"  # set and not empty: no cache
 MAX_BYTES = 8 << 20  # a larger cache file is not read (the largest bundled one: 19 kB)
 
 # the modules whose classes a Profile is made of, and (below) those whose rules build it
-_MODEL = {m.__name__: m for m in (profile, codec, functions)}
+_MODEL = {m.__name__: m for m in (profile, codec, transforms, functions)}
 _HERE = os.path.dirname(__file__)
 _CODE = (*(str(m.__file__) for m in _MODEL.values()),
          *(os.path.join(_HERE, name) for name in ("profile_file.py", "scale_by.py", "yamlsrc.py",
-                                                     "compiled.py")))
+                                                     "compiled.py", "transform_key.py")))
 
 
 class Source(NamedTuple):

@@ -15,7 +15,7 @@ from typing import TypeVar
 
 import yaml
 
-from rtupoll.config import scale_by
+from rtupoll.config import scale_by, transform_key
 from rtupoll.config.compiled import Source
 from rtupoll.config.paths import find_parent
 from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
@@ -54,7 +54,7 @@ _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing",
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
-               "interval", "counter", "typical", "scale_by"}
+               "interval", "counter", "typical", "scale_by", "decode"}
 
 
 def read_profile(path: Path) -> tuple[Profile, list[Source]]:
@@ -337,6 +337,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
     enum_map, other, flags = _meanings(m, layout)
     lo, hi = _value_range(m, layout)
     access = _access(m, table, width)
+    transform, lo, hi = transform_key.read(m, dtype, bool(enum_map or flags), access, lo, hi)
     source = m["source"].text() if "source" in m else "manual"
     if source not in ("manual", "public"):
         raise m["source"].fail(f"{source!r} is not one of: manual, public")
@@ -358,7 +359,7 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         precision=m["precision"].integer(-6, 9) if "precision" in m else None,
         interval=_opt(m, "interval", _interval, None), counter=counter,
         typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
-        scale_by=scale_by.names(m["scale_by"]) if "scale_by" in m else (),
+        scale_by=scale_by.names(m["scale_by"]) if "scale_by" in m else (), transform=transform,
     )
 
 

@@ -95,6 +95,9 @@ def field_words(field: Field, value: Value, current: Sequence[int] | None = None
         for stored, choice in field.sentinels.items():
             if choice.name == value:
                 return encode_raw(stored, field.layout, current)
+    if field.transform is not None and isinstance(value, (int, float)) \
+            and not isinstance(value, bool):
+        value = field.transform.fold(float(value))
     if field.enum and isinstance(value, str):
         value = enum_code(value, {c: ch.name for c, ch in field.enum.items()})
     elif field.flags and isinstance(value, list):
@@ -107,12 +110,19 @@ def field_words(field: Field, value: Value, current: Sequence[int] | None = None
 def unrounded(field: Field, words: Sequence[int]) -> Value:
     """The decoded value, a float at the precision its type carries (an f32 296.15 is
     296.15, not 296.1499938964844), before the field's ``precision``: what a ``scale_by``
-    ratio multiplies (0.0354 kWh x 200 is 7.08, not 0.04 x 200)."""
+    ratio multiplies (0.0354 kWh x 200 is 7.08, not 0.04 x 200); unfolded by the field's
+    ``decode:`` encoding when it has one (model.transforms)."""
     layout = field.layout
+    value: Value
     if layout.type is DataType.F32:  # decoded once: the stored float, at its own precision
         stored = short_f32(float(decode_raw(words, layout)))
-        return round(stored * layout.scale + layout.offset, 9) if layout.scaled else stored
-    return decode(words, layout)
+        value = round(stored * layout.scale + layout.offset, 9) if layout.scaled else stored
+    else:
+        value = decode(words, layout)
+    if field.transform is not None and isinstance(value, (int, float)) \
+            and not isinstance(value, bool):
+        return field.transform.unfold(float(value))
+    return value
 
 
 def _rounded(field: Field, words: tuple[int, ...]) -> Value:

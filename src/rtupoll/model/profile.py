@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from rtupoll.errors import UsageError
 from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, Layout
+from rtupoll.model.transforms import Transform
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 
@@ -115,6 +116,8 @@ class Field:
     # fields of the same device the value is multiplied by (a CT or VT ratio): the
     # registers hold the meter's terminal-side value (``model.scaling``)
     scale_by: tuple[str, ...] = ()
+    # a documented encoding the stored number is unfolded by (``decode:``, model.transforms)
+    transform: Transform | None = None
     line: int = 0
 
     @property
