@@ -253,8 +253,9 @@ def test_a_broker_restart_does_not_stop_polling(broker: Broker, polls: Callable[
                                                 tmp_path: Path) -> None:
     out = tmp_path / "readings.jsonl"
     sub = broker.subscribe("rtupoll/#")
-    run = polls("--simulate", "--format", "json", "-o", str(out), "--mqtt", broker.url,
-                "--log-format", "text", "--mqtt-id", "gw1")
+    # a scan every 0.3 s, not 1 s: the two scans without a broker come sooner
+    run = polls("--simulate", "--interval", "0.3", "--format", "json", "-o", str(out),
+                "--mqtt", broker.url, "--log-format", "text", "--mqtt-id", "gw1")
     sub.wait(state("rtupoll/gw1/huiwen-aq_3"))
     broker.stop()
     lines = len(out.read_text().splitlines())
