@@ -194,6 +194,15 @@ def console_errors(driver: Any) -> list[dict[str, Any]]:
             if e.get("level") == "SEVERE" and refused not in str(e.get("message"))]
 
 
+def repainted(driver: Any) -> None:
+    """Once the page has drawn two more frames (what a change of size or colour scheme
+    needs to be shown: style, layout, the resize handler, paint), not after a fixed time."""
+    driver.set_script_timeout(60)  # a guard against a hang, not a timing claim
+    driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "requestAnimationFrame(() => requestAnimationFrame(() => done(true)));")
+
+
 def color_scheme(driver: Any, scheme: str) -> None:
     driver.execute_cdp_cmd("Emulation.setEmulatedMedia", {
         "features": [{"name": "prefers-color-scheme", "value": scheme}]})

@@ -98,9 +98,16 @@ def run(tmp_path_factory: pytest.TempPathFactory
         broker.close()
 
 
+# state messages to collect of each device: a few scans (the SDM120's energy is read in
+# the first only); of the dead radar two: its first failed scan, and one after its first
+# backoff step (1 s), the same message again. Each further one is the same message after
+# a backoff twice as long (2 s, 4 s ...): it proves nothing the second does not.
+SCANS = {name: 2 if name == "tank" else 4 for name in DEVICES}
+
+
 def collect(sub: Subscriber, p: Poll) -> tuple[dict[str, Any], dict[str, list[str]]]:
-    for name in DEVICES:  # a few scans each: the SDM120's energy is read in the first only
-        for n in range(4):
+    for name in DEVICES:
+        for n in range(SCANS[name]):
             sub.wait(lambda m, name=name, n=n: m.topic == f"plant/{name}"
                      and len(sub.on(f"plant/{name}")) > n)
     for name in DEVICES:
@@ -121,7 +128,7 @@ def test_every_template_renders_against_every_state_message(
     seen_unknown_enum = seen_partial = seen_failed = seen_null_select = False
     for name in DEVICES:
         cfg = configs[name]
-        assert len(states[name]) >= 4
+        assert len(states[name]) >= SCANS[name]
         for payload in states[name]:
             status = json.loads(payload)["_rtupoll"]["status"]
             seen_partial |= status == "partial"

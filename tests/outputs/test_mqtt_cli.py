@@ -92,8 +92,8 @@ buses:
     devices:
       - {{name: air, profile: huiwen-aq, address: 3,
           fields: [co2, temperature, humidity, pm25, co2_level]}}
-      - {{name: gas, profile: net-irnet-pro, address: 1}}
-      - {{name: curtain, profile: banner-ez-array, address: 5,
+      - {{name: gas, profile: net-irnet-pro, address: 1, interval: 0.3}}
+      - {{name: curtain, profile: banner-ez-array, address: 5, interval: 0.3,
           fields: [measurement_1, measurement_1_mode]}}
 mqtt:
   url: {url}/plant
@@ -253,8 +253,9 @@ def test_a_broker_restart_does_not_stop_polling(broker: Broker, polls: Callable[
                                                 tmp_path: Path) -> None:
     out = tmp_path / "readings.jsonl"
     sub = broker.subscribe("rtupoll/#")
-    run = polls("--simulate", "--format", "json", "-o", str(out), "--mqtt", broker.url,
-                "--log-format", "text", "--mqtt-id", "gw1")
+    # a scan every 0.3 s, not 1 s: the two scans without a broker come sooner
+    run = polls("--simulate", "--interval", "0.3", "--format", "json", "-o", str(out),
+                "--mqtt", broker.url, "--log-format", "text", "--mqtt-id", "gw1")
     sub.wait(state("rtupoll/gw1/huiwen-aq_3"))
     broker.stop()
     lines = len(out.read_text().splitlines())
@@ -320,7 +321,8 @@ def test_discovery_follows_the_site_file_and_can_be_removed(
     gas = "homeassistant/device/rtupoll_plant_gas/config"
     assert broker.retained(gas) is not None
     # gas left the site file while the gateway was down: removed at start, others stay
-    smaller = SITE.replace("      - {{name: gas, profile: net-irnet-pro, address: 1}}\n", "")
+    smaller = SITE.replace("      - {{name: gas, profile: net-irnet-pro, address: 1, "
+                           "interval: 0.3}}\n", "")
     site = site_yaml(tmp_path, plant.port, broker.url, smaller)
     sub = broker.subscribe(gas)
     run = polls("-c", str(site))

@@ -39,6 +39,13 @@ def promtool(text: str) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=60)
 
 
+def transactions(text: str) -> float:
+    """The transactions of every bus, from a scrape."""
+    return sum(s.value for f in text_string_to_metric_families(text)
+               if f.name == "rtupoll_bus_transactions" for s in f.samples
+               if s.name.endswith("_total"))
+
+
 def scrape(port: int) -> str:
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as r:
         assert r.status == 200
@@ -122,8 +129,15 @@ def test_promtool_passes_on_every_profile_the_gateway_and_slow_fields(
             assert reply[7] in (3, 4) and len(reply) == 11, reply.hex()
         raw_read(serve[0], 200)  # a unit nobody has: timeout, counted too
         scrapes = [scrape(metrics)]
-        time.sleep(1)
-        scrapes.append(scrape(metrics))
+        # a second scrape once every bus has gone on (a scan's worth of transactions
+        # more), not after a fixed second
+        first = transactions(scrapes[0])
+        deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
+        while time.monotonic() < deadline:
+            scrapes[1:] = [scrape(metrics)]
+            if transactions(scrapes[1]) >= first + len(PROFILES):
+                break
+            time.sleep(0.1)
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)
@@ -210,6 +224,10 @@ def test_gateway_counters_per_host_survive_connections_leaving_the_list() -> Non
         assert len(fam.samples) == 6, fam.samples  # one host: one series per outcome
         return sum(s.value for s in fam.samples if s.labels["outcome"] == "answered")
 
+    def connected(text: str) -> float:
+        return sum(s.value for f in text_string_to_metric_families(text)
+                   if f.name == "rtupoll_gateway_clients" for s in f.samples)
+
     try:
         deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
         while time.monotonic() < deadline:
@@ -228,8 +246,12 @@ def test_gateway_counters_per_host_survive_connections_leaving_the_list() -> Non
             long.sendall(request)  # out of the gateway's list by now, still counting
             assert len(long.recv(260)) == 11
             seen.append(answered(scrape(metrics)))
-        time.sleep(0.5)  # the gateway sees the close
-        seen.append(answered(scrape(metrics)))
+        # once the gateway has seen the closes (no client connected), not after 0.5 s
+        deadline = time.monotonic() + 60  # a guard against a hang, not a timing claim
+        while (text := scrape(metrics)) and connected(text) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert connected(text) == 0, text
+        seen.append(answered(text))
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=30)

@@ -43,13 +43,19 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
             return [json.loads(x)["message"] for x in p.stderr().splitlines()
                     if x.startswith("{")]
 
-        def reload() -> list[str]:
-            before = len([m for m in log() if m.startswith("reload")])
+        def reloads() -> list[str]:
+            return [m for m in log() if m.startswith("reload")]
+
+        def reload(line: str, *, settle: bool = False) -> list[str]:
+            """SIGHUP; the reload's lines once ``line`` (the start of a line it must log)
+            is among them; with ``settle`` 0.3 s more, for a test that no line follows."""
+            before = len(reloads())
             p.proc.send_signal(signal.SIGHUP)
-            until(lambda: len([m for m in log() if m.startswith("reload")]) > before,
-                  "a reload line")
-            time.sleep(0.3)  # the reload's other lines
-            return [m for m in log() if m.startswith("reload")][before:]
+            until(lambda: any(m.startswith(line) for m in reloads()[before:]),
+                  f"the reload's line {line!r}")
+            if settle:
+                time.sleep(0.3)  # the reload's other lines, if it had any
+            return reloads()[before:]
 
         assert p.url == f"http://127.0.0.1:{first}/"
         assert get(p.url + "api/state")[0] == 401
@@ -60,7 +66,7 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
         before = Events(p.url, BASIC)
         assert next(iter(before))[0] == "state"
         site(path, bus.port, f"  listen: 127.0.0.1:{first}\n  token: {TOKEN}\n")
-        lines = reload()
+        lines = reload("reload: http: authentication changed")
         assert "reload: http: authentication changed" in lines, lines
         # the stream ends (open, reading it would fail on its 30 s socket timeout)
         assert set(e for e, _ in before) <= {"device", "buses", "ping"}
@@ -71,7 +77,7 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
 
         # a new address: bound, the old one closed, the open event stream goes on
         site(path, bus.port, f"  listen: 127.0.0.1:{second}\n  token: {TOKEN}\n")
-        lines = reload()
+        lines = reload("reload: http: dashboard on")
         assert (f"reload: http: dashboard on http://127.0.0.1:{second}/ "
                 f"(no longer http://127.0.0.1:{first}/)") in lines, lines
         assert not listening(first)
@@ -87,7 +93,7 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
             taken.listen()
             busy = taken.getsockname()[1]
             site(path, bus.port, f"  listen: 127.0.0.1:{busy}\n")
-            lines = reload()
+            lines = reload("reload refused", settle=True)
         assert len(lines) == 1 and lines[0].startswith(
             "reload refused, polling goes on unchanged: "), lines
         assert f"cannot listen on 127.0.0.1:{busy}" in lines[0]
@@ -97,7 +103,7 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
 
         # http: gone from the file: the dashboard stops listening; polling goes on
         site(path, bus.port, None)
-        lines = reload()
+        lines = reload("reload: http: no longer serving")
         assert (f"reload: http: no longer serving the dashboard on "
                 f"http://127.0.0.1:{second}/") in lines, lines
         assert not listening(second)
