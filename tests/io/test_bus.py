@@ -549,7 +549,9 @@ def test_bad_requests_are_refused_before_sending(peer: Responder) -> None:
 
 def test_pymodbus_stays_quiet(peer: Responder, capfd: pytest.CaptureFixture[str],
                               caplog: pytest.LogCaptureFixture) -> None:
-    peer.scripts = [lambda req, ok: [(0, b"\x00" + ok[:-1])]]
+    # a stray byte, then the reply with its CRC broken: garbled, known once it is in (a
+    # truncated one would be known only when the 2 s are up, and then drained as long)
+    peer.scripts = [lambda req, ok: [(0, b"\x00" + ok[:-1] + bytes([ok[-1] ^ 0xFF]))]]
     caplog.set_level(logging.DEBUG, logger="rtupoll")
 
     async def go() -> None:
