@@ -152,14 +152,14 @@ def test_an_address_another_model_reserves_on_the_bus_is_refused(
     # 0xCC is fine for a Huiwen module itself, but CO2Meter boards on the same bus would
     # stop working: refused unless the technician says no such board is there
     bus = sim("huiwen-aq@3", tick=None)
-    refused = CliRunner().invoke(cli, ["set-address", "-p", bus.port, "--yes", "huiwen-aq@3",
-                                       "0xCC"])
+    refused = CliRunner().invoke(cli, ["set-address", "-p", bus.port, *FAST, "--yes",
+                                       "huiwen-aq@3", "0xCC"])
     assert refused.exit_code == 8
     assert refused.stderr == ("rtupoll: huiwen-aq@3 -> 204: 204 (0xCC) is reserved by "
                               "co2meter-an117 devices (CO2Meter's proprietary protocol uses "
                               "it); --allow-reserved if no such device is on this bus\n")
     assert bus.addresses() == {"huiwen-aq@3": 3}
-    allowed = CliRunner().invoke(cli, ["set-address", "-p", bus.port, "--yes",
+    allowed = CliRunner().invoke(cli, ["set-address", "-p", bus.port, *FAST, "--yes",
                                        "--allow-reserved", "huiwen-aq@3", "0xCC"])
     assert allowed.exit_code == 0, allowed.stderr
     assert bus.addresses() == {"huiwen-aq@3": 204}
