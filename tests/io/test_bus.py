@@ -230,11 +230,18 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
 ])
 def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
                           error: type[Exception], match: str) -> None:
-    peer.scripts = [lambda req, ok: [(0, reply(ok))]]
+    peer.scripts = [lambda req, ok: [(0, reply(ok))]] * 2  # (the second if asked again)
 
     async def go() -> None:
         async with fast(peer.path) as bus:
-            await bus.read(1, Table.HOLDING, 10, 2, timeout=0.1)
+            try:
+                await bus.read(1, Table.HOLDING, 10, 2, timeout=0.1)
+            except DeviceTimeout as exc:
+                if not str(exc).endswith("within 0.1 s") or match == "within 0.1 s":
+                    raise
+                # nothing at all came in 0.1 s: a busy machine's responder thread was late
+                # (what the bytes are judged to be is asked of the bytes, once they come)
+                await bus.read(1, Table.HOLDING, 10, 2, timeout=2.0)
     with pytest.raises(error, match=match):
         run(go())
 
