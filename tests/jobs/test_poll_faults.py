@@ -108,8 +108,9 @@ def stream(port: str, *, until: Callable[[list[dict[str, Any]]], bool], limit: f
            ) -> tuple[list[dict[str, Any]], str, int]:
     """Poll the three devices as fast as possible until ``until(records)`` (or ``limit``
     seconds), then SIGINT. Returns the records, stderr and the exit status."""
-    p = PollProcess("--port", port, "--interval", "0", "--timeout", str(TIMEOUT),
-                    *(f"huiwen-aq@{u}" for u in UNITS))
+    # (the simulator answers at any speed: 115200 baud, the line's silences are shorter)
+    p = PollProcess("--port", port, "--baudrate", "115200", "--interval", "0", "--timeout",
+                    str(TIMEOUT), *(f"huiwen-aq@{u}" for u in UNITS))
     p.until(until, limit)
     stderr, code = p.stop()
     return p.records, stderr, code
