@@ -385,9 +385,7 @@ def test_scan_on_the_wire_asks_a_late_address_again(sim: Callable[..., Simulated
     from rtupoll.io.bus import Bus, PortSettings
     from rtupoll.jobs.scan import Found, Setting, presence_probes, sweep
 
-    # twice the margin late (a busy machine only makes it later); each identify question
-    # waits the turnaround, so no more of it than that
-    line = sim("huiwen-aq@5", baudrate=115200, turnaround=0.08)
+    line = sim("huiwen-aq@5", baudrate=9600, turnaround=0.15)
     profiles = sorted(load_library().profiles.values(), key=lambda p: p.id)
 
     @asynccontextmanager
@@ -396,7 +394,7 @@ def test_scan_on_the_wire_asks_a_late_address_again(sim: Callable[..., Simulated
             yield bus
 
     found: list[Found] = []
-    asyncio.run(sweep(open_bus, [Setting(115200)], [4, 5, 6], profiles, margin=0.04,
+    asyncio.run(sweep(open_bus, [Setting(9600)], [4, 5, 6], profiles, margin=0.04,
                       probes=presence_probes(profiles), found=found))
     assert [(f.address, f.profile.id if f.profile else None) for f in found] == \
         [(5, "huiwen-aq")]
