@@ -151,8 +151,10 @@ def test_port_vanishes_and_returns(sim: Sim, tmp_path: Path) -> None:
         seen: list[Any] = []
         async with Bus(PortSettings(link, baudrate=115200)) as bus:
             seen.append(await bus.read(5, Table.INPUT, 1, 1, timeout=0.2))
-            pending = asyncio.ensure_future(bus.read(6, Table.INPUT, 1, 1, timeout=0.2))
-            await asyncio.sleep(0.05)
+            pending = asyncio.ensure_future(bus.read(6, Table.INPUT, 1, 1, timeout=0.5))
+            while not any(w.direction == "in" and w.data[:1] == b"\x06" for w in first.wire):
+                await asyncio.sleep(0.005)  # until its request is out (0.05 s of sleep and
+                # a 0.2 s timeout: a busy machine unplugged it after the timeout)
             first.stop()  # unplugged while unit 6 is being waited for
             for attempt in (pending, bus.read(5, Table.INPUT, 1, 1, timeout=0.1)):
                 try:
