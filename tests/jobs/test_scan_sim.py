@@ -152,10 +152,11 @@ def test_ctrl_c_prints_what_was_found_so_far(sim: Sim) -> None:
 
 def test_progress_bar_only_on_a_terminal(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", baudrate=115200)
-    # (one address: the bar is drawn when it starts and when it stops; a silent address
-    # would only add its timeout and the wait for late answers)
-    args = [*RTUPOLL, "scan", "--port", bus.port, "--addresses", "1", "--baudrate",
+    args = [*RTUPOLL, "scan", "--port", bus.port, "--addresses", "1-30", "--baudrate",
             "115200", "--format", "json"]
+    # one address: the bar is drawn when it starts and when it stops; a silent address
+    # would only add its timeout and the wait for late answers (29 of them: 5 s)
+    args[args.index("--addresses") + 1] = "1"
     piped = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert piped.returncode == 0 and "\x1b[" not in piped.stderr
     master, slave = os.openpty()
