@@ -230,11 +230,18 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
 ])
 def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
                           error: type[Exception], match: str) -> None:
-    peer.scripts = [lambda req, ok: [(0, reply(ok))]]
+    peer.scripts = [lambda req, ok: [(0, reply(ok))]] * 2  # (the second if asked again)
 
     async def go() -> None:
         async with fast(peer.path) as bus:
-            await bus.read(1, Table.HOLDING, 10, 2, timeout=0.1)
+            try:
+                await bus.read(1, Table.HOLDING, 10, 2, timeout=0.1)
+            except DeviceTimeout as exc:
+                if not str(exc).endswith("within 0.1 s") or match == "within 0.1 s":
+                    raise
+                # nothing at all came in 0.1 s: a busy machine's responder thread was late
+                # (what the bytes are judged to be is asked of the bytes, once they come)
+                await bus.read(1, Table.HOLDING, 10, 2, timeout=2.0)
     with pytest.raises(error, match=match):
         run(go())
 
@@ -256,7 +263,7 @@ def test_retry_after_a_crc_error(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], Any]:
         async with fast(peer.path) as bus:
-            return await bus.read(1, Table.HOLDING, 5, 1, timeout=0.1, retries=1), bus.stats
+            return await bus.read(1, Table.HOLDING, 5, 1, timeout=ANSWERED, retries=1), bus.stats
     got, stats = run(go())
     assert got == values(5, 1)
     assert (stats.attempts, stats.retries, stats.outcomes["ok"]) == (2, 1, 1)
@@ -293,7 +300,7 @@ def test_late_reply_is_never_taken_for_the_next_answer(peer: Responder) -> None:
         async with fast(peer.path) as bus:
             with pytest.raises(DeviceTimeout):
                 await bus.read(1, Table.HOLDING, 0, 2, timeout=0.1)
-            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=0.1)
+            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)
             assert bus.late(1) + bus.unsolicited >= 1  # the late reply was heard and dropped
             return got
     assert run(go()) == values(100, 2)
@@ -317,7 +324,7 @@ def test_a_line_that_is_never_quiet_does_not_hold_the_bus_for_ever(peer: Respond
         async with fast(peer.path) as bus:
             with pytest.raises(DeviceTimeout):
                 await bus.read(9, Table.HOLDING, 0, 1, timeout=0.1)  # nobody at 9
-            return await asyncio.wait_for(bus.read(1, Table.HOLDING, 7, 1, timeout=0.1), 5)
+            return await asyncio.wait_for(bus.read(1, Table.HOLDING, 7, 1, timeout=ANSWERED), 5)
     try:
         assert run(go()) == values(7, 1)
     finally:
@@ -334,7 +341,7 @@ def test_without_drain_the_late_reply_is_still_recognised(peer: Responder) -> No
         async with fast(peer.path, drain=0.0) as bus:
             with pytest.raises(DeviceTimeout):
                 await bus.read(1, Table.HOLDING, 0, 2, timeout=0.1)
-            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=0.3)
+            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)
             return got, bus.late(1)
     assert run(go()) == (values(100, 2), 1)
 
@@ -345,8 +352,10 @@ def test_late_reply_to_a_retry_is_a_right_answer(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], tuple[int, ...]]:
         async with fast(peer.path) as bus:
-            first = await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05, retries=2)
-            second = await bus.read(1, Table.HOLDING, 8, 1, timeout=0.1)
+            # late for attempt 1 whatever the load; retries enough for a busy machine's
+            # responder thread (one failed with 2: 0.15 s); the next read is answered
+            first = await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05, retries=9)
+            second = await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
             return first, second
     assert run(go()) == (values(7, 1), values(8, 1))
 
@@ -549,7 +558,9 @@ def test_bad_requests_are_refused_before_sending(peer: Responder) -> None:
 
 def test_pymodbus_stays_quiet(peer: Responder, capfd: pytest.CaptureFixture[str],
                               caplog: pytest.LogCaptureFixture) -> None:
-    peer.scripts = [lambda req, ok: [(0, b"\x00" + ok[:-1])]]
+    # a stray byte, then the reply with its CRC broken: garbled, known once it is in (a
+    # truncated one would be known only when the 2 s are up, and then drained as long)
+    peer.scripts = [lambda req, ok: [(0, b"\x00" + ok[:-1] + bytes([ok[-1] ^ 0xFF]))]]
     caplog.set_level(logging.DEBUG, logger="rtupoll")
 
     async def go() -> None:

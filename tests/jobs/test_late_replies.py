@@ -4,7 +4,10 @@ read one field at a time (every reply has the same shape) and from a block-read
 device, with no retries and with the profile's; every value is pinned, so a reply
 given to the wrong request would show as another field's value.
 
-The real path: the scheduler, the pymodbus bus on a pty, the simulator.
+Every case runs in virtual time (tests/virtual.py: the scheduler, the line's rules and
+the simulator's engine, with late replies exactly as late as asked, whatever the
+machine's load); one runs the real path too: the scheduler, the pymodbus bus on a pty,
+the simulator.
 """
 
 from __future__ import annotations
@@ -13,8 +16,9 @@ import asyncio
 from collections.abc import Callable
 
 import pytest
+from virtual import simulated
 
-from rtupoll.config.site import from_specs
+from rtupoll.config.site import Site, from_specs
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.sim.runner import SimulatedBus
@@ -32,17 +36,27 @@ def late(k: float, n: int) -> str:
     return f"slow={(1 + k) * TIMEOUT:g}@{n}"
 
 
-def poll(sim: Callable[..., SimulatedBus], device: str, faults: list[str], retries: int | None,
-         scans: int) -> tuple[list[Reading], DevicePoller]:
-    bus = sim(device, faults=faults, seed=3, turnaround=0.002, tick=None)
+def poll(sim: Callable[..., SimulatedBus] | None, device: str, faults: list[str],
+         retries: int | None, scans: int) -> tuple[list[Reading], DevicePoller]:
+    """``scans`` scans of ``device`` with ``faults``: on a pty against the simulator
+    (``sim``), or in virtual time (``sim`` None)."""
     unit = int(device.split("@")[1])
-    for name, value in DEVICES[device].items():
-        bus.set(unit, name, value)
     profile, _, address = device.partition("@")
-    site = from_specs(bus.port, [(profile, int(address))], baudrate=9600,
-                      fields=list(DEVICES[device]), timeout=TIMEOUT, retries=retries,
-                      check_serial=False)
-    scheduler = Scheduler(site)
+
+    def site(port: str) -> Site:
+        return from_specs(port, [(profile, int(address))], baudrate=9600,
+                          fields=list(DEVICES[device]), timeout=TIMEOUT, retries=retries,
+                          check_serial=False)
+    if sim is None:
+        virtual, clock = simulated([device], faults, seed=3, turnaround=0.002, baudrate=9600)
+        for name, value in DEVICES[device].items():
+            virtual.engine.device(unit).pin(name, value)
+        scheduler = Scheduler(site("virtual"), open_bus=lambda _: virtual, clock=clock)
+    else:
+        bus = sim(device, faults=faults, seed=3, turnaround=0.002, tick=None)
+        for name, value in DEVICES[device].items():
+            bus.set(unit, name, value)
+        scheduler = Scheduler(site(bus.port))
     readings: list[Reading] = []
 
     async def go() -> None:
@@ -65,20 +79,32 @@ def check(readings: list[Reading], device: str) -> int:
     return sum(r.value is not None for r in readings)
 
 
+LATE_BY_1_2_3_AND_10 = [late(1, 3), late(2, 9), late(3, 15), late(10, 21)]
+
+
 @pytest.mark.parametrize("retries", [0, None], ids=["retries-0", "profile-retries"])
 @pytest.mark.parametrize("device", list(DEVICES))
-def test_replies_late_by_1_2_3_and_10_timeouts(sim: Callable[..., SimulatedBus], device: str,
-                                              retries: int | None) -> None:
-    faults = [late(1, 3), late(2, 9), late(3, 15), late(10, 21)]
-    readings, poller = poll(sim, device, faults, retries, scans=SCANS[device])
+def test_replies_late_by_1_2_3_and_10_timeouts(device: str, retries: int | None) -> None:
+    readings, poller = poll(None, device, LATE_BY_1_2_3_AND_10, retries,
+                            scans=SCANS[device])
     ok = check(readings, device)
     assert ok >= len(readings) // 2  # it kept reading, not just refusing
     assert poller.stats.late >= 3  # the late replies were heard and counted as such
 
 
+def test_on_the_wire_replies_late_by_1_2_3_and_10_timeouts(
+        sim: Callable[..., SimulatedBus]) -> None:
+    """The real path, for the device whose replies all have the same shape."""
+    readings, poller = poll(sim, "radar-level@2", LATE_BY_1_2_3_AND_10, 0,
+                            scans=SCANS["radar-level@2"])
+    ok = check(readings, "radar-level@2")
+    assert ok >= len(readings) // 2
+    assert poller.stats.late >= 3
+
+
 @pytest.mark.parametrize("device", list(DEVICES))
-def test_replies_late_at_random(sim: Callable[..., SimulatedBus], device: str) -> None:
-    readings, poller = poll(sim, device, [f"slow={2.5 * TIMEOUT:g}@25%"], 0,
+def test_replies_late_at_random(device: str) -> None:
+    readings, poller = poll(None, device, [f"slow={2.5 * TIMEOUT:g}@25%"], 0,
                             scans=2 * SCANS[device])
     ok = check(readings, device)
     assert ok > 0

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from virtual import START, simulated
 
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
@@ -115,17 +116,21 @@ async def scans_logged(scheduler: Scheduler, scans: int) -> None:
 
 
 def test_a_device_failing_every_scan_is_logged_on_change_only(
-        sim: Callable[..., SimulatedBus], caplog: pytest.LogCaptureFixture) -> None:
-    bus = sim("huiwen-aq@3", faults=["3:dead@3-6"])  # one read per cycle: 2 good, 4 dead
-    # the answered reads must beat the timeout on a real pty: 0.5 s, not 0.05 s (a busy
-    # machine's simulator thread answered later than 50 ms); the 4 dead ones wait it out
-    site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["co2"], timeout=0.5, retries=0)
-    scheduler = Scheduler(site)
+        caplog: pytest.LogCaptureFixture) -> None:
+    # in virtual time (tests/virtual.py): the 4 dead cycles cost their timeouts on the
+    # virtual clock, not 4 s of waiting (the logging on the real path: the gateway above,
+    # the late replies below)
+    bus, clock = simulated(["huiwen-aq@3"], ["3:dead@3-6"])  # one read per cycle: 2 good,
+    # 4 dead
+    site = from_specs("virtual", [("huiwen-aq", 3)], fields=["co2"], timeout=0.5, retries=0,
+                      check_serial=False)
+    scheduler = Scheduler(site, open_bus=lambda _: bus, clock=clock)
     with caplog.at_level(logging.INFO, logger="rtupoll"):
         asyncio.run(scans_logged(scheduler, 9))
+    assert clock.now - START >= 4 * 0.5  # the dead cycles were waited out (virtually)
     device = [r for r in caplog.records if getattr(r, "event", "") == "device"]
     assert [r.levelname for r in device] == ["WARNING", "INFO"]
-    assert device[0].getMessage().startswith(f"huiwen-aq@3 on {bus.port}: timeout: no reply")
+    assert device[0].getMessage().startswith("huiwen-aq@3 on virtual: timeout: no reply")
     assert "answering again (timeout for" in device[1].getMessage()
     assert device[1].getMessage().endswith(", 4 cycles)")
     line = json.loads(JsonFormatter().format(device[0]))

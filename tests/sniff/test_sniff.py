@@ -268,12 +268,16 @@ def test_on_a_terminal_the_default_is_the_live_table(sim: Sim, tmp_path: Path) -
     proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "huiwen-aq@3",
                              "--duration", "3"], stdin=slave, stdout=slave, stderr=slave)
     out, asked, t0 = b"", False, time.monotonic()
+    stopped = False
     try:
         while proc.poll() is None and time.monotonic() - t0 < 20:
             if not asked and b"req/s" in out:  # the table is up: the port is open
                 co2 = profile("huiwen-aq").field("co2")
                 mbpoll(bus.port, 3, co2.table, co2.address, 1)
                 asked = True
+            if asked and not stopped and b"1234" in out:  # shown: Ctrl-C, not the duration
+                proc.send_signal(signal.SIGINT)
+                stopped = True
             if select.select([master], [], [], 0.1)[0]:
                 out += os.read(master, 65536)
     finally:
