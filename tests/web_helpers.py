@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from forked_cli import rtupoll_popen
 
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 ADDRESS = re.compile(r"on (http://[^\s]+/)")
@@ -31,7 +32,7 @@ class Proc:
     def __init__(self, args: list[str], tmp: Path, *, name: str = "rtupoll") -> None:
         self.err_path = tmp / f"{name}.stderr"
         self._err = self.err_path.open("w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "rtupoll", *args],
+        self.proc = rtupoll_popen([sys.executable, "-m", "rtupoll", *args],
                                      stdout=subprocess.DEVNULL, stderr=self._err)
         self.url = ""
 

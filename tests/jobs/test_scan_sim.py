@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 from cli_runner import rtupoll
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen, rtupoll_run
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_library
@@ -133,7 +134,7 @@ def test_the_written_site_file_loads_and_polls(sim: Sim, tmp_path: Path) -> None
 
 def test_ctrl_c_prints_what_was_found_so_far(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", baudrate=4800)
-    proc = subprocess.Popen([*RTUPOLL, "scan", "--port", bus.port, "--baudrate", "4800",
+    proc = rtupoll_popen([*RTUPOLL, "scan", "--port", bus.port, "--baudrate", "4800",
                              "--format", "json", *PATIENT], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # (identified: see PATIENT)
     deadline = time.monotonic() + 20
@@ -151,11 +152,11 @@ def test_progress_bar_only_on_a_terminal(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", baudrate=115200)
     args = [*RTUPOLL, "scan", "--port", bus.port, "--addresses", "1-30", "--baudrate",
             "115200", "--format", "json"]
-    piped = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    piped = rtupoll_run(args, capture_output=True, text=True, timeout=60)
     assert piped.returncode == 0 and "\x1b[" not in piped.stderr
     master, slave = os.openpty()
     env = {**os.environ, "COLUMNS": "120", "TERM": "xterm"}
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=slave, env=env)
+    proc = rtupoll_popen(args, stdout=subprocess.PIPE, stderr=slave, env=env)
     os.close(slave)
     out, _ = proc.communicate(timeout=60)
     seen = b""
