@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from rtupoll.cli import interrupt_lost
 from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
@@ -119,6 +120,8 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
+        stop.set()
     try:
         lines.start()
         try:
