@@ -35,7 +35,8 @@ process starts one (``subprocess.Popen``): start-up imports (tests/cli/test_*_im
 an early Ctrl-C, packaging; ``test_a_forked_command_is_a_fresh_one`` in
 tests/project/test_docs_examples.py compares the two. Variables that set up the
 interpreter itself (``PYTHON*``) are the server's: a command given other ones starts
-fresh. Without pidfds (not Linux) every command starts fresh.
+fresh. Without pidfds (not Linux), or with ``RTUPOLL_TEST_FRESH=1`` (the whole suite
+as it was: every command a new interpreter), every command starts fresh.
 """
 
 from __future__ import annotations
@@ -153,7 +154,7 @@ def rtupoll_run(args: Sequence[str], *, input: str | bytes | None = None,
 
 
 def _forkable(env: Mapping[str, str] | None) -> bool:
-    if not hasattr(os, "pidfd_open"):
+    if not hasattr(os, "pidfd_open") or os.environ.get("RTUPOLL_TEST_FRESH") == "1":
         return False
     if env is None:
         return True

@@ -13,7 +13,6 @@ import time
 from collections.abc import Callable
 
 import pytest
-from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import free_port
@@ -35,7 +34,7 @@ def test_serve_on_the_ipv6_any_address_answers_ipv4_and_ipv6_clients(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
     port = free_port()
-    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
+    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
                              "--baudrate", "9600", "--format", "json", "huiwen-aq@3",
                              "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)

@@ -134,7 +134,7 @@ def test_the_written_site_file_loads_and_polls(sim: Sim, tmp_path: Path) -> None
 
 def test_ctrl_c_prints_what_was_found_so_far(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", baudrate=4800)
-    proc = rtupoll_popen([*RTUPOLL, "scan", "--port", bus.port, "--baudrate", "4800",
+    proc = subprocess.Popen([*RTUPOLL, "scan", "--port", bus.port, "--baudrate", "4800",
                              "--format", "json", *PATIENT], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # (identified: see PATIENT)
     deadline = time.monotonic() + 20

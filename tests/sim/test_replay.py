@@ -86,7 +86,7 @@ def test_a_replayed_capture_answers_mbpoll_with_the_captured_values(tmp_path: Pa
                          (BLOCK, read_response(3, 4, [25, 50, 250, 650]), 0.02),
                          (read_request(3, Table.INPUT, 30100, 1), exception_response(3, 4, 2),
                           0.02)])
-    proc = rtupoll_popen([RTUPOLL, "simulate", "--replay", str(path)],
+    proc = subprocess.Popen([RTUPOLL, "simulate", "--replay", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
