@@ -91,7 +91,8 @@ class Forked(subprocess.Popen[Any]):
                 dict(os.environ if env is None else env), fds)
             self._child_created = True
         finally:
-            self._close_pipe_fds(p2cread, p2cwrite, c2pread, c2pwrite, errread, errwrite)
+            self._close_pipe_fds(  # type: ignore[attr-defined]  # (CPython 3.11-3.13)
+                p2cread, p2cwrite, c2pread, c2pwrite, errread, errwrite)
 
     def _internal_poll(self, _deadstate: int | None = None, *_: Any) -> int | None:
         if self.returncode is None:
