@@ -18,9 +18,11 @@ files' contents) and the unverified profiles already warned about (once a proces
 tests/cli/test_cli_runner.py proves two runs do not leak into each other.
 
 Standard input, output and error are not terminals (as in a subprocess with pipes).
-What needs a process stays a subprocess (``rtupoll_process``, the same arguments): a
-signal from outside, a terminal, a closed or full descriptor, imports at start-up, the
-process's own exit; tests keep at least one of those per command and per fault family.
+What needs a process stays a process (``rtupoll_process``, the same arguments; forked
+from a server that imported rtupoll once, tests/forked_cli.py, or ``fresh=True``): a
+signal from outside, a terminal, a closed or full descriptor, the process's own exit;
+imports at start-up and an early Ctrl-C need a fresh one. Tests keep at least one of
+those per command and per fault family.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from click.testing import CliRunner
+from forked_cli import rtupoll_run
 
 # imported once, here: under ``python -m pytest`` importing it sets the early-signal
 # handler of the console script (rtupoll/cli/__init__.py), which is then the process's
@@ -150,8 +153,10 @@ def rtupoll(*args: str, input: str | bytes | None = None,
                stderr.decode("utf-8", "replace"), cpu)
 
 
-def rtupoll_process(*args: str, timeout: float = 60, **kw: Any
+def rtupoll_process(*args: str, timeout: float = 60, fresh: bool = False, **kw: Any
                     ) -> subprocess.CompletedProcess[str]:
-    """Run ``rtupoll ARGS`` as a new process (the console script), output captured."""
-    return subprocess.run([RTUPOLL, *args], capture_output=True, text=True, timeout=timeout,
-                          **kw)
+    """Run ``rtupoll ARGS`` as a process of its own (the console script), output
+    captured: forked from the test process's fork server (tests/forked_cli.py), or
+    (``fresh``) a new interpreter, start-up and imports included."""
+    run = subprocess.run if fresh else rtupoll_run
+    return run([RTUPOLL, *args], capture_output=True, text=True, timeout=timeout, **kw)

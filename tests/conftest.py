@@ -41,6 +41,7 @@ import pytest
 # hypothesis runs the "hypothesis" entry points of every installed package when imported:
 # trio's (installed for selenium) imports trio, a fifth of a second in every process
 os.environ.setdefault("HYPOTHESIS_NO_PLUGINS", "1")
+from forked_cli import close_server
 from hypothesis import settings
 
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
@@ -81,6 +82,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if unsaid:
         raise pytest.UsageError("tests marked timing in files that do not say 'mark.timing' "
                                 "(-m timing would not run them): " + ", ".join(unsaid))
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """The fork server of this process (tests/forked_cli.py), if a test started it, ends
+    with the session, and with it what its children left running."""
+    close_server()
 
 
 @pytest.fixture(scope="session")

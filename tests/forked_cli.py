@@ -1,28 +1,42 @@
 """Run ``rtupoll ARGS`` in a process of its own, forked from one that has imported
 rtupoll already (a fork server), instead of a fresh interpreter each time.
 
-A fresh ``rtupoll`` spends 0.1-0.3 CPU-s starting Python and importing rtupoll and its
-libraries before it does anything; a test that runs many commands (the documents'
-examples) pays that each time. Here a server process, started once, imports every
-rtupoll module and then forks a child per command. The child is what a fresh
-``rtupoll`` started by a shell would be: a process of its own in a session of its own
-(``killpg(pid, SIGINT)`` is a Ctrl-C), the given stdin, stdout and stderr on fds 0-2
-(``sys.stdout.isatty()`` is that of the new stdout, line-buffered on a terminal), the
-given working directory, environment and ``sys.argv``, Python's own signal handlers,
-and then the console script's two lines: ``sys.exit(main())``, with the interpreter's
-normal exit after it (atexit, the threads, an uncaught KeyboardInterrupt ending it by
-SIGINT). Its exit status and CPU time come back from the server, which waits for it.
+A fresh ``rtupoll`` spends 0.15-0.3 CPU-s starting Python and importing rtupoll and its
+libraries before it does anything; a forked one about 0.01. Here a server process,
+started once per test process (``shared_server()``, ended at the end of the session), imports
+every rtupoll module and then forks a child per command. The child is what a fresh
+``rtupoll`` started by ``subprocess.Popen`` would be:
 
-What it does not show: that a fresh process can import what the command imports (the
-server imported it all first). The CLI tests that start ``rtupoll`` itself
-(tests/cli/test_*_imports.py among them) do; ``test_a_forked_command_is_a_fresh_one``
-in tests/project/test_docs_examples.py compares the two on a few commands.
+- a process and session of its own (``killpg(pid, SIGINT)`` is a Ctrl-C; a test need not
+  ask for ``start_new_session``), with the given stdin, stdout and stderr on fds 0-2
+  (``sys.stdout.isatty()`` is that of the new stdout, line-buffered on a terminal), the
+  given working directory, environment, ``sys.argv`` and ``sys.path[0]``;
+- the signal state of a fresh interpreter that has imported ``rtupoll.cli``: every
+  handler as exec and Python's start-up leave it (ignored where the test process ignores
+  it, else the default; SIGPIPE and SIGXFSZ ignored; SIGINT and SIGTERM rtupoll's early
+  handler, one line and exit 130), the test thread's signal mask, no wakeup fd. The
+  server blocks every signal across the fork, and the child unblocks them only once it
+  is set up, so a signal sent at once (a Ctrl-C right after the start) is handled as a
+  fresh process handles it, never lost nor taken by the server's handlers; the server
+  says "started" only once the child has its own session, so ``killpg`` finds it;
+- then what ``python -m rtupoll`` (``runpy``) or the console script (``sys.exit(main())``)
+  does, with the interpreter's normal exit after it (atexit, the threads, an uncaught
+  KeyboardInterrupt ending it by SIGINT). Its exit status and CPU time come back from the
+  server, which waits for it.
 
-Usage::
+``rtupoll_popen(args, ...)`` is ``subprocess.Popen`` for such a command (``args``:
+``[sys.executable, "-m", "rtupoll", ...]`` or the console script's path first); pipes,
+``communicate``, ``wait``, ``poll``, ``send_signal``, ``terminate``, ``kill``, ``pid``,
+``returncode`` work as there. ``rtupoll_run`` is ``subprocess.run`` for one.
 
-    with ForkServer(env) as server:
-        proc = server.spawn(["rtupoll", "read", ...], cwd, env, stdin, stdout, stderr)
-        proc.wait(timeout=60)  # or proc.poll(); proc.returncode, proc.cpu
+What it does not show: that a fresh process can import what the command imports, and
+what Python does before ``main`` (the server did that once). What is about a fresh
+process starts one (``subprocess.Popen``): start-up imports (tests/cli/test_*_imports.py),
+an early Ctrl-C, packaging; ``test_a_forked_command_is_a_fresh_one`` in
+tests/project/test_docs_examples.py compares the two. Variables that set up the
+interpreter itself (``PYTHON*``) are the server's: a command given other ones starts
+fresh. Without pidfds (not Linux), or with ``RTUPOLL_TEST_FRESH=1`` (the whole suite
+as it was: every command a new interpreter), every command starts fresh.
 """
 
 from __future__ import annotations
@@ -37,41 +51,142 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 _MESSAGE = 1 << 20
+RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))  # the console script
+# every signal a handler can be set for (SIGKILL and SIGSTOP cannot have one)
+_SIGNALS = sorted(s for s in signal.valid_signals() if s not in (signal.SIGKILL, signal.SIGSTOP))
+FORKED_CPU = [0.0]  # CPU seconds of the forked commands of this process that have ended
 
 
-class Forked:
-    """A command the server forked: the part of ``subprocess.Popen`` a runner uses."""
+class Forked(subprocess.Popen[Any]):
+    """``subprocess.Popen`` whose child the fork server forks instead of an exec: the same
+    pipes, text mode, ``communicate``, ``wait``, ``poll`` and signals; ``cpu`` is the
+    child's CPU seconds once it has ended."""
 
-    def __init__(self, server: ForkServer, pid: int) -> None:
-        self._server = server
-        self.pid = pid
-        self.returncode: int | None = None
-        self.cpu = 0.0  # its CPU seconds (user + system), once it has ended
+    cpu = 0.0
 
-    def poll(self) -> int | None:
+    def __init__(self, args: Sequence[str], *, server: ForkServer | None = None,
+                 **kw: Any) -> None:
+        self._server = server or shared_server()
+        super().__init__(list(args), **kw)
+
+    def _execute_child(self, args: list[str], executable: Any, preexec_fn: Any,
+                       close_fds: bool, pass_fds: Sequence[int], cwd: Any,
+                       env: Mapping[str, str] | None, startupinfo: Any, creationflags: int,
+                       shell: bool, p2cread: int, p2cwrite: int, c2pread: int,
+                       c2pwrite: int, errread: int, errwrite: int, *rest: Any) -> None:
+        if executable is not None or preexec_fn is not None or shell or pass_fds:
+            raise ValueError("a forked rtupoll takes args, stdio, cwd and env only")
+        fds = [fd if fd != -1 else n for n, fd in enumerate((p2cread, c2pwrite, errwrite))]
+        try:
+            self.pid = self._server.fork(
+                args, os.fspath(cwd) if cwd is not None else os.getcwd(),
+                dict(os.environ if env is None else env), fds)
+            self._child_created = True
+        finally:
+            self._close_pipe_fds(  # type: ignore[attr-defined]  # (CPython 3.11-3.13)
+                p2cread, p2cwrite, c2pread, c2pwrite, errread, errwrite)
+
+    def _internal_poll(self, _deadstate: int | None = None, *_: Any) -> int | None:
         if self.returncode is None:
-            self._server._collect(0.0)
+            try:
+                self._server.collect(0.0)
+            except OSError:  # the server is gone (the session's end)
+                if _deadstate is not None:
+                    self.returncode = _deadstate
+            self._take()
         return self.returncode
 
-    def wait(self, timeout: float | None = None) -> int:
+    def _wait(self, timeout: float | None) -> int:
         deadline = None if timeout is None else time.monotonic() + timeout
-        while self.returncode is None:
+        while self._take() is None:
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
-                raise subprocess.TimeoutExpired(str(self.pid), timeout or 0.0)
-            self._server._collect(left)
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+            self._server.collect(left)
+        assert self.returncode is not None
         return self.returncode
+
+    def _take(self) -> int | None:
+        if self.returncode is None:
+            ended = self._server.ended(self.pid)
+            if ended is not None:
+                self.returncode, self.cpu = ended
+                FORKED_CPU[0] += self.cpu
+        return self.returncode
+
+
+def rtupoll_popen(args: Sequence[str], **kw: Any) -> subprocess.Popen[Any]:
+    """``subprocess.Popen(args, **kw)`` for ``[sys.executable, "-m", "rtupoll", ...]`` or
+    ``[RTUPOLL, ...]``, forked from this process's server (module docstring); a fresh
+    process where the server cannot stand in (no pidfd, other ``PYTHON*`` variables)."""
+    if not _forkable(kw.get("env")):
+        return subprocess.Popen(list(args), **kw)
+    return Forked(args, **kw)
+
+
+def rtupoll_run(args: Sequence[str], *, input: str | bytes | None = None,
+                capture_output: bool = False, timeout: float | None = None,
+                check: bool = False, **kw: Any) -> subprocess.CompletedProcess[Any]:
+    """``subprocess.run`` with ``rtupoll_popen``."""
+    if input is not None:
+        kw["stdin"] = subprocess.PIPE
+    if capture_output:
+        kw["stdout"] = kw["stderr"] = subprocess.PIPE
+    with rtupoll_popen(args, **kw) as proc:
+        try:
+            out, err = proc.communicate(input, timeout=timeout)
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+        code = proc.poll()
+        assert code is not None
+    if check and code:
+        raise subprocess.CalledProcessError(code, proc.args, out, err)
+    return subprocess.CompletedProcess(proc.args, code, out, err)
+
+
+def _forkable(env: Mapping[str, str] | None) -> bool:
+    if not hasattr(os, "pidfd_open") or os.environ.get("RTUPOLL_TEST_FRESH") == "1":
+        return False
+    if env is None:
+        return True
+    mine = {k: v for k, v in os.environ.items() if k.startswith("PYTHON")}
+    return {k: v for k, v in env.items() if k.startswith("PYTHON")} == mine
+
+
+_SERVER: list[ForkServer] = []
+_SERVER_LOCK = threading.Lock()
+
+
+def shared_server() -> ForkServer:
+    """This process's fork server, started on first use (``close_server`` ends it)."""
+    with _SERVER_LOCK:
+        if not _SERVER or _SERVER[0].closed:
+            _SERVER[:] = [ForkServer(dict(os.environ))]
+        return _SERVER[0]
+
+
+def close_server() -> None:
+    """End this process's fork server, if it started one (its CPU then counts in this
+    process's children)."""
+    with _SERVER_LOCK:
+        for server in _SERVER:
+            server.close()
+        _SERVER.clear()
 
 
 class ForkServer:
-    """One server process; ``spawn`` forks a command from it. Close it (``with``) to
-    end the server (its CPU then counts in this process's children)."""
+    """One server process; ``fork`` forks a command from it. Safe to share between
+    threads. Close it (``with``) to end the server and what still runs of its children."""
 
     def __init__(self, env: dict[str, str]) -> None:
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -79,45 +194,88 @@ class ForkServer:
             [sys.executable, __file__, str(theirs.fileno())], env=env, pass_fds=[theirs.fileno()],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         theirs.close()
-        self._children: dict[int, Forked] = {}
-        ready = self._receive(None)
-        if ready.get("ready") is not True:
+        self.closed = False
+        self._lock = threading.Condition()
+        self._reading = False  # a thread is reading the socket (the others wait for it)
+        self._sending = threading.Lock()
+        self._next = 0
+        self._started: dict[int, int | str] = {}  # request -> pid (or why not)
+        self._ended: dict[int, tuple[int, float]] = {}  # pid -> (status, CPU-s)
+        with self._sending:
+            ready = self._read(None)
+        if not ready or ready[0].get("ready") is not True:
             raise RuntimeError(f"the fork server did not start: {ready}")
 
     def spawn(self, argv: list[str], cwd: Path | str, env: dict[str, str],
               stdin: int, stdout: int, stderr: int) -> Forked:
-        """Fork ``argv`` (``["rtupoll", ...]``) with these fds as its 0, 1 and 2."""
-        request = json.dumps({"argv": argv, "cwd": str(cwd), "env": env}).encode()
-        socket.send_fds(self._sock, [request], [stdin, stdout, stderr])
-        reply = self._receive(None)
-        while "started" not in reply:  # (an earlier child's end)
-            self._ended(reply)
-            reply = self._receive(None)
-        proc = Forked(self, reply["started"])
-        self._children[proc.pid] = proc
-        return proc
+        """Fork ``argv`` (the console script's path first) with these fds as its 0-2."""
+        return Forked(argv, server=self, cwd=cwd, env=env, stdin=stdin, stdout=stdout,
+                      stderr=stderr)
 
-    def _receive(self, timeout: float | None) -> dict[str, Any]:
-        if not select.select([self._sock], [], [], timeout)[0]:
-            return {}
-        data = self._sock.recv(_MESSAGE)
-        if not data:
-            raise RuntimeError(f"the fork server ended (status {self._proc.wait()})")
-        message: dict[str, Any] = json.loads(data)
-        return message
+    def fork(self, args: list[str], cwd: str, env: dict[str, str], fds: list[int]) -> int:
+        """Start ``args`` with ``fds`` as its 0, 1 and 2; its pid."""
+        if args[1:3] == ["-m", "rtupoll"] and Path(args[0]).name.startswith("python"):
+            how, argv = "module", ["-m", *args[3:]]
+        elif Path(args[0]).name == "rtupoll":
+            how, argv = "script", [str(a) for a in args]
+        else:
+            raise ValueError(f"not an rtupoll command: {args}")
+        ignored = [s for s in _SIGNALS if signal.getsignal(s) == signal.SIG_IGN]
+        mask = sorted(signal.pthread_sigmask(signal.SIG_BLOCK, []))
+        with self._sending:
+            self._next += 1
+            request = self._next
+            message = {"id": request, "how": how, "argv": argv, "cwd": cwd, "env": env,
+                       "ignored": ignored, "mask": mask}
+            socket.send_fds(self._sock, [json.dumps(message).encode()], fds)
+        while request not in self._started:
+            self.collect(None)
+        started = self._started.pop(request)
+        if isinstance(started, str):
+            raise OSError(started)
+        return started
 
-    def _collect(self, timeout: float | None) -> None:
-        """Take in the children's ends that have come (waiting up to ``timeout``)."""
-        message = self._receive(timeout)
-        while message:
-            self._ended(message)
-            message = self._receive(0.0)
+    def ended(self, pid: int) -> tuple[int, float] | None:
+        """The (exit status, CPU-s) of a child that has ended, taken once."""
+        with self._lock:
+            return self._ended.pop(pid, None)
 
-    def _ended(self, message: dict[str, Any]) -> None:
-        proc = self._children.pop(message["ended"])
-        proc.returncode, proc.cpu = message["status"], message["cpu"]
+    def collect(self, timeout: float | None) -> None:
+        """Take in what the server said, waiting up to ``timeout`` for a word (while
+        another thread reads, wait for it instead)."""
+        with self._lock:
+            if self._reading:
+                self._lock.wait(timeout)
+                return
+            self._reading = True
+        messages: list[dict[str, Any]] = []
+        try:
+            messages = self._read(timeout)
+        finally:
+            with self._lock:
+                self._reading = False
+                for message in messages:
+                    if "started" in message:
+                        self._started[message["id"]] = message["started"]
+                    else:
+                        self._ended[message["ended"]] = (message["status"], message["cpu"])
+                self._lock.notify_all()
+
+    def _read(self, timeout: float | None) -> list[dict[str, Any]]:
+        if self.closed:
+            raise OSError("the fork server is closed")
+        out: list[dict[str, Any]] = []
+        while select.select([self._sock], [], [], timeout if not out else 0.0)[0]:
+            data = self._sock.recv(_MESSAGE)
+            if not data:
+                raise RuntimeError(f"the fork server ended (status {self._proc.wait()})")
+            out.append(json.loads(data))
+        return out
 
     def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
         self._sock.close()  # the server sees the end, ends what is left of its children
         try:
             self._proc.wait(timeout=60)
@@ -150,39 +308,81 @@ def _serve(sock: socket.socket) -> tuple[dict[str, Any], list[int]] | None:
     """Fork a child per request until the client closes; in a child, return its
     request (the child goes on to run it), in the server None at the end."""
     children: dict[int, int] = {}  # pidfd -> pid
-    while True:
-        ready: list[int] = select.select([sock.fileno(), *children], [], [])[0]
-        for fd in ready:
-            if fd == sock.fileno():
+    try:
+        while True:
+            ready: list[int] = select.select([sock.fileno(), *children], [], [])[0]
+            for fd in ready:
+                if fd != sock.fileno():
+                    pid = children.pop(fd)
+                    os.close(fd)
+                    _, status, usage = os.wait4(pid, 0)
+                    sock.send(json.dumps({
+                        "ended": pid, "status": os.waitstatus_to_exitcode(status),
+                        "cpu": usage.ru_utime + usage.ru_stime}).encode())
+                    continue
                 data, fds, _, _ = socket.recv_fds(sock, _MESSAGE, 3)
                 if not data:  # the client is done: what still runs is left over
-                    for pidfd, pid in children.items():
-                        with contextlib.suppress(ProcessLookupError):
-                            os.killpg(pid, signal.SIGKILL)
-                        os.waitpid(pid, 0)
-                        os.close(pidfd)
                     return None
-                pid = os.fork()
-                if pid == 0:
-                    sock.close()
-                    for pidfd in children:
-                        os.close(pidfd)
-                    return json.loads(data), fds
-                for received in fds:
-                    os.close(received)
-                children[os.pidfd_open(pid)] = pid
-                sock.send(json.dumps({"started": pid}).encode())
-            else:
-                pid = children.pop(fd)
-                os.close(fd)
-                _, status, usage = os.wait4(pid, 0)
-                sock.send(json.dumps({"ended": pid, "status": os.waitstatus_to_exitcode(status),
-                                      "cpu": usage.ru_utime + usage.ru_stime}).encode())
+                request = json.loads(data)
+                job = _fork(sock, request, fds, children)
+                if job is not None:
+                    return job
+    finally:
+        if os.getpid() == _SERVER_PID:
+            for pidfd, pid in children.items():
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(pid, signal.SIGKILL)
+                with contextlib.suppress(ChildProcessError):
+                    os.waitpid(pid, 0)
+                os.close(pidfd)
+
+
+def _fork(sock: socket.socket, request: dict[str, Any], fds: list[int],
+          children: dict[int, int]) -> tuple[dict[str, Any], list[int]] | None:
+    """Fork the child of ``request``: in the child, its job; in the server None, once the
+    child has its own session (then ``started``)."""
+    assert threading.active_count() == 1, "the fork server must stay one thread"
+    settled, said = os.pipe()
+    everything = signal.pthread_sigmask(signal.SIG_BLOCK, signal.valid_signals())
+    try:
+        pid = os.fork()
+    except OSError as error:
+        signal.pthread_sigmask(signal.SIG_SETMASK, everything)
+        for fd in (*fds, settled, said):
+            os.close(fd)
+        sock.send(json.dumps({"id": request["id"], "started": str(error)}).encode())
+        return None
+    if pid == 0:  # (every signal blocked until _become has set them)
+        sock.close()
+        for pidfd in children:
+            os.close(pidfd)
+        os.close(settled)
+        request["said"] = said
+        return request, fds
+    signal.pthread_sigmask(signal.SIG_SETMASK, everything)
+    os.close(said)
+    for received in fds:
+        os.close(received)
+    os.read(settled, 1)  # (EOF: the child has its session, or has ended)
+    os.close(settled)
+    children[os.pidfd_open(pid)] = pid
+    sock.send(json.dumps({"id": request["id"], "started": pid}).encode())
+    return None
 
 
 def _become(request: dict[str, Any], fds: list[int]) -> None:
-    """Make this forked child what a shell's fresh ``rtupoll`` would be."""
+    """Make this forked child what ``subprocess.Popen`` would start fresh."""
     os.setsid()
+    os.close(request["said"])  # the server may say "started": killpg(pid) finds us
+    # the signals as exec and a fresh Python leave them, with rtupoll.cli imported
+    from rtupoll.cli import _interrupted_early
+    for s in _SIGNALS:
+        signal.signal(s, signal.SIG_IGN if s in request["ignored"] else signal.SIG_DFL)
+    for s in (signal.SIGPIPE, signal.SIGXFSZ):
+        signal.signal(s, signal.SIG_IGN)
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _interrupted_early)
+    signal.set_wakeup_fd(-1)
     for target, fd in enumerate(fds):
         os.dup2(fd, target)
     for fd in fds:
@@ -197,18 +397,32 @@ def _become(request: dict[str, Any], fds: list[int]) -> None:
     assert isinstance(stdout, io.TextIOWrapper)
     stdout.reconfigure(line_buffering=os.isatty(1))
     sys.argv = list(request["argv"])
+    # sys.path[0]: the working directory for ``-m``, the script's folder for a script
+    sys.path[0] = os.getcwd() if request["how"] == "module" else \
+        os.path.dirname(os.path.realpath(sys.argv[0]))
+    signal.pthread_sigmask(signal.SIG_SETMASK, request["mask"])  # (what came is handled)
 
+
+_SERVER_PID = os.getpid()
 
 if __name__ == "__main__":
     _preload()
     from rtupoll.cli import main
-    server = socket.socket(fileno=int(sys.argv[1]))
-    server.send(json.dumps({"ready": True}).encode())
-    job = _serve(server)
+    # a Ctrl-C for the whole test run is not the server's to take: the test process
+    # closes it (and the server then ends the children)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sock = socket.socket(fileno=int(sys.argv[1]))
+    sock.send(json.dumps({"ready": True}).encode())
+    job = _serve(sock)
     if job is None:
         sys.exit(0)
     _become(*job)
-    del server, job
+    how = job[0]["how"]
+    del sock, job
+    if how == "module":  # what ``python -m rtupoll`` does
+        import runpy
+        runpy.run_module("rtupoll", run_name="__main__", alter_sys=True)
+        sys.exit(0)
     # what the console script (.venv/bin/rtupoll) does
     sys.argv[0] = re.sub(r"(-script\.pyw|\.exe)?$", "", sys.argv[0])
     sys.exit(main())

@@ -1,6 +1,7 @@
 """Shared by the dashboard tests: a real ``rtupoll poll --http`` / ``rtupoll web`` process
-(port 0: it says where it listens), HTTP and server-sent-event clients (urllib), and
-the distribution's headless chromium driven by selenium."""
+(port 0: it says where it listens; forked from the fork server, or ``fresh``), HTTP and
+server-sent-event clients (urllib), and the distribution's headless chromium driven by
+selenium."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from forked_cli import rtupoll_popen
 
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 ADDRESS = re.compile(r"on (http://[^\s]+/)")
@@ -28,11 +30,14 @@ ADDRESS = re.compile(r"on (http://[^\s]+/)")
 class Proc:
     """A running rtupoll command whose stderr goes to a file; ``url`` once it listens."""
 
-    def __init__(self, args: list[str], tmp: Path, *, name: str = "rtupoll") -> None:
+    def __init__(self, args: list[str], tmp: Path, *, name: str = "rtupoll",
+                 fresh: bool = False) -> None:
         self.err_path = tmp / f"{name}.stderr"
         self._err = self.err_path.open("w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "rtupoll", *args],
-                                     stdout=subprocess.DEVNULL, stderr=self._err)
+        # forked from the fork server (tests/forked_cli.py), or a new interpreter
+        popen = subprocess.Popen if fresh else rtupoll_popen
+        self.proc = popen([sys.executable, "-m", "rtupoll", *args], stdout=subprocess.DEVNULL,
+                          stderr=self._err)
         self.url = ""
 
     def stderr(self) -> str:
@@ -63,8 +68,9 @@ class Proc:
 
 
 @contextlib.contextmanager
-def running(args: list[str], tmp: Path, *, name: str = "rtupoll") -> Iterator[Proc]:
-    p = Proc(args, tmp, name=name)
+def running(args: list[str], tmp: Path, *, name: str = "rtupoll", fresh: bool = False
+            ) -> Iterator[Proc]:
+    p = Proc(args, tmp, name=name, fresh=fresh)
     try:
         p.wait_url()
         yield p

@@ -10,11 +10,12 @@ import sys
 import pytest
 from cli_runner import Ran
 from cli_runner import rtupoll as run
+from forked_cli import rtupoll_run
 
 
 def rtupoll(*args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RTUPOLL_")}
-    return subprocess.run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
+    return rtupoll_run([sys.executable, "-m", "rtupoll", *args], capture_output=True,
                           text=True, timeout=60, env=env)
 
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 import json
 import os
 import select
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
 from click.testing import CliRunner, Result
+from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
@@ -146,7 +146,7 @@ def test_raw_write_to_a_read_only_register_gets_the_devices_exception(sim: Sim) 
 def on_terminal(argv: list[str], answer: str) -> tuple[int, str]:
     """Run ``rtupoll`` on a pty, answer its question, return (exit code, screen)."""
     fd, slave = os.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", *argv], stdin=slave, stdout=slave,
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", *argv], stdin=slave, stdout=slave,
                             stderr=slave, close_fds=True)
     os.close(slave)
     screen = b""

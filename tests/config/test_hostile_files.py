@@ -25,6 +25,7 @@ import click
 import pytest
 from cli_runner import RTUPOLL, Ran, rtupoll, rtupoll_process
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen, rtupoll_run
 
 import rtupoll.cli as rtupoll_cli
 from rtupoll.cli import cli
@@ -441,14 +442,14 @@ def test_the_installed_command_gives_a_hostile_files_line(case: str, tmp_path: P
     content = WHOLE_FILES[case][0]
     path.write_bytes(content.encode() if isinstance(content, str) else content)
     cpu = children_cpu()
-    proc = rtupoll_process("poll", "-c", str(path), "--once")
+    proc = rtupoll_process("poll", "-c", str(path), "--once", fresh=True)
     assert children_cpu() - cpu < LIMIT + 5  # the whole command, start-up included
     assert_gives_its_line(proc, path)
 
 
 def test_a_full_disk_is_one_line(tmp_path: Path) -> None:
     with open("/dev/full", "w") as full:
-        proc = subprocess.run([RTUPOLL, "profiles", "list"], stdout=full, stderr=subprocess.PIPE,
+        proc = rtupoll_run([RTUPOLL, "profiles", "list"], stdout=full, stderr=subprocess.PIPE,
                               text=True, timeout=30)
     assert proc.returncode == 2
     assert one_line(proc) == "rtupoll: cannot write the output: No space left on device"
@@ -464,7 +465,7 @@ def test_a_closed_stdout_is_one_line() -> None:
 def test_json_to_a_full_disk_after_a_read_is_one_line(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
     with open("/dev/full", "w") as full:
-        proc = subprocess.run([RTUPOLL, "read", "-p", bus.port, "--format", "json",
+        proc = rtupoll_run([RTUPOLL, "read", "-p", bus.port, "--format", "json",
                                "huiwen-aq@3"], stdout=full, stderr=subprocess.PIPE, text=True,
                               timeout=30)
     assert proc.returncode == 2
@@ -611,7 +612,7 @@ def test_an_interrupted_plan_reports_every_row(sim: Callable[..., SimulatedBus],
     plan = tmp_path / "plan.csv"
     plan.write_text("profile,address,new\nradar-level,1,11\nradar-level,2,12\n"
                     "radar-level,3,13\n")
-    proc = subprocess.Popen([RTUPOLL, "set-address", "-p", bus.port, "-b", "9600",
+    proc = rtupoll_popen([RTUPOLL, "set-address", "-p", bus.port, "-b", "9600",
                              "--timeout", "1.5", "--retries", "0", "--yes", "--format", "json",
                              "--plan", str(plan)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

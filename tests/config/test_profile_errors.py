@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from forked_cli import rtupoll_run
 
 from rtupoll.cli import cli
 
@@ -60,12 +61,11 @@ def test_check_passes_good_profiles_and_counts_bad_ones() -> None:
 
 
 def test_check_exit_code_through_main(tmp_path: Path) -> None:
-    import subprocess
     import sys
 
     bad = tmp_path / "x.yaml"
     bad.write_text("id: x\n")
-    proc = subprocess.run([sys.executable, "-m", "rtupoll", "profiles", "check", str(bad)],
+    proc = rtupoll_run([sys.executable, "-m", "rtupoll", "profiles", "check", str(bad)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.splitlines()[0] == f"{bad}:1: missing required key 'addressing'"

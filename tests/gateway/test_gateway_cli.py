@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import pytest
+from forked_cli import rtupoll_popen
 
 from rtupoll.rtu import crc_ok, with_crc
 from rtupoll.sim.runner import SimulatedBus
@@ -30,7 +31,7 @@ def rtupoll(*args: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
     serve = next((a for a in args if a.startswith("rtu+tcp://")), None)
     listen = serve.replace("PORT", str(port)) if serve else f"127.0.0.1:{port}"
     argv = [a for a in args if a != serve]
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", *argv, "--serve", listen],
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", *argv, "--serve", listen],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 20

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import free_port, listening
@@ -46,7 +47,7 @@ def test_sighup_applies_serve_rules_rebinds_and_refuses_an_address_it_cannot_bin
     path, errors = tmp_path / "site.yaml", tmp_path / "stderr"
     first, second = free_port(), free_port()
     site(path, bus.port, f"127.0.0.1:{first}")
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(path),
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(path),
                              "--format", "json", "--log-format", "json"],
                             stdout=subprocess.DEVNULL, stderr=errors.open("w"))
 

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from cli_runner import rtupoll as in_process
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
 from rtupoll.config.site import load_site
@@ -248,7 +249,7 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
     bus.start()
     rtupoll = str(Path(sys.executable).with_name("rtupoll"))
     try:
-        proc = subprocess.Popen([rtupoll, "sniff", "-p", tap, "-b", "9600", "--format",
+        proc = rtupoll_popen([rtupoll, "sniff", "-p", tap, "-b", "9600", "--format",
                                  "json", "radar-level@2"], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         assert proc.stderr is not None

@@ -7,13 +7,13 @@ import json
 import os
 import select
 import signal
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from click.testing import CliRunner, Result
+from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
@@ -91,7 +91,7 @@ class Terminal:
 
     def __init__(self, argv: list[str]) -> None:
         self.fd, slave = os.openpty()
-        self.proc = subprocess.Popen(argv, stdin=slave, stdout=slave, stderr=slave,
+        self.proc = rtupoll_popen(argv, stdin=slave, stdout=slave, stderr=slave,
                                      close_fds=True)
         os.close(slave)
         self.screen = ""

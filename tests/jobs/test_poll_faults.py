@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from forked_cli import rtupoll_popen
 from virtual import simulated
 
 from rtupoll.config.site import from_specs
@@ -54,7 +55,7 @@ class PollProcess:
 
     def __init__(self, *args: str) -> None:
         cmd = [sys.executable, "-m", "rtupoll", "poll", "--format", "json", *args]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        self.proc = rtupoll_popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      text=True)
         self.records: list[dict[str, Any]] = []
         self.raw: list[str] = []
@@ -234,7 +235,7 @@ def test_sigterm_also_ends_a_stream_cleanly(sim: Callable[..., SimulatedBus]) ->
     bus = start_bus(sim)
     cmd = [sys.executable, "-m", "rtupoll", "poll", "--port", bus.port, "--interval", "0",
            "--format", "csv", *(f"huiwen-aq@{u}" for u in UNITS)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = rtupoll_popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None
     header = proc.stdout.readline()
     first = proc.stdout.readline()

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from forked_cli import rtupoll_popen
 
 from rtupoll.config.site import load_site
 from rtupoll.jobs.reload import ReloadService
@@ -186,7 +187,7 @@ def test_sighup_reloads_and_reopens_the_output(sim: Callable[..., SimulatedBus],
     tank = "{name: tank, profile: radar-level, address: 4, interval: 0.1, fields: [level_cm]}"
     site_file(path, (bus.port, [air]))
     err = (tmp_path / "stderr").open("w")
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(path),
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(path),
                              "--format", "json", "-o", str(out), "--log-format", "json"],
                             stdout=subprocess.DEVNULL, stderr=err)
 

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from forked_cli import rtupoll_popen
 from virtual import START, simulated
 
 from rtupoll.config.site import from_specs
@@ -144,7 +145,7 @@ def test_sd_notify_ready_watchdog_reload_stopping(tmp_path: Path) -> None:
         sock.bind(path)
         sock.settimeout(30)  # a guard against a hang, not a timing claim
         env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"}
-        proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+        proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
                                  "huiwen-aq@3", "--format", "json"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
         got: list[str] = []

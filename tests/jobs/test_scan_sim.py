@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 from cli_runner import rtupoll
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen, rtupoll_run
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_library
@@ -152,16 +153,15 @@ def test_ctrl_c_prints_what_was_found_so_far(sim: Sim) -> None:
 
 def test_progress_bar_only_on_a_terminal(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", baudrate=115200)
-    args = [*RTUPOLL, "scan", "--port", bus.port, "--addresses", "1-30", "--baudrate",
-            "115200", "--format", "json"]
     # one address: the bar is drawn when it starts and when it stops; a silent address
     # would only add its timeout and the wait for late answers (29 of them: 5 s)
-    args[args.index("--addresses") + 1] = "1"
-    piped = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    args = [*RTUPOLL, "scan", "--port", bus.port, "--addresses", "1", "--baudrate",
+            "115200", "--format", "json"]
+    piped = rtupoll_run(args, capture_output=True, text=True, timeout=60)
     assert piped.returncode == 0 and "\x1b[" not in piped.stderr
     master, slave = os.openpty()
     env = {**os.environ, "COLUMNS": "120", "TERM": "xterm"}
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=slave, env=env)
+    proc = rtupoll_popen(args, stdout=subprocess.PIPE, stderr=slave, env=env)
     os.close(slave)
     out, _ = proc.communicate(timeout=60)
     seen = b""

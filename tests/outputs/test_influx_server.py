@@ -16,6 +16,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from forked_cli import rtupoll_popen
+
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.interpret import FieldValue
@@ -41,7 +43,7 @@ def _site(tmp_path: Path, port: str) -> Path:
 def _poll_until(site: Path, out: Path, tmp_path: Path,
                 done: Callable[[list[str]], bool]) -> list[str]:
     err = (tmp_path / "stderr").open("w")
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(site),
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "-c", str(site),
                              "--format", "influx", "-o", str(out)],
                             stdout=subprocess.DEVNULL, stderr=err)
     try:

@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from virtual import simulated
@@ -65,7 +66,7 @@ def test_scraped_over_http_while_polling_with_a_dead_device(
         bus.set(3, name, value)
     port = free_port()
     err = (tmp_path / "stderr").open("w")
-    proc = subprocess.Popen(
+    proc = rtupoll_popen(
         [sys.executable, "-m", "rtupoll", "poll", "-p", bus.port, "--format", "json",
          "--interval", "0.2", "--timeout", "0.1", "--metrics", f"127.0.0.1:{port}",
          "--log-format", "text",
@@ -300,7 +301,7 @@ def test_a_nan_register_is_no_sample_and_no_influx_field(
 
 def test_the_gateways_clients_are_on_the_same_metrics_page() -> None:
     metrics, serve = free_port(), free_port()
-    proc = subprocess.Popen(
+    proc = rtupoll_popen(
         [sys.executable, "-m", "rtupoll", "poll", "--simulate", "huiwen-aq@3", "--format",
          "json", "--serve", f"127.0.0.1:{serve}", "--metrics", f"127.0.0.1:{metrics}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 from cli_runner import rtupoll
+from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import (
@@ -39,7 +40,7 @@ class Poll:
         self.args = " ".join(args)
         self.err_path = tmp / f"stderr-{time.monotonic_ns()}.txt"
         self._err = self.err_path.open("w")
-        self.proc = subprocess.Popen([*RTUPOLL, "poll", *args], stdout=subprocess.DEVNULL,
+        self.proc = rtupoll_popen([*RTUPOLL, "poll", *args], stdout=subprocess.DEVNULL,
                                      stderr=self._err, stdin=subprocess.DEVNULL)
 
     def stop(self, sig: int = signal.SIGTERM) -> int:

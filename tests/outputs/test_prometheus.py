@@ -23,6 +23,7 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
+from forked_cli import rtupoll_popen
 from prometheus_client.parser import text_string_to_metric_families
 
 from rtupoll.config.library import load_one
@@ -102,7 +103,7 @@ def test_promtool_passes_on_every_profile_the_gateway_and_slow_fields(
     site.write_text(text, encoding="utf-8")
     metrics = free_port()
     err = (tmp_path / "stderr").open("w")
-    proc = subprocess.Popen(
+    proc = rtupoll_popen(
         [sys.executable, "-m", "rtupoll", "poll", "-c", str(site), "--format", "json",
          "-o", str(tmp_path / "readings.jsonl"), "--metrics", f":{metrics}"],
         stdout=subprocess.DEVNULL, stderr=err)
@@ -211,7 +212,7 @@ def test_gateway_counters_per_host_survive_connections_leaving_the_list() -> Non
 
     assert host_of("[::1]:40000") == "::1" and host_of("10.0.0.7:502") == "10.0.0.7"
     metrics, serve = free_port(), free_port()
-    proc = subprocess.Popen(
+    proc = rtupoll_popen(
         [sys.executable, "-m", "rtupoll", "poll", "--simulate", "huiwen-aq@3", "--format",
          "json", "-o", "/dev/null", "--serve", f"127.0.0.1:{serve}", "--metrics",
          f"127.0.0.1:{metrics}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -233,6 +234,11 @@ def test_gateway_counters_per_host_survive_connections_leaving_the_list() -> Non
         while time.monotonic() < deadline:
             with contextlib.suppress(OSError):
                 raw_read(serve, 3, fc, address)
+                break
+            time.sleep(0.2)
+        while time.monotonic() < deadline:  # (the metrics port may open after the gateway's)
+            with contextlib.suppress(OSError):
+                scrape(metrics)
                 break
             time.sleep(0.2)
         seen = [answered(scrape(metrics))]

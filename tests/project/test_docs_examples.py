@@ -30,11 +30,11 @@ examples", says the same):
   where it is printed first, when it is self-contained (``_repeat_key``: no demo port,
   no file of the working directory but the documents' own, no shell syntax): it does
   the same there and leaves nothing the examples after it see. It is listed as skipped.
-- A plain ``rtupoll ARGS`` line (no shell syntax) that ends by itself runs forked from
-  a server that has imported rtupoll once (``forks``, tests/forked_cli.py): the same
-  command in a process and session of its own, as a shell would start it, without
-  Python's and rtupoll's start-up each time; ``test_a_forked_command_is_a_fresh_one``
-  compares the two. The other lines (and commands that run until Ctrl-C) run with bash.
+- A plain ``rtupoll ARGS`` line (no shell syntax) runs forked from a server that has
+  imported rtupoll once (``forks``, tests/forked_cli.py): the same command in a process
+  and session of its own, as a shell would start it (a Ctrl-C stops it as it stops a
+  fresh one), without Python's and rtupoll's start-up each time;
+  ``test_a_forked_command_is_a_fresh_one`` compares the two. The other lines run with bash.
 - ```text blocks (synopses, transcripts that need a person) are not run. Examples that
   name a fixed network port (``127.0.0.1:9464``, also in a ``file:`` block they use)
   never run at the same time as each other.
@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import IO
 
 import pytest
-from forked_cli import Forked, ForkServer
+from forked_cli import Forked, ForkServer, shared_server
 
 from rtupoll.sim.runner import SimulatedLines, simulated_lines
 from rtupoll.sim.scenario import build
@@ -251,10 +251,7 @@ def _run(ex: Example, where: Path, forks: ForkServer | None) -> str | None:
     if ex.script:
         env["RTUPOLL_PORT"] = str(where / "ttyUSB0")
     command = ported(ex.command, where)
-    # forked: a command that ends by itself; one that runs until Ctrl-C starts fresh (a
-    # CI run once saw a forked `simulate --tcp` not stop on Ctrl-C, never reproduced)
-    argv = None if forks is None or ex.script or ex.runs_until_stopped \
-        else forkable(command)
+    argv = None if forks is None or ex.script else forkable(command)
     # a command that runs until stopped writes to a terminal, as for a person: so a live
     # table draws at once, and "it has started" can be seen
     terminal = pty.openpty() if ex.runs_until_stopped else None
@@ -420,11 +417,7 @@ def forks() -> Iterator[ForkServer | None]:
     (tests/forked_cli.py): the same command in a process of its own, without Python's
     and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash,
     and all of them where the server cannot wait for its children (no pidfd: not Linux)."""
-    if not hasattr(os, "pidfd_open"):
-        yield None
-        return
-    with ForkServer(examples_env()) as server:
-        yield server
+    yield shared_server() if hasattr(os, "pidfd_open") else None
 
 
 def doc_examples(doc: Path) -> Iterator[Example]:

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from cli_runner import Ran, rtupoll
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen
 from rich.console import Console
 
 from rtupoll.cli import cli
@@ -63,7 +64,7 @@ def test_named_devices_go_on_as_few_lines_as_their_speeds_allow() -> None:
 
 
 def test_simulate_prints_hints_that_work_as_printed() -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "simulate", "--tick", "0"],
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "simulate", "--tick", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         out = _until(proc, "Press Ctrl-C to stop.")

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from forked_cli import rtupoll_popen
 
 from rtupoll.errors import UsageError
 from rtupoll.rtu import Framing, exception_response, read_request, read_response
@@ -105,7 +106,7 @@ def test_a_replayed_capture_answers_mbpoll_with_the_captured_values(tmp_path: Pa
 
 
 def sniff_frames(tap: str, *devices: str) -> subprocess.Popen[str]:
-    proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "frames",
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "frames",
                              *devices], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     assert proc.stderr is not None
@@ -133,7 +134,7 @@ def test_a_live_capture_replays_its_values_and_reply_times(sim: Sim, tmp_path: P
     bus = sim("huiwen-aq@3", tick=None, baudrate=9600, tap=tap,
               sets=["huiwen-aq@3.co2=777", "huiwen-aq@3.pm25=42"],
               options=["huiwen-aq@3.turnaround=0.08"])  # well above scheduling noise
-    sniffer = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format",
+    sniffer = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format",
                                 "frames", "--capture", str(path)], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     assert sniffer.stderr is not None and "listening on" in sniffer.stderr.readline()
@@ -143,7 +144,7 @@ def test_a_live_capture_replays_its_values_and_reply_times(sim: Sim, tmp_path: P
     assert site == [[777], [42, *bus.registers(3, "input", 30007, 3)]]
 
     tap2 = str(tmp_path / "tap2")
-    proc = subprocess.Popen([RTUPOLL, "simulate", "--replay", str(path), "--tap", tap2],
+    proc = rtupoll_popen([RTUPOLL, "simulate", "--replay", str(path), "--tap", tap2],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from cli_runner import rtupoll
 from conftest import RawPort
+from forked_cli import rtupoll_popen
 
 from rtupoll import rtu
 from rtupoll.rtu import Table
@@ -26,7 +27,7 @@ class Simulator:
     """A running ``rtupoll simulate`` process and what it printed so far."""
 
     def __init__(self, *args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "simulate", *args],
+        self.proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "simulate", *args],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         self.seen = ""
         self.out = self.until("Press Ctrl-C to stop.")

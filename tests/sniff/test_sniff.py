@@ -22,6 +22,7 @@ from typing import IO, Any
 
 import pytest
 from cli_runner import Ran, rtupoll
+from forked_cli import rtupoll_popen
 
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field, Poll
@@ -66,7 +67,7 @@ def sniffing(tap: str, *args: str, shown: int = 0) -> Iterator[list[str]]:
     """``rtupoll sniff`` on the tap while the block runs; its stdout lines afterwards.
     With ``shown=N`` it is stopped only once it has printed N lines (or after a 30 s
     hang guard): a busy machine's sniffer may read the last reply after the block ends."""
-    proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", *args],
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None and proc.stdout is not None
     ready = proc.stderr.readline()  # "listening on ..." once the port is open
@@ -202,7 +203,7 @@ def test_the_sniffer_never_writes_to_the_port(tmp_path: Path) -> None:
     # a pty pair: whatever the sniffer wrote would be readable on the master side
     master, slave = os.openpty()
     try:
-        proc = subprocess.Popen([RTUPOLL, "sniff", "-p", os.ttyname(slave), "-b", "9600",
+        proc = rtupoll_popen([RTUPOLL, "sniff", "-p", os.ttyname(slave), "-b", "9600",
                                  "--format", "frames", "--duration", "0.5"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         proc.communicate(timeout=20)
@@ -225,7 +226,7 @@ def test_a_site_file_names_the_port_the_speed_and_the_devices(sim: Sim, tmp_path
     site = tmp_path / "site.yaml"
     site.write_text(f"buses:\n  - name: line1\n    port: {tap}\n    baudrate: 9600\n"
                     "    devices:\n      - {name: air, profile: huiwen-aq, address: 3}\n")
-    proc = subprocess.Popen([RTUPOLL, "sniff", "-c", str(site), "--format", "json"],
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-c", str(site), "--format", "json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None and "9600 8N1" in proc.stderr.readline()
     co2 = profile("huiwen-aq").field("co2")
@@ -265,7 +266,7 @@ def test_on_a_terminal_the_default_is_the_live_table(sim: Sim, tmp_path: Path) -
     tap = str(tmp_path / "tap")
     bus = sim("huiwen-aq@3", tick=None, tap=tap, sets=["huiwen-aq@3.co2=1234"])
     master, slave = pty.openpty()
-    proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "huiwen-aq@3",
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "huiwen-aq@3",
                              "--duration", "3"], stdin=slave, stdout=slave, stderr=slave)
     out, asked, t0 = b"", False, time.monotonic()
     stopped = False

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
+from forked_cli import rtupoll_popen
 
 from rtupoll.ui.outfile import OutputFile
 from tests.brokers import free_port
@@ -47,7 +48,7 @@ def whole_json_lines(path: Path) -> list[dict[str, object]]:
 def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path: Path
                                                                          ) -> None:
     out, port = tmp_path / "readings.jsonl", free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
                              "huiwen-aq@3", "--interval", "0.05", "--format", "json",
                              "-o", str(out), "--serve", f"127.0.0.1:{port}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
+from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
 
@@ -103,7 +104,7 @@ def test_poll_in_a_tall_wide_terminal_has_one_row_per_field_with_every_column() 
 def test_sniff_at_80x24_shows_health_and_line_trouble_first(sim: Sim, tmp_path: Path) -> None:
     tap = tmp_path / "tap"
     bus = sim("huiwen-aq@3", "radar-level@2", "net-irnet-pro@1", tap=str(tap))
-    poller = subprocess.Popen([RTUPOLL, "poll", "-p", bus.port, "-b", "9600", "--format",
+    poller = rtupoll_popen([RTUPOLL, "poll", "-p", bus.port, "-b", "9600", "--format",
                                "json", "huiwen-aq@3", "radar-level@2", "net-irnet-pro@1"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -143,7 +144,7 @@ def test_a_piped_poll_once_at_80_columns_keeps_every_column_and_one_header_row()
 
 
 def test_a_piped_poll_prints_records_as_they_come_and_says_so() -> None:
-    proc = subprocess.Popen([RTUPOLL, "poll", "--simulate", "huiwen-aq@3"],
+    proc = rtupoll_popen([RTUPOLL, "poll", "--simulate", "huiwen-aq@3"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None and proc.stderr is not None

@@ -20,7 +20,7 @@ from tests.web_helpers import Proc, get_json, running, until
 def gateway(broker: Broker, bus: SimulatedBus, ident: str, tmp: Path) -> Proc:
     return Proc(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "-o",
                  str(tmp / f"{ident}.jsonl"), "--mqtt", broker.url, "--mqtt-id", ident,
-                 "huiwen-aq@3", "radar-level@2"], tmp, name=ident)
+                 "huiwen-aq@3", "radar-level@2"], tmp, name=ident, fresh=True)
 
 
 def test_two_real_gateways_show_on_one_fleet_page(broker: Broker,
@@ -34,7 +34,7 @@ def test_two_real_gateways_show_on_one_fleet_page(broker: Broker,
                 gateway(broker, south, "south", tmp_path)]
     try:
         with running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
-                     name="web") as web:
+                     name="web", fresh=True) as web:
 
             def both() -> dict[str, Any] | None:
                 state = get_json(web.url + "api/state")

@@ -30,7 +30,7 @@ def test_state_events_trend_and_metrics_of_a_polling_process(
     for name, value in {"co2": 777, "temperature": 21, "humidity": 40}.items():
         bus.set(3, name, value)
     with running([*POLL, "-p", bus.port, "-b", "9600", "--http", "127.0.0.1:0", "huiwen-aq@3",
-                  "net-irnet-pro@1", "radar-level@4"], tmp_path) as p:
+                  "net-irnet-pro@1", "radar-level@4"], tmp_path, fresh=True) as p:
         url = p.url
         assert url.startswith("http://127.0.0.1:")
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import _signal  # type: ignore[import-not-found]  # the builtin behind signal: already loaded
 import contextlib
+import functools
 import os
 import sys
 from types import FrameType
@@ -144,8 +145,9 @@ def main(argv: list[str] | None = None) -> Any:
     args = sys.argv[1:] if argv is None else argv
     if args and args[0] in COMMANDS:  # imported while a signal still just ends the process
         cli.get_command(click.Context(cli), args[0])
-    with _process():
-        try:
+    with contextlib.ExitStack() as process:
+        try:  # (a Ctrl-C in the instant _process sets up is "interrupted" too)
+            process.enter_context(_process())
             code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
             sys.stdout.flush()  # a full disk shows here, not as "Exception ignored" at exit
         except click.exceptions.NoArgsIsHelpError as exc:  # plain 'rtupoll': the help
@@ -184,6 +186,25 @@ def _from_interrupt(exc: BaseException | None) -> bool:
     return False
 
 
+_LOST: list[bool] = []  # a Ctrl-C's KeyboardInterrupt that Python dropped, this command
+
+
+def _dropped(hook: Any, unraisable: Any) -> None:
+    """``sys.unraisablehook`` while a command runs: Python drops what is raised where it
+    cannot propagate (a weakref callback or a ``__del__`` that runs at that instant:
+    "Exception ignored in ..."); a Ctrl-C's KeyboardInterrupt raised there is remembered."""
+    if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+        _LOST.append(True)
+    hook(unraisable)
+
+
+def interrupt_lost() -> bool:
+    """Whether a SIGINT or SIGTERM since the command started was lost that way. A command
+    that runs until stopped asks once its own handlers are set, and then stops at once
+    (else it would run on, as if the Ctrl-C had not come)."""
+    return bool(_LOST)
+
+
 def _as_sigint(signum: int, frame: FrameType | None) -> None:
     """SIGTERM does what Ctrl-C does at that moment (asyncio's handler cancels the main
     task, so cleanup and reports run; elsewhere a KeyboardInterrupt)."""
@@ -214,6 +235,10 @@ def _process() -> Iterator[None]:
     if sys.stderr is None:
         sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    hook = sys.unraisablehook
+    _LOST.clear()
+    sys.unraisablehook = functools.partial(_dropped, hook)
+    # Python's own handler: asyncio.run cancels its task on Ctrl-C only under this one
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _as_sigint)
     real = sys.stdout
@@ -221,6 +246,8 @@ def _process() -> Iterator[None]:
     try:
         yield
     finally:
+        sys.unraisablehook = hook
+        _LOST.clear()
         sys.stdout = real
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
+from rtupoll.cli import interrupt_lost
 from rtupoll.cli.options import (
     LineOptions,
     format_option,
@@ -545,6 +546,8 @@ def _stop_event() -> asyncio.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
+    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
+        stop.set()
     return stop
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from rtupoll.cli import interrupt_lost
 from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
@@ -110,15 +110,16 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
     if verbose:
         for i, line in enumerate(lines):
             line.on_wire = _shower(t0, f"line {i + 1} " if len(lines) > 1 else "")
-    stop = threading.Event()
-
     caught: list[int] = []
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
+        # only this: a handler runs between two bytecodes of the main thread, which may
+        # hold a lock then (threading.Event.set here once deadlocked inside Event.wait)
         caught.append(signum)
-        stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
+        caught.append(signal.SIGINT)
     try:
         lines.start()
         try:
@@ -129,8 +130,8 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
             else:
                 _banner(lines)
             sys.stdout.flush()  # a pipe is block-buffered; whoever reads us needs the port
-            while not stop.wait(0.5):
-                pass
+            while not caught:
+                time.sleep(0.1)  # (the handler only notes a signal: seen within 0.1 s)
         finally:
             lines.stop()
     finally:

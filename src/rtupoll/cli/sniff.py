@@ -17,6 +17,7 @@ from typing import Any
 
 import click
 
+from rtupoll.cli import interrupt_lost
 from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import DEVICE, DeviceSpec
 from rtupoll.config.library import load_library, load_one
@@ -146,6 +147,8 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
         stop.append(signum)
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
+        stop.append(signal.SIGINT)
     started = time.monotonic()
     if fmt != "table":
         click.echo(f"rtupoll sniff: listening on {port} at {describe_framing(framing)}, "

@@ -16,6 +16,7 @@ from urllib.parse import unquote, urlsplit
 
 import click
 
+from rtupoll.cli import interrupt_lost
 from rtupoll.errors import BrokerError
 from rtupoll.web.options import http_options, pop_http
 
@@ -70,6 +71,8 @@ async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
+    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
+        stop.set()
     connected = asyncio.Event()
     reader = asyncio.create_task(_read(fleet, settings, prefix, connected))
     waiter = asyncio.create_task(connected.wait())
