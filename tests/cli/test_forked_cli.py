@@ -2,7 +2,7 @@
 the same signal state, the same answer to Ctrl-C, SIGTERM and SIGHUP, to a reader that
 leaves early and on a terminal; and a signal sent at any moment, right after the start
 too, is never lost. Each case runs both (``subprocess.Popen`` and ``rtupoll_popen``) and
-compares them. ``RTUPOLL_FORK_STRESS=N`` (default 12) sets how many forked commands the
+compares them. ``RTUPOLL_FORK_STRESS=N`` (default 8) sets how many forked commands the
 last test stops at random moments (``RTUPOLL_FORK_STRESS=400``: the long run)."""
 
 from __future__ import annotations
@@ -237,7 +237,7 @@ def stop_at_random(rng: random.Random, failures: list[str]) -> None:
 def test_forked_commands_stop_on_a_signal_at_any_moment() -> None:
     """Commands that run until stopped, four at a time from one server, each stopped at a
     random moment (right after the start too): none is left running, none fails."""
-    runs = int(os.environ.get("RTUPOLL_FORK_STRESS", "12"))
+    runs = int(os.environ.get("RTUPOLL_FORK_STRESS", "8"))
     seed = random.randrange(1 << 32)
     failures: list[str] = []
 
