@@ -258,7 +258,8 @@ def test_a_ctrl_c_whose_keyboardinterrupt_python_drops_still_stops_the_command(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A Ctrl-C in the instant a weakref callback (or a ``__del__``) runs, before the
     command has set its own handler: Python prints "Exception ignored" and drops the
-    KeyboardInterrupt. The command still learns of it (``rtupoll.cli.interrupt_lost``) and
+    KeyboardInterrupt. The command still learns of it (``rtupoll.cli.stop_event`` and
+    ``noted_signals`` start set) and
     stops, instead of running until a second Ctrl-C (the stress test above met it)."""
     import weakref
 

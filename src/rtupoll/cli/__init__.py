@@ -44,11 +44,14 @@ if os.path.basename(_ARGV0) == "rtupoll" or \
 import importlib  # noqa: E402
 import signal  # noqa: E402
 from collections.abc import Iterator  # noqa: E402
-from typing import Any, TextIO  # noqa: E402
+from typing import TYPE_CHECKING, Any, TextIO  # noqa: E402
 
 import click  # noqa: E402
 
 from rtupoll.errors import Interrupted, RtupollError, UsageError, exit_codes  # noqa: E402
+
+if TYPE_CHECKING:
+    import asyncio
 
 # command name -> "module:attribute", imported on first use
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -198,11 +201,44 @@ def _dropped(hook: Any, unraisable: Any) -> None:
     hook(unraisable)
 
 
-def interrupt_lost() -> bool:
-    """Whether a SIGINT or SIGTERM since the command started was lost that way. A command
-    that runs until stopped asks once its own handlers are set, and then stops at once
-    (else it would run on, as if the Ctrl-C had not come)."""
-    return bool(_LOST)
+def stop_event() -> asyncio.Event:
+    """For a command that runs until stopped, in its event loop: an event SIGINT or
+    SIGTERM sets (the loop finishes what it writes, then stops); set at once if a Ctrl-C
+    came before and Python dropped its KeyboardInterrupt (``_dropped``: the command
+    would otherwise run on, as if it had not come)."""
+    import asyncio
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+    if _LOST:
+        stop.set()
+    return stop
+
+
+@contextlib.contextmanager
+def noted_signals() -> Iterator[list[int]]:
+    """For a command that runs until stopped, without an event loop: while the block
+    runs, SIGINT and SIGTERM are appended to the list it gets, and nothing else (a
+    handler runs between two bytecodes of the main thread, which may hold a lock then:
+    ``threading.Event.set`` here once deadlocked inside ``Event.wait``); a Ctrl-C whose
+    KeyboardInterrupt Python dropped before is there at once. The handlers are put back
+    afterwards."""
+    caught: list[int] = []
+
+    def note(signum: int, frame: FrameType | None) -> None:
+        caught.append(signum)
+
+    previous = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
+    if _LOST:
+        caught.append(signal.SIGINT)
+    try:
+        yield caught
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _as_sigint(signum: int, frame: FrameType | None) -> None:

@@ -13,7 +13,6 @@ import contextlib
 import dataclasses
 import io
 import os
-import signal
 import sys
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from pathlib import Path
@@ -21,7 +20,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
-from rtupoll.cli import interrupt_lost
+from rtupoll.cli import stop_event
 from rtupoll.cli.options import (
     LineOptions,
     format_option,
@@ -489,7 +488,7 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
 
     from rtupoll.jobs.race import first_of
 
-    stop = _stop_event()
+    stop = stop_event()
     async with _started(scheduler, services):  # the scan, unless a signal comes first
         if await first_of(scheduler.scan_once(sink), stop.wait()) != 0:
             raise KeyboardInterrupt
@@ -503,7 +502,7 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
 
 async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: PollView | None,
                    console: Console | None, services: Sequence[Service]) -> None:
-    stop = _stop_event()
+    stop = stop_event()
 
     def sink(dev: DevicePoller, readings: list[Reading]) -> None:
         for s in services:
@@ -537,18 +536,6 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         live.refresh()
         with contextlib.suppress(asyncio.TimeoutError):
             await asyncio.wait_for(stop.wait(), REFRESH)
-
-
-def _stop_event() -> asyncio.Event:
-    """An event set by SIGINT or SIGTERM: the loop finishes what it writes, then stops."""
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
-    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
-        stop.set()
-    return stop
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

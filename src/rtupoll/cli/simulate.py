@@ -11,12 +11,11 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import FrameType
 from typing import TYPE_CHECKING
 
 import click
 
-from rtupoll.cli import interrupt_lost
+from rtupoll.cli import noted_signals
 from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
@@ -110,17 +109,7 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
     if verbose:
         for i, line in enumerate(lines):
             line.on_wire = _shower(t0, f"line {i + 1} " if len(lines) > 1 else "")
-    caught: list[int] = []
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        # only this: a handler runs between two bytecodes of the main thread, which may
-        # hold a lock then (threading.Event.set here once deadlocked inside Event.wait)
-        caught.append(signum)
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
-        caught.append(signal.SIGINT)
-    try:
+    with noted_signals() as caught:
         lines.start()
         try:
             if replay is not None:
@@ -134,9 +123,6 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
                 time.sleep(0.1)  # (the handler only notes a signal: seen within 0.1 s)
         finally:
             lines.stop()
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
     requests = replies = 0
     for line in lines:
         assert line.engine is not None

@@ -7,17 +7,15 @@ the per-device view) and prints transactions, records or the live table.
 
 from __future__ import annotations
 
-import signal
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import click
 
-from rtupoll.cli import interrupt_lost
+from rtupoll.cli import noted_signals
 from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import DEVICE, DeviceSpec
 from rtupoll.config.library import load_library, load_one
@@ -141,37 +139,30 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
     writer = CaptureWriter(capture, framing, port, say=lambda m: click.echo(
         f"rtupoll: {m}", err=True)) if capture is not None else None
     session = Session(framing, view, sink, timeout=timeout, capture=writer)
-    stop: list[int] = []
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.append(signum)
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
-        stop.append(signal.SIGINT)
-    started = time.monotonic()
-    if fmt != "table":
-        click.echo(f"rtupoll sniff: listening on {port} at {describe_framing(framing)}, "
-                   "sending nothing" + (f"; capturing to {capture}" if capture else ""),
-                   err=True)
-
-    def done() -> bool:
-        return bool(stop) or (duration is not None and time.monotonic() - started >= duration)
-
     try:
-        if fmt == "table":
-            _live(tap.chunks(done), session, view, title)
-        else:
-            for data, t in tap.chunks(done):
-                session.feed(data, t)
-                sys.stdout.flush()
-        session.close()
-        sys.stdout.flush()
+        # (the handlers before the "listening" line: whoever reads it may stop us at once)
+        with noted_signals() as stop:
+            started = time.monotonic()
+            if fmt != "table":
+                click.echo(f"rtupoll sniff: listening on {port} at "
+                           f"{describe_framing(framing)}, sending nothing"
+                           + (f"; capturing to {capture}" if capture else ""), err=True)
+
+            def done() -> bool:
+                return bool(stop) or (duration is not None
+                                      and time.monotonic() - started >= duration)
+
+            if fmt == "table":
+                _live(tap.chunks(done), session, view, title)
+            else:
+                for data, t in tap.chunks(done):
+                    session.feed(data, t)
+                    sys.stdout.flush()
+            session.close()
+            sys.stdout.flush()
     except BrokenPipeError:  # `rtupoll sniff ... | head`: the reader is done
         pass  # (cli's guard has pointed fd 1 at /dev/null; click would exit 1)
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
         if writer is not None:
             writer.close()
         tap.close()

@@ -9,14 +9,12 @@ itself and says so on the page.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import signal
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
 import click
 
-from rtupoll.cli import interrupt_lost
+from rtupoll.cli import stop_event
 from rtupoll.errors import BrokerError
 from rtupoll.web.options import http_options, pop_http
 
@@ -66,13 +64,7 @@ async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
 
     fleet = Fleet(prefix, f"{settings.where}/{prefix}")
     server = Server(http, fleet)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
-    if interrupt_lost():  # a Ctrl-C before, whose KeyboardInterrupt Python dropped
-        stop.set()
+    stop = stop_event()
     connected = asyncio.Event()
     reader = asyncio.create_task(_read(fleet, settings, prefix, connected))
     waiter = asyncio.create_task(connected.wait())
