@@ -19,6 +19,7 @@ from rtupoll.model.interpret import (
     places,
 )
 from rtupoll.model.profile import Field
+from rtupoll.outputs.fleet import kind
 from rtupoll.outputs.homeassistant import components
 from rtupoll.outputs.metrics import field_metric
 
@@ -37,9 +38,12 @@ def test_places_are_those_of_the_number_as_written(x: float, n: int) -> None:
 def test_every_consumer_is_told_the_same_decimals() -> None:
     for field in library_fields():
         known = number_decimals(field)
-        sensor = components(field, controls=False).get(field.name, {})
-        if "suggested_display_precision" in sensor or known is None:
-            assert sensor.get("suggested_display_precision") == known, field
+        entities = components(field, controls=False)
+        # a number's sensor is told its decimals; an enum, flags or text shows no number
+        number = kind(field) == "number"
+        assert not number or field.name in entities, field
+        told = known if number else None
+        assert entities.get(field.name, {}).get("suggested_display_precision") == told, field
         metric = field_metric(field)
         if (metric.scale, metric.offset) == (1, 0) and not (field.enum or field.flags):
             assert metric.decimals == known, field
