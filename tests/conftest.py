@@ -18,12 +18,14 @@ Hypothesis runs the ``short`` profile (few examples, the same ones every run) un
 
 The compiled profile cache (``rtupoll.config.compiled``) of a test run lives in a
 directory of its own, set before any test module loads a profile and inherited by the
-CLI subprocesses tests start: no test reads or writes the user's ~/.cache.
+pytest-xdist workers and the CLI subprocesses tests start (the library compiled into it
+once, before the workers start): no test reads or writes the user's ~/.cache.
 """
 
 from __future__ import annotations
 
 import atexit
+import gc
 import os
 import select
 import shutil
@@ -41,16 +43,23 @@ import pytest
 # hypothesis runs the "hypothesis" entry points of every installed package when imported:
 # trio's (installed for selenium) imports trio, a fifth of a second in every process
 os.environ.setdefault("HYPOTHESIS_NO_PLUGINS", "1")
+import forked_cli
+import worker_zygote
 from forked_cli import close_server
 from hypothesis import settings
 
+from rtupoll.config.library import load_library
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 pytest_plugins = ("pytester", "cpu_report")
 
-_CACHE = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
+# one cache for the run: made by the process pytest was started as, inherited by the
+# pytest-xdist workers it starts (each of which otherwise parsed every profile itself)
+_CACHE = os.environ.get("RTUPOLL_TEST_CACHE", "")
+if not os.path.isdir(_CACHE):
+    _CACHE = os.environ["RTUPOLL_TEST_CACHE"] = tempfile.mkdtemp(prefix="rtupoll-test-cache-")
+    atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 os.environ["XDG_CACHE_HOME"] = _CACHE
-atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 # the ~285 rtupoll processes the suite starts reuse compiled bytecode, as scripts/test
 # has them do, also when pytest is run directly where the environment turns caching
 # off: compiling rtupoll's modules anew cost each start 40-80 ms of CPU (a third)
@@ -62,6 +71,29 @@ os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 settings.register_profile("short", max_examples=25, derandomize=True, deadline=None)
 settings.register_profile("long", max_examples=2000, derandomize=False, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "short"))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Before pytest-xdist starts its workers: they are to be forked from one process that
+    has imported what they import (tests/worker_zygote.py), and the library's profiles
+    are compiled into the run's cache once, so that no worker (each collects test files
+    that load the library) nor the commands they start parses them again."""
+    if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
+        if worker_zygote.available():
+            _SERVERS.append(worker_zygote.Listening(worker_zygote.__file__, worker_zygote.ENV))
+            config.option.tx = [worker_zygote.spec(tx) for tx in config.option.tx]
+            # and one server for the rtupoll commands of every worker (tests/forked_cli.py)
+            _SERVERS.append(worker_zygote.Listening(forked_cli.__file__, forked_cli.SHARED))
+        load_library()
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    for server in _SERVERS:
+        server.close()
+    _SERVERS.clear()
+
+
+_SERVERS: list[worker_zygote.Listening] = []
 
 
 def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
@@ -92,6 +124,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     browser = [item for item in items if "one_chromium" in getattr(item, "fixturenames", ())]
     if browser:
         items[:] = browser + [item for item in items if item not in browser]
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """What collecting made (the modules, the test items) lives to the end: out of the
+    collector's sight, so that its full collections during the tests (hypothesis makes
+    many objects) and pytest's at the end do not walk it each time."""
+    gc.collect()
+    gc.freeze()
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:

@@ -31,7 +31,9 @@ LIBRARY = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
 
 
 def _fixture(pid: str) -> dict[str, Any]:
-    data: dict[str, Any] = yaml.safe_load((GOLDEN / f"{pid}.yaml").read_text(encoding="utf-8"))
+    # (libyaml's loader where PyYAML has it: every test process reads them all to collect)
+    data: dict[str, Any] = yaml.load((GOLDEN / f"{pid}.yaml").read_text(encoding="utf-8"),
+                                     Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     return data
 
 

@@ -42,15 +42,18 @@ examples", says the same):
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import fcntl
+import functools
 import hashlib
 import os
 import pty
 import re
 import resource
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -221,12 +224,23 @@ def run(ex: Example, where: Path, docfiles: dict[str, str], forks: ForkServer | 
 
 def examples_env() -> dict[str, str]:
     """The environment the examples run in: a reader's, with this venv's commands."""
-    env = {**os.environ, "COLUMNS": "100", "LINES": "50",
+    env = {**os.environ, "COLUMNS": "100", "LINES": "50", "XDG_CACHE_HOME": _examples_cache(),
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     for name in ("RTUPOLL_PROFILES", "RTUPOLL_PORT", "RTUPOLL_TIMEOUT", "RTUPOLL_RETRIES",
                  "PYTHONDONTWRITEBYTECODE"):  # (Python compiles rtupoll once, not each time)
         env.pop(name, None)
     return env
+
+
+@functools.cache
+def _examples_cache() -> str:
+    """The examples' compiled-profile cache: this test process's copy of the run's
+    (tests/conftest.py), which the other test processes share, so that an example that
+    clears its cache (docs/profiles.md) clears only this one."""
+    where = tempfile.mkdtemp(prefix="rtupoll-examples-cache-")
+    atexit.register(shutil.rmtree, where, ignore_errors=True)
+    shutil.copytree(os.environ["XDG_CACHE_HOME"], where, dirs_exist_ok=True)
+    return where
 
 
 SHELL_SYNTAX = re.compile(r"[|&;<>$`()*?\[\]{}~\\]")  # what needs bash to mean what it says
@@ -506,11 +520,17 @@ def _first_runs() -> dict[tuple[str, ...], str]:
 _FIRST: dict[tuple[str, ...], str] | None = None
 
 
+@functools.cache
+def _docfiles(doc: Path) -> dict[str, str]:
+    """``files(blocks(doc))``, read once (each block of a document asks)."""
+    return files(blocks(doc))
+
+
 def _runnable(b: Block) -> tuple[list[Example], list[str]]:
     """A block's examples that run here, and why the others do not (they cannot, or
     they repeat a self-contained example that runs where it is printed first)."""
     todo, skipped = _runs_here(b)
-    docfiles = files(blocks(b.doc))
+    docfiles = _docfiles(b.doc)
     kept = []
     for ex in todo:
         key = _repeat_key(ex, docfiles)
@@ -544,7 +564,7 @@ def test_every_example_works_as_printed(block: Block, tmp_path: Path,
                                         forks: ForkServer | None) -> None:
     todo, _ = _runnable(block)
     build()  # the profiles parsed once, here, before the demo's thread starts
-    failures = run_block(block, todo, files(blocks(block.doc)), tmp_path / "block", forks)
+    failures = run_block(block, todo, _docfiles(block.doc), tmp_path / "block", forks)
     assert not failures, f"{len(failures)} of {len(todo)} examples failed:\n" + \
         "\n".join(failures)
 

@@ -1,0 +1,216 @@
+"""pytest-xdist workers forked from one process that has imported what each of them
+imports, instead of each started fresh (tests/README.md, "How fast").
+
+A worker of ``pytest -n N`` starts a Python and imports pytest, xdist, hypothesis,
+rtupoll and the peers' client libraries before it collects the tests: about half of its
+start-up, N times over, while the run keeps both cores busy. With ``-n`` (tests/conftest.py)
+the process pytest was started as binds a Unix socket and starts one *zygote*, which
+imports all that once, and gives the workers' specs (``popen``) this file as their
+Python. execnet then starts ``PYTHON -I -S worker_zygote.py -u -c BOOTSTRAP`` for each
+worker: the *client*, which hands its stdin, stdout and stderr, its working directory,
+its environment and the ``-c`` code to the zygote and ends as the worker the zygote forks
+for it ends, with its status. The worker is what ``PYTHON -u -c BOOTSTRAP`` would be (the
+same fds, directory and environment, ``sys.argv`` and ``sys.path[0]`` as ``-c`` sets them,
+Python's signal handlers, unbuffered output, a ``__main__`` of its own), with the modules
+already imported. Where the zygote cannot serve (no pidfds: not Linux; ``RTUPOLL_TEST_FRESH=1``;
+it is gone), the client becomes that fresh Python itself (``exec``).
+
+The rtupoll commands the tests start are forked the same way from a server of each
+worker's (tests/forked_cli.py); this file is only about the workers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import select
+import signal
+import socket
+import sys
+import tempfile
+
+ENV = "RTUPOLL_TEST_ZYGOTE"  # the zygote's socket, for the clients
+_MESSAGE = 1 << 20
+# what every worker imports before its first test, besides every rtupoll module; not the
+# pytest plugins (xdist, pytest-timeout, hypothesis): pytest rewrites their asserts as
+# it imports them, and warns of one imported already
+PRELOAD = ("pytest", "_pytest.pytester", "execnet", "jinja2", "prometheus_client", "yaml",
+           "serial", "pymodbus.client", "rich.console", "click")
+
+
+# ---- in the process pytest was started as --------------------------------------------
+
+class Listening:
+    """A server process for the run (``python FILE --listen FD``: this zygote, or the
+    shared rtupoll fork server of tests/forked_cli.py) on a Unix socket whose path is in
+    the environment variable ``env`` (inherited by the workers). The socket is bound and
+    listening before any client can start (one that connects while the server still
+    imports waits in the backlog); the server ends when its stdin closes (``close``)."""
+
+    def __init__(self, file: str, env: str) -> None:
+        import subprocess
+        self._env = env
+        self._where = tempfile.mkdtemp(prefix="rtupoll-server-")
+        path = os.path.join(self._where, "socket")
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        listener.bind(path)
+        listener.listen(64)
+        self._proc = subprocess.Popen(
+            [sys.executable, file, "--listen", str(listener.fileno())],
+            pass_fds=[listener.fileno()], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
+        listener.close()
+        os.environ[env] = path
+
+    def close(self) -> None:
+        import shutil
+        os.environ.pop(self._env, None)
+        assert self._proc.stdin is not None
+        self._proc.stdin.close()
+        self._proc.wait()
+        shutil.rmtree(self._where, ignore_errors=True)
+
+
+def spec(tx: str) -> str:
+    """A worker's spec ``tx`` (``popen``) with this file's client as its Python."""
+    if tx != "popen":
+        return tx
+    return "popen//python=" + " ".join([sys.executable, "-I", "-S", os.path.abspath(__file__)])
+
+
+def available() -> bool:
+    """Whether workers can be forked here (a space in a path would split the spec)."""
+    return hasattr(os, "pidfd_open") and " " not in sys.executable + __file__ and \
+        os.environ.get("RTUPOLL_TEST_FRESH") != "1"
+
+
+# ---- the client (execnet's "python") ----------------------------------------------------
+
+def _client(args: list[str]) -> None:
+    """Have the zygote fork the worker ``args`` (``-u [-B] -c CODE``) asks for, and end
+    as it ends; if it cannot, be that worker: exec a fresh Python with ``args``."""
+    try:
+        if args[-2:-1] != ["-c"] or not set(args[:-2]) <= {"-u", "-B"}:
+            raise OSError(f"not a worker's arguments: {args}")
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        sock.connect(os.environ[ENV])
+        request = {"code": args[-1], "cwd": os.getcwd(), "env": dict(os.environ),
+                   "bytecode": "-B" not in args}
+        socket.send_fds(sock, [json.dumps(request).encode()], [0, 1, 2])
+        started = sock.recv(_MESSAGE)
+        if not started:
+            raise OSError("the zygote closed the connection")
+    except (OSError, KeyError):
+        os.execv(sys.executable, [sys.executable, *args])
+    # the worker has the pipes now: execnet sees them close when the worker ends
+    null = os.open(os.devnull, os.O_RDWR)
+    os.dup2(null, 0)
+    os.dup2(null, 1)
+    pid = json.loads(started)["started"]
+    # a SIGTERM for the worker's Python reaches the worker; a Ctrl-C reaches it anyway
+    # (it is in the run's process group), and this one waits for it to end
+    signal.signal(signal.SIGTERM, lambda n, _: os.kill(pid, n))
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ended = sock.recv(_MESSAGE)
+    code = json.loads(ended)["status"] if ended else 1
+    if code < 0:  # ended by a signal: so does this
+        signal.signal(-code, signal.SIG_DFL)
+        os.kill(os.getpid(), -code)
+    sys.exit(code)
+
+
+# ---- the zygote --------------------------------------------------------------------
+
+def _preload() -> None:
+    import importlib
+    import pkgutil
+
+    import rtupoll
+    for name in PRELOAD:
+        with contextlib.suppress(ImportError):  # (a worker that needs it says why not)
+            importlib.import_module(name)
+    for module in pkgutil.walk_packages(rtupoll.__path__, "rtupoll."):
+        if not module.name.endswith(".__main__"):
+            importlib.import_module(module.name)
+
+
+def _serve(listener: socket.socket) -> tuple[dict[str, object], list[int]] | None:
+    """Fork a worker per client until stdin closes; in a worker, return its request."""
+    children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, its client)
+    while True:
+        for fd in select.select([0, listener.fileno(), *children], [], [])[0]:
+            if fd == 0:
+                return None  # the run is over
+            if fd != listener.fileno():
+                pid, client = children.pop(fd)
+                os.close(fd)
+                _, status = os.waitpid(pid, 0)
+                with contextlib.suppress(OSError):  # (a client killed: nobody to tell)
+                    client.send(json.dumps({"status": os.waitstatus_to_exitcode(status)}
+                                           ).encode())
+                client.close()
+                continue
+            client, _ = listener.accept()
+            data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
+            if len(fds) != 3:  # (a client gone before it asked)
+                for received in fds:
+                    os.close(received)
+                client.close()
+                continue
+            pid = os.fork()
+            if pid == 0:
+                listener.close()
+                client.close()
+                for pidfd, (_, other) in children.items():
+                    os.close(pidfd)
+                    other.close()
+                return json.loads(data), fds
+            for received in fds:
+                os.close(received)
+            children[os.pidfd_open(pid)] = (pid, client)
+            client.send(json.dumps({"started": pid}).encode())
+
+
+def _become(request: dict[str, object], fds: list[int]) -> dict[str, object]:
+    """Make this forked process what ``PYTHON -u -c CODE`` would start as; its globals."""
+    import io
+    import types
+    for target, fd in enumerate(fds):
+        os.dup2(fd, target)
+    for fd in fds:
+        if fd > 2:
+            os.close(fd)
+    cwd, env = request["cwd"], request["env"]
+    assert isinstance(cwd, str) and isinstance(env, dict)
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    sys.dont_write_bytecode = not request["bytecode"]
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    sys.stdin = io.TextIOWrapper(io.FileIO(0, "r", closefd=False))
+    sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), write_through=True)
+    sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), write_through=True,
+                                  errors="backslashreplace")
+    sys.argv = ["-c"]
+    sys.path[0] = ""
+    main = types.ModuleType("__main__")
+    sys.modules["__main__"] = main
+    return main.__dict__
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] != ["--listen"]:
+        _client(sys.argv[1:])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the run's to take
+    server = socket.socket(fileno=int(sys.argv[2]))
+    _preload()
+    import gc
+    gc.collect()
+    gc.freeze()  # (tests/forked_cli.py: a child's collections then copy no pages)
+    job = _serve(server)
+    if job is None:
+        sys.exit(0)
+    code = job[0]["code"]
+    assert isinstance(code, str)
+    exec(compile(code, "<string>", "exec"), _become(*job))  # (what -c runs)
+    sys.exit(0)
