@@ -187,10 +187,13 @@ def _become(request: dict[str, object], fds: list[int]) -> dict[str, object]:
     os.environ.update(env)
     sys.dont_write_bytecode = not request["bytecode"]
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    sys.stdin = io.TextIOWrapper(io.FileIO(0, "r", closefd=False))
-    sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), write_through=True)
-    sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), write_through=True,
-                                  errors="backslashreplace")
+    # the encodings and error handlers Python's start-up chose for the zygote's own
+    # (the same environment), unbuffered as -u has them
+    for n, name in enumerate(("stdin", "stdout", "stderr")):
+        was = getattr(sys, f"__{name}__")
+        setattr(sys, name, io.TextIOWrapper(io.FileIO(n, "w" if n else "r", closefd=False),
+                                            encoding=was.encoding, errors=was.errors,
+                                            write_through=n > 0))
     sys.argv = ["-c"]
     sys.path[0] = ""
     main = types.ModuleType("__main__")

@@ -81,8 +81,8 @@ def test_serving_requests_does_not_grow_the_memory() -> None:
 
     async def run() -> tuple[int, int]:
         served = Served(engine)
-        first = await served.serve(frames, 2 * WIRE_LOG)  # the window is full
-        second = await served.serve(frames, 2 * WIRE_LOG)
+        first = await served.serve(frames, WIRE_LOG)  # the window is full (2 frames each)
+        second = await served.serve(frames, WIRE_LOG)
         return first, second
 
     tracemalloc.start()
@@ -90,7 +90,7 @@ def test_serving_requests_does_not_grow_the_memory() -> None:
         first, second = asyncio.run(run())
     finally:
         tracemalloc.stop()
-    # each request used to keep two frames (~430 bytes): 2000 more requests, ~0.9 MB
+    # each request used to keep two frames (~430 bytes): 1000 more requests, ~0.4 MB
     assert second - first < 50_000, (first, second)
 
 

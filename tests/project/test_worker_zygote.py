@@ -1,0 +1,91 @@
+"""A pytest-xdist worker forked from the zygote (tests/worker_zygote.py) starts as the
+fresh ``PYTHON -u -c CODE`` that execnet would have started: the same view of its
+arguments, path, directory, environment, signals and stdio, the same exit status, and
+the same pipes, which close when it ends."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import worker_zygote
+
+# what a worker's Python sees of itself (the code execnet's -c would run instead)
+STATE = r"""
+import json, os, signal, sys
+def stream(s):
+    return [s.fileno(), s.isatty(), s.line_buffering, s.write_through, s.encoding, s.errors]
+line = sys.stdin.readline()
+print(json.dumps({
+    "argv": sys.argv, "path0": sys.path[0], "cwd": os.getcwd(), "name": __name__,
+    "env": os.environ.get("RTUPOLL_ZYGOTE_PROBE"), "bytecode": sys.dont_write_bytecode,
+    "signals": {s.name: str(signal.getsignal(s)) for s in signal.Signals
+                if s not in (signal.SIGKILL, signal.SIGSTOP)},
+    "stdin": line, "stdout": stream(sys.stdout), "stderr": stream(sys.stderr),
+    "modules": "rtupoll.cli" in sys.modules}))
+sys.stdout.write("unbuffered")  # (no newline, no flush: seen only if written through)
+sys.exit(int(line.split()[-1]))
+"""
+
+
+@pytest.fixture
+def zygote() -> Iterator[None]:
+    if not worker_zygote.available():
+        pytest.skip("no zygote here (no pidfd, or RTUPOLL_TEST_FRESH=1): workers start fresh")
+    server = worker_zygote.Listening(worker_zygote.__file__, "RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET")
+    try:
+        yield
+    finally:
+        server.close()
+
+
+def start(forked: bool, where: Path, *flags: str) -> tuple[int, str, str]:
+    """A worker's Python started as execnet starts it (``spec``'s words, then
+    ``-u [-B] -c CODE``), through the zygote or fresh; its status, stdout and stderr."""
+    env = {**os.environ, "RTUPOLL_ZYGOTE_PROBE": "here"}
+    python = [sys.executable, "-I", "-S", worker_zygote.__file__] if forked else [sys.executable]
+    if forked:
+        env[worker_zygote.ENV] = os.environ["RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET"]
+    proc = subprocess.run([*python, "-u", *flags, "-c", STATE], input="exit with 3\n",
+                          capture_output=True, text=True, cwd=where, env=env, timeout=120)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize("flags", [(), ("-B",)], ids=["bytecode", "no-bytecode"])
+def test_a_forked_worker_starts_as_a_fresh_python(zygote: None, tmp_path: Path,
+                                                  flags: tuple[str, ...]) -> None:
+    fresh = start(False, tmp_path, *flags)
+    forked = start(True, tmp_path, *flags)
+    assert fresh[0] == 3 and fresh[1].endswith("unbuffered"), fresh
+    state = {k: v for k, v in json.loads(fresh[1].splitlines()[0]).items() if k != "modules"}
+    assert state["stdin"] == "exit with 3\n" and state["cwd"] == str(tmp_path)
+    assert forked[0] == fresh[0] and forked[2] == fresh[2] == ""
+    assert forked[1].splitlines()[1:] == fresh[1].splitlines()[1:]
+    seen = json.loads(forked[1].splitlines()[0])
+    assert seen.pop("modules") is True  # (what the zygote imported is there already)
+    assert seen == state
+
+
+def test_a_worker_killed_by_a_signal_ends_its_client_so(zygote: None, tmp_path: Path) -> None:
+    """execnet sees the worker's Python end as the worker ended: by the same signal."""
+    env = {**os.environ, worker_zygote.ENV: os.environ["RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET"]}
+    code = "import os, signal, sys; sys.stdin.readline(); os.kill(os.getpid(), signal.SIGTERM)"
+    proc = subprocess.run([sys.executable, "-I", "-S", worker_zygote.__file__, "-u", "-c", code],
+                          input="go\n", capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == -signal.SIGTERM, proc
+
+
+def test_without_a_zygote_the_client_is_a_fresh_python(tmp_path: Path) -> None:
+    """No socket (the zygote gone, or never started): the client execs the worker's
+    Python itself, and the run goes on."""
+    env = {**os.environ, worker_zygote.ENV: str(tmp_path / "no-such-socket")}
+    proc = subprocess.run([sys.executable, "-I", "-S", worker_zygote.__file__, "-u", "-c",
+                           "import sys; print(sys.argv, 'rtupoll.cli' in sys.modules)"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert (proc.returncode, proc.stdout) == (0, "['-c'] False\n"), proc
