@@ -328,7 +328,8 @@ def _serve(sock: socket.socket, listening: bool) -> tuple[dict[str, Any], list[i
     try:
         while True:
             wait = [0, sock.fileno()] if listening else []
-            for fd in select.select([*wait, *clients, *children], [], [])[0]:
+            # one at a time: handling one closes and opens fds, which may reuse a number
+            for fd in select.select([*wait, *clients, *children], [], [])[0][:1]:
                 if fd in children:
                     pid, client = children.pop(fd)
                     os.close(fd)

@@ -138,7 +138,8 @@ def _serve(listener: socket.socket) -> tuple[dict[str, object], list[int]] | Non
     """Fork a worker per client until stdin closes; in a worker, return its request."""
     children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, its client)
     while True:
-        for fd in select.select([0, listener.fileno(), *children], [], [])[0]:
+        # one at a time: handling one closes and opens fds, which may reuse a number
+        for fd in select.select([0, listener.fileno(), *children], [], [])[0][:1]:
             if fd == 0:
                 return None  # the run is over
             if fd != listener.fileno():
