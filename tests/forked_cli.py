@@ -329,35 +329,34 @@ def _serve(sock: socket.socket, listening: bool) -> tuple[dict[str, Any], list[i
         while True:
             wait = [0, sock.fileno()] if listening else []
             # one at a time: handling one closes and opens fds, which may reuse a number
-            for fd in select.select([*wait, *clients, *children], [], [])[0][:1]:
-                if fd in children:
-                    pid, client = children.pop(fd)
-                    os.close(fd)
-                    _, status, usage = os.wait4(pid, 0)
-                    with contextlib.suppress(OSError):  # (a client gone: nobody to tell)
-                        client.send(json.dumps({
-                            "ended": pid, "status": os.waitstatus_to_exitcode(status),
-                            "cpu": usage.ru_utime + usage.ru_stime}).encode())
-                elif listening and fd == 0:
-                    return None  # the run is over
-                elif listening and fd == sock.fileno():
-                    client = sock.accept()[0]
-                    client.send(json.dumps({"ready": True}).encode())
-                    clients[client.fileno()] = client
-                else:
-                    client = clients[fd]
-                    data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
-                    if not data:  # the client is done: what still runs is left over
-                        _kill([pid for pid, c in children.values() if c is client])
-                        del clients[fd]
-                        client.close()
-                        if not listening:
-                            return None
-                        continue
-                    job = _fork(client, json.loads(data), fds, children,
-                                [sock, *clients.values()])
-                    if job is not None:
-                        return job
+            fd = select.select([*wait, *clients, *children], [], [])[0][0]
+            if fd in children:
+                pid, client = children.pop(fd)
+                os.close(fd)
+                _, status, usage = os.wait4(pid, 0)
+                with contextlib.suppress(OSError):  # (a client gone: nobody to tell)
+                    client.send(json.dumps({
+                        "ended": pid, "status": os.waitstatus_to_exitcode(status),
+                        "cpu": usage.ru_utime + usage.ru_stime}).encode())
+            elif listening and fd == 0:
+                return None  # the run is over
+            elif listening and fd == sock.fileno():
+                client = sock.accept()[0]
+                client.send(json.dumps({"ready": True}).encode())
+                clients[client.fileno()] = client
+            else:
+                client = clients[fd]
+                data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
+                if not data:  # the client is done: what still runs is left over
+                    _kill([pid for pid, c in children.values() if c is client])
+                    del clients[fd]
+                    client.close()
+                    if not listening:
+                        return None
+                    continue
+                job = _fork(client, json.loads(data), fds, children, [sock, *clients.values()])
+                if job is not None:
+                    return job
     finally:
         if os.getpid() == _SERVER_PID:
             _kill([pid for pid, _ in children.values()])

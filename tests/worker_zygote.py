@@ -15,8 +15,8 @@ Python's signal handlers, unbuffered output, a ``__main__`` of its own), with th
 already imported. Where the zygote cannot serve (no pidfds: not Linux; ``RTUPOLL_TEST_FRESH=1``;
 it is gone), the client becomes that fresh Python itself (``exec``).
 
-The rtupoll commands the tests start are forked the same way from a server of each
-worker's (tests/forked_cli.py); this file is only about the workers.
+The rtupoll commands the tests start are forked the same way, from one server for the
+run that ``Listening`` starts too (tests/forked_cli.py).
 """
 
 from __future__ import annotations
@@ -139,37 +139,36 @@ def _serve(listener: socket.socket) -> tuple[dict[str, object], list[int]] | Non
     children: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, its client)
     while True:
         # one at a time: handling one closes and opens fds, which may reuse a number
-        for fd in select.select([0, listener.fileno(), *children], [], [])[0][:1]:
-            if fd == 0:
-                return None  # the run is over
-            if fd != listener.fileno():
-                pid, client = children.pop(fd)
-                os.close(fd)
-                _, status = os.waitpid(pid, 0)
-                with contextlib.suppress(OSError):  # (a client killed: nobody to tell)
-                    client.send(json.dumps({"status": os.waitstatus_to_exitcode(status)}
-                                           ).encode())
-                client.close()
-                continue
-            client, _ = listener.accept()
-            data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
-            if len(fds) != 3:  # (a client gone before it asked)
-                for received in fds:
-                    os.close(received)
-                client.close()
-                continue
-            pid = os.fork()
-            if pid == 0:
-                listener.close()
-                client.close()
-                for pidfd, (_, other) in children.items():
-                    os.close(pidfd)
-                    other.close()
-                return json.loads(data), fds
+        fd = select.select([0, listener.fileno(), *children], [], [])[0][0]
+        if fd == 0:
+            return None  # the run is over
+        if fd != listener.fileno():
+            pid, client = children.pop(fd)
+            os.close(fd)
+            _, status = os.waitpid(pid, 0)
+            with contextlib.suppress(OSError):  # (a client killed: nobody to tell)
+                client.send(json.dumps({"status": os.waitstatus_to_exitcode(status)}).encode())
+            client.close()
+            continue
+        client, _ = listener.accept()
+        data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
+        if len(fds) != 3:  # (a client gone before it asked)
             for received in fds:
                 os.close(received)
-            children[os.pidfd_open(pid)] = (pid, client)
-            client.send(json.dumps({"started": pid}).encode())
+            client.close()
+            continue
+        pid = os.fork()
+        if pid == 0:
+            listener.close()
+            client.close()
+            for pidfd, (_, other) in children.items():
+                os.close(pidfd)
+                other.close()
+            return json.loads(data), fds
+        for received in fds:
+            os.close(received)
+        children[os.pidfd_open(pid)] = (pid, client)
+        client.send(json.dumps({"started": pid}).encode())
 
 
 def _become(request: dict[str, object], fds: list[int]) -> dict[str, object]:
