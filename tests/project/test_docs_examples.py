@@ -503,21 +503,16 @@ def _repeat_key(ex: Example, docfiles: dict[str, str]) -> tuple[str, ...] | None
     return (ex.command, str(ex.exit), *(f"{n}\n{t}" for n, t in sorted(uses.items())))
 
 
+@functools.cache
 def _first_runs() -> dict[tuple[str, ...], str]:
     """Where each self-contained example runs first (README, then docs/ in order)."""
-    global _FIRST
-    if _FIRST is None:
-        _FIRST = {}
-        for doc in DOCS:
-            docfiles = files(blocks(doc))
-            for b in blocks(doc):
-                for ex in _runs_here(b)[0]:
-                    if (key := _repeat_key(ex, docfiles)) is not None:
-                        _FIRST.setdefault(key, ex.where)
-    return _FIRST
-
-
-_FIRST: dict[tuple[str, ...], str] | None = None
+    first: dict[tuple[str, ...], str] = {}
+    for doc in DOCS:
+        for b in blocks(doc):
+            for ex in _runs_here(b)[0]:
+                if (key := _repeat_key(ex, _docfiles(doc))) is not None:
+                    first.setdefault(key, ex.where)
+    return first
 
 
 @functools.cache
