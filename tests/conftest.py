@@ -80,10 +80,16 @@ def pytest_configure(config: pytest.Config) -> None:
     that load the library) nor the commands they start parses them again."""
     if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
         if worker_zygote.available():
-            _SERVERS.append(worker_zygote.Listening(worker_zygote.__file__, worker_zygote.ENV))
-            config.option.tx = [worker_zygote.spec(tx) for tx in config.option.tx]
-            # and one server for the rtupoll commands of every worker (tests/forked_cli.py)
-            _SERVERS.append(worker_zygote.Listening(forked_cli.__file__, forked_cli.SHARED))
+            try:
+                _SERVERS.append(worker_zygote.Listening(worker_zygote.__file__,
+                                                        worker_zygote.ENV))
+                # and one server for the rtupoll commands of every worker (tests/forked_cli.py)
+                _SERVERS.append(worker_zygote.Listening(forked_cli.__file__, forked_cli.SHARED))
+            except OSError as error:  # (e.g. a socket path too long): fresh workers, as before
+                config.issue_config_time_warning(pytest.PytestConfigWarning(
+                    f"workers start fresh: no zygote here ({error})"), stacklevel=2)
+            else:
+                config.option.tx = [worker_zygote.spec(tx) for tx in config.option.tx]
         load_library()
 
 
