@@ -12,8 +12,9 @@ its environment and the ``-c`` code to the zygote and ends as the worker the zyg
 for it ends, with its status. The worker is what ``PYTHON -u -c BOOTSTRAP`` would be (the
 same fds, directory and environment, ``sys.argv`` and ``sys.path[0]`` as ``-c`` sets them,
 Python's signal handlers, unbuffered output, a ``__main__`` of its own), with the modules
-already imported. Where the zygote cannot serve (no pidfds: not Linux; ``RTUPOLL_TEST_FRESH=1``;
-it is gone), the client becomes that fresh Python itself (``exec``).
+already imported. Without pidfds (not Linux), with ``RTUPOLL_TEST_FRESH=1``, or where the
+socket cannot be made, conftest starts no zygote and the workers start fresh; a client
+whose zygote is gone becomes that fresh Python itself (``exec``).
 
 The rtupoll commands the tests start are forked the same way, from one server for the
 run that ``Listening`` starts too (tests/forked_cli.py).
