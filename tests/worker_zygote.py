@@ -50,7 +50,7 @@ class Listening:
     imports waits in the backlog); the server ends when its stdin closes (``close``)."""
 
     def __init__(self, file: str, env: str) -> None:
-        import subprocess
+        import subprocess  # (here, not at the top: the client, this file too, stays small)
         self._env = env
         self._where = tempfile.mkdtemp(prefix="rtupoll-server-")
         path = os.path.join(self._where, "socket")
@@ -122,17 +122,24 @@ def _client(args: list[str]) -> None:
 
 # ---- the zygote --------------------------------------------------------------------
 
-def _preload() -> None:
+def import_rtupoll() -> None:
+    """Import every rtupoll module (not ``__main__``, which would run the CLI): what this
+    zygote and tests/forked_cli.py's server hold for the processes they fork."""
     import importlib
     import pkgutil
 
     import rtupoll
-    for name in PRELOAD:
-        with contextlib.suppress(ImportError):  # (a worker that needs it says why not)
-            importlib.import_module(name)
     for module in pkgutil.walk_packages(rtupoll.__path__, "rtupoll."):
         if not module.name.endswith(".__main__"):
             importlib.import_module(module.name)
+
+
+def _preload() -> None:
+    import importlib
+    for name in PRELOAD:
+        with contextlib.suppress(ImportError):  # (a worker that needs it says why not)
+            importlib.import_module(name)
+    import_rtupoll()
 
 
 def _serve(listener: socket.socket) -> tuple[dict[str, object], list[int]] | None:
