@@ -388,10 +388,13 @@ class Line:
                    self.framing.wire_time(MAX_FRAME) + self.framing.silence)
 
     def _forget(self, now: float) -> None:
+        """Drop the requests no answer is expected to any more: not the one in flight,
+        which is expected until its attempt ends (``expire`` then sets its late window)."""
         if not self._outstanding:
             return
+        flying = self.attempt.entry if self.attempt is not None else None
         for unit, queue in list(self._outstanding.items()):
-            for e in [e for e in queue if e.expires < now]:
+            for e in [e for e in queue if e.expires < now and e is not flying]:
                 queue.remove(e)
             if not queue:
                 del self._outstanding[unit]
