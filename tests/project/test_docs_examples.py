@@ -425,12 +425,15 @@ def _cpu() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime + FORKED_CPU[0]
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def forks() -> Iterator[ForkServer | None]:
     """``rtupoll ARGS`` examples run forked from one server that imported rtupoll once
     (tests/forked_cli.py): the same command in a process of its own, without Python's
     and rtupoll's start-up each time. The rest (scripts, shell syntax) run with bash,
-    and all of them where the server cannot wait for its children (no pidfd: not Linux)."""
+    and all of them where the server cannot wait for its children (no pidfd: not Linux).
+    Asked for each test: a session of pytest run inside this process (pytester, with
+    tests/conftest.py) closes this process's server as it ends, and the next test's is
+    then a new one."""
     yield shared_server() if hasattr(os, "pidfd_open") else None
 
 
