@@ -10,8 +10,8 @@ so a test can send exact bytes and see exactly what came back.
 
 ``jitter`` is how late this machine wakes a sleeping thread now (seconds, the 99th
 percentile of 200 one-millisecond sleeps): the allowance of a test in the ``timing``
-group, the few that measure the real clock (scripts/test runs them alone, after the
-parallel run). Every other rule about time is proven in virtual time (tests/virtual.py).
+group, the few that measure the real clock (scripts/test runs them after the parallel
+run). Every other rule about time is proven in virtual time (tests/virtual.py).
 
 Hypothesis runs the ``short`` profile (few examples, the same ones every run) unless
 ``--hypothesis-profile=long`` or ``HYPOTHESIS_PROFILE=long`` asks for a long search.
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import gc
+import itertools
 import os
 import select
 import shutil
@@ -81,8 +82,8 @@ def pytest_configure(config: pytest.Config) -> None:
     if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
         if worker_zygote.available():
             try:
-                _SERVERS.append(worker_zygote.Listening(worker_zygote.__file__,
-                                                        worker_zygote.ENV))
+                _SERVERS.append(worker_zygote.Listening(
+                    worker_zygote.__file__, worker_zygote.ENV, *config.invocation_params.args))
                 # and one server for the rtupoll commands of every worker (tests/forked_cli.py)
                 _SERVERS.append(worker_zygote.Listening(forked_cli.__file__, forked_cli.SHARED))
             except OSError as error:  # (e.g. a socket path too long): fresh workers, as before
@@ -102,12 +103,19 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 _SERVERS: list[worker_zygote.Listening] = []
 
 
+def _timing_run(config: pytest.Config) -> bool:
+    """A run of the ``timing`` group, or of part of it (``-m timing``, ``-m "timing and
+    alone"``, ``-m "timing and not alone"``: scripts/test)."""
+    markexpr: str = config.getoption("markexpr")
+    return markexpr == "timing" or markexpr.startswith("timing and ")
+
+
 def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
-    """The ``timing`` group alone (``-m timing``, scripts/test) imports only the test files
-    that say ``mark.timing``: the group runs serially, so importing the other 100 files
-    would be its wall time. Every other run checks that each test so marked says it
-    in its file (``pytest_collection_modifyitems``)."""
-    if (config.getoption("markexpr") == "timing" and collection_path.suffix == ".py"
+    """The ``timing`` group (``-m timing``, scripts/test) imports only the test files
+    that say ``mark.timing``: the group runs after the parallel run, so importing the
+    other 100 files would be its wall time. Every other run checks that each test so
+    marked says it in its file (``pytest_collection_modifyitems``)."""
+    if (_timing_run(config) and collection_path.suffix == ".py"
             and collection_path.name.startswith("test_")
             and "mark.timing" not in collection_path.read_text(encoding="utf-8")):
         return True
@@ -120,6 +128,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if unsaid:
         raise pytest.UsageError("tests marked timing in files that do not say 'mark.timing' "
                                 "(-m timing would not run them): " + ", ".join(unsaid))
+    if _timing_run(config):
+        # one test of each file, then the second of each, ...: a file's timing tests are
+        # alike (two 2.5-second scans, two sniffs of mbpoll), and pytest-xdist's ``--dist
+        # load`` hands each of its workers a run of neighbours; spread, no worker gets
+        # two long ones while another idles
+        files: dict[Path, list[pytest.Item]] = {}
+        for item in items:
+            if item.get_closest_marker("timing"):
+                files.setdefault(item.path, []).append(item)
+        rounds = itertools.zip_longest(*files.values())
+        spread = [item for round_ in rounds for item in round_ if item is not None]
+        items[:] = spread + [item for item in items if item not in spread]
+        return
     # The browser tests first, so that pytest-xdist gives them to one worker: one chromium
     # for all of them (test_web_browser.py's ``one_chromium``), not one per worker that
     # gets one (each start is about 1 CPU-s and 2-4 s of wall). ``--dist worksteal`` hands
@@ -130,6 +151,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     browser = [item for item in items if "one_chromium" in getattr(item, "fixturenames", ())]
     if browser:
         items[:] = browser + [item for item in items if item not in browser]
+    # The documents' examples (tests/project/test_docs_examples.py: 43 tests that mostly
+    # wait on the commands they run, a minute in all) spread evenly through the order:
+    # last in the collection, they were the last tests of the run, whose final 10 s then
+    # kept a core idle
+    examples = [item for item in items if item.path.name == "test_docs_examples.py"]
+    rest = [item for item in items if item.path.name != "test_docs_examples.py"]
+    if 0 < len(examples) <= len(rest):
+        every = len(rest) / len(examples)
+        at = {int(every * (k + 0.5)): example for k, example in enumerate(examples)}
+        items[:] = [item for n, test in enumerate(rest)
+                    for item in ([at[n]] if n in at else []) + [test]]
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

@@ -427,6 +427,7 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
 
 
 @pytest.mark.timing
+@pytest.mark.alone
 def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: float) -> None:
     """A stray byte 0.8 ms after each reply, while the bus sleeps the rest of the 1.75 ms
     silence: the next request still waits a whole silence after the last byte.
@@ -434,7 +435,7 @@ def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: floa
     A byte that reached the line less than 0.5 ms (plus the machine's measured jitter)
     before a request (the peer's thread late) came when the bus had already looked: the
     race every master on a shared line has, not a silence the bus cut short. The real
-    clock at sub-millisecond scale: in the timing group, run alone."""
+    clock at sub-millisecond scale: in the timing group, and run alone (``alone``)."""
     n = 20
     peer.scripts = [lambda req, normal: [(0.0, normal), (0.0008, b"\x00")]] * n
 

@@ -28,17 +28,20 @@ print(json.dumps({
     "signals": {s.name: str(signal.getsignal(s)) for s in signal.Signals
                 if s not in (signal.SIGKILL, signal.SIGSTOP)},
     "stdin": line, "stdout": stream(sys.stdout), "stderr": stream(sys.stderr),
-    "modules": "rtupoll.cli" in sys.modules}))
+    "modules": "rtupoll.cli" in sys.modules, "collected": "test_line" in sys.modules}))
 sys.stdout.write("unbuffered")  # (no newline, no flush: seen only if written through)
 sys.exit(int(line.split()[-1]))
 """
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def zygote() -> Iterator[None]:
+    """A zygote as a run's: with the run's pytest arguments (here one test file), which
+    it collects before it forks a worker."""
     if not worker_zygote.available():
         pytest.skip("no zygote here (no pidfd, or RTUPOLL_TEST_FRESH=1): workers start fresh")
-    server = worker_zygote.Listening(worker_zygote.__file__, "RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET")
+    server = worker_zygote.Listening(worker_zygote.__file__, "RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET",
+                                     "-q", str(Path(__file__).parents[1] / "rtu" / "test_line.py"))
     try:
         yield
     finally:
@@ -63,12 +66,14 @@ def test_a_forked_worker_starts_as_a_fresh_python(zygote: None, tmp_path: Path,
     fresh = start(False, tmp_path, *flags)
     forked = start(True, tmp_path, *flags)
     assert fresh[0] == 3 and fresh[1].endswith("unbuffered"), fresh
-    state = {k: v for k, v in json.loads(fresh[1].splitlines()[0]).items() if k != "modules"}
+    state = {k: v for k, v in json.loads(fresh[1].splitlines()[0]).items()
+             if k not in ("modules", "collected")}
     assert state["stdin"] == "exit with 3\n" and state["cwd"] == str(tmp_path)
     assert forked[0] == fresh[0] and forked[2] == fresh[2] == ""
     assert forked[1].splitlines()[1:] == fresh[1].splitlines()[1:]
     seen = json.loads(forked[1].splitlines()[0])
-    assert seen.pop("modules") is True  # (what the zygote imported is there already)
+    assert seen.pop("modules") is True  # (what the zygote imported is there already,
+    assert seen.pop("collected") is True  # the test files it collected too)
     assert seen == state
 
 
