@@ -279,6 +279,13 @@ def test_per_transaction_timeout_and_retries(peer: Responder) -> None:
                     await bus.read(99, Table.HOLDING, 0, 1, timeout=timeout, retries=retries)
                 took.append(time.monotonic() - t)
             assert bus.stats.outcomes["timeout"] == 3
+            assert (bus.stats.attempts, bus.stats.retries) == (5, 2)
+            # and the peer heard each, once its thread has read the last (a loaded
+            # machine ran it after the bus had given up on it: the line still open)
+            for _ in range(1000):
+                if len(peer.requests) >= 5:
+                    break
+                await asyncio.sleep(0.01)
         return took
     short, long_, retried = run(go())
     # each attempt waits its own timeout (how much longer a loaded machine takes is no
