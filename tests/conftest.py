@@ -35,7 +35,7 @@ import tempfile
 import termios
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -122,12 +122,17 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
     return None
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+@pytest.hookimpl(wrapper=True)
+def pytest_collection_modifyitems(config: pytest.Config,
+                                  items: list[pytest.Item]) -> Generator[None, None, None]:
+    """Every test marked ``timing`` says so in its file; then (once ``-m`` has deselected
+    what does not run) the order for pytest-xdist's workers."""
     unsaid = sorted({str(item.path) for item in items if item.get_closest_marker("timing")
                      and "mark.timing" not in item.path.read_text(encoding="utf-8")})
     if unsaid:
         raise pytest.UsageError("tests marked timing in files that do not say 'mark.timing' "
                                 "(-m timing would not run them): " + ", ".join(unsaid))
+    yield
     if _timing_run(config):
         # one test of each file, then the second of each, ...: a file's timing tests are
         # alike (two 2.5-second scans, two sniffs of mbpoll), and pytest-xdist's ``--dist
@@ -135,11 +140,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         # two long ones while another idles
         files: dict[Path, list[pytest.Item]] = {}
         for item in items:
-            if item.get_closest_marker("timing"):
-                files.setdefault(item.path, []).append(item)
+            files.setdefault(item.path, []).append(item)
         rounds = itertools.zip_longest(*files.values())
-        spread = [item for round_ in rounds for item in round_ if item is not None]
-        items[:] = spread + [item for item in items if item not in spread]
+        items[:] = [item for round_ in rounds for item in round_ if item is not None]
         return
     # The browser tests first, so that pytest-xdist gives them to one worker: one chromium
     # for all of them (test_web_browser.py's ``one_chromium``), not one per worker that
@@ -149,19 +152,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     # order (``--dist loadgroup`` would keep an ``xdist_group`` together, but the suite
     # runs ``worksteal``; without xdist the order changes nothing).
     browser = [item for item in items if "one_chromium" in getattr(item, "fixturenames", ())]
-    if browser:
-        items[:] = browser + [item for item in items if item not in browser]
+    rest = [item for item in items if item not in browser]
     # The documents' examples (tests/project/test_docs_examples.py: 43 tests that mostly
-    # wait on the commands they run, a minute in all) spread evenly through the order:
-    # last in the collection, they were the last tests of the run, whose final 10 s then
-    # kept a core idle
-    examples = [item for item in items if item.path.name == "test_docs_examples.py"]
-    rest = [item for item in items if item.path.name != "test_docs_examples.py"]
-    if 0 < len(examples) <= len(rest):
-        every = len(rest) / len(examples)
+    # wait on the commands they run, a minute in all) spread evenly through the rest:
+    # last in the collection, they were the run's last tests, and its last 10 s kept a
+    # core idle
+    examples = [item for item in rest if item.path.name == "test_docs_examples.py"]
+    others = [item for item in rest if item.path.name != "test_docs_examples.py"]
+    if 0 < len(examples) <= len(others):
+        every = len(others) / len(examples)
         at = {int(every * (k + 0.5)): example for k, example in enumerate(examples)}
-        items[:] = [item for n, test in enumerate(rest)
-                    for item in ([at[n]] if n in at else []) + [test]]
+        rest = [item for n, test in enumerate(others)
+                for item in ([at[n]] if n in at else []) + [test]]
+    items[:] = browser + rest
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
