@@ -170,9 +170,21 @@ def pytest_collection_modifyitems(config: pytest.Config,
 def pytest_collection_finish(session: pytest.Session) -> None:
     """What collecting made (the modules, the test items) lives to the end: out of the
     collector's sight, so that its full collections during the tests (hypothesis makes
-    many objects) and pytest's at the end do not walk it each time."""
+    many objects) and pytest's at the end do not walk it each time.
+
+    With ``RTUPOLL_TEST_AFTER=FILE`` (scripts/test: the timing group, started at the
+    lowest priority while the parallel run still runs) the first test waits until FILE
+    exists: the run before has ended, the machine is as quiet as it leaves it. A process
+    whose parent is gone meanwhile (scripts/test stopped) ends instead of waiting on."""
     gc.collect()
     gc.freeze()
+    after = os.environ.pop("RTUPOLL_TEST_AFTER", None)  # (not for what the tests start)
+    if after and not session.config.option.collectonly:
+        parent = os.getppid()
+        while not os.path.exists(after):
+            if os.getppid() != parent:
+                pytest.exit("the run this one waited for is gone", returncode=2)
+            time.sleep(0.05)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
