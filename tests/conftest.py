@@ -179,12 +179,8 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     gc.collect()
     gc.freeze()
     after = os.environ.pop("RTUPOLL_TEST_AFTER", None)  # (not for what the tests start)
-    if after and not session.config.option.collectonly:
-        parent = os.getppid()
-        while not os.path.exists(after):
-            if os.getppid() != parent:
-                pytest.exit("the run this one waited for is gone", returncode=2)
-            time.sleep(0.05)
+    if after and not session.config.option.collectonly and not worker_zygote.hold(after):
+        pytest.exit("the run this one waited for is gone", returncode=2)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:

@@ -90,6 +90,19 @@ def available() -> bool:
         os.environ.get("RTUPOLL_TEST_FRESH") != "1"
 
 
+def hold(path: str) -> bool:
+    """Wait until the file ``path`` exists (True), or until this process's parent is gone
+    (False: what started it, to make the file, was stopped). scripts/test's timing group
+    starts while the parallel run runs and holds its first test this way."""
+    import time
+    parent = os.getppid()
+    while not os.path.exists(path):
+        if os.getppid() != parent:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 # ---- the client (execnet's "python") ----------------------------------------------------
 
 def _client(args: list[str]) -> None:
