@@ -239,7 +239,10 @@ def _examples_cache() -> str:
     clears its cache (docs/profiles.md) clears only this one."""
     where = tempfile.mkdtemp(prefix="rtupoll-examples-cache-")
     atexit.register(shutil.rmtree, where, ignore_errors=True)
-    shutil.copytree(os.environ["XDG_CACHE_HOME"], where, dirs_exist_ok=True)
+    # not a file another process is writing (``.NAME.tmp``, renamed into place when
+    # complete: seen gone half-way through the copy)
+    shutil.copytree(os.environ["XDG_CACHE_HOME"], where, dirs_exist_ok=True,
+                    ignore=shutil.ignore_patterns(".*.tmp"))
     return where
 
 
