@@ -172,15 +172,17 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     collector's sight, so that its full collections during the tests (hypothesis makes
     many objects) and pytest's at the end do not walk it each time.
 
-    With ``RTUPOLL_TEST_AFTER=FILE`` (scripts/test: the timing group, started at the
-    lowest priority while the parallel run still runs) the first test waits until FILE
-    exists: the run before has ended, the machine is as quiet as it leaves it. A process
-    whose parent is gone meanwhile (scripts/test stopped) ends instead of waiting on."""
+    With ``RTUPOLL_TEST_AFTER="PID FILE"`` (scripts/test, its PID: the timing group,
+    started at the lowest priority while the parallel run still runs) the first test
+    waits until FILE exists: the run before has ended, the machine is as quiet as it
+    leaves it. If PID ends first (scripts/test stopped), the run ends instead."""
     gc.collect()
     gc.freeze()
     after = os.environ.pop("RTUPOLL_TEST_AFTER", None)  # (not for what the tests start)
-    if after and not session.config.option.collectonly and not worker_zygote.hold(after):
-        pytest.exit("the run this one waited for is gone", returncode=2)
+    if after and not session.config.option.collectonly:
+        owner, path = after.split(" ", 1)
+        if not worker_zygote.hold(path, int(owner)):
+            pytest.exit("the run this one waited for is gone", returncode=2)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:

@@ -90,17 +90,31 @@ def available() -> bool:
         os.environ.get("RTUPOLL_TEST_FRESH") != "1"
 
 
-def hold(path: str) -> bool:
-    """Wait until the file ``path`` exists (True), or until this process's parent is gone
-    (False: what started it, to make the file, was stopped). scripts/test's timing group
-    starts while the parallel run runs and holds its first test this way."""
+def hold(path: str, owner: int) -> bool:
+    """Wait until the file ``path`` exists (True), or until the process ``owner``, which
+    is to make it, has ended (False: scripts/test was stopped). scripts/test's timing
+    group starts while the parallel run runs and holds its first test this way."""
     import time
-    parent = os.getppid()
-    while not os.path.exists(path):
-        if os.getppid() != parent:
-            return False
-        time.sleep(0.05)
-    return True
+    try:
+        ended = os.pidfd_open(owner)  # (readable once it has ended, reaped or not)
+    except ProcessLookupError:
+        return os.path.exists(path)
+    except AttributeError:  # (no pidfds: not Linux)
+        ended = -1
+    try:
+        while not os.path.exists(path):
+            if ended < 0:
+                try:
+                    os.kill(owner, 0)
+                except ProcessLookupError:
+                    return os.path.exists(path)
+                time.sleep(0.05)
+            elif select.select([ended], [], [], 0.05)[0]:
+                return os.path.exists(path)
+        return True
+    finally:
+        if ended >= 0:
+            os.close(ended)
 
 
 # ---- the client (execnet's "python") ----------------------------------------------------

@@ -100,8 +100,9 @@ def test_without_a_zygote_the_client_is_a_fresh_python(tmp_path: Path) -> None:
 
 def test_a_held_run_goes_on_once_the_file_is_there(tmp_path: Path) -> None:
     gate = tmp_path / "parallel-run-ended"
-    held = threading.Thread(target=lambda: result.append(worker_zygote.hold(str(gate))))
     result: list[bool] = []
+    held = threading.Thread(
+        target=lambda: result.append(worker_zygote.hold(str(gate), os.getpid())))
     held.start()
     time.sleep(0.2)
     assert held.is_alive() and not result  # no file, no end
@@ -110,14 +111,17 @@ def test_a_held_run_goes_on_once_the_file_is_there(tmp_path: Path) -> None:
     assert result == [True]
 
 
-def test_a_held_process_whose_parent_is_gone_does_not_wait_on(tmp_path: Path) -> None:
-    """scripts/test stopped before it made the file: the held run ends, not waits on."""
+def test_a_held_run_whose_owner_ends_does_not_wait_on(tmp_path: Path) -> None:
+    """scripts/test stopped before it made the file: the held run ends, not waits on
+    (also when its owner has ended before the hold began, and before it is reaped)."""
     code = (f"import os, sys; sys.path.insert(0, {str(Path(worker_zygote.__file__).parent)!r})\n"
             "import worker_zygote\n"
+            "owner = os.getpid()\n"
             "if os.fork():\n"
-            "    os._exit(0)  # the parent goes at once\n"
-            f"print(worker_zygote.hold({str(tmp_path / 'never')!r}), flush=True)\n")
+            "    os._exit(0)  # the owner ends at once\n"
+            f"print(worker_zygote.hold({str(tmp_path / 'never')!r}, owner), flush=True)\n")
     # the held child keeps stdout open: it is read to the end once the child has ended
+    # (and only then is the owner reaped)
     proc = subprocess.run([sys.executable, "-I", "-c", code], capture_output=True, text=True,
                           timeout=120)
     assert proc.stdout == "False\n", proc.stderr
