@@ -39,7 +39,8 @@ ENV = "RTUPOLL_TEST_ZYGOTE"  # the zygote's socket, for the clients
 _MESSAGE = 1 << 20
 # what every worker imports before its first test, besides every rtupoll module; not the
 # pytest plugins (xdist, pytest-timeout, hypothesis): pytest rewrites their asserts as
-# it imports them, and warns of one imported already
+# it imports them, and warns of one imported already (``_collect`` imports them through
+# pytest)
 PRELOAD = ("pytest", "_pytest.pytester", "execnet", "jinja2", "prometheus_client", "yaml",
            "serial", "pymodbus.client", "rich.console", "click")
 
