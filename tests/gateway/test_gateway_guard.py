@@ -9,6 +9,7 @@ as the other masters."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import shutil
 import struct
 import subprocess
@@ -20,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rtupoll.config.gateway_settings import ServeConfig
-from rtupoll.config.site import from_specs
+from rtupoll.config.site import Site, from_specs
 from rtupoll.gateway.clients import ClientStats
 from rtupoll.gateway.server import Gateway
 from rtupoll.gateway.turns import Turns
@@ -62,10 +63,15 @@ class RecordingLine:
         return b"" if unit == 0 else bytes((pdu[0], 2, 0, 0))
 
 
-def gateway(line: RecordingLine, **serve: Any) -> Gateway:
-    site = from_specs("/dev/null", [("net-irnet-pro", 1), ("radar-level", 2),
+@functools.cache
+def site() -> Site:
+    """The three devices the rules here are written for (a site is frozen: one will do)."""
+    return from_specs("/dev/null", [("net-irnet-pro", 1), ("radar-level", 2),
                                     ("huiwen-aq", 3)], baudrate=9600, check_serial=False)
-    bp = Scheduler(site, open_bus=lambda _c: line).buses[0]  # type: ignore[arg-type,return-value]
+
+
+def gateway(line: RecordingLine, **serve: Any) -> Gateway:
+    bp = Scheduler(site(), open_bus=lambda _c: line).buses[0]  # type: ignore[arg-type,return-value]
     return Gateway(ServeConfig("127.0.0.1", 0, **serve), bp, Turns())
 
 

@@ -32,6 +32,10 @@ def tshark(capture: Path, *args: str) -> list[list[str]]:
     return [line.split("\t") for line in run.stdout.splitlines()]
 
 
+# the capture holds what each read of the tap brought: a frame a packet only while the
+# sniffer reads each frame before the next one starts (a reply and mbpoll's next request
+# came as one packet beside 8 busy workers)
+@pytest.mark.timing
 def test_tshark_decodes_an_rtupoll_capture_as_modbus_rtu(
         sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
     tap, capture = str(tmp_path / "tap"), tmp_path / "line.pcapng"
