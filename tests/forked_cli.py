@@ -7,9 +7,10 @@ once and then forks a child per command: one for the whole run when pytest-xdist
 (started by tests/conftest.py before the workers, which connect to it), else one per
 test process (``shared_server()``, started on first use, ended with the session). The
 server keeps what it imported out of the garbage collector's sight (``gc.freeze``), so
-that a child's collections and exit do not copy every page of it: a forked ``rtupoll
---version`` costs 0.06 CPU-s (0.18 without), ``profiles search`` 0.09. The child is what
-a fresh ``rtupoll`` started by ``subprocess.Popen`` would be:
+that a child's collections do not copy every page of it, and a child exits without
+tearing down the modules it shares with the server (``exit_unshared``): a forked
+``rtupoll --version`` costs 0.03 CPU-s (0.18 with neither, 0.06 with the freeze alone).
+The child is what a fresh ``rtupoll`` started by ``subprocess.Popen`` would be:
 
 - a process and session of its own (``killpg(pid, SIGINT)`` is a Ctrl-C; a test need not
   ask for ``start_new_session``), with the given stdin, stdout and stderr on fds 0-2
@@ -24,9 +25,13 @@ a fresh ``rtupoll`` started by ``subprocess.Popen`` would be:
   fresh process handles it, never lost nor taken by the server's handlers; the server
   says "started" only once the child has its own session, so ``killpg`` finds it;
 - then what ``python -m rtupoll`` (``runpy``) or the console script (``sys.exit(main())``)
-  does, with the interpreter's normal exit after it (atexit, the threads, an uncaught
-  KeyboardInterrupt ending it by SIGINT). Its exit status and CPU time come back from the
-  server, which waits for it.
+  does, and the interpreter's exit after it: the threads joined, the atexit callbacks,
+  stdout and stderr flushed (exit 120 if stdout cannot be), the garbage collected (its
+  finalizers), the status (an uncaught KeyboardInterrupt ending it by SIGINT). Only the
+  modules' teardown is skipped (``exit_unshared``: the finalizer of an object a module
+  still holds does not run).
+  tests/cli/test_forked_cli.py compares that exit with Python's own. Its exit status and
+  CPU time come back from the server, which waits for it.
 
 ``rtupoll_popen(args, ...)`` is ``subprocess.Popen`` for such a command (``args``:
 ``[sys.executable, "-m", "rtupoll", ...]`` or the console script's path first); pipes,
@@ -45,6 +50,7 @@ as it was: every command a new interpreter), every command starts fresh.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import gc
 import io
@@ -58,7 +64,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -429,14 +435,74 @@ def _become(request: dict[str, Any], fds: list[int]) -> None:
 
 
 _SERVER_PID = os.getpid()
+_ENDED: list[int | str] = []  # in a child: how its command ended (an exit status, "SIGINT")
+
+
+def _status(code: object) -> int:
+    """The exit status Python gives ``SystemExit(code)`` (for a code other than None or an
+    int it prints the code first, and gives 1)."""
+    if code is None:
+        return 0
+    return code if isinstance(code, int) else 1
+
+
+def ending(command: Callable[[], object]) -> None:
+    """Run a child's command, noting how it ends (for ``exit_unshared``); whatever it
+    raises goes on to Python, as from a fresh ``rtupoll``."""
+    try:
+        command()
+        _ENDED.append(0)
+    except SystemExit as stop:
+        _ENDED.append(_status(stop.code))
+        raise
+    except KeyboardInterrupt:
+        _ENDED.append("SIGINT")
+        raise
+    except BaseException:
+        _ENDED.append(1)
+        raise
+
+
+def exit_unshared() -> None:
+    """A forked command's last atexit callback (registered before any other, in the
+    server): what Python's exit still does after the callbacks that can show, then the exit
+    itself, without tearing down the modules the child shares with the server. That
+    teardown frees what the server imported, so it writes to (and the kernel copies)
+    nearly every page the server filled: 45 ms of CPU a command (7,200 page faults), 7 CPU-s
+    a run; nothing of it shows. What does show is done as Python does it: flush stdout,
+    then stderr (unless closed), collect the garbage (a finalizer may print), flush them
+    again; then exit with the command's status, or by SIGINT after an uncaught
+    KeyboardInterrupt (130 if that does not end it). If a flush fails, this returns and
+    Python's own exit runs, and says so as it does (exit 120)."""
+    if not _ENDED:
+        return  # the server, or a child that did not get to its command
+    try:
+        for collect in (True, False):
+            for stream in (sys.stdout, sys.stderr):
+                if stream is not None and not stream.closed:
+                    stream.flush()
+            if collect:
+                gc.collect()
+    except Exception:
+        return
+    if _ENDED[0] == "SIGINT":
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGINT)
+        os._exit(130)
+    os._exit(int(_ENDED[0]))
+
 
 if __name__ == "__main__":
+    # first, so that in a child it runs last (an earlier one would not run: then not at all)
+    atexit.register(exit_unshared)
+    if getattr(atexit, "_ncallbacks", lambda: 0)() != 1:
+        atexit.unregister(exit_unshared)
     from worker_zygote import import_rtupoll  # (this file's folder is sys.path[0])
     import_rtupoll()
     from rtupoll.cli import main
     # what is imported stays: out of the collector's sight, a child's collections do not
     # touch (and so copy) every page the server filled (a forked `rtupoll --version` took
-    # 0.18 CPU-s without, 0.06 with)
+    # 0.18 CPU-s without, 0.06 with; 0.03 with exit_unshared too)
     gc.collect()
     gc.freeze()
     # a Ctrl-C for the whole test run is not the server's to take: the test process
@@ -452,10 +518,14 @@ if __name__ == "__main__":
     _become(*job)
     how = job[0]["how"]
     del sock, job
-    if how == "module":  # what ``python -m rtupoll`` does
-        import runpy
-        runpy.run_module("rtupoll", run_name="__main__", alter_sys=True)
-        sys.exit(0)
-    # what the console script (.venv/bin/rtupoll) does
-    sys.argv[0] = re.sub(r"(-script\.pyw|\.exe)?$", "", sys.argv[0])
-    sys.exit(main())
+
+    def command() -> None:
+        if how == "module":  # what ``python -m rtupoll`` does
+            import runpy
+            runpy.run_module("rtupoll", run_name="__main__", alter_sys=True)
+            sys.exit(0)
+        # what the console script (.venv/bin/rtupoll) does
+        sys.argv[0] = re.sub(r"(-script\.pyw|\.exe)?$", "", sys.argv[0])
+        sys.exit(main())
+
+    ending(command)

@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import forked_cli
 import pytest
 from forked_cli import RTUPOLL, rtupoll_popen
 
@@ -305,3 +306,72 @@ def test_a_ctrl_c_whose_keyboardinterrupt_python_drops_still_stops_the_command(
     assert not stopped_by_the_guard.is_set(), "it ran on after the Ctrl-C"
     assert dropped == [] and ignored == [KeyboardInterrupt]  # it was raised, and dropped
     assert ran.returncode == 0 and "stopped after 0 requests" in ran.stdout
+
+
+# How a forked command ends (tests/forked_cli.py, ``exit_unshared``): its last atexit
+# callback flushes, collects and exits without tearing down the modules the child
+# shares with the server. Each case ends a fresh Python so, and again with Python's own
+# exit; the two must show the same (status, stdout, stderr).
+EXIT_SCRIPT = """
+import atexit, sys
+sys.path.insert(0, sys.argv[1])
+import forked_cli
+if sys.argv[2] == "unshared":
+    atexit.register(forked_cli.exit_unshared)
+atexit.register(print, "an atexit callback", file=sys.stderr)
+
+class Noisy:
+    def __del__(self):
+        print("a finalizer", file=sys.stderr)
+
+def command():
+{case}
+
+forked_cli.ending(command)
+"""
+EXIT_CASES = {
+    "status": "    print('out'); sys.exit(3)",
+    "message": "    sys.exit('rtupoll: a message')",
+    "error": "    raise ValueError('an error')",
+    "ctrl-c": "    raise KeyboardInterrupt",
+    "buffered": "    sys.stdout.write('x' * 100)",  # (fully buffered: written at the exit)
+    "cycle": "    a = Noisy(); a.me = a; del a",  # garbage with a finalizer, collected at exit
+    "flush-fails": "    sys.stdout.write('x' * 100); sys.exit(0)",  # (stdout's reader gone)
+}
+
+
+def ended(case: str, how: str) -> tuple[int, str, str]:
+    script = EXIT_SCRIPT.format(case=EXIT_CASES[case])
+    gone = case == "flush-fails"
+    read, write = os.pipe()
+    if gone:
+        os.close(read)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # (buffered)
+    proc = subprocess.Popen([sys.executable, "-c", script, str(Path(forked_cli.__file__).parent),
+                             how], stdout=write, stderr=subprocess.PIPE, text=True, env=env)
+    os.close(write)
+    out = "" if gone else os.fdopen(read).read()
+    _, err = proc.communicate(timeout=GUARD)
+    return proc.returncode, out, err
+
+
+@pytest.mark.parametrize("case", sorted(EXIT_CASES))
+def test_a_forked_commands_exit_shows_what_pythons_exit_shows(case: str) -> None:
+    unshared = ended(case, "unshared")
+    assert unshared == ended(case, "python")
+    assert "an atexit callback" in unshared[2]
+    want = {"status": 3, "message": 1, "error": 1, "ctrl-c": -signal.SIGINT, "buffered": 0,
+            "cycle": 0, "flush-fails": 120}
+    assert unshared[0] == want[case]
+
+
+def test_what_a_forked_commands_exit_does_not_do_is_tear_down_the_modules() -> None:
+    """Its one difference: a finalizer that only the modules' teardown runs (of an object a
+    module still holds at the exit) does not run."""
+    EXIT_CASES["held"] = "    sys.modules['forked_cli'].held = Noisy()"
+    try:
+        python, unshared = ended("held", "python"), ended("held", "unshared")
+    finally:
+        del EXIT_CASES["held"]
+    assert python[2].endswith("a finalizer\n") and "a finalizer" not in unshared[2]
+    assert python[:2] == unshared[:2] == (0, "")
