@@ -95,6 +95,8 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
+    for server in _SERVERS:  # (told together, they end side by side)
+        server.stop()
     for server in _SERVERS:
         server.close()
     _SERVERS.clear()

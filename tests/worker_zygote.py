@@ -69,11 +69,16 @@ class Listening:
         listener.close()
         os.environ[env] = path
 
-    def close(self) -> None:
-        import shutil
+    def stop(self) -> None:
+        """Tell the server to end (``close`` waits for it: stop several, then close them,
+        and they end side by side)."""
         os.environ.pop(self._env, None)
         assert self._proc.stdin is not None
         self._proc.stdin.close()
+
+    def close(self) -> None:
+        import shutil
+        self.stop()
         self._proc.wait()
         shutil.rmtree(self._where, ignore_errors=True)
 

@@ -30,43 +30,49 @@ print(json.dumps({
     "signals": {s.name: str(signal.getsignal(s)) for s in signal.Signals
                 if s not in (signal.SIGKILL, signal.SIGSTOP)},
     "stdin": line, "stdout": stream(sys.stdout), "stderr": stream(sys.stderr),
-    "modules": "rtupoll.cli" in sys.modules, "collected": "test_line" in sys.modules}))
+    "modules": "rtupoll.cli" in sys.modules, "collected": "test_worker_zygote" in sys.modules}))
 sys.stdout.write("unbuffered")  # (no newline, no flush: seen only if written through)
 sys.exit(int(line.split()[-1]))
 """
 
 
 @pytest.fixture(scope="module")
-def zygote() -> Iterator[None]:
-    """A zygote as a run's: with the run's pytest arguments (here one test file), which
-    it collects before it forks a worker."""
+def zygote() -> Iterator[str]:
+    """The socket of a zygote that has collected this file: the run's, whose workers run
+    these tests (pytest-xdist), else one started here as a run's is, with this file as
+    its pytest arguments."""
     if not worker_zygote.available():
         pytest.skip("no zygote here (no pidfd, or RTUPOLL_TEST_FRESH=1): workers start fresh")
+    if os.environ.get(worker_zygote.ENV):
+        yield os.environ[worker_zygote.ENV]
+        return
     server = worker_zygote.Listening(worker_zygote.__file__, "RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET",
-                                     "-q", str(Path(__file__).parents[1] / "rtu" / "test_line.py"))
+                                     "-q", __file__)
     try:
-        yield
+        yield os.environ["RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET"]
     finally:
         server.close()
 
 
-def start(forked: bool, where: Path, *flags: str) -> tuple[int, str, str]:
+def start(zygote: str | None, where: Path, *flags: str) -> tuple[int, str, str]:
     """A worker's Python started as execnet starts it (``spec``'s words, then
-    ``-u [-B] -c CODE``), through the zygote or fresh; its status, stdout and stderr."""
+    ``-u [-B] -c CODE``), through the zygote on that socket or fresh; its status, stdout
+    and stderr."""
     env = {**os.environ, "RTUPOLL_ZYGOTE_PROBE": "here"}
-    python = [sys.executable, "-I", "-S", worker_zygote.__file__] if forked else [sys.executable]
-    if forked:
-        env[worker_zygote.ENV] = os.environ["RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET"]
+    python = [sys.executable, "-I", "-S", worker_zygote.__file__] if zygote else [sys.executable]
+    env.pop(worker_zygote.ENV, None)
+    if zygote:
+        env[worker_zygote.ENV] = zygote
     proc = subprocess.run([*python, "-u", *flags, "-c", STATE], input="exit with 3\n",
                           capture_output=True, text=True, cwd=where, env=env, timeout=120)
     return proc.returncode, proc.stdout, proc.stderr
 
 
 @pytest.mark.parametrize("flags", [(), ("-B",)], ids=["bytecode", "no-bytecode"])
-def test_a_forked_worker_starts_as_a_fresh_python(zygote: None, tmp_path: Path,
+def test_a_forked_worker_starts_as_a_fresh_python(zygote: str, tmp_path: Path,
                                                   flags: tuple[str, ...]) -> None:
-    fresh = start(False, tmp_path, *flags)
-    forked = start(True, tmp_path, *flags)
+    fresh = start(None, tmp_path, *flags)
+    forked = start(zygote, tmp_path, *flags)
     assert fresh[0] == 3 and fresh[1].endswith("unbuffered"), fresh
     state = {k: v for k, v in json.loads(fresh[1].splitlines()[0]).items()
              if k not in ("modules", "collected")}
@@ -79,9 +85,9 @@ def test_a_forked_worker_starts_as_a_fresh_python(zygote: None, tmp_path: Path,
     assert seen == state
 
 
-def test_a_worker_killed_by_a_signal_ends_its_client_so(zygote: None, tmp_path: Path) -> None:
+def test_a_worker_killed_by_a_signal_ends_its_client_so(zygote: str, tmp_path: Path) -> None:
     """execnet sees the worker's Python end as the worker ended: by the same signal."""
-    env = {**os.environ, worker_zygote.ENV: os.environ["RTUPOLL_TEST_ZYGOTE_PROBE_SOCKET"]}
+    env = {**os.environ, worker_zygote.ENV: zygote}
     code = "import os, signal, sys; sys.stdin.readline(); os.kill(os.getpid(), signal.SIGTERM)"
     proc = subprocess.run([sys.executable, "-I", "-S", worker_zygote.__file__, "-u", "-c", code],
                           input="go\n", capture_output=True, text=True, env=env, timeout=120)
