@@ -513,8 +513,8 @@ if __name__ == "__main__":
     if not listening:
         sock.send(json.dumps({"ready": True}).encode())
     job = _serve(sock, listening)
-    if job is None:
-        sys.exit(0)
+    if job is None:  # the server's end (the zygote's, tests/worker_zygote.py)
+        os._exit(0)
     _become(*job)
     how = job[0]["how"]
     del sock, job
