@@ -492,11 +492,16 @@ def exit_unshared() -> None:
     os._exit(int(_ENDED[0]))
 
 
-if __name__ == "__main__":
-    # first, so that in a child it runs last (an earlier one would not run: then not at all)
+def exit_unshared_last() -> None:
+    """Register ``exit_unshared`` as a server's first atexit callback, so that in a child
+    it runs last; if one came before (it would not run), not at all."""
     atexit.register(exit_unshared)
     if getattr(atexit, "_ncallbacks", lambda: 0)() != 1:
         atexit.unregister(exit_unshared)
+
+
+if __name__ == "__main__":
+    exit_unshared_last()
     from worker_zygote import import_rtupoll  # (this file's folder is sys.path[0])
     import_rtupoll()
     from rtupoll.cli import main

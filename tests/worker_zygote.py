@@ -268,14 +268,9 @@ if __name__ == "__main__":
     if sys.argv[1:2] != ["--listen"]:
         _client(sys.argv[1:])
     # a worker exits as a forked rtupoll command does (flushed, collected, the status),
-    # without tearing down the modules it shares with the zygote: registered first, so
-    # that in a worker it runs last (tests/forked_cli.py, exit_unshared)
-    import atexit
-
-    from forked_cli import ending, exit_unshared
-    atexit.register(exit_unshared)
-    if getattr(atexit, "_ncallbacks", lambda: 0)() != 1:
-        atexit.unregister(exit_unshared)
+    # without tearing down the modules it shares with the zygote (tests/forked_cli.py)
+    from forked_cli import ending, exit_unshared_last
+    exit_unshared_last()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the run's to take
     server = socket.socket(fileno=int(sys.argv[2]))
     _preload(sys.argv[3:])
