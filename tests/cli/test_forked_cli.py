@@ -341,8 +341,13 @@ EXIT_CASES = {
 
 
 def ended(case: str, how: str) -> tuple[int, str, str]:
-    script = EXIT_SCRIPT.format(case=EXIT_CASES[case])
-    gone = case == "flush-fails"
+    """(status, stdout, stderr) of ``EXIT_CASES[case]`` ended by ``exit_unshared``
+    (``how="unshared"``) or by Python alone (``how="python"``)."""
+    return ended_with(EXIT_CASES[case], how, gone=case == "flush-fails")
+
+
+def ended_with(body: str, how: str, *, gone: bool = False) -> tuple[int, str, str]:
+    script = EXIT_SCRIPT.format(case=body)
     read, write = os.pipe()
     if gone:
         os.close(read)
@@ -368,10 +373,7 @@ def test_a_forked_commands_exit_shows_what_pythons_exit_shows(case: str) -> None
 def test_what_a_forked_commands_exit_does_not_do_is_tear_down_the_modules() -> None:
     """Its one difference: a finalizer that only the modules' teardown runs (of an object a
     module still holds at the exit) does not run."""
-    EXIT_CASES["held"] = "    sys.modules['forked_cli'].held = Noisy()"
-    try:
-        python, unshared = ended("held", "python"), ended("held", "unshared")
-    finally:
-        del EXIT_CASES["held"]
+    held = "    sys.modules['forked_cli'].held = Noisy()"
+    python, unshared = ended_with(held, "python"), ended_with(held, "unshared")
     assert python[2].endswith("a finalizer\n") and "a finalizer" not in unshared[2]
     assert python[:2] == unshared[:2] == (0, "")
