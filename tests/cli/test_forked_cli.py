@@ -355,7 +355,10 @@ def ended_with(body: str, how: str, *, gone: bool = False) -> tuple[int, str, st
     proc = subprocess.Popen([sys.executable, "-c", script, str(Path(forked_cli.__file__).parent),
                              how], stdout=write, stderr=subprocess.PIPE, text=True, env=env)
     os.close(write)
-    out = "" if gone else os.fdopen(read).read()
+    out = ""
+    if not gone:
+        with os.fdopen(read) as reading:
+            out = reading.read()
     _, err = proc.communicate(timeout=GUARD)
     return proc.returncode, out, err
 
