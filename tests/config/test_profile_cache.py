@@ -128,6 +128,39 @@ def test_another_name_for_the_same_file_is_kept(
     assert hit is not None and hit.path == path.name
 
 
+def test_a_cache_file_loaded_again_is_not_unpickled_again_while_it_is_the_same_file(
+        tmp_path: Path, cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = copy("huiwen-aq", tmp_path / "mine")
+    fresh = load_profile(path)  # read, and stored
+    assert compiled.load(path) == fresh  # the cache file loaded: this process keeps it
+    unpickled: list[bytes] = []
+    unpickle = compiled._unpickle
+    monkeypatch.setattr(compiled, "_unpickle", lambda data: unpickle(unpickled.append(data)
+                                                                      or data))
+    assert compiled.load(path) == fresh and unpickled == []
+    [file] = cache.iterdir()
+    again = file.with_name("again")  # the same bytes in another file (another inode)
+    again.write_bytes(file.read_bytes())
+    again.replace(file)
+    assert compiled.load(path) == fresh and len(unpickled) == 2  # the file, the profile
+    assert compiled.load(path) == fresh and len(unpickled) == 2
+
+
+def test_the_code_stamp_is_that_of_the_code_the_process_started_with(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process running while rtupoll is upgraded under it neither takes profiles the new
+    code cached nor stamps its own as the new code's."""
+    code = tmp_path / "profile.py"
+    code.write_text("the code", encoding="utf-8")
+    monkeypatch.setattr(compiled, "_CODE", (str(code),))
+    monkeypatch.setattr(compiled, "_STAMP", None)
+    first = compiled._stamp()
+    code.write_text("the new code", encoding="utf-8")  # (another size)
+    assert compiled._stamp() == first
+    monkeypatch.setattr(compiled, "_STAMP", None)  # a process started now
+    assert compiled._stamp() != first
+
+
 class Planted:
     """A pickle that runs a command when it is loaded."""
 
