@@ -136,15 +136,22 @@ def pytest_collection_modifyitems(config: pytest.Config,
                                 "(-m timing would not run them): " + ", ".join(unsaid))
     yield
     if _timing_run(config):
+        # pytest-xdist's ``--dist load`` hands the group round (fewer tests than two a
+        # worker): the longest first, one to each worker, then the rest shortest first, so
+        # that the worker with the longest gets the shortest. How long each took is the
+        # last run's (the pytest cache); one not seen yet counts as long. Without a cache,
         # one test of each file, then the second of each, ...: a file's timing tests are
-        # alike (two 2.5-second scans, two sniffs of mbpoll), and pytest-xdist's ``--dist
-        # load`` hands each of its workers a run of neighbours; spread, no worker gets
-        # two long ones while another idles
+        # alike (two scans, two sniffs of mbpoll)
         files: dict[Path, list[pytest.Item]] = {}
         for item in items:
             files.setdefault(item.path, []).append(item)
         rounds = itertools.zip_longest(*files.values())
         items[:] = [item for round_ in rounds for item in round_ if item is not None]
+        took = config.cache.get(_TOOK, {}) if config.cache is not None else {}
+        if took:
+            items.sort(key=lambda item: -took.get(item.nodeid, float("inf")))
+            workers = getattr(config, "workerinput", {}).get("workercount", 1)
+            items[workers:] = items[workers:][::-1]
         return
     # The browser tests first, so that pytest-xdist gives them to one worker: one chromium
     # for all of them (test_web_browser.py's ``one_chromium``), not one per worker that
@@ -187,9 +194,35 @@ def pytest_collection_finish(session: pytest.Session) -> None:
             pytest.exit("the run this one waited for is gone", returncode=2)
 
 
+# scripts/test's parallel run: the file that tells the timing group to start
+_THEN = os.environ.pop("RTUPOLL_TEST_THEN", "")
+# the pytest cache's key for how long each test of the timing group took (seconds)
+_TOOK = "rtupoll/timing-took"
+
+
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    """A timing run keeps how long each of its tests took, for the next one's order."""
+    if _timing_run(config) and config.cache is not None and not hasattr(config, "workerinput"):
+        took = config.cache.get(_TOOK, {})
+        for report in terminalreporter.stats.get("passed", []):
+            if report.when == "call":
+                took[report.nodeid] = round(report.duration, 3)
+        config.cache.set(_TOOK, took)
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """The fork server of this process (tests/forked_cli.py), if a test started it, ends
-    with the session, and with it what its children left running."""
+    with the session, and with it what its children left running.
+
+    With ``RTUPOLL_TEST_THEN=FILE`` (scripts/test's parallel run) the controller, its
+    workers ended, goes to the lowest priority (nice 19, as the timing group's tests run)
+    and makes FILE: the timing group starts while what is left of this run (its summary,
+    the workers' and servers' teardown, its exit: 1-1.5 s) ends beside it, never ahead of
+    its tests."""
+    if _THEN and not hasattr(session.config, "workerinput"):
+        os.setpriority(os.PRIO_PROCESS, 0, 19)
+        Path(_THEN).touch()
     close_server()
 
 

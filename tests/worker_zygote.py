@@ -33,7 +33,6 @@ import select
 import signal
 import socket
 import sys
-import tempfile
 
 ENV = "RTUPOLL_TEST_ZYGOTE"  # the zygote's socket, for the clients
 _MESSAGE = 1 << 20
@@ -57,6 +56,7 @@ class Listening:
 
     def __init__(self, file: str, env: str, *args: str) -> None:
         import subprocess  # (here, not at the top: the client, this file too, stays small)
+        import tempfile
         self._env = env
         self._where = tempfile.mkdtemp(prefix="rtupoll-server-")
         path = os.path.join(self._where, "socket")
@@ -161,8 +161,11 @@ def _client(args: list[str]) -> None:
 # ---- the zygote --------------------------------------------------------------------
 
 def import_rtupoll() -> None:
-    """Import every rtupoll module (not ``__main__``, which would run the CLI): what this
-    zygote and tests/forked_cli.py's server hold for the processes they fork."""
+    """Import every rtupoll module (not ``__main__``, which would run the CLI), and load
+    the profile library: what this zygote and tests/forked_cli.py's server hold for the
+    processes they fork. A forked process that loads a profile then finds the run's
+    cache file already loaded (``rtupoll.config.compiled``): it only checks the
+    profile's files, as any rtupoll process loading a profile again does."""
     import importlib
     import pkgutil
 
@@ -170,6 +173,8 @@ def import_rtupoll() -> None:
     for module in pkgutil.walk_packages(rtupoll.__path__, "rtupoll."):
         if not module.name.endswith(".__main__"):
             importlib.import_module(module.name)
+    from rtupoll.config.library import load_library
+    load_library()
 
 
 def _preload(args: list[str]) -> None:

@@ -5,15 +5,15 @@ rtupoll pays for what it imports, a person's and each of the test suite's ~285.
   a dry run of set-address, guess on given words, decode;
 - no YAML parser where no YAML is read: poll of named devices (no site file), decode,
   a read whose profile is in the profile cache;
-- no csv module but for the csv format; no profile library for decode without --profile;
-  the profile cache reads with the C unpickler alone (not pickle.py).
+- no profile library for decode without --profile;
+- and for a one-shot read (tests/cli/test_read_imports.py): no csv module but for the csv
+  format, the profile cache read with the C unpickler alone (not pickle.py).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-import pytest
 from test_read_imports import imported, loaded
 
 from rtupoll.config.library import load_library, load_one
@@ -27,7 +27,8 @@ def test_a_set_address_dry_run_starts_no_event_loop() -> None:
     # cache, the test run's own (conftest.py)
     modules = imported("set-address", "--port", "/dev/null", "--dry-run", "radar-level@1", "11")
     assert "rtupoll.jobs.commission" in modules  # it planned the change
-    assert [p for p in (*NO_LOOP, "yaml", "csv") if loaded(modules, p)] == []
+    # not even the async bus (the modbus library is in NO_LOOP)
+    assert [p for p in (*NO_LOOP, "rtupoll.io.bus", "yaml", "csv") if loaded(modules, p)] == []
 
 
 def test_guess_on_given_words_reads_no_device() -> None:
@@ -49,18 +50,6 @@ def test_poll_of_named_devices_parses_no_yaml(sim: Callable[..., SimulatedBus]) 
     modules = imported("poll", "--port", bus.port, "--once", "--format", "json", "huiwen-aq@1")
     assert "rtupoll.config.site" in modules and "rtupoll.jobs.scheduler" in modules
     assert [p for p in ("yaml", "rtupoll.config.yamlsrc", "csv") if loaded(modules, p)] == []
-
-
-@pytest.mark.parametrize(("fmt", "has_csv"), [("json", False), ("csv", True)])
-def test_only_the_csv_format_imports_csv(sim: Callable[..., SimulatedBus], fmt: str,
-                                         has_csv: bool) -> None:
-    bus = sim("huiwen-aq@1", tick=None)
-    load_one("huiwen-aq")
-    modules = imported("read", "--port", bus.port, "--format", fmt, "huiwen-aq@1", "co2")
-    assert "rtupoll.io.syncbus" in modules  # it read
-    assert ("csv" in modules) is has_csv
-    # the profile came from the cache through the C unpickler, without pickle.py around it
-    assert "_pickle" in modules and "pickle" not in modules
 
 
 def test_a_write_runs_on_the_blocking_bus(sim: Callable[..., SimulatedBus]) -> None:

@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 
 import pytest
+from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import free_port
@@ -34,10 +35,10 @@ def test_serve_on_the_ipv6_any_address_answers_ipv4_and_ipv6_clients(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
-                             "--baudrate", "9600", "--format", "json", "huiwen-aq@3",
-                             "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
+                          "--baudrate", "9600", "--format", "json", "huiwen-aq@3",
+                          "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,
+                         stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
         while True:

@@ -71,7 +71,7 @@ def test_five_seed_devices_on_one_bus_are_found_and_identified(sim: Sim) -> None
 def test_found_at_the_simulators_baud_not_the_first_tried(sim: Sim) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", baudrate=19200)
     code, found, _ = scan_json("--port", bus.port, "--addresses", "3-4",
-                               "--baudrate", "9600,19200,38400", *PATIENT)
+                               "--baudrate", "9600,19200", *PATIENT)
     assert code == 0
     assert {(f["address"], f["baudrate"], f["profile"]) for f in found} == {
         (3, 19200, "huiwen-aq"), (4, 19200, "radar-level")}

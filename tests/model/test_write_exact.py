@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import pytest
 from click.testing import CliRunner
+from forked_cli import rtupoll_popen
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -125,10 +126,10 @@ def test_the_mqtt_path_refuses_1e39_through_the_same_check() -> None:
 def test_write_interrupted_after_the_request_went_out_says_it_may_have_been_applied(
         sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", faults=["1:dead"], tick=None)
-    proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "write", "-p", bus.port,
-                             "-b", "9600", "--timeout", "10", "--retries", "0", "--yes",
-                             "net-irnet-pro@1", "calibration_gas_level=2500"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "write", "-p", bus.port,
+                          "-b", "9600", "--timeout", "10", "--retries", "0", "--yes",
+                          "net-irnet-pro@1", "calibration_gas_level=2500"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
     while not [w for w in bus.wire if w.direction == "in" and w.data[1:2] == b"\x10"]:
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()

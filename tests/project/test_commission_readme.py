@@ -1,5 +1,6 @@
 """The README's commissioning script, extracted as a reader would copy it, run twice
-against the simulator: the second run must find everything already done."""
+against the simulator the README names for it: the second run must find everything
+already done."""
 
 from __future__ import annotations
 
@@ -24,13 +25,25 @@ def script() -> str:
     return m.group(1)
 
 
+def simulator() -> list[str]:
+    """The devices of the simulator the README's prose names for the script, checked to be
+    on the port it says to export."""
+    text = README.read_text(encoding="utf-8")
+    prose = " ".join(text.split("<!-- commissioning:begin -->")[0]
+                     .rsplit("## Commissioning", 1)[1].split())
+    said = re.search(r"`rtupoll simulate ([^`]+) --link (\S+)`", prose)
+    assert said, prose
+    assert f"`export RTUPOLL_PORT={said.group(2)}`" in prose
+    return said.group(1).split()
+
+
 def test_the_script_is_five_lines() -> None:
     assert len(script().splitlines()) == 5
 
 
 def test_the_readme_script_commissions_the_simulated_bus_and_is_safe_to_rerun(
         sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
-    bus = sim("radar-level@1", "huiwen-aq@2", tick=None,
+    bus = sim(*simulator(), tick=None,
               sets=["huiwen-aq@2.co2=612", "radar-level@1.level_cm=42"])
     env = {**os.environ, "RTUPOLL_PORT": bus.port, "RTUPOLL_TIMEOUT": "0.1",
            "RTUPOLL_RETRIES": "0",

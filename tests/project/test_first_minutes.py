@@ -377,35 +377,6 @@ def test_setup_shows_the_installers_output_when_a_step_fails(tmp_path: Path) -> 
 
 # -- issue 28: examples and hints that work as printed ----------------------------------
 
-def test_the_readme_commissioning_script_runs_against_the_simulator_the_readme_names(
-        tmp_path: Path) -> None:
-    readme = (Path(__file__).parents[2] / "README.md").read_text(encoding="utf-8")
-    prose = readme.split("<!-- commissioning:begin -->")[0].rsplit("## Commissioning", 1)[1]
-    said = re.search(r"`(rtupoll simulate [^`]+)`", " ".join(prose.split()))
-    assert said, prose
-    link = tmp_path / "rs485"
-    words = said.group(1).replace("/tmp/rs485", str(link)).split()
-    script = re.search(r"```sh\n(.*?)```", readme.split("<!-- commissioning:begin -->")[1],
-                       re.S)
-    assert script
-    proc = subprocess.Popen([str(BIN / "rtupoll"), *words[1:]], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
-    try:
-        deadline = time.monotonic() + 30
-        while not link.exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        env = {**os.environ, "RTUPOLL_PORT": str(link),
-               "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-        run = subprocess.run(["bash", "-eu", "-o", "pipefail", "-c", script.group(1)],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
-                             check=False)
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=20)
-    assert run.returncode == 0, run.stderr
-    assert '"device":"huiwen-aq@12"' in run.stdout and "level_cm" in run.stdout
-
-
 def test_scan_takes_its_port_from_rtupoll_port_and_says_so() -> None:
     run = rtupoll("scan", env={"RTUPOLL_PORT": None})
     assert run.returncode == 2
