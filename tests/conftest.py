@@ -147,7 +147,7 @@ def pytest_collection_modifyitems(config: pytest.Config,
             files.setdefault(item.path, []).append(item)
         rounds = itertools.zip_longest(*files.values())
         items[:] = [item for round_ in rounds for item in round_ if item is not None]
-        took = config.cache.get(_TOOK, {}) if config.cache is not None else {}
+        took = _took(config)
         if took:
             items.sort(key=lambda item: -took.get(item.nodeid, float("inf")))
             workers = getattr(config, "workerinput", {}).get("workercount", 1)
@@ -200,14 +200,20 @@ _THEN = os.environ.pop("RTUPOLL_TEST_THEN", "")
 _TOOK = "rtupoll/timing-took"
 
 
+def _took(config: pytest.Config) -> dict[str, float]:
+    cache = getattr(config, "cache", None)  # (none with -p no:cacheprovider)
+    return cache.get(_TOOK, {}) if cache is not None else {}
+
+
 def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
     """A timing run keeps how long each of its tests took, for the next one's order."""
-    if _timing_run(config) and config.cache is not None and not hasattr(config, "workerinput"):
-        took = config.cache.get(_TOOK, {})
+    cache = getattr(config, "cache", None)
+    if _timing_run(config) and cache is not None and not hasattr(config, "workerinput"):
+        took = _took(config)
         for report in terminalreporter.stats.get("passed", []):
             if report.when == "call":
                 took[report.nodeid] = round(report.duration, 3)
-        config.cache.set(_TOOK, took)
+        cache.set(_TOOK, took)
 
 
 @pytest.hookimpl(tryfirst=True)
