@@ -163,7 +163,7 @@ def test_a_replayed_capture_costs_the_same_memory_whatever_its_length(
     big, answers_long = replay_peak(long, 250)
     # loaded whole, the long one held 1750 answers more (a bytes object alone is 33
     # bytes and more, with its place in a list 41: 72 kB, above the allowance; the
-    # capture's chunks held, 470 kB); bounded, the two peaks differ by a few kB either way
+    # capture's chunks held, 470 kB); bounded, the two peaks differ by 0-12 kB either way
     assert big - small < 50_000, (small, big)
     assert answers_short == answers_long  # the same start of the same story
 
