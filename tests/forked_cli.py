@@ -502,8 +502,8 @@ def exit_unshared_last() -> None:
 
 if __name__ == "__main__":
     exit_unshared_last()
-    from worker_zygote import import_rtupoll  # (this file's folder is sys.path[0])
-    import_rtupoll()
+    from worker_zygote import preload_rtupoll  # (this file's folder is sys.path[0])
+    preload_rtupoll()
     from rtupoll.cli import main
     # what is imported stays: out of the collector's sight, a child's collections do not
     # touch (and so copy) every page the server filled (a forked `rtupoll --version` took

@@ -160,7 +160,7 @@ def _client(args: list[str]) -> None:
 
 # ---- the zygote --------------------------------------------------------------------
 
-def import_rtupoll() -> None:
+def preload_rtupoll() -> None:
     """Import every rtupoll module (not ``__main__``, which would run the CLI), and load
     the profile library: what this zygote and tests/forked_cli.py's server hold for the
     processes they fork. A forked process that loads a profile then finds the run's
@@ -182,7 +182,7 @@ def _preload(args: list[str]) -> None:
     for name in PRELOAD:
         with contextlib.suppress(ImportError):  # (a worker that needs it says why not)
             importlib.import_module(name)
-    import_rtupoll()
+    preload_rtupoll()
     if args:
         _collect(args)
 
