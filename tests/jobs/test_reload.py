@@ -178,6 +178,33 @@ def test_a_broken_file_keeps_the_running_configuration(
     assert "adress" in errors[0]
 
 
+@pytest.mark.parametrize("before", [signal.SIG_IGN, signal.SIG_DFL], ids=["nohup", "default"])
+def test_sighup_does_what_it_did_before_once_the_service_stops(
+        sim: Callable[..., SimulatedBus], tmp_path: Path, before: signal.Handlers) -> None:
+    """Under ``nohup`` (SIGHUP ignored) a hang-up reloads while the service runs, and is
+    ignored again afterwards: the loop's removal alone would leave the default, which
+    ends the process."""
+    bus = sim("huiwen-aq@3")
+    path = site_file(tmp_path / "site.yaml", (bus.port, [AIR]))
+    seen: list[object] = []
+
+    async def main() -> None:
+        scheduler = Scheduler(load_site(path))
+        service = ReloadService(lambda: load_site(path))
+        async with Run(scheduler):
+            await service.start(scheduler)
+            seen.append(signal.getsignal(signal.SIGHUP))
+            await service.stop()
+
+    was = signal.signal(signal.SIGHUP, before)
+    try:
+        asyncio.run(main())
+        assert seen[0] not in (signal.SIG_IGN, signal.SIG_DFL)  # the loop's, meanwhile
+        assert signal.getsignal(signal.SIGHUP) == before
+    finally:
+        signal.signal(signal.SIGHUP, was)
+
+
 def test_sighup_reloads_and_reopens_the_output(sim: Callable[..., SimulatedBus],
                                                tmp_path: Path) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4")

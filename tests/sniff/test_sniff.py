@@ -156,7 +156,7 @@ def test_faults_are_reported_as_faults_and_never_as_values(sim: Sim, tmp_path: P
         mbpoll(bus.port, 3, co2.table, co2.address, 1)  # CRC error
         mbpoll(bus.port, 3, co2.table, co2.address, 1)  # fine
         mbpoll(bus.port, 2, gap.table, gap.address, 1)  # 350 ms late: slow, but answered
-        mbpoll(bus.port, 1, conc.table, conc.address, 2)  # dead: times out
+        mbpoll(bus.port, 1, conc.table, conc.address, 2, timeout=0.7)  # dead: times out
         mbpoll(bus.port, 1, conc.table, conc.address, 2)  # exception 04
         mbpoll(bus.port, 1, conc.table, conc.address, 2)  # fine
     text = "\n".join(lines)

@@ -48,24 +48,26 @@ def whole_json_lines(path: Path) -> list[dict[str, object]]:
 def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path: Path
                                                                          ) -> None:
     out, port = tmp_path / "readings.jsonl", free_port()
-    proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                             "huiwen-aq@3", "--interval", "0.05", "--format", "json",
-                             "-o", str(out), "--serve", f"127.0.0.1:{port}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env=NO_BYTECODE, preexec_fn=limited)
-    assert proc.stderr is not None
+    log = tmp_path / "stderr"
+    with log.open("w") as err_file:
+        proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
+                              "huiwen-aq@3", "--interval", "0.05", "--format", "json",
+                              "-o", str(out), "--serve", f"127.0.0.1:{port}"],
+                             stdout=subprocess.DEVNULL, stderr=err_file, text=True,
+                             env=NO_BYTECODE, preexec_fn=limited)
 
     def wait(done: Callable[[], bool]) -> None:
         deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
         while not done():
-            assert proc.poll() is None and time.monotonic() < deadline
+            assert proc.poll() is None, f"exited {proc.returncode}: {log.read_text()}"
+            assert time.monotonic() < deadline, log.read_text()
             time.sleep(0.05)
 
     try:
-        wait(lambda: out.exists() and out.stat().st_size > 0)
-        batch = out.stat().st_size  # one cycle's records
-        wait(lambda: out.stat().st_size + batch - 100 > LIMIT)  # no further batch fits
+        # the write that did not fit is logged once it was cut back: the file is final
+        wait(lambda: "cannot write" in log.read_text())
         size = out.stat().st_size
+        assert 0 < size <= LIMIT
         time.sleep(0.5)
         assert out.stat().st_size == size  # stopped: nothing more, nothing half
         read = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(port), "-1", "-o", "2",
@@ -76,7 +78,8 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
             pass
     finally:
         proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
+    err = log.read_text()
     assert proc.returncode == 0, err
     assert "Traceback" not in err
     said = [x for x in err.splitlines() if "cannot write" in x]

@@ -3,9 +3,10 @@ selenium, against ``rtupoll poll --http`` polling the simulator, and ``rtupoll w
 reading a real mosquitto. What is checked is what the page shows (the DOM as
 rendered), and that the browser's console has no errors.
 
-Screenshots (light, dark, phone width) go to the test's directory; with
-``RTUPOLL_DOCS_SCREENSHOTS=1`` the demo's are also written to docs/ (docs/web.md
-shows them).
+The page's colours follow the system's scheme (light and dark, checked in the page's
+computed style). Screenshots (light, dark, phone width) are taken with
+``RTUPOLL_DOCS_SCREENSHOTS=1``: into the test's directory, and those docs/web.md shows
+into docs/ (each set costs the browser about 0.8 CPU-s, so not on every run).
 """
 
 from __future__ import annotations
@@ -135,21 +136,49 @@ def browser(one_chromium: Any) -> Iterator[Any]:
         color_scheme(driver, "light")
 
 
-def screenshots(driver: Any, where: Path, name: str, *, docs: bool = False) -> None:
-    """Light, dark and phone-width (dark) screenshots of the page as it is."""
-    targets = [where]
-    if docs and os.environ.get("RTUPOLL_DOCS_SCREENSHOTS"):
-        targets.append(DOCS)
+def screenshots(driver: Any, where: Path, name: str) -> None:
+    """With ``RTUPOLL_DOCS_SCREENSHOTS=1``: light, dark and phone-width (dark) screenshots
+    of the page as it is, into ``where``, and those docs/web.md shows into docs/."""
+    if not os.environ.get("RTUPOLL_DOCS_SCREENSHOTS"):
+        return
     for scheme, small in (("light", False), ("dark", False), ("dark", True)):
         color_scheme(driver, scheme)
         phone(driver, small)
         repainted(driver)
-        suffix = f"{'-phone' if small else ''}{'-dark' if scheme == 'dark' else ''}"
-        for t in targets:
-            if t == where or f"{name}{suffix}.png" in IN_DOCS:
-                driver.save_screenshot(str(t / f"{name}{suffix}.png"))
+        shot = f"{name}{'-phone' if small else ''}{'-dark' if scheme == 'dark' else ''}.png"
+        driver.save_screenshot(str(where / shot))
+        if shot in IN_DOCS:
+            driver.save_screenshot(str(DOCS / shot))
     phone(driver, False)
     color_scheme(driver, "light")
+
+
+# the page's background and text colours, as drawn: [r, g, b] each
+COLOURS = """
+const rgb = c => c.match(/\\d+/g).slice(0, 3).map(Number);
+const s = getComputedStyle(document.body);
+return [rgb(s.backgroundColor), rgb(s.color)];
+"""
+
+
+def follows_the_system_scheme(driver: Any) -> None:
+    """Light on a light system, dark on a dark one: the background and the text each
+    take the other end of the scale (relative luminance, as WCAG computes it)."""
+    def luminance(rgb: list[int]) -> float:
+        lin = [c / 255 / 12.92 if c <= 10 else ((c / 255 + 0.055) / 1.055) ** 2.4
+               for c in rgb]
+        return 0.2126 * lin[0] + 0.7152 * lin[1] + 0.0722 * lin[2]
+
+    try:
+        for scheme in ("dark", "light"):
+            color_scheme(driver, scheme)
+            repainted(driver)
+            bg, fg = (luminance(c) for c in driver.execute_script(COLOURS))
+            dark = scheme == "dark"
+            assert (bg < 0.1 and fg > 0.5) if dark else (bg > 0.8 and fg < 0.1), (scheme, bg, fg)
+            assert (max(bg, fg) + 0.05) / (min(bg, fg) + 0.05) >= 7  # WCAG AAA contrast
+    finally:
+        color_scheme(driver, "light")
 
 
 def test_the_demo_every_device_and_a_chart(browser: Any, tmp_path: Path) -> None:
@@ -173,8 +202,8 @@ def test_the_demo_every_device_and_a_chart(browser: Any, tmp_path: Path) -> None
         click_chart(browser, "huiwen-aq@3", "co2", opened=True)
         until(lambda: (c := chart(browser, "huiwen-aq@3")) and c["points"] >= 3,
               "three points in the co2 chart")
-        screenshots(browser, tmp_path, "web", docs=True)
-        assert (tmp_path / "web-phone-dark.png").stat().st_size > 10_000
+        follows_the_system_scheme(browser)
+        screenshots(browser, tmp_path, "web")
         # at a phone's width the page is one column and nothing sticks out sideways
         phone(browser, True)
         repainted(browser)
@@ -364,7 +393,7 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
             "offline (last 612 ppm at ")
         assert not gone["rtupoll/building-b/huiwen-aq@3"]["gatewayDown"]
         assert "1 of 2 devices online" in browser.find_element("id", "summary").text
-        screenshots(browser, tmp_path, "web-fleet", docs=True)
+        screenshots(browser, tmp_path, "web-fleet")
         state = get_json(p.url + "api/state")
         assert state["mode"] == "fleet" and state["broker"] == "connected"
         assert [g["id"] for g in state["gateways"]] == ["building-a", "building-b"]

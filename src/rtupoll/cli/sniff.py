@@ -182,7 +182,7 @@ def _live(chunks: Iterator[tuple[bytes, float]], session: Session, view: BusView
             if t - painted >= REFRESH:
                 live.update(render(view, t, title), refresh=True)
                 painted = t
-        live.update(render(view, time.time(), title), refresh=True)
+        live.update(render(view, time.time(), title))  # (drawn as Live stops)
 
 
 def _known(devices: tuple[DeviceSpec, ...], config: Path | None, bus_name: str | None,

@@ -48,12 +48,15 @@ class ReloadService(Service):
         self._scheduler: Scheduler | None = None
         self._pending: asyncio.Task[None] | None = None
         self._again = False
+        self._was: signal.Handlers | int | Callable[..., object] | None = None
 
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
         self._name_buses()
+        was = signal.getsignal(signal.SIGHUP)
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.hangup)
+            self._was = was
 
     def hangup(self) -> None:
         """The signal handler: one reload at a time; a SIGHUP during one runs another."""
@@ -131,8 +134,10 @@ class ReloadService(Service):
         return None
 
     async def stop(self) -> None:
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+        if self._was is not None:  # what SIGHUP did before, e.g. ignored under nohup
             asyncio.get_running_loop().remove_signal_handler(signal.SIGHUP)
+            signal.signal(signal.SIGHUP, self._was)
+            self._was = None
         if self._pending is not None and not self._pending.done():
             self._pending.cancel()
             await asyncio.gather(self._pending, return_exceptions=True)

@@ -28,6 +28,7 @@ from rtupoll.jobs.scheduler import BusPoller, DevicePoller
 from rtupoll.jobs.stats import DeviceStats, Reading, State
 from rtupoll.model.interpret import display, display_unit
 from rtupoll.model.profile import Field, Severity
+from rtupoll.ui.grid import Column, Grid
 from rtupoll.ui.trend import BINS, Trend
 
 SEVERITY_STYLE = {Severity.OK: "green", Severity.INFO: "cyan", Severity.WARNING: "yellow",
@@ -121,7 +122,7 @@ class PollView:
         return head
 
     # -- one row per field ----------------------------------------------------------
-    def readings_table(self, width: int | None = None) -> Table:
+    def readings_table(self, width: int | None = None) -> Grid:
         """One row per field. A reading's ``severity`` (what the value means) and its
         ``status`` (whether the read worked) are separate columns, as in JSON. Columns
         whose text changes every scan keep the widest width seen, so nothing jitters.
@@ -169,14 +170,11 @@ class PollView:
             heads.pop()
             for *_, c in rows:
                 c.pop()
-        t = Table(show_edge=False, pad_edge=False, header_style="bold")
-        if not own_rows:
-            t.add_column("device", no_wrap=True)
-        for h in heads:
-            t.add_column(h, justify="right" if h in ("value", "age") else "left",
-                         no_wrap=h != "value" and h != "status",
-                         overflow="fold" if h in ("value", "status") else "ellipsis",
-                         max_width={"value": 40, "status": 30}.get(h))
+        columns = ([] if own_rows else [Column("device")]) + [
+            Column(h, "right" if h in ("value", "age") else "left",
+                   fold=h in ("value", "status"), max_width={"value": 40, "status": 30}.get(h))
+            for h in heads]
+        grid = Grid(columns)
         for dev, i, _, cells in rows:
             last = i == len(dev.config.fields) - 1
             if own_rows:
@@ -186,17 +184,16 @@ class PollView:
                         label.append(f" ({dev.config.spec})", style="dim")
                     if self.live and dev.stats.state in (State.RETRYING, State.OFFLINE):
                         label.append(f" {self._next_try(dev)}", style="yellow")
-                    t.add_row(label, *([""] * (len(heads) - 1)))
-                t.add_row(*cells, end_section=last)
+                    grid.add_row(label, *([""] * (len(heads) - 1)))
+                grid.add_row(*cells, end_section=last)
             else:
-                t.add_row(self._device_label(dev, i), *cells, end_section=last)
-        for col in t.columns:
+                grid.add_row(self._device_label(dev, i), *cells, end_section=last)
+        for k, col in enumerate(columns):
             if col.header in ("value", "status", "age"):
-                widest = max((c.cell_len if isinstance(c, Text) else 0 for c in col.cells),
-                             default=0)
-                col.min_width = self._widths[str(col.header)] = max(
-                    widest, self._widths.get(str(col.header), 0))
-        return t
+                widest = max((cells[k].cell_len for cells, _ in grid.rows), default=0)
+                col.min_width = self._widths[col.header] = max(
+                    widest, self._widths.get(col.header, 0))
+        return grid
 
     def _trend(self, device: str, f: Field, r: Reading | None, now: float) -> str:
         """The field's sparkline; a new numeric reading is added to its window first."""
@@ -309,7 +306,7 @@ class PollView:
             parts.append(line)
             heads = ("  device", "state", "ok", "timeout", "late", "garbled", "except", "p50",
                      "p95", "waits", "last ok")
-            rows: list[list[RenderableType]] = []
+            rows: list[list[Text | str]] = []
             for dev in bus.devices:
                 st = dev.stats
                 rows.append([
@@ -328,15 +325,12 @@ class PollView:
             if short:  # every column stays: shorter names, times in ms without the unit
                 names = dict(zip(heads, SHORT_HEADS, strict=True))
                 rows = [[_bare_ms(c) for c in r] for r in rows]
-            t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
-                      padding=(0, 1, 0, 0))
-            for i in keep:
-                t.add_column(names[heads[i]] if short else heads[i],
-                             justify="left" if heads[i] in ("  device", "state")
-                             else "right", no_wrap=True)
+            grid = Grid([Column(names[heads[i]] if short else heads[i],
+                                "left" if heads[i] in ("  device", "state") else "right")
+                         for i in keep], header_style="dim", lines=False)
             for r in rows:
-                t.add_row(*(r[i] for i in keep))
-            parts.append(t)
+                grid.add_row(*(r[i] for i in keep))
+            parts.append(grid)
             if short:
                 parts.append(Text("  t/o timeout, bad garbled, exc exception; times in ms",
                                   style="dim"))
@@ -406,7 +400,7 @@ SHORT_HEADS = ("  device", "state", "ok", "t/o", "late", "bad", "exc", "p50", "p
                "last ok")
 
 
-def _bare_ms(cell: RenderableType) -> RenderableType:
+def _bare_ms(cell: Text | str) -> Text | str:
     """``12 ms`` -> ``12`` (the legend says ms), keeping a Text's style."""
     if isinstance(cell, Text) and cell.plain.endswith(" ms"):
         return Text(cell.plain[:-3], style=cell.style)
