@@ -6,7 +6,7 @@ rendered), and that the browser's console has no errors.
 The page's colours follow the system's scheme (light and dark, checked in the page's
 computed style). Screenshots (light, dark, phone width) are taken with
 ``RTUPOLL_DOCS_SCREENSHOTS=1``: into the test's directory, and those docs/web.md shows
-into docs/ (each set costs the browser about 0.8 CPU-s, so not on every run).
+into docs/ (each set cost the browser about 0.9 CPU-s: not on every run).
 """
 
 from __future__ import annotations
