@@ -60,9 +60,10 @@ class Grid:
             t.add_row(*cells, end_section=end_section)
         return t
 
-    def widths(self) -> list[int] | None:
-        """Each column's width as rich makes it, or None where a cell would not fit its
-        column on one line."""
+    def widths(self, room: int) -> list[int] | None:
+        """Each column's width as rich makes it, where the grid draws itself in ``room``
+        columns; None where rich draws it (no rows, a cell that does not fit its column
+        on one line, or columns wider than the room)."""
         out = []
         for i, c in enumerate(self.columns):
             column = [row[i] for row, _ in self.rows]
@@ -72,13 +73,12 @@ class Grid:
             if c.max_width is not None and width > c.max_width:
                 return None
             out.append(width)
-        return out
+        gaps = (3 if self.lines else 1) * (len(out) - 1)
+        return out if self.rows and sum(out) + gaps <= room else None
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
-        widths = self.widths()
-        gap = 3 if self.lines else 1
-        if not self.rows or widths is None \
-                or sum(widths) + gap * (len(widths) - 1) > options.max_width:
+        widths = self.widths(options.max_width)
+        if widths is None:
             yield self.table()
             return
         pad = self.header_style
