@@ -39,6 +39,8 @@ def fast(grid: Grid, width: int) -> bool:
 def test_the_live_tables_of_real_scans_at_every_width(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim(*SEEDS, faults=["3:dead", "4:exception=2@2"])
     bus.set(2, "air_gap_cm", 321)
+    for unit, flags in ((1, "warning"), (5, "outputs")):  # two flags at once would be
+        bus.set(unit, flags, [])  # wider than the value column: rich's, folded, only
     buses = scanned(bus).buses
     used = set()
     for live in (True, False):
