@@ -5,10 +5,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from rich.console import Group, RenderableType
-from rich.table import Table
 from rich.text import Text
 
 from rtupoll.gateway.server import Gateway
+from rtupoll.ui.grid import Column, Grid
 
 SHOWN = 6  # client rows per gateway (connected ones first)
 
@@ -26,12 +26,10 @@ def render(gateways: Sequence[Gateway]) -> RenderableType:
         parts.append(head)
         clients = sorted(gw.clients, key=lambda c: not c.connected)[:SHOWN]
         if clients:
-            t = Table(show_edge=False, pad_edge=False, header_style="dim", box=None,
-                      padding=(0, 1, 0, 0))
-            for col in ("  client", "requests", "answered", "except", "timeout", "refused",
-                        "busy", "wait p50", "p95"):
-                t.add_column(col, justify="left" if col == "  client" else "right",
-                             no_wrap=True)
+            t = Grid([Column(col, "left" if col == "  client" else "right")
+                      for col in ("  client", "requests", "answered", "except", "timeout",
+                                  "refused", "busy", "wait p50", "p95")],
+                     header_style="dim", lines=False)  # (as the health table above it)
             for c in clients:
                 t.add_row(Text("  " + c.peer, style="" if c.connected else "dim"),
                           str(c.requests), str(c.answered), _n(c.exceptions), _n(c.timeouts),

@@ -6,6 +6,11 @@ reads the site file again and hands it to ``Scheduler.reload``: devices added,
 removed or changed take effect, ports that did not change stay open. A file with
 a mistake changes nothing: the running configuration goes on and the mistake is
 logged as ``file:line: path: message``.
+
+A SIGHUP is also what a terminal sends when it goes away (a closed window, a dropped
+SSH session). ``poll`` started on a terminal that has since hung up stops as SIGTERM
+stops it, instead of polling on unseen and holding the port; one started without a
+terminal (a service) reloads, and so does one under ``nohup`` (SIGHUP ignored).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Protocol
@@ -49,17 +55,24 @@ class ReloadService(Service):
         self._pending: asyncio.Task[None] | None = None
         self._again = False
         self._was: signal.Handlers | int | Callable[..., object] | None = None
+        self._terminal = False  # started on a terminal (not under nohup)
 
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
         self._name_buses()
         was = signal.getsignal(signal.SIGHUP)
+        self._terminal = was != signal.SIG_IGN and _terminal()
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.hangup)
             self._was = was
 
     def hangup(self) -> None:
-        """The signal handler: one reload at a time; a SIGHUP during one runs another."""
+        """The signal handler: one reload at a time; a SIGHUP during one runs another.
+        The terminal this process was started on gone: a stop, as by SIGTERM."""
+        if self._terminal and not _terminal():
+            log.warning("the terminal hung up: stopping", extra={"event": "stop"})
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
         if self._pending is not None and not self._pending.done():
             self._again = True
             return
@@ -141,3 +154,12 @@ class ReloadService(Service):
         if self._pending is not None and not self._pending.done():
             self._pending.cancel()
             await asyncio.gather(self._pending, return_exceptions=True)
+
+
+def _terminal() -> bool:
+    """Whether this process has a controlling terminal (one that hung up has none)."""
+    try:
+        os.close(os.open("/dev/tty", os.O_RDWR | os.O_NOCTTY))
+    except OSError:
+        return False
+    return True
