@@ -207,33 +207,35 @@ def test_sighup_does_what_it_did_before_once_the_service_stops(
 
 def on_a_terminal_that_hangs_up(tmp_path: Path, *, nohup: bool) -> tuple[bool, str]:
     """``rtupoll poll`` on a terminal of its own (a fresh process leading its session,
-    the pty its controlling terminal, as a shell starts it), which goes away once the
-    table is shown: whether the command ended by itself, and its stderr."""
+    the pty its controlling terminal, as a shell starts it: ``setsid --ctty``), which
+    goes away once the table is shown: whether the command ended by itself, and its
+    stderr."""
     import os
     import pty
     import select
 
-    err = tmp_path / "stderr"
-    pid, fd = pty.fork()
-    if pid == 0:  # (the child: nothing but set up and exec)
-        if nohup:
-            signal.signal(signal.SIGHUP, signal.SIG_IGN)
-        os.dup2(os.open(err, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 2)
-        os.execv(sys.executable, [sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                                  "huiwen-aq@3"])
+    main, child = pty.openpty()
+    was = signal.signal(signal.SIGHUP, signal.SIG_IGN if nohup else signal.SIG_DFL)
+    try:  # (a disposition the child inherits)
+        with (tmp_path / "stderr").open("w") as err:
+            proc = subprocess.Popen(["setsid", "--ctty", sys.executable, "-m", "rtupoll",
+                                     "poll", "--simulate", "huiwen-aq@3"],
+                                    stdin=child, stdout=child, stderr=err)
+    finally:
+        signal.signal(signal.SIGHUP, was)
+    os.close(child)
     shown, deadline = b"", time.monotonic() + 60  # guards against a hang, not timing claims
     while b"online" not in shown and time.monotonic() < deadline:
-        if select.select([fd], [], [], 0.1)[0]:
-            shown += os.read(fd, 65536)
-    os.close(fd)  # the window closed, the SSH session dropped
-    deadline = time.monotonic() + (1 if nohup else 30)
-    while time.monotonic() < deadline:
-        if os.waitpid(pid, os.WNOHANG)[0]:
-            return True, err.read_text()
-        time.sleep(0.05)
-    os.kill(pid, signal.SIGTERM)
-    os.waitpid(pid, 0)
-    return False, err.read_text()
+        if select.select([main], [], [], 0.1)[0]:
+            shown += os.read(main, 65536)
+    os.close(main)  # the window closed, the SSH session dropped
+    try:
+        proc.wait(timeout=1 if nohup else 30)
+        return True, (tmp_path / "stderr").read_text()
+    except subprocess.TimeoutExpired:
+        proc.terminate()
+        proc.wait()
+        return False, (tmp_path / "stderr").read_text()
 
 
 def test_poll_stops_when_its_terminal_hangs_up(tmp_path: Path) -> None:
