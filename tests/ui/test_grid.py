@@ -31,11 +31,6 @@ def drawn(renderable: RenderableType, width: int) -> Drawn:
             for line in CONSOLE.render_lines(renderable, options, pad=False)]
 
 
-def fast(grid: Grid, width: int) -> bool:
-    """Whether the grid draws itself at this width (else it is rich's table)."""
-    return grid.widths(width) is not None
-
-
 def test_the_live_tables_of_real_scans_at_every_width(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim(*SEEDS, faults=["3:dead", "4:exception=2@2"])
     bus.set(2, "air_gap_cm", 321)
@@ -52,7 +47,7 @@ def test_the_live_tables_of_real_scans_at_every_width(sim: Callable[..., Simulat
             assert len(health) == len(buses)  # one a bus
             for grid in [view.readings_table(width), *health]:
                 assert drawn(grid, width) == drawn(grid.table(), width), width
-                used.add(fast(grid, width))
+                used.add(grid.widths(width) is not None)
     assert used == {True, False}  # both ways were drawn: Grid's own, and rich's
 
 
@@ -86,5 +81,5 @@ def test_any_columns_cells_and_width(cols: list[Column], data: st.DataObject, wi
     for cells in data.draw(st.lists(st.lists(texts, min_size=len(cols), max_size=len(cols)),
                                     max_size=4)):
         grid.add_row(*cells, end_section=data.draw(st.booleans()))
-    if fast(grid, width):  # (else it is rich's table itself)
+    if grid.widths(width) is not None:  # (else it is rich's table itself)
         assert drawn(grid, width) == drawn(grid.table(), width)

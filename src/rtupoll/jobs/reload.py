@@ -55,13 +55,13 @@ class ReloadService(Service):
         self._pending: asyncio.Task[None] | None = None
         self._again = False
         self._was: signal.Handlers | int | Callable[..., object] | None = None
-        self._terminal = False  # started on a terminal (not under nohup)
+        self._on_terminal = False  # started on a terminal (and not under nohup)
 
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
         self._name_buses()
         was = signal.getsignal(signal.SIGHUP)
-        self._terminal = was != signal.SIG_IGN and _terminal()
+        self._on_terminal = was != signal.SIG_IGN and _has_terminal()
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.hangup)
             self._was = was
@@ -69,7 +69,7 @@ class ReloadService(Service):
     def hangup(self) -> None:
         """The signal handler: one reload at a time; a SIGHUP during one runs another.
         The terminal this process was started on gone: a stop, as by SIGTERM."""
-        if self._terminal and not _terminal():
+        if self._on_terminal and not _has_terminal():
             log.warning("the terminal hung up: stopping", extra={"event": "stop"})
             os.kill(os.getpid(), signal.SIGTERM)
             return
@@ -156,7 +156,7 @@ class ReloadService(Service):
             await asyncio.gather(self._pending, return_exceptions=True)
 
 
-def _terminal() -> bool:
+def _has_terminal() -> bool:
     """Whether this process has a controlling terminal (one that hung up has none)."""
     try:
         os.close(os.open("/dev/tty", os.O_RDWR | os.O_NOCTTY))

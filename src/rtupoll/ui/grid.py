@@ -81,14 +81,14 @@ class Grid:
         if widths is None:
             yield self.table()
             return
-        pad = self.header_style
-        head = [Text(c.header, style=pad) for c in self.columns]
+        bold = self.header_style  # (the header's padding too, not its column line)
+        head = [Text(c.header, style=bold) for c in self.columns]
         if not self.lines:
-            yield self._line(head, widths, Text(" ", style=pad))
+            yield self._line(head, widths, Text(" ", style=bold))
             for cells, _ in self.rows:
                 yield self._line(cells, widths, Text(" "))
             return
-        yield self._line(head, widths, Text.assemble((" ", pad), "┃", (" ", pad)))
+        yield self._line(head, widths, Text.assemble((" ", bold), "┃", (" ", bold)))
         yield self._rule(widths, "━", "╇")
         for n, (cells, end_section) in enumerate(self.rows):
             yield self._line(cells, widths, Text(" │ "))
