@@ -11,7 +11,8 @@ so a test can send exact bytes and see exactly what came back.
 ``jitter`` is how late this machine wakes a sleeping thread now (seconds, the 99th
 percentile of 200 one-millisecond sleeps): the allowance of a test in the ``timing``
 group, the few that measure the real clock (scripts/test runs them after the parallel
-run). Every other rule about time is proven in virtual time (tests/virtual.py).
+run). Every other rule about time is proven in virtual time (tests/virtual.py), and a
+reply that is to come is waited for ``ANSWERED`` (10 s), a wait it ends.
 
 Hypothesis runs the ``short`` profile (few examples, the same ones every run) unless
 ``--hypothesis-profile=long`` or ``HYPOTHESIS_PROFILE=long`` asks for a long search.
@@ -25,6 +26,7 @@ once, before the workers start): no test reads or writes the user's ~/.cache.
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import gc
 import itertools
 import os
@@ -35,7 +37,7 @@ import tempfile
 import termios
 import time
 import tty
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Collection, Generator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +52,7 @@ from forked_cli import close_server
 from hypothesis import settings
 
 from rtupoll.config.library import load_library
+from rtupoll.config.site import Site
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 pytest_plugins = ("pytester", "cpu_report")
@@ -272,6 +275,23 @@ def _no_leaked_simulator() -> Iterator[None]:
                     + " (use the sim fixture or 'with simulated_bus(...)')")
 
 
+# How long a test waits for a reply that comes (seconds): all the time a busy machine's
+# peer (a simulator's thread, a forked command, mbpoll) may need. The reply ends the wait,
+# so a passing test never waits it out; only what must NOT come is given a short wait (a
+# busy machine can only make that pass). mbpoll's ``-o`` takes at most 10 s.
+ANSWERED = 10.0
+DEAD = 0.1  # the timeout of a device that must not answer: waited out, so short
+
+
+def dead_at(site: Site, dead: Collection[int]) -> Site:
+    """``site`` (one bus) with the devices at the ``dead`` addresses asked with ``DEAD``."""
+    bus = site.buses[0]
+    assert set(dead) <= {d.address for d in bus.devices}
+    devices = tuple(dataclasses.replace(d, timeout=DEAD) if d.address in dead else d
+                    for d in bus.devices)
+    return dataclasses.replace(site, buses=(dataclasses.replace(bus, devices=devices),))
+
+
 class RawPort:
     """Exact bytes to and from a pty or an RTU-over-TCP socket."""
 
@@ -296,9 +316,15 @@ class RawPort:
         os.write(self.fd, data)
         return t
 
-    def read(self, n: int | None = None, *, timeout: float = 0.5, quiet: float = 0.05) -> bytes:
-        """Bytes until ``n`` arrived, or (n=None) the line stayed quiet, or ``timeout``."""
+    def read(self, n: int | None = None, *, timeout: float | None = None,
+             quiet: float = 0.05) -> bytes:
+        """Bytes until ``n`` arrived, or (n=None) the line stayed quiet, or ``timeout``.
+
+        By default ``n`` bytes are waited for ``ANSWERED``; without ``n``, 0.5 s: what
+        came, or the silence a test asserts."""
         out = b""
+        if timeout is None:
+            timeout = 0.5 if n is None else ANSWERED
         deadline = time.monotonic() + timeout
         while True:
             now = time.monotonic()
@@ -312,7 +338,8 @@ class RawPort:
                 continue
             out += os.read(self.fd, 4096)
 
-    def transact(self, request: bytes, n: int | None = None, *, timeout: float = 0.5) -> bytes:
+    def transact(self, request: bytes, n: int | None = None, *,
+                 timeout: float | None = None) -> bytes:
         self.send(request)
         return self.read(n, timeout=timeout)
 

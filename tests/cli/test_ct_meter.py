@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner, Result
+from conftest import ANSWERED
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
@@ -17,7 +18,7 @@ from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 DEV = "chint-dtsu666@1"
-FAST = ("--timeout", "0.3", "--retries", "0")
+PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
 # a real meter's terminals (korneliuszm/nd45_dtsu666_converter's scan): 0.035 A at IrAt 200
 CT_METER = [f"{DEV}.current_ratio=200", f"{DEV}.voltage_ratio=1.0", f"{DEV}.current_l1=0.035",
             f"{DEV}.power_l1=8.0", f"{DEV}.voltage_l1=230.7", f"{DEV}.frequency=50.0",
@@ -34,7 +35,7 @@ def records(result: Result) -> dict[str, dict[str, Any]]:
 
 def test_poll_shows_the_primary_values_of_a_ct_operated_meter(sim: Sim) -> None:
     bus = sim(DEV, sets=CT_METER, tick=None)
-    result = run("poll", "-p", bus.port, *FAST, "--once", "--format", "json", DEV)
+    result = run("poll", "-p", bus.port, *PATIENT, "--once", "--format", "json", DEV)
     assert result.exit_code == 0, result.stderr
     recs = records(result)
     assert recs["current_l1"]["value"] == 7.0 and recs["current_l1"]["text"] == "7.000"
@@ -51,7 +52,7 @@ def test_poll_shows_the_primary_values_of_a_ct_operated_meter(sim: Sim) -> None:
 
 def test_only_the_asked_field_is_printed_and_its_ratio_is_read_with_it(sim: Sim) -> None:
     bus = sim(DEV, sets=CT_METER, tick=None)
-    result = run("poll", "-p", bus.port, *FAST, "--once", "--format", "json",
+    result = run("poll", "-p", bus.port, *PATIENT, "--once", "--format", "json",
                  "--fields", "current_l1", DEV)
     assert result.exit_code == 0, result.stderr
     assert {f: r["value"] for f, r in records(result).items()} == {"current_l1": 7.0}
@@ -61,7 +62,7 @@ def test_only_the_asked_field_is_printed_and_its_ratio_is_read_with_it(sim: Sim)
 
 def test_influx_lines_carry_the_primary_value(sim: Sim) -> None:
     bus = sim(DEV, sets=CT_METER, tick=None)
-    result = run("poll", "-p", bus.port, *FAST, "--once", "--format", "influx",
+    result = run("poll", "-p", bus.port, *PATIENT, "--once", "--format", "influx",
                  "--fields", "current_l1,frequency", DEV)
     assert result.exit_code == 0, result.stderr
     assert "current_l1=7" in result.stdout and "current_l1=0.035" not in result.stdout
@@ -69,7 +70,7 @@ def test_influx_lines_carry_the_primary_value(sim: Sim) -> None:
 
 def test_read_shows_the_primary_values(sim: Sim) -> None:
     bus = sim(DEV, sets=CT_METER, tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--format", "json", DEV, "current_l1",
+    result = run("read", "-p", bus.port, *PATIENT, "--format", "json", DEV, "current_l1",
                  "power_l1", "frequency")
     assert result.exit_code == 0, result.stderr
     assert {f: r["value"] for f, r in records(result).items()} == \
@@ -80,7 +81,7 @@ def test_a_failed_ratio_read_leaves_the_scaled_fields_without_a_value(sim: Sim) 
     # the first request of the cycle is the ratios' block (0x0006, lowest address):
     # the meter answers it with exception 04
     bus = sim(DEV, sets=CT_METER, tick=None, faults=["1:exception=4@1"])
-    result = run("poll", "-p", bus.port, *FAST, "--once", "--format", "json", DEV)
+    result = run("poll", "-p", bus.port, *PATIENT, "--once", "--format", "json", DEV)
     assert result.exit_code == 9  # a device whose fields were not all read
     recs = records(result)
     for name, ratio in [("current_l1", "current_ratio"), ("power_l1", "current_ratio"),
@@ -96,7 +97,7 @@ def test_a_failed_ratio_read_leaves_the_scaled_fields_without_a_value(sim: Sim) 
 
 def test_a_ratio_of_zero_is_no_ratio(sim: Sim) -> None:
     bus = sim(DEV, sets=[*CT_METER, f"{DEV}.current_ratio=0"], tick=None)
-    result = run("poll", "-p", bus.port, *FAST, "--once", "--format", "json", DEV)
+    result = run("poll", "-p", bus.port, *PATIENT, "--once", "--format", "json", DEV)
     assert result.exit_code == 9
     recs = records(result)
     assert recs["current_l1"]["value"] is None and recs["current_l1"]["status"] == "unscaled"
@@ -106,7 +107,7 @@ def test_a_ratio_of_zero_is_no_ratio(sim: Sim) -> None:
 
 def test_read_of_a_field_whose_ratio_is_no_ratio_prints_why_and_exits_7(sim: Sim) -> None:
     bus = sim(DEV, sets=[*CT_METER, f"{DEV}.current_ratio=0"], tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--format", "json", DEV, "current_l1",
+    result = run("read", "-p", bus.port, *PATIENT, "--format", "json", DEV, "current_l1",
                  "frequency")
     assert result.exit_code == 7
     recs = records(result)

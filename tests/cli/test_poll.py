@@ -16,10 +16,13 @@ from typing import Any
 
 import serial
 from click.testing import CliRunner, Result
+from conftest import ANSWERED, DEAD
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.records import POLL_KEYS
+
+PATIENT = ("--timeout", f"{ANSWERED:g}")
 
 
 def poll(*args: str) -> Result:
@@ -35,7 +38,7 @@ def test_once_json_gives_one_record_per_field_with_the_poll_keys(
     bus = sim("huiwen-aq@3", "radar-level@4")
     bus.set(3, "co2", 777)
     bus.set(4, "air_gap_cm", 123)
-    result = poll("--port", bus.port, "--once", "--format", "json", "huiwen-aq@3",
+    result = poll("--port", bus.port, "--once", "--format", "json", *PATIENT, "huiwen-aq@3",
                   "radar-level@4")
     assert result.exit_code == 0, result.stderr
     recs = records(result)
@@ -50,11 +53,22 @@ def test_once_json_gives_one_record_per_field_with_the_poll_keys(
     assert all(r["time"].endswith("Z") and r["time"][10] == "T" for r in recs)
 
 
-def test_once_with_a_dead_device_names_it_and_exits_9(sim: Callable[..., SimulatedBus]
-                                                      ) -> None:
+def live_and_dead(tmp_path: Path, port: str) -> Path:
+    """A site file: huiwen-aq@3, which answers, and radar-level@4, dead. The dead one's
+    timeout is waited out: 0.1 s; the live one gets all the time a busy machine's simulator
+    thread may need (its answers end the waits: --timeout would give it the 0.1 s too)."""
+    site = tmp_path / "site.yaml"
+    site.write_text(f"buses:\n  - port: {port}\n    devices:\n"
+                    f"      - {{profile: huiwen-aq, address: 3, timeout: {ANSWERED:g}}}\n"
+                    f"      - {{profile: radar-level, address: 4, timeout: {DEAD:g}}}\n")
+    return site
+
+
+def test_once_with_a_dead_device_names_it_and_exits_9(sim: Callable[..., SimulatedBus],
+                                                      tmp_path: Path) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead"])
-    result = poll("--port", bus.port, "--once", "--format", "json", "--timeout", "0.1",
-                  "huiwen-aq@3", "radar-level@4")
+    result = poll("--config", str(live_and_dead(tmp_path, bus.port)), "--once", "--format",
+                  "json")
     assert result.exit_code == 9
     assert result.stderr.splitlines() == [
         "rtupoll: radar-level@4: timeout: no reply from unit 4 to read holding registers "
@@ -71,7 +85,8 @@ def test_once_with_a_dead_device_names_it_and_exits_9(sim: Callable[..., Simulat
 def test_once_exception_and_garbled_replies_are_each_one_line(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["3:exception=2", "4:crc"])
-    result = poll("--port", bus.port, "--once", "--timeout", "0.1", "huiwen-aq@3",
+    # (both answer, known as the answers come: not asked within a short timeout)
+    result = poll("--port", bus.port, "--once", *PATIENT, "huiwen-aq@3",
                   "radar-level@4")
     assert result.exit_code == 9
     lines = result.stderr.splitlines()
@@ -92,7 +107,7 @@ def test_once_table_shows_names_of_enums_flags_and_unknown_codes(
     bus.set(3, "pm25_level", 9)  # not in the manual's table
     bus.set(4, "status", 7)  # the profile's 'other' code
     result = CliRunner(env={"COLUMNS": "160"}).invoke(
-        cli, ["poll", "--port", bus.port, "--baudrate", "9600", "--once",
+        cli, ["poll", "--port", bus.port, "--baudrate", "9600", "--once", *PATIENT,
               "net-irnet-pro@1", "huiwen-aq@3", "radar-level@4"])
     assert result.exit_code == 0, result.stderr
     rows = {tuple(line.split()[:1] + line.split()[-3:]) for line in result.stdout.splitlines()}
@@ -115,7 +130,7 @@ def test_csv_to_a_file_appends_with_one_header(sim: Callable[..., SimulatedBus],
     out = tmp_path / "readings.csv"
     for _ in range(2):
         result = poll("--port", bus.port, "--once", "--format", "csv", "--output", str(out),
-                      "radar-level@4")
+                      *PATIENT, "radar-level@4")
         assert result.exit_code == 0, result.stderr
         assert result.stdout == ""
     rows = list(csv.DictReader(io.StringIO(out.read_text())))
@@ -154,7 +169,7 @@ buses:
 
 
 def test_simulate_once_reads_the_five_seed_devices() -> None:
-    result = poll("--simulate", "--once", "--format", "json")
+    result = poll("--simulate", "--once", "--format", "json", *PATIENT)
     assert result.exit_code == 0, result.stderr
     profiles = {r["profile"] for r in records(result)}
     assert profiles == {"net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117",
@@ -212,7 +227,7 @@ def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
     # an IRNET-PRO on data structure 0 has no calibration gas level (exception 02 there)
     bus = sim("net-irnet-pro@1", "net-irnet-pro@2", options=["net-irnet-pro@1.variant=0"])
     bus.set(2, "calibration_gas_level", 50.0)
-    result = poll("--port", bus.port, "--once", "--format", "json", "--fields",
+    result = poll("--port", bus.port, "--once", "--format", "json", *PATIENT, "--fields",
                   "concentration,calibration_gas_level", "net-irnet-pro@1", "net-irnet-pro@2")
     assert result.exit_code == 0, result.stderr
     by = {(r["address"], r["field"]): r for r in records(result)}
@@ -234,7 +249,8 @@ def test_a_device_whose_every_asked_field_is_absent_stays_online(
     from rtupoll.jobs.scheduler import Scheduler
 
     bus = sim("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"])
-    site = from_specs(bus.port, [("net-irnet-pro", 1)], fields=["uart_speed"], interval=0)
+    site = from_specs(bus.port, [("net-irnet-pro", 1)], fields=["uart_speed"], interval=0,
+                      timeout=ANSWERED)
 
     async def three_scans() -> tuple[str, int, int]:
         scheduler = Scheduler(site)
@@ -254,6 +270,6 @@ def test_an_even_parity_device_polls_on_the_simulators_pty() -> None:
     """The ABB B23 runs 8E1; a pty has no parity bit (and Linux refuses to set one on
     it after its first open), so the simulator's port is opened without one."""
     for _ in range(2):  # the second open is the one Linux refused
-        result = poll("--simulate", "abb-b23@1", "--once", "--format", "json")
+        result = poll("--simulate", "abb-b23@1", "--once", "--format", "json", *PATIENT)
         assert result.exit_code == 0, result.output
         assert all(r["status"] == "ok" for r in records(result))

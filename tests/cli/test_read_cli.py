@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 from cli_runner import rtupoll
 from click.testing import CliRunner, Result
+from conftest import ANSWERED
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
@@ -18,7 +19,7 @@ from rtupoll.ui.records import READ_KEYS
 
 Sim = Callable[..., SimulatedBus]
 
-FAST = ("--timeout", "0.3", "--retries", "0")  # the simulator answers at once here
+PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
 
 
 def run(*args: str) -> Result:
@@ -51,7 +52,7 @@ def test_every_seed_device_reads_by_field_name(device: str, sets: tuple[str, ...
                                                value: object, sim: Sim) -> None:
     pin = [f"{device}.{s}" for s in sets]
     bus = sim(device, sets=pin, tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json", device, field))
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json", device, field))
     assert [r["field"] for r in recs] == [field]
     assert recs[0]["value"] == value
     assert recs[0]["device"] == device.replace("0xFE", "254")
@@ -60,7 +61,7 @@ def test_every_seed_device_reads_by_field_name(device: str, sets: tuple[str, ...
 
 def test_golden_frame_of_the_co2meter_manual_goes_on_the_wire(sim: Sim) -> None:
     bus = sim("co2meter-an117@254", sets=["co2meter-an117@254.co2=400"], tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json",
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json",
                        "co2meter-an117@254", "co2"))
     assert "FE 04 00 01 00 01 74 05" in requests(bus)
     assert recs[0]["raw"] == [400]
@@ -68,14 +69,14 @@ def test_golden_frame_of_the_co2meter_manual_goes_on_the_wire(sim: Sim) -> None:
 
 def test_without_fields_the_profiles_default_set_is_read(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json", "huiwen-aq@1"))
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json", "huiwen-aq@1"))
     assert [r["field"] for r in recs] == [f.name for f in load_one("huiwen-aq").default_fields()]
     assert all(r["value"] is not None for r in recs)
 
 
 def test_csv_has_the_json_keys_as_header(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", sets=["net-irnet-pro@1.warning=0"], tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--format", "csv", "net-irnet-pro@1",
+    result = run("read", "-p", bus.port, *PATIENT, "--format", "csv", "net-irnet-pro@1",
                  "warning", "temperature")
     lines = result.stdout.splitlines()
     assert result.exit_code == 0 and lines[0] == ",".join(READ_KEYS)
@@ -85,7 +86,7 @@ def test_csv_has_the_json_keys_as_header(sim: Sim) -> None:
 
 def test_table_for_people_names_device_fields_and_units(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", sets=["huiwen-aq@1.temperature=-5"], tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--hex", "huiwen-aq@1", "temperature", "co2")
+    result = run("read", "-p", bus.port, *PATIENT, "--hex", "huiwen-aq@1", "temperature", "co2")
     assert result.exit_code == 0, result.output
     assert "huiwen-aq@1" in result.stdout and "°C" in result.stdout
     row = next(line for line in result.stdout.splitlines() if "temperature" in line)
@@ -98,7 +99,7 @@ def test_table_for_people_names_device_fields_and_units(sim: Sim) -> None:
 def test_raw_read_of_the_huiwen_manuals_example_sends_its_frame(sim: Sim) -> None:
     pins = [f"huiwen-aq@1.{s}" for s in ("pm25=25", "tvoc=0.05", "hcho=0.25", "co2=5000")]
     bus = sim("huiwen-aq@1", sets=pins, tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json", "--raw", "1",
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json", "--raw", "1",
                        "input:30006:5"))
     assert requests(bus) == ["01 04 75 36 00 05 CA 0B"]
     assert [r["field"] for r in recs][:2] == ["input:30006", "input:30007"]
@@ -116,7 +117,7 @@ def test_raw_read_of_the_huiwen_manuals_example_sends_its_frame(sim: Sim) -> Non
 def test_raw_read_in_each_addressing_form_reaches_the_same_register(
         flags: tuple[str, ...], spec: str, sim: Sim) -> None:
     bus = sim("radar-level@1", sets=["radar-level@1.level_cm=321"], tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json", "--raw", *flags,
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json", "--raw", *flags,
                        "radar-level@1", spec))
     assert requests(bus) == ["01 03 00 02 00 01 25 CA"]  # wire address 2, as sent
     assert recs[0]["value"] == 321
@@ -126,7 +127,7 @@ def test_raw_read_in_each_addressing_form_reaches_the_same_register(
 
 def test_raw_float_in_the_irnets_byte_order(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", sets=["net-irnet-pro@1.concentration=-20"], tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json", "--raw",
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json", "--raw",
                        "--type", "f32", "--order", "DCBA", "1", "input:6"))
     assert requests(bus) == ["01 04 00 06 00 02 91 CA"]  # the manual's golden request
     assert recs[0]["value"] == -20.0 and recs[0]["raw"] == [0x0000, 0xA0C1]
@@ -134,7 +135,7 @@ def test_raw_float_in_the_irnets_byte_order(sim: Sim) -> None:
 
 def test_raw_read_with_a_profile_takes_its_byte_order_and_splits_at_its_limit(sim: Sim) -> None:
     bus = sim("co2meter-an117@0x68", tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--format", "json", "--raw",
+    result = run("read", "-p", bus.port, *PATIENT, "--format", "json", "--raw",
                  "co2meter-an117@0x68", "input:1:1")
     assert result.exit_code == 0, result.output
     assert len(requests(bus)) == 1
@@ -142,7 +143,7 @@ def test_raw_read_with_a_profile_takes_its_byte_order_and_splits_at_its_limit(si
 
 def test_raw_table_with_hex_shows_the_words(sim: Sim) -> None:
     bus = sim("radar-level@1", sets=["radar-level@1.level_cm=255"], tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--raw", "--hex", "1", "holding:0x2")
+    result = run("read", "-p", bus.port, *PATIENT, "--raw", "--hex", "1", "holding:0x2")
     assert result.exit_code == 0, result.output
     assert "holding:0x0002" in result.stdout and "00FF" in result.stdout
 
@@ -152,9 +153,9 @@ def test_raw_table_with_hex_shows_the_words(sim: Sim) -> None:
 
 def test_a_never_polled_field_is_refused_unless_forced(sim: Sim) -> None:
     bus = sim("banner-ez-array@1", tick=None)
-    refused = run("read", "-p", bus.port, *FAST, "banner-ez-array@1", "analog_1_peak")
+    refused = run("read", "-p", bus.port, *PATIENT, "banner-ez-array@1", "analog_1_peak")
     assert requests(bus) == []
-    forced = run("read", "-p", bus.port, *FAST, "--force", "--format", "json",
+    forced = run("read", "-p", bus.port, *PATIENT, "--force", "--format", "json",
                  "banner-ez-array@1", "analog_1_peak")
     assert refused.exit_code == 8
     assert "analog_1_peak is never read unless forced" in refused.stderr
@@ -164,7 +165,7 @@ def test_a_never_polled_field_is_refused_unless_forced(sim: Sim) -> None:
 
 def test_the_default_set_never_touches_a_never_polled_register(sim: Sim) -> None:
     bus = sim("banner-ez-array@1", tick=None)
-    run("read", "-p", bus.port, *FAST, "--format", "json", "banner-ez-array@1")
+    run("read", "-p", bus.port, *PATIENT, "--format", "json", "banner-ez-array@1")
     reads = [w.data for w in bus.wire if w.direction == "in"]
     peak = 30521
     for frame in reads:
@@ -174,7 +175,7 @@ def test_the_default_set_never_touches_a_never_polled_register(sim: Sim) -> None
 
 def test_fields_missing_from_the_irnet_data_structure_are_reported_not_failed(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"], tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json",
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json",
                        "net-irnet-pro@1", "uart_speed", "concentration"))
     assert recs[0]["field"] == "uart_speed" and recs[0]["value"] is None
     assert recs[0]["text"] == "not present (data structure 0)"
@@ -183,7 +184,7 @@ def test_fields_missing_from_the_irnet_data_structure_are_reported_not_failed(si
 
 def test_on_a_newer_data_structure_the_same_field_is_read(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", tick=None)
-    recs = records(run("read", "-p", bus.port, *FAST, "--format", "json",
+    recs = records(run("read", "-p", bus.port, *PATIENT, "--format", "json",
                        "net-irnet-pro@1", "uart_speed"))
     assert recs[0]["value"] is not None and recs[0]["value"].startswith("UART_")
 
@@ -202,20 +203,21 @@ def test_unknown_field_or_profile_is_exit_2_with_a_hint() -> None:
 
 def test_no_response_is_exit_4(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("read", "-p", bus.port, *FAST, "radar-level@9", "level_cm")
+    result = run("read", "-p", bus.port, "--timeout", "0.3", "--retries", "0", "radar-level@9",
+                 "level_cm")
     assert result.exit_code == 4, result.output
 
 
 def test_exception_reply_is_exit_5_and_named(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("read", "-p", bus.port, *FAST, "--raw", "1", "holding:0x0100")
+    result = run("read", "-p", bus.port, *PATIENT, "--raw", "1", "holding:0x0100")
     assert result.exit_code == 5, result.output
     assert "ILLEGAL DATA ADDRESS" in result.stderr
 
 
 def test_garbled_reply_is_exit_7(sim: Sim) -> None:
     bus = sim("radar-level@1", faults=["1:crc"], tick=None)
-    result = run("read", "-p", bus.port, *FAST, "radar-level@1", "level_cm")
+    result = run("read", "-p", bus.port, *PATIENT, "radar-level@1", "level_cm")
     assert result.exit_code == 7, result.output
 
 

@@ -12,13 +12,14 @@ from collections.abc import Callable
 from typing import Any
 
 from click.testing import CliRunner, Result
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
-FAST = ("--timeout", "0.3", "--retries", "0")  # the simulator answers at once here
+PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
 
 
 def run(*args: str, stdin: str | None = None) -> Result:
@@ -39,7 +40,7 @@ def test_banner_write_is_fc16_read_modify_write_keeping_the_other_byte(sim: Sim)
     bus = sim("banner-ez-array@1", sets=["banner-ez-array@1.measurement_1_mode=FBB",
                                          "banner-ez-array@1.measurement_2_mode=OD"], tick=None)
     before = bus.registers(1, "holding", 40048, 1)[0]
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json",
                        "banner-ez-array@1", "measurement_1_mode=tbb"))
     assert recs[0]["field"] == "measurement_1_mode" and recs[0]["value"] == "TBB"
     after = bus.registers(1, "holding", 40048, 1)[0]
@@ -49,7 +50,7 @@ def test_banner_write_is_fc16_read_modify_write_keeping_the_other_byte(sim: Sim)
 
 def test_radar_write_uses_fc06_and_scales_the_value(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json",
                        "radar-level@1", "baud_rate=19200"))
     assert recs[0]["value"] == 19200 and recs[0]["raw"] == [192]
     sent = [w.data.hex(" ").upper() for w in bus.wire if w.direction == "in"]
@@ -58,7 +59,7 @@ def test_radar_write_uses_fc06_and_scales_the_value(sim: Sim) -> None:
 
 def test_irnet_float_write_uses_fc16_in_its_byte_order(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", tick=None)
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json",
                        "net-irnet-pro@1", "calibration_gas_level=50"))
     assert recs[0]["value"] == 50.0
     write = next(w.data for w in bus.wire if w.direction == "in" and w.data[1] == 16)
@@ -67,7 +68,7 @@ def test_irnet_float_write_uses_fc16_in_its_byte_order(sim: Sim) -> None:
 
 def test_write_shows_the_read_back_as_a_table(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("write", "-p", bus.port, *FAST, "--yes", "radar-level@1", "baud_rate=9600")
+    result = run("write", "-p", bus.port, *PATIENT, "--yes", "radar-level@1", "baud_rate=9600")
     assert result.exit_code == 0, result.output
     assert "after writing (read back)" in result.stdout
     row = next(line for line in result.stdout.splitlines() if "baud_rate" in line)
@@ -76,10 +77,10 @@ def test_write_shows_the_read_back_as_a_table(sim: Sim) -> None:
 
 def test_read_only_and_out_of_range_are_refused_before_sending(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", "banner-ez-array@2", tick=None)
-    ro = run("write", "-p", bus.port, *FAST, "--yes", "huiwen-aq@1", "co2=400")
-    big = run("write", "-p", bus.port, *FAST, "--yes", "banner-ez-array@2",
+    ro = run("write", "-p", bus.port, *PATIENT, "--yes", "huiwen-aq@1", "co2=400")
+    big = run("write", "-p", bus.port, *PATIENT, "--yes", "banner-ez-array@2",
               "measurement_1_mode=99")
-    bad = run("write", "-p", bus.port, *FAST, "--yes", "radar-level@1", "baud_rate=12345")
+    bad = run("write", "-p", bus.port, *PATIENT, "--yes", "radar-level@1", "baud_rate=12345")
     assert (ro.exit_code, big.exit_code, bad.exit_code) == (8, 8, 8)
     assert "co2 is read-only" in ro.stderr
     assert "'99' is not one of: DISABLED" in big.stderr
@@ -89,21 +90,21 @@ def test_read_only_and_out_of_range_are_refused_before_sending(sim: Sim) -> None
 
 def test_the_address_field_is_left_to_set_address(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", tick=None)
-    result = run("write", "-p", bus.port, *FAST, "--yes", "huiwen-aq@1", "slave_address=5")
+    result = run("write", "-p", bus.port, *PATIENT, "--yes", "huiwen-aq@1", "slave_address=5")
     assert result.exit_code == 8 and "rtupoll set-address huiwen-aq@1 NEW" in result.stderr
     assert functions(bus) == []
 
 
 def test_without_a_terminal_and_without_yes_nothing_is_written(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("write", "-p", bus.port, *FAST, "radar-level@1", "baud_rate=9600")
+    result = run("write", "-p", bus.port, *PATIENT, "radar-level@1", "baud_rate=9600")
     assert result.exit_code == 8 and "add --yes" in result.stderr
     assert functions(bus) == []
 
 
 def test_raw_write_with_a_profile_uses_the_function_it_supports(sim: Sim) -> None:
     bus = sim("banner-ez-array@1", tick=None)
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json", "--raw",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json", "--raw",
                        "banner-ez-array@1", "holding:40048=0x0B03"))
     assert recs[0]["value"] == 0x0B03 and recs[0]["field"] == "holding:40048"
     assert functions(bus) == [16, 3]  # the device has no FC06, even for a raw write
@@ -112,7 +113,7 @@ def test_raw_write_with_a_profile_uses_the_function_it_supports(sim: Sim) -> Non
 
 def test_raw_write_of_several_registers_in_one_fc16(sim: Sim) -> None:
     bus = sim("net-irnet-pro@1", tick=None)
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json", "--raw",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json", "--raw",
                        "net-irnet-pro@1", "holding:0x200=0,0x4842"))
     assert [r["field"] for r in recs] == ["holding:0x0200", "holding:0x0201"]
     assert functions(bus) == [16, 3]
@@ -121,7 +122,7 @@ def test_raw_write_of_several_registers_in_one_fc16(sim: Sim) -> None:
 
 def test_raw_write_by_modicon_reference_with_no_profile(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    recs = records(run("write", "-p", bus.port, *FAST, "--yes", "--format", "json", "--raw",
+    recs = records(run("write", "-p", bus.port, *PATIENT, "--yes", "--format", "json", "--raw",
                        "--modicon", "1", "41015=0x60"))
     assert recs[0]["field"] == "41015" and recs[0]["value"] == 0x60  # wire 0x03F6
     assert functions(bus) == [6, 3]
@@ -129,14 +130,14 @@ def test_raw_write_by_modicon_reference_with_no_profile(sim: Sim) -> None:
 
 def test_a_function_the_device_lacks_gets_its_exception_named(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("write", "-p", bus.port, *FAST, "--yes", "--raw", "--function", "16", "1",
+    result = run("write", "-p", bus.port, *PATIENT, "--yes", "--raw", "--function", "16", "1",
                  "holding:0x03F6=0x60")
     assert result.exit_code == 5 and "ILLEGAL FUNCTION" in result.stderr
 
 
 def test_raw_write_to_a_read_only_register_gets_the_devices_exception(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
-    result = run("write", "-p", bus.port, *FAST, "--yes", "--raw", "1", "holding:0=5")
+    result = run("write", "-p", bus.port, *PATIENT, "--yes", "--raw", "1", "holding:0=5")
     assert result.exit_code == 5 and "ILLEGAL DATA ADDRESS" in result.stderr
 
 
@@ -151,12 +152,12 @@ def on_terminal(argv: list[str], answer: str) -> tuple[int, str]:
     os.close(slave)
     screen = b""
     try:
-        deadline = time.monotonic() + 15
+        deadline = time.monotonic() + 30  # (hang guards: the question, the exit end them)
         while b"Send? [y/N]: " not in screen and time.monotonic() < deadline:
             if select.select([fd], [], [], 0.5)[0]:
                 screen += os.read(fd, 4096)
         os.write(fd, answer.encode() + b"\n")
-        code = proc.wait(timeout=15)
+        code = proc.wait(timeout=30)
         while select.select([fd], [], [], 0.2)[0]:
             try:
                 screen += os.read(fd, 4096)
@@ -171,7 +172,7 @@ def on_terminal(argv: list[str], answer: str) -> tuple[int, str]:
 
 def test_on_a_terminal_the_change_is_shown_and_only_yes_sends_it(sim: Sim) -> None:
     bus = sim("radar-level@1", sets=["radar-level@1.baud_rate=9600"], tick=None)
-    argv = ["write", "-p", bus.port, *FAST, "--format", "json", "radar-level@1",
+    argv = ["write", "-p", bus.port, *PATIENT, "--format", "json", "radar-level@1",
             "baud_rate=19200"]
     code, screen = on_terminal(argv, "n")
     assert code == 8 and "not confirmed: nothing was sent" in screen

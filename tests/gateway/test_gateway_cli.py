@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import pytest
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.rtu import crc_ok, with_crc
@@ -22,6 +23,7 @@ from tests.brokers import free_port
 
 Sim = Callable[..., SimulatedBus]
 MBPOLL = shutil.which("mbpoll")
+PATIENT = f"{ANSWERED:g}"
 
 
 @contextmanager
@@ -54,8 +56,8 @@ def rtupoll(*args: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
 def mbpoll(port: int, *args: str, write: tuple[str, ...] = ()
            ) -> subprocess.CompletedProcess[str]:
     assert MBPOLL is not None
-    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", "1", *args,
-                           "127.0.0.1", *write], capture_output=True, text=True, timeout=20)
+    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", PATIENT, *args,
+                           "127.0.0.1", *write], capture_output=True, text=True, timeout=60)
 
 
 def values(out: str) -> list[int]:
@@ -66,13 +68,13 @@ def values(out: str) -> list[int]:
 def test_mbpoll_reads_and_writes_through_rtupoll_polling_the_same_line(sim: Sim) -> None:
     bus = sim("huiwen-aq@3", "net-irnet-pro@1", tick=None)
     bus.set(3, "co2", 640)
-    with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "0", "--format",
-                 "json", "huiwen-aq@3", "net-irnet-pro@1") as (proc, port):
+    with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "0", "--timeout",
+                 PATIENT, "--format", "json", "huiwen-aq@3", "net-irnet-pro@1") as (proc, port):
         read = mbpoll(port, "-a", "3", "-t", "3", "-r", "30007", "-c", "4")  # 0x7536..
         wrote = mbpoll(port, "-a", "1", "-t", "4:hex", "-r", "513",
                        write=("0x0000", "0x4248"))
         back = mbpoll(port, "-a", "1", "-t", "4", "-r", "513", "-c", "2")
-        silent = mbpoll(port, "-a", "9", "-t", "4", "-r", "1")
+        silent = mbpoll(port, "-a", "9", "-t", "4", "-r", "1")  # 0x0B after --serve-timeout
         time.sleep(0.3)
     out, err = proc.communicate()
     assert read.returncode == 0, read.stdout + read.stderr
@@ -90,15 +92,15 @@ def test_mbpoll_reads_and_writes_through_rtupoll_polling_the_same_line(sim: Sim)
 def test_a_pure_gateway_serves_rtu_over_tcp(sim: Sim) -> None:
     bus = sim("radar-level@4", tick=None)
     bus.set(4, "air_gap_cm", 321)
-    with rtupoll("--port", bus.port, "rtu+tcp://127.0.0.1:PORT") as (proc, port), \
-            socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+    with rtupoll("--port", bus.port, "--serve-timeout", PATIENT,
+                 "rtu+tcp://127.0.0.1:PORT") as (proc, port), \
+            socket.create_connection(("127.0.0.1", port), timeout=30) as s:  # (hang guards:
         s.sendall(with_crc(bytes.fromhex("04 03 00 00 00 01")))
         reply = b""
         while len(reply) < 7:
             reply += s.recv(64)
         s.sendall(with_crc(bytes.fromhex("04 03 00 00 00 01"))[:-1] + b"\x00")  # bad CRC
-        s.settimeout(3)
-        end = s.recv(64)
+        end = s.recv(64)  # the reply, and the close, end the waits)
     _, err = proc.communicate()
     assert crc_ok(reply) and reply[:5] == bytes.fromhex("04 03 02 01 41")  # 321
     assert end == b"" and "CRC error" in err and proc.returncode == 0

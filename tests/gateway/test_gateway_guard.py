@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import pytest
+from conftest import ANSWERED
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -290,9 +291,10 @@ def test_mbpoll_asking_unit_255_gets_an_exception_and_the_line_never_sees_it(sim
         async with served(bus, [("huiwen-aq", 3)], interval=0.5) as h:
             assert MBPOLL is not None
             done = await asyncio.to_thread(
-                subprocess.run, [MBPOLL, "-m", "tcp", "-p", str(h.port), "-1", "-o", "1",
-                                 "-a", "255", "-t", "4", "-r", "1", "127.0.0.1"],
-                capture_output=True, text=True, timeout=20)
+                subprocess.run, [MBPOLL, "-m", "tcp", "-p", str(h.port), "-1",
+                                 "-o", f"{ANSWERED:g}", "-a", "255", "-t", "4", "-r", "1",
+                                 "127.0.0.1"],
+                capture_output=True, text=True, timeout=60)  # (the exception ends its wait)
             return done, h.logs
 
     done, logs = asyncio.run(main())

@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 
 import pytest
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
@@ -35,9 +36,10 @@ def test_serve_on_the_ipv6_any_address_answers_ipv4_and_ipv6_clients(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
     port = free_port()
+    # (10 s for the device to answer, rtupoll's and mbpoll's: the answer ends the waits)
     proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
-                          "--baudrate", "9600", "--format", "json", "huiwen-aq@3",
-                          "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,
+                          "--baudrate", "9600", "--timeout", f"{ANSWERED:g}", "--format", "json",
+                          "huiwen-aq@3", "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30  # a guard against a hang, not a timing claim
@@ -49,10 +51,10 @@ def test_serve_on_the_ipv6_any_address_answers_ipv4_and_ipv6_clients(
                 assert proc.poll() is None and time.monotonic() < deadline, proc.stderr
                 time.sleep(0.05)
         assert MBPOLL is not None
-        v4 = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", "2", "-a", "3",
-                             "-t", "3", "-r", "30010", "127.0.0.1"],
-                            capture_output=True, text=True, timeout=20)
-        with socket.create_connection(("::1", port), timeout=5) as c:
+        v4 = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", f"{ANSWERED:g}",
+                             "-a", "3", "-t", "3", "-r", "30010", "127.0.0.1"],
+                            capture_output=True, text=True, timeout=60)
+        with socket.create_connection(("::1", port), timeout=30) as c:
             c.sendall(struct.pack(">HHHB", 7, 0, 6, 3) + bytes.fromhex("04 75 39 00 01"))
             v6 = c.recv(64)
     finally:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.sim.runner import SimulatedBus
@@ -30,15 +31,16 @@ def site(path: Path, port: str, listen: str, **rules: object) -> None:
     text = (f"buses:\n  - port: {port}\n    baudrate: 9600\n"
             f"    serve:\n      listen: {listen}\n")
     text += "".join(f"      {k}: {json.dumps(v)}\n" for k, v in rules.items())
+    # (10 s for the device to answer, rtupoll's and mbpoll's: the answer ends the waits)
     text += ("    devices:\n      - {name: gas, profile: net-irnet-pro, address: 1, "
-             "interval: 0.5}\n")
+             f"interval: 0.5, timeout: {ANSWERED:g}}}\n")
     path.write_text(text)
 
 
 def mbpoll(port: int, *args: str) -> subprocess.CompletedProcess[str]:
     assert MBPOLL is not None
-    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", "2", "-a", "1",
-                           *args], capture_output=True, text=True, timeout=20)
+    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", f"{ANSWERED:g}",
+                           "-a", "1", *args], capture_output=True, text=True, timeout=60)
 
 
 def test_sighup_applies_serve_rules_rebinds_and_refuses_an_address_it_cannot_bind(

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
+from conftest import ANSWERED
 from pymodbus.client import AsyncModbusTcpClient
 from rich.console import Console
 
@@ -53,11 +54,14 @@ class Harness:
 
 @contextlib.asynccontextmanager
 async def served(bus: SimulatedBus, devices: list[tuple[str, int]], *, interval: float = 0,
-                 backoff: Backoff | None = None, **serve: Any) -> AsyncIterator[Harness]:
+                 backoff: Backoff | None = None, device_timeout: float | None = None,
+                 **serve: Any) -> AsyncIterator[Harness]:
+    """``devices`` polled (``device_timeout``: theirs, else the profiles'), and served
+    with ``serve``'s rules (``timeout``: for a unit that is not polled)."""
     cfg = ServeConfig("127.0.0.1", 0, **serve)
     if devices:
         site = from_specs(bus.port, devices, baudrate=115200, interval=interval,
-                          check_serial=False)
+                          timeout=device_timeout, check_serial=False)
         site = Site((dataclasses.replace(site.buses[0], serve=cfg),))
     else:
         site = Site((BusConfig("gw", bus.port, 115200, serve=cfg),))
@@ -86,7 +90,7 @@ async def served(bus: SimulatedBus, devices: list[tuple[str, int]], *, interval:
 async def end_of(r: asyncio.StreamReader) -> bytes:
     """What arrives until the gateway closes the connection (a reset counts as closed)."""
     try:
-        return await asyncio.wait_for(r.read(100), 2)
+        return await asyncio.wait_for(r.read(100), 30)  # (a hang guard: the close ends it)
     except ConnectionResetError:
         return b""
 
@@ -100,7 +104,8 @@ def test_pymodbus_reads_and_writes_while_the_poller_runs_flat_out(sim: Sim) -> N
     bus.set(3, "co2", 812)
 
     async def main() -> tuple[int, int, list[int], list[int]]:
-        async with served(bus, [("huiwen-aq", 3), ("net-irnet-pro", 1)]) as h:
+        async with served(bus, [("huiwen-aq", 3), ("net-irnet-pro", 1)],
+                          device_timeout=ANSWERED) as h:
             c = await h.client()
             before = len(h.readings)
             for i in range(30):
@@ -156,7 +161,7 @@ def test_read_only_and_setup_register_refusals_are_counted_and_logged_once(sim: 
     bus = sim("radar-level@4", tick=None)
 
     async def main() -> tuple[list[int | None], Any, list[str], int]:
-        async with served(bus, [("radar-level", 4)], interval=0.2) as h:
+        async with served(bus, [("radar-level", 4)], interval=0.2, device_timeout=ANSWERED) as h:
             c = await h.client()
             codes: list[int | None] = []
             for _ in range(2):  # the slave-address register: refused, logged once
@@ -174,7 +179,8 @@ def test_read_only_and_setup_register_refusals_are_counted_and_logged_once(sim: 
     assert len([x for x in logs if "broadcast" in x]) == 1
 
     async def read_only() -> tuple[int, int]:
-        async with served(bus, [("radar-level", 4)], interval=0.2, read_only=True) as h:
+        async with served(bus, [("radar-level", 4)], interval=0.2, read_only=True,
+                          device_timeout=ANSWERED) as h:
             c = await h.client()
             w = await c.write_register(0x0011, 77, device_id=4)
             r = await c.read_holding_registers(0x0011, count=1, device_id=4)
@@ -204,7 +210,8 @@ def test_two_clients_at_once_each_get_their_own_answers(sim: Sim) -> None:
     bus = sim("huiwen-aq@3", "radar-level@4", tick=None)
 
     async def main() -> list[Any]:
-        async with served(bus, [("huiwen-aq", 3), ("radar-level", 4)]) as h:
+        async with served(bus, [("huiwen-aq", 3), ("radar-level", 4)],
+                          device_timeout=ANSWERED) as h:
             a, b = await h.client(), await h.client()
 
             async def run(c: AsyncModbusTcpClient, unit: int, addr: int, n: int
@@ -243,12 +250,14 @@ def test_a_client_that_leaves_mid_request_costs_nobody_anything(sim: Sim) -> Non
     bus = sim("radar-level@4", "huiwen-aq@3", faults=["4:slow=0.15"], tick=None)
 
     async def main() -> tuple[int, int, list[int]]:
-        async with served(bus, [("huiwen-aq", 3)], interval=0.05) as h:
+        async with served(bus, [("huiwen-aq", 3)], interval=0.05, timeout=ANSWERED) as h:
             _r, w = await asyncio.open_connection("127.0.0.1", h.port)
             for tid in range(3):  # three requests to the slow radar, then gone
                 w.write(struct.pack(">HHHB", tid, 0, 6, 4) + bytes.fromhex("03 00 00 00 01"))
             await w.drain()
-            await asyncio.sleep(0.05)  # the first is on the line now
+            while not any(f.direction == "in" and f.data[:1] == b"\x04" for f in bus.wire):
+                await asyncio.sleep(0.005)  # until the first is on the line (0.05 s of
+                # sleep assumed it was, whatever the load)
             w.close()
             await asyncio.sleep(0.3)
             c = await h.client()
@@ -274,7 +283,7 @@ def test_a_malformed_frame_closes_that_client_with_a_log_line(sim: Sim, data: by
     bus = sim("radar-level@4", tick=None)
 
     async def main() -> tuple[bytes, list[str], list[int]]:
-        async with served(bus, []) as h:  # a pure gateway: the line is quiet
+        async with served(bus, [], timeout=ANSWERED) as h:  # a pure gateway: the line is quiet
             other = await h.client()
             r, w = await asyncio.open_connection("127.0.0.1", h.port)
             w.write(data)

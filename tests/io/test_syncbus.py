@@ -15,6 +15,7 @@ from typing import Any
 
 import pytest
 import serial
+from conftest import ANSWERED
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError
 from rtupoll.io.serialport import PortSettings
@@ -38,7 +39,7 @@ def image(sim: SimulatedBus, unit: int) -> tuple[int, ...]:
 ])
 def test_faults_while_a_neighbour_stays_right(sim: Sim, fault: str, outcome: Any) -> None:
     bus_sim = sim("net-irnet-pro@1", "net-irnet-pro@3", faults=[f"3:{fault}"], tick=None)
-    patience = 0.08 if outcome is DeviceTimeout else 2.0
+    patience = 0.08 if outcome is DeviceTimeout else ANSWERED  # (crc: known as it comes)
     got: list[Any] = []
     with SyncBus(PortSettings(bus_sim.port, baudrate=115200)) as bus:
         for _ in range(3):
@@ -46,7 +47,7 @@ def test_faults_while_a_neighbour_stays_right(sim: Sim, fault: str, outcome: Any
                 got.append(run(bus.read(3, *IRNET_BLOCK, timeout=patience)))
             except (DeviceTimeout, FrameError, DeviceException) as exc:
                 got.append(type(exc))
-            got.append(run(bus.read(1, *IRNET_BLOCK, timeout=2.0)))
+            got.append(run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)))
         stats = bus.stats
     assert got[1::2] == [image(bus_sim, 1)] * 3  # never another request's answer
     assert got[0::2] == [image(bus_sim, 3) if outcome == "ok" else outcome] * 3
@@ -59,7 +60,7 @@ def test_wire_silence_measured_by_the_simulator(sim: Sim) -> None:
     bus_sim = sim("huiwen-aq@3", "co2meter-an117@5", baudrate=baud, tick=None)
     with SyncBus(PortSettings(bus_sim.port, baudrate=baud)) as bus:
         for unit, address in ((3, 30006), (5, 1)) * 5:
-            run(bus.read(unit, Table.INPUT, address, 1, timeout=0.3))
+            run(bus.read(unit, Table.INPUT, address, 1, timeout=ANSWERED))
     wire = [w for w in bus_sim.wire if w.direction in ("in", "out")]
     assert [w.direction for w in wire] == ["in", "out"] * 10
     gaps = [nxt.time - reply.time for reply, nxt in zip(wire[1::2], wire[2::2], strict=False)]
@@ -74,7 +75,7 @@ def test_the_planner_and_the_holes_run_on_it_unchanged(sim: Sim) -> None:
     profile = load_one("huiwen-aq")
     with SyncBus(PortSettings(bus_sim.port)) as bus:
         values, refused = run(read_all(bus, 1, plan([profile.field("co2")], profile),
-                                       timeout=0.5, retries=0))
+                                       timeout=ANSWERED, retries=0))
     assert refused == [] and [(v.field.name, v.value) for v in values] == [("co2", 612)]
 
 
@@ -95,7 +96,7 @@ def test_rtu_over_tcp_gateway(sim: Sim) -> None:
     bus_sim = sim("net-irnet-pro@1", faults=["1:stray@2", "1:wrong-id-first@3"], tcp=True,
                   tick=None)
     with SyncBus(PortSettings(bus_sim.port)) as bus:
-        got = [run(bus.read(1, *IRNET_BLOCK, timeout=0.3)) for _ in range(4)]
+        got = [run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)) for _ in range(4)]
     assert got == [image(bus_sim, 1)] * 4
 
 
@@ -125,13 +126,17 @@ def test_missing_and_busy_port(sim: Sim, tmp_path: Path) -> None:
 
 def test_a_port_that_goes_away_mid_transaction(sim: Sim, tmp_path: Path) -> None:
     link = str(tmp_path / "ttyUSB0")
-    bus_sim = sim("co2meter-an117@5", faults=["5:slow=1.0"], link=link, tick=None)
+    bus_sim = sim("co2meter-an117@5", faults=["5:slow=30"], link=link, tick=None)
     with SyncBus(PortSettings(link, baudrate=115200)) as bus:
         import threading
 
-        threading.Timer(0.2, bus_sim.stop).start()  # unplugged while the reply is awaited
-        with pytest.raises(PortError, match="went away"):
-            run(bus.read(5, Table.INPUT, 1, 1, timeout=3.0))
+        def unplug() -> None:  # once the request is in: unplugged while the reply is awaited
+            bus_sim.wait_wire(1, direction="in", timeout=30)
+            bus_sim.stop()
+        threading.Thread(target=unplug, daemon=True).start()
+        with pytest.raises(PortError, match="went away"):  # (the reply is 30 s away; the
+            # port going away ends the wait, however late a busy machine unplugs it)
+            run(bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED))
         assert bus.stats.outcomes["port"] == 1 and not bus.connected
 
 
@@ -140,7 +145,7 @@ def test_dtr_and_rts_are_deasserted_before_open(
     states = dtr_states
     bus_sim = sim("co2meter-an117@5", tick=None)
     with SyncBus(PortSettings(bus_sim.port, baudrate=115200, deassert_dtr=True)) as bus:
-        assert run(bus.read(5, Table.INPUT, 1, 1, timeout=0.5)) == \
+        assert run(bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)) == \
             bus_sim.registers(5, Table.INPUT, 1, 1)
     assert states == [(False, False)]
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner, Result
+from conftest import ANSWERED, DEAD
 
 from rtupoll.cli import cli
 from rtupoll.config.site import from_specs
@@ -148,10 +149,13 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead"])
     bus.set(3, "co2", 777)
     bus.set(3, "temperature", -3)
+    site = tmp_path / "site.yaml"  # the dead one asked with a short timeout
+    site.write_text(f"buses:\n  - port: {bus.port}\n    devices:\n"
+                    f"      - {{profile: huiwen-aq, address: 3, timeout: {ANSWERED:g}}}\n"
+                    f"      - {{profile: radar-level, address: 4, timeout: {DEAD:g}}}\n")
     before = time.time_ns()
     out = tmp_path / "readings.lp"
-    result = poll("-p", bus.port, "--once", "--format", "influx", "--timeout", "0.1",
-                  "-o", str(out), "huiwen-aq@3", "radar-level@4")
+    result = poll("-c", str(site), "--once", "--format", "influx", "-o", str(out))
     after = time.time_ns()
     assert result.exit_code == 9, result.stderr
     text = out.read_text()
@@ -172,8 +176,7 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     assert status["huiwen-aq@3"]["state"] == "online"
     assert status["radar-level@4"]["state"] in ("retrying", "offline", "starting")
 
-    again = poll("-p", bus.port, "--once", "--format", "influx", "--timeout", "0.1",
-                 "-o", str(out), "huiwen-aq@3", "radar-level@4")
+    again = poll("-c", str(site), "--once", "--format", "influx", "-o", str(out))
     assert again.exit_code == 9
     assert out.read_text().startswith(text)  # appended, not overwritten
 

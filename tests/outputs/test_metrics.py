@@ -52,7 +52,8 @@ def get(samples: Samples, name: str, **labels: str) -> float | None:
 
 
 def scrape(port: int, path: str = "/metrics") -> str:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as r:
+    # (30 s: a hang guard, the answer ends it; a busy machine's server may be slow to it)
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as r:
         body: bytes = r.read()
         assert r.status == 200
     return body.decode()
@@ -334,9 +335,9 @@ def test_where_metrics_listen() -> None:
 
     site = from_specs("/dev/null", [("huiwen-aq", 3)], check_serial=False)
 
-    def get(host: str, port: int, family: int) -> bytes:
+    def get(host: str, port: int, family: int, timeout: float = 30) -> bytes:
         with socket.socket(family) as s:
-            s.settimeout(5)
+            s.settimeout(timeout)  # (a hang guard where it is served: the answer ends it)
             s.connect((host, port))
             s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
             return s.recv(100)
@@ -353,7 +354,7 @@ def test_where_metrics_listen() -> None:
             other = _non_loopback_ipv4()
             if other is not None:  # the machine has another address: it is not served
                 with pytest.raises(OSError):
-                    await loop.run_in_executor(None, get, other, port, socket.AF_INET)
+                    await loop.run_in_executor(None, get, other, port, socket.AF_INET, 5)
             body, ctype = svc.render()  # the exposition without HTTP
             assert ctype.startswith("text/plain") and b"rtupoll_device_up" in body
         finally:

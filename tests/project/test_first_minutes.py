@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from cli_runner import Ran, rtupoll
 from click.testing import CliRunner
+from conftest import ANSWERED, dead_at
 from forked_cli import rtupoll_popen
 from rich.console import Console
 
@@ -224,11 +225,12 @@ def test_every_demo_value_is_inside_its_fields_values_and_range(
 
 # -- the live table ----------------------------------------------------------------------
 
-def scanned(bus: SimulatedBus, devices: list[str]) -> Scheduler:
+def scanned(bus: SimulatedBus, devices: list[str], dead: tuple[int, ...] = ()) -> Scheduler:
+    """One scan of ``devices``; those at the ``dead`` addresses are asked with ``DEAD``."""
     specs = [(d.split("@")[0], int(d.split("@")[1])) for d in devices]
-    site = from_specs(bus.port, specs, baudrate=9600, timeout=0.1, retries=0,
+    site = from_specs(bus.port, specs, baudrate=9600, timeout=ANSWERED, retries=0,
                       check_serial=False)
-    scheduler = Scheduler(site)
+    scheduler = Scheduler(dead_at(site, dead))
 
     async def run() -> None:
         await scheduler.open()
@@ -251,7 +253,7 @@ def test_the_tall_table_shows_severity_and_status_apart(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("radar-level@2", "huiwen-aq@3", faults=["2:dead"], tick=None)
     bus.set(3, "co2_level", "MODERATE")
-    lines = show(PollView(scanned(bus, ["radar-level@2", "huiwen-aq@3"]).buses,
+    lines = show(PollView(scanned(bus, ["radar-level@2", "huiwen-aq@3"], dead=(2,)).buses,
                           title="t", live=False))
     head = [c.strip() for c in lines[1].split("┃")]
     assert head == ["device", "field", "value", "unit", "severity", "status"]
@@ -273,7 +275,7 @@ def test_the_once_footer_has_no_load_figures_and_counts_in_words(
 def test_live_table_columns_do_not_shrink_when_a_value_gets_shorter(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
-    site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["tvoc"], timeout=0.2)
+    site = from_specs(bus.port, [("huiwen-aq", 3)], fields=["tvoc"], timeout=ANSWERED)
     scheduler = Scheduler(site)
     view = PollView(scheduler.buses, title="t", live=True)
     widths = []

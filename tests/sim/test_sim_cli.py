@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
-from conftest import RawPort
+from conftest import ANSWERED, RawPort
 from forked_cli import rtupoll_popen
 
 from rtupoll import rtu
@@ -104,8 +104,9 @@ def test_mbpoll_reads_a_value_pinned_on_the_command_line(simulate: Callable[...,
     s = simulate("huiwen-aq@3", "--set", "huiwen-aq@3.co2=812", "--baud", "9600")
     assert "Wire timing: 9600 baud" in s.out
     run = subprocess.run(["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-0", "-1",
+                          "-o", f"{ANSWERED:g}",  # (the reply ends its wait: not mbpoll's 1 s)
                           "-a", "3", "-t", "3", "-r", "30009", s.port],
-                         capture_output=True, text=True, timeout=10, check=False)
+                         capture_output=True, text=True, timeout=60, check=False)
     assert re.search(r"\[30009\]:\s+812$", run.stdout, re.MULTILINE), run.stdout
     s.stop()
 

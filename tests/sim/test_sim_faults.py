@@ -49,7 +49,7 @@ def test_slow_reply_misses_the_timeout_then_arrives_late(sim: Sim, raw_port: Raw
     port = raw_port(bus.port)
     sent = port.send(READ)
     assert port.read(timeout=0.15) == b""  # a client with a 150 ms timeout gives up
-    late = port.read(len(GOOD), timeout=1.0)
+    late = port.read(len(GOOD))
     assert late == GOOD  # ... and the reply still comes, late, for the next read to find
     out = [w for w in bus.wire if w.direction == "out"]
     assert out[0].data == GOOD and out[0].time - sent >= 0.29 and "slow 0.3s" in out[0].note
@@ -70,9 +70,13 @@ def test_stray_byte_before_the_reply(sim: Sim, raw_port: Raw, spec: str, byte: i
 
 def test_truncated_reply(sim: Sim, raw_port: Raw) -> None:
     bus = irnet(sim, "1:truncate=5")
-    assert raw_port(bus.port).transact(READ, timeout=0.3) == GOOD[:5]
+    port = raw_port(bus.port)
+    assert port.transact(READ, 5) == GOOD[:5]
+    assert port.read(timeout=0.1) == b""  # and no more
     bus2 = irnet(sim, "1:truncate")  # default: half the frame
-    assert raw_port(bus2.port).transact(READ, timeout=0.3) == GOOD[:4]
+    port2 = raw_port(bus2.port)
+    assert port2.transact(READ, 4) == GOOD[:4]
+    assert port2.read(timeout=0.1) == b""
 
 
 def test_reply_from_the_wrong_id_alone(sim: Sim, raw_port: Raw) -> None:

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from conftest import ANSWERED
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, ModbusSerialClient, ModbusTcpClient
 
@@ -62,11 +63,13 @@ def bus(sim: Sim, tmp_path: Path) -> SimulatedBus:
     return sim(scenario=path, tick=None)
 
 
+
+
 def mbpoll(port: str, unit: int, f: Field) -> tuple[int, ...]:
     kind = "3" if f.table is Table.INPUT else "4"
-    cmd = ["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-0", "-1", "-o", "1",
+    cmd = ["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-0", "-1", "-o", str(ANSWERED),
            "-a", str(unit), "-t", f"{kind}:hex", "-r", str(f.address), "-c", str(f.words), port]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=False)
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=False)
     assert run.returncode == 0, run.stdout[-300:] + run.stderr
     return tuple(int(v, 16) for v in re.findall(r"^\[\d+\]:\s+0x([0-9A-F]{4})", run.stdout,
                                                  re.MULTILINE))
@@ -87,12 +90,12 @@ def test_mbpoll_reads_every_field_as_the_profile_says(bus: SimulatedBus, pid: st
 
 def test_mbpoll_sees_exception_02_outside_the_map_and_a_timeout_for_an_absent_id(
         bus: SimulatedBus) -> None:
-    base = ["mbpoll", "-m", "rtu", "-P", "none", "-0", "-1", "-o", "0.2", "-t", "3"]
-    run = subprocess.run([*base, "-a", "1", "-r", "16", bus.port], capture_output=True,
-                         text=True, timeout=10, check=False)
+    base = ["mbpoll", "-m", "rtu", "-P", "none", "-0", "-1", "-t", "3"]
+    run = subprocess.run([*base, "-o", str(ANSWERED), "-a", "1", "-r", "16", bus.port],
+                         capture_output=True, text=True, timeout=60, check=False)
     assert "Illegal data address" in run.stdout + run.stderr
-    run = subprocess.run([*base, "-a", "9", "-r", "6", bus.port], capture_output=True,
-                         text=True, timeout=10, check=False)
+    run = subprocess.run([*base, "-o", "0.2", "-a", "9", "-r", "6", bus.port],
+                         capture_output=True, text=True, timeout=10, check=False)
     assert "timed out" in run.stdout + run.stderr
 
 
@@ -106,7 +109,7 @@ def _client_read(client: ModbusSerialClient | ModbusTcpClient, unit: int, f: Fie
 
 
 def test_pymodbus_serial_client_reads_every_seed_device(bus: SimulatedBus) -> None:
-    client = ModbusSerialClient(bus.port, baudrate=9600, timeout=1, retries=0)
+    client = ModbusSerialClient(bus.port, baudrate=9600, timeout=ANSWERED, retries=0)
     assert client.connect()
     try:
         for pid, unit in DEVICES:
@@ -122,7 +125,8 @@ def test_pymodbus_serial_client_reads_every_seed_device(bus: SimulatedBus) -> No
 def test_pymodbus_over_rtu_tcp(sim: Sim) -> None:
     bus = sim("huiwen-aq@3", tcp=True, tick=None, sets=["huiwen-aq@3.co2=800"])
     host, _, port = bus.port.removeprefix("tcp://").rpartition(":")
-    client = ModbusTcpClient(host, port=int(port), framer=FramerType.RTU, timeout=1, retries=0)
+    client = ModbusTcpClient(host, port=int(port), framer=FramerType.RTU, timeout=ANSWERED,
+                             retries=0)
     assert client.connect()
     try:
         assert client.read_input_registers(30009, count=1, device_id=3).registers == [800]
@@ -134,7 +138,7 @@ def test_pymodbus_async_client_and_a_write(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", tick=None)
 
     async def main() -> tuple[list[int], list[int]]:
-        client = AsyncModbusSerialClient(bus.port, baudrate=9600, timeout=1, retries=0)
+        client = AsyncModbusSerialClient(bus.port, baudrate=9600, timeout=ANSWERED, retries=0)
         await client.connect()
         try:
             await client.write_register(40001, 12, device_id=1)

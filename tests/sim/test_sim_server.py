@@ -179,7 +179,7 @@ def test_stopping_a_tcp_bus_hangs_up_on_its_clients() -> None:
 
     with simulated_bus(["huiwen-aq@3"], tcp=True, tick=None) as bus:
         host, _, port = bus.port[len("tcp://"):].rpartition(":")
-        client = socket.create_connection((host, int(port)), timeout=2)
+        client = socket.create_connection((host, int(port)), timeout=30)  # (a hang guard)
         client.sendall(rtu.read_request(3, Table.HOLDING, 40001, 1))
         assert len(client.recv(64)) == 7
     try:

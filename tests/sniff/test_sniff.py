@@ -22,6 +22,7 @@ from typing import IO, Any
 
 import pytest
 from cli_runner import Ran, rtupoll
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.model.interpret import interpret
@@ -48,6 +49,9 @@ devices:
   - device: banner-ez-array@5
     values: {holding_40001: 555, measurement_1: 17, error_code: 0, outputs: [OUTPUT_2]}
 """
+
+
+PATIENT = ("--timeout", f"{ANSWERED:g}")
 
 
 def readable(pid: str) -> list[Field]:
@@ -192,7 +196,7 @@ def test_an_unknown_unit_is_shown_raw_and_looks_like_its_profile(sim: Sim, tmp_p
     tap = str(tmp_path / "tap")
     bus = sim("huiwen-aq@7", tick=None, tap=tap, sets=["huiwen-aq@7.co2=650"])
     p = profile("huiwen-aq")
-    with sniffing(tap, "--format", "frames", shown=2) as lines:
+    with sniffing(tap, "--format", "frames", *PATIENT, shown=2) as lines:
         for name in ("slave_address", "co2"):
             f = p.field(name)
             mbpoll(bus.port, 7, f.table, f.address, f.words)
@@ -229,7 +233,7 @@ def test_a_site_file_names_the_port_the_speed_and_the_devices(sim: Sim, tmp_path
     site = tmp_path / "site.yaml"
     site.write_text(f"buses:\n  - name: line1\n    port: {tap}\n    baudrate: 9600\n"
                     "    devices:\n      - {name: air, profile: huiwen-aq, address: 3}\n")
-    proc = rtupoll_popen([RTUPOLL, "sniff", "-c", str(site), "--format", "json"],
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-c", str(site), "--format", "json", *PATIENT],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None and "9600 8N1" in proc.stderr.readline()
     co2 = profile("huiwen-aq").field("co2")
@@ -269,12 +273,14 @@ def test_on_a_terminal_the_default_is_the_live_table(sim: Sim, tmp_path: Path) -
     tap = str(tmp_path / "tap")
     bus = sim("huiwen-aq@3", tick=None, tap=tap, sets=["huiwen-aq@3.co2=1234"])
     master, slave = pty.openpty()
-    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "huiwen-aq@3",
-                             "--duration", "3"], stdin=slave, stdout=slave, stderr=slave)
+    # (stopped by Ctrl-C once the value is shown: the duration and the 60 s only guard
+    # against a hang; a busy machine took more than 3 s to show it)
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "huiwen-aq@3", *PATIENT,
+                             "--duration", "30"], stdin=slave, stdout=slave, stderr=slave)
     out, asked, t0 = b"", False, time.monotonic()
     stopped = False
     try:
-        while proc.poll() is None and time.monotonic() - t0 < 20:
+        while proc.poll() is None and time.monotonic() - t0 < 60:
             if not asked and b"req/s" in out:  # the table is up: the port is open
                 co2 = profile("huiwen-aq").field("co2")
                 mbpoll(bus.port, 3, co2.table, co2.address, 1)

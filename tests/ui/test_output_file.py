@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.ui.outfile import OutputFile
@@ -50,8 +51,11 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
     out, port = tmp_path / "readings.jsonl", free_port()
     log = tmp_path / "stderr"
     with log.open("w") as err_file:
+        # (--timeout: 10 s for the device to answer mbpoll through the gateway, and
+        # mbpoll's -o 10: the answer ends the waits)
         proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                              "huiwen-aq@3", "--interval", "0.05", "--format", "json",
+                              "huiwen-aq@3", "--interval", "0.05", "--timeout", f"{ANSWERED:g}",
+                              "--format", "json",
                               "-o", str(out), "--serve", f"127.0.0.1:{port}"],
                              stdout=subprocess.DEVNULL, stderr=err_file, text=True,
                              env=NO_BYTECODE, preexec_fn=limited)
@@ -70,9 +74,9 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
         assert 0 < size <= LIMIT
         time.sleep(0.5)
         assert out.stat().st_size == size  # stopped: nothing more, nothing half
-        read = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(port), "-1", "-o", "2",
+        read = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(port), "-1", "-o", f"{ANSWERED:g}",
                                "-a", "3", "-t", "3", "-r", "30010", "127.0.0.1"],
-                              capture_output=True, text=True, timeout=20)
+                              capture_output=True, text=True, timeout=60)
         assert read.returncode == 0, read.stdout + read.stderr
         with socket.create_connection(("127.0.0.1", port), timeout=2):
             pass

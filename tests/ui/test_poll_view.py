@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
+from conftest import ANSWERED, dead_at
 from rich.console import Console
 
 from rtupoll.config.site import from_specs
@@ -15,12 +17,10 @@ from rtupoll.ui.live import PollView
 
 SEEDS = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "co2meter-an117@4",
          "banner-ez-array@5"]
-
-
-def scanned(bus: SimulatedBus, scans: int = 1) -> Scheduler:
+def scanned(bus: SimulatedBus, scans: int = 1, dead: Collection[int] = ()) -> Scheduler:
     specs = [(s.split("@")[0], int(s.split("@")[1])) for s in SEEDS]
-    site = from_specs(bus.port, specs, baudrate=115200, timeout=0.1, check_serial=False)
-    scheduler = Scheduler(site)
+    site = from_specs(bus.port, specs, baudrate=115200, timeout=ANSWERED, check_serial=False)
+    scheduler = Scheduler(dead_at(site, dead))
 
     async def run() -> None:
         await scheduler.open()
@@ -44,7 +44,7 @@ def test_a_small_terminal_gets_one_line_per_device_and_the_footer_still_shows(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim(*SEEDS, faults=["3:dead"])
     bus.set(2, "air_gap_cm", 321)
-    view = PollView(scanned(bus).buses, title="simulated bus")
+    view = PollView(scanned(bus, dead=[3]).buses, title="simulated bus")
     lines = show(view, 80, 24)
     assert len(lines) <= 24 and all(len(line) <= 80 for line in lines)
     assert lines[0].split(" · ")[1:3] == ["4/5 online", "5 scans"]
@@ -96,7 +96,6 @@ def test_a_trend_sparkline_of_the_last_minutes() -> None:
 
 
 def test_the_trend_column_draws_what_the_readings_did(sim: Callable[..., SimulatedBus]) -> None:
-    import dataclasses
 
     from rtupoll.model.interpret import field_words, interpret
 
@@ -122,7 +121,7 @@ def test_the_trend_column_draws_what_the_readings_did(sim: Callable[..., Simulat
 
 def test_narrow_no_column_is_dropped(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim(*SEEDS, faults=["3:dead"])
-    view = PollView(scanned(bus).buses, title="simulated bus", live=False)
+    view = PollView(scanned(bus, dead=[3]).buses, title="simulated bus", live=False)
     out = io.StringIO()
     Console(file=out, width=60, color_system=None).print(view)
     lines = out.getvalue().splitlines()
@@ -138,7 +137,7 @@ def test_narrow_no_column_is_dropped(sim: Callable[..., SimulatedBus]) -> None:
 
 
 def scanned_one(bus: SimulatedBus) -> Scheduler:
-    site = from_specs(bus.port, [("huiwen-aq", 3)], baudrate=115200, timeout=0.5,
+    site = from_specs(bus.port, [("huiwen-aq", 3)], baudrate=115200, timeout=ANSWERED,
                       check_serial=False)
     scheduler = Scheduler(site)
 
