@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 import yaml
 from cli_runner import rtupoll
+from conftest import ANSWERED
 from import_peers import (
     TG_FORMATS,
     Responder,
@@ -43,6 +44,8 @@ def poll_site(out: Path, device: Responder) -> dict[tuple[str, str], Any]:
     site = yaml.safe_load((out / "site.yaml").read_text(encoding="utf-8"))
     for bus in site["buses"]:
         bus["port"] = f"tcp://127.0.0.1:{device.port()}"
+        for each in bus["devices"]:  # (the responder answers: a wait that ends)
+            each["timeout"] = ANSWERED
     (out / "site.yaml").write_text(yaml.safe_dump(site, allow_unicode=True), encoding="utf-8")
     done = rtupoll("poll", "-c", str(out / "site.yaml"), "--once", "--format", "json",
                    cwd=out)
