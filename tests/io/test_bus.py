@@ -311,6 +311,7 @@ def _late_first(delay: float) -> list[Script | None]:
     return [lambda req, ok: [(delay, ok)]]
 
 
+@pytest.mark.timing  # a stall of 50 ms would make the late reply an answer in time
 def test_late_reply_is_never_taken_for_the_next_answer(peer: Responder) -> None:
     peer.scripts = _late_first(0.15)
 
@@ -351,6 +352,7 @@ def test_a_line_that_is_never_quiet_does_not_hold_the_bus_for_ever(peer: Respond
         noise.join()
 
 
+@pytest.mark.timing  # (as above: 0.15 s late for a 0.1 s timeout, on the real clock)
 def test_without_drain_the_late_reply_is_still_recognised(peer: Responder) -> None:
     """With no drain at all (plain pymodbus takes the late reply for the next answer),
     the line's accounting still knows the first reply answers the timed-out request."""
@@ -475,6 +477,7 @@ def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: floa
     assert [g for g in gaps if allowance <= g < framing.silence] == []
 
 
+@pytest.mark.timing  # the cancel is to come within the 0.3 s drain, on the real clock
 def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Responder) -> None:
     """The frame is written when the silence (here a drain) is over: a caller that gave
     up before then has sent nothing, and the bus goes on."""
