@@ -37,9 +37,9 @@ import tempfile
 import termios
 import time
 import tty
-from collections.abc import Callable, Collection, Generator, Iterator
+from collections.abc import Awaitable, Callable, Collection, Generator, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 
@@ -53,6 +53,7 @@ from hypothesis import settings
 
 from rtupoll.config.library import load_library
 from rtupoll.config.site import Site
+from rtupoll.errors import DeviceTimeout
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 pytest_plugins = ("pytester", "cpu_report")
@@ -281,6 +282,24 @@ def _no_leaked_simulator() -> Iterator[None]:
 # busy machine can only make that pass). mbpoll's ``-o`` takes at most 10 s.
 ANSWERED = 10.0
 DEAD = 0.1  # the timeout of a device that must not answer: waited out, so short
+# A reply judged only when the attempt's time is up (truncated, garbled, not the one asked
+# for: the rest may still come) costs its whole timeout: asked with a short one and, while
+# nothing at all came in time (a busy machine's peer can be that late), again with ten
+# times as long: a wait that only a busy machine pays, and then about what it needed
+JUDGED = (0.1, 1.0, ANSWERED)
+T = TypeVar("T")
+
+
+async def judged(ask: Callable[[float], Awaitable[T]]) -> T:
+    """``ask(timeout)`` for each of ``JUDGED`` while nothing at all came in time: the
+    outcome is the one given with the bytes in hand, never a shorter wait's."""
+    for timeout in JUDGED[:-1]:
+        try:
+            return await ask(timeout)
+        except DeviceTimeout as exc:
+            if not str(exc).endswith(f"within {timeout:g} s"):  # (else: "ignored: ...")
+                raise
+    return await ask(JUDGED[-1])
 
 
 def dead_at(site: Site, dead: Collection[int]) -> Site:

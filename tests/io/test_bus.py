@@ -21,11 +21,11 @@ import threading
 import time
 import tty
 import warnings
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 import pytest
-from conftest import ANSWERED
+from conftest import ANSWERED, JUDGED, judged
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, RefusedError
 from rtupoll.io.bus import Bus, PortSettings
@@ -41,28 +41,11 @@ from rtupoll.rtu import (
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
 
 T = TypeVar("T")
-# a reply judged only when the attempt's time is up (truncated, garbled, not matching, a
-# malformed write reply: the rest may still come), so each wait costs its whole timeout:
-# asked with a short one and, while nothing at all came in time (a busy machine's peer
-# thread can be that late), again with ten times as long (see ``judged``)
-JUDGED = (0.1, 1.0, 10.0)
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
 
 
 def run(coro: Coroutine[Any, Any, T]) -> T:
     return asyncio.run(coro)
-
-
-async def judged(ask: Callable[[float], Awaitable[T]]) -> T:
-    """``ask(timeout)`` for each of ``JUDGED`` while nothing at all came in time: the
-    outcome is the one given with the bytes in hand, never a shorter wait's."""
-    for timeout in JUDGED[:-1]:
-        try:
-            return await ask(timeout)
-        except DeviceTimeout as exc:
-            if not str(exc).endswith(f"within {timeout:g} s"):  # (else: "ignored: ...")
-                raise
-    return await ask(JUDGED[-1])
 
 
 class Responder:
