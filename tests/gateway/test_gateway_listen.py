@@ -36,7 +36,7 @@ def test_serve_on_the_ipv6_any_address_answers_ipv4_and_ipv6_clients(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", tick=None)
     port = free_port()
-    # (10 s for the device to answer, rtupoll's and mbpoll's: the answer ends the waits)
+    # (a device that answers: ANSWERED, rtupoll's and mbpoll's)
     proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--port", bus.port,
                           "--baudrate", "9600", "--timeout", f"{ANSWERED:g}", "--format", "json",
                           "huiwen-aq@3", "--serve", f"[::]:{port}"], stdout=subprocess.DEVNULL,

@@ -31,7 +31,7 @@ def site(path: Path, port: str, listen: str, **rules: object) -> None:
     text = (f"buses:\n  - port: {port}\n    baudrate: 9600\n"
             f"    serve:\n      listen: {listen}\n")
     text += "".join(f"      {k}: {json.dumps(v)}\n" for k, v in rules.items())
-    # (10 s for the device to answer, rtupoll's and mbpoll's: the answer ends the waits)
+    # (a device that answers: ANSWERED, rtupoll's and mbpoll's)
     text += ("    devices:\n      - {name: gas, profile: net-irnet-pro, address: 1, "
              f"interval: 0.5, timeout: {ANSWERED:g}}}\n")
     path.write_text(text)

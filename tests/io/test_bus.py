@@ -356,10 +356,11 @@ def test_late_reply_to_a_retry_is_a_right_answer(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], tuple[int, ...]]:
         async with fast(peer.path) as bus:
-            # late for attempt 1 whatever the load; retries enough for a busy machine's
-            # responder thread (one failed with 2: 0.15 s; these are 10 s, ended by the
-            # answer); the next read is answered
-            first = await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05, retries=199)
+            # late for attempt 1 whatever the load; retries for ANSWERED in all, for a
+            # busy machine's responder thread (one failed with 2: 0.15 s), ended by the
+            # answer; the next read is answered
+            first = await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05,
+                                   retries=round(ANSWERED / 0.05))
             second = await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
             return first, second
     assert run(go()) == (values(7, 1), values(8, 1))

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 import serial
+from conftest import ANSWERED
 
 from rtupoll.io.serialport import Serial
 
@@ -38,10 +39,10 @@ def test_what_waits_is_read_whole_and_nothing_waiting_reads_empty(pty: tuple[int
     try:
         assert port.read(1024) == b""  # nothing waits: empty, no error
         os.write(master, b"\x02\x03\x04\x00\x01\x00\x02")
-        select.select([port.fileno()], [], [], 30)
+        select.select([port.fileno()], [], [], ANSWERED)
         assert port.read(1024) == b"\x02\x03\x04\x00\x01\x00\x02"
         os.write(master, b"abcdef")
-        select.select([port.fileno()], [], [], 30)
+        select.select([port.fileno()], [], [], ANSWERED)
         assert port.read(4) == b"abcd"  # at most what was asked: the rest waits
         assert port.read(4) == b"ef"
     finally:
@@ -83,7 +84,7 @@ def test_a_write_returns_what_fitted_and_never_spins_on_a_full_buffer(
     port = _port(path)
     try:
         assert port.write(b"\x01\x03\x00\x00\x00\x01\x84\x0a") == 8
-        select.select([master], [], [], 30)
+        select.select([master], [], [], ANSWERED)
         assert os.read(master, 64) == b"\x01\x03\x00\x00\x00\x01\x84\x0a"
         chunk, sent = b"\x55" * 4096, []
         for _ in range(1000):  # nobody reads the master: its buffer fills
@@ -100,12 +101,12 @@ def test_a_port_with_a_timeout_keeps_pyserials_blocking_read(pty: tuple[int, str
     """``timeout`` above 0 (not how pymodbus opens it): pyserial's own ``read``, which waits
     for the bytes asked for."""
     master, path = pty
-    port = _port(path, timeout=30, write_timeout=None)
+    port = _port(path, timeout=ANSWERED, write_timeout=None)
     try:
         os.write(master, b"ab")
         assert port.read(2) == b"ab"
         assert port.write(b"xyz") == 3
-        select.select([master], [], [], 30)
+        select.select([master], [], [], ANSWERED)
         assert os.read(master, 8) == b"xyz"
     finally:
         port.close()

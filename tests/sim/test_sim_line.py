@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import serial
+from conftest import ANSWERED
 
 from rtupoll import rtu
 from rtupoll.rtu import Table
@@ -14,9 +15,8 @@ from rtupoll.sim.runner import simulated_bus
 REQUEST = rtu.read_request(3, Table.INPUT, 30006, 1)
 
 
-def exchange(port: str, baudrate: int, timeout: float = 30) -> bytes:
-    """The reply (its 7 bytes end the wait: 30 s only guards against a hang), or what
-    came within ``timeout``."""
+def exchange(port: str, baudrate: int, timeout: float = ANSWERED) -> bytes:
+    """The reply (its 7 bytes end the wait), or what came within ``timeout``."""
     with serial.Serial(port, baudrate, timeout=timeout) as s:
         s.write(REQUEST)
         return bytes(s.read(7))

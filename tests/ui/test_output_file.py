@@ -51,12 +51,10 @@ def test_a_full_disk_stops_only_the_file_output_and_the_gateway_goes_on(tmp_path
     out, port = tmp_path / "readings.jsonl", free_port()
     log = tmp_path / "stderr"
     with log.open("w") as err_file:
-        # (--timeout: 10 s for the device to answer mbpoll through the gateway, and
-        # mbpoll's -o 10: the answer ends the waits)
+        # (the device answers mbpoll through the gateway: ANSWERED, rtupoll's and mbpoll's)
         proc = rtupoll_popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
                               "huiwen-aq@3", "--interval", "0.05", "--timeout", f"{ANSWERED:g}",
-                              "--format", "json",
-                              "-o", str(out), "--serve", f"127.0.0.1:{port}"],
+                              "--format", "json", "-o", str(out), "--serve", f"127.0.0.1:{port}"],
                              stdout=subprocess.DEVNULL, stderr=err_file, text=True,
                              env=NO_BYTECODE, preexec_fn=limited)
 
