@@ -48,10 +48,11 @@ class ConfigError(ProfileError):
 
 
 class PortError(RtupollError):
-    """The port cannot be opened: missing, busy, no permission, or unreachable gateway."""
+    """The port cannot be opened (missing, busy, no permission, unreachable gateway), or
+    went away under a command that ends with it (``sniff``: the adapter unplugged)."""
 
     exit_code = 3
-    meaning = "port cannot be opened (missing, busy, no permission)"
+    meaning = "port cannot be opened (missing, busy, no permission) or went away"
 
 
 class BusError(RtupollError):

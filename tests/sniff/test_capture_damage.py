@@ -2,7 +2,8 @@
 Wireshark does) and says where it stopped; an enhanced packet block too short to hold
 its header is damage, not a ``struct.error``, for ``sniff --read`` and ``simulate
 --replay``; ``sniff --capture`` on a full disk (a file size limit here) stops only the
-capture, with whole blocks kept and one line said, and goes on listening."""
+capture, with whole blocks kept and one line said, and goes on listening; a port that
+hangs up (an adapter unplugged) ends ``sniff`` in one line, with what it heard kept."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
+from conftest import ANSWERED
 
 from rtupoll.rtu import Framing, Table, read_request, read_response
 from rtupoll.sim.replay import load_replay
@@ -145,3 +147,31 @@ def test_sniff_capture_on_a_full_disk_stops_the_capture_and_listens_on(
     assert back.stopped == ""  # whole blocks only
     kept = int(said[0].split("its first ")[1].split()[0])
     assert len(back.chunks) == kept > 0 and path.stat().st_size <= 1500
+
+
+def test_sniff_on_a_port_that_hangs_up_says_so_in_one_line_and_keeps_what_it_heard(
+        sim: Sim, tmp_path: Path) -> None:
+    """The tap's pty closed under it, as an unplugged adapter's port: the port's exit
+    code and one line, the transaction heard printed and captured (it once read the dead
+    port's nothing in a loop, at a core's full speed, until killed)."""
+    tap, path = str(tmp_path / "tap"), tmp_path / "line.pcapng"
+    bus = sim("huiwen-aq@3", tick=None, tap=tap)
+    proc = subprocess.Popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "frames",
+                             "--capture", str(path), "huiwen-aq@3"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    try:
+        assert "listening on" in proc.stderr.readline()
+        subprocess.run(["mbpoll", "-m", "rtu", "-b", "9600", "-P", "none", "-a", "3", "-t", "3",
+                        "-r", "30007", "-c", "2", "-1", "-o", str(ANSWERED), bus.port],
+                       stdout=subprocess.DEVNULL, check=True, timeout=ANSWERED * 2)
+        heard = proc.stdout.readline()  # (the transaction, read by sniff before the end)
+        bus.stop()
+        rest, err = proc.communicate(timeout=ANSWERED)
+    finally:
+        proc.kill()
+    assert "huiwen-aq@3  fc04 read input 0x7536 x2" in heard and "pm25=" in heard, heard
+    assert proc.returncode == 3 and rest == "", err
+    assert err.splitlines() == [f"rtupoll: {tap}: the port hung up (adapter unplugged?)"], err
+    kept = b"".join(data for _, data in read_capture(path).chunks)
+    assert kept[:8] == REQ and kept[8:11] == b"\x03\x04\x04" and len(kept) == 17  # both

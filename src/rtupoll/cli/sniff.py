@@ -152,13 +152,15 @@ def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str,
                 return bool(stop) or (duration is not None
                                       and time.monotonic() - started >= duration)
 
-            if fmt == "table":
-                _live(tap.chunks(done), session, view, title)
-            else:
-                for data, t in tap.chunks(done):
-                    session.feed(data, t)
-                    sys.stdout.flush()
-            session.close()
+            try:
+                if fmt == "table":
+                    _live(tap.chunks(done), session, view, title)
+                else:
+                    for data, t in tap.chunks(done):
+                        session.feed(data, t)
+                        sys.stdout.flush()
+            finally:  # (the port hung up too: what was heard until then still counts)
+                session.close()
             sys.stdout.flush()
     except BrokenPipeError:  # `rtupoll sniff ... | head`: the reader is done
         pass  # (cli's guard has pointed fd 1 at /dev/null; click would exit 1)

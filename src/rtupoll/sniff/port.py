@@ -63,6 +63,8 @@ class ListenPort:
             except OSError as exc:
                 raise PortError(f"{self.path}: {exc.strerror or exc} (adapter unplugged?)"
                                 ) from None
+            if not data:  # ready, yet nothing to read: the port hung up (as pyserial says)
+                raise PortError(f"{self.path}: the port hung up (adapter unplugged?)")
             yield data, self.clock()
 
     def close(self) -> None:
