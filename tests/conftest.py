@@ -226,7 +226,7 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     with the session, and with it what its children left running.
 
     With ``RTUPOLL_TEST_THEN=FILE`` (scripts/test's parallel run) the controller, its
-    workers ended, goes to the lowest priority (nice 19, as the timing group's tests run)
+    workers ended, goes to the lowest priority (nice 19: the timing group's tests come first)
     and makes FILE: the timing group starts while what is left of this run (its summary,
     the workers' and servers' teardown, its exit: 1-1.5 s) ends beside it, never ahead of
     its tests."""
