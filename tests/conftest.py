@@ -186,7 +186,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     many objects) and pytest's at the end do not walk it each time.
 
     With ``RTUPOLL_TEST_AFTER="PID FILE"`` (scripts/test, its PID: the timing group,
-    started at the lowest priority while the parallel run still runs) the first test
+    started while the parallel run still runs, and the ``alone`` test) the first test
     waits until FILE exists: the run before has ended, the machine is as quiet as it
     leaves it. If PID ends first (scripts/test stopped), the run ends instead."""
     gc.collect()
@@ -198,7 +198,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
             pytest.exit("the run this one waited for is gone", returncode=2)
 
 
-# scripts/test's parallel run: the file that tells the timing group to start
+# scripts/test's parallel (timing) run: the file that tells the timing (alone) run to start
 _THEN = os.environ.pop("RTUPOLL_TEST_THEN", "")
 # the pytest cache's key for how long each test of the timing group took (seconds)
 _TOOK = "rtupoll/timing-took"
@@ -225,11 +225,11 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     """The fork server of this process (tests/forked_cli.py), if a test started it, ends
     with the session, and with it what its children left running.
 
-    With ``RTUPOLL_TEST_THEN=FILE`` (scripts/test's parallel run) the controller, its
-    workers ended, goes to the lowest priority (nice 19: the timing group's tests come first)
-    and makes FILE: the timing group starts while what is left of this run (its summary,
-    the workers' and servers' teardown, its exit: 1-1.5 s) ends beside it, never ahead of
-    its tests."""
+    With ``RTUPOLL_TEST_THEN=FILE`` (scripts/test's parallel and timing runs) the
+    controller, its workers ended, goes to the lowest priority (nice 19: the next run's
+    tests come first) and makes FILE: the next run starts while what is left of this one
+    (its summary, the workers' and servers' teardown, its exit: 1-1.5 s) ends beside it,
+    never ahead of its tests."""
     if _THEN and not hasattr(session.config, "workerinput"):
         os.setpriority(os.PRIO_PROCESS, 0, 19)
         Path(_THEN).touch()
