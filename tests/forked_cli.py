@@ -341,7 +341,10 @@ def _serve(sock: socket.socket, listening: bool) -> tuple[dict[str, Any], list[i
                 clients[client.fileno()] = client
             else:
                 client = clients[fd]
-                data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
+                try:
+                    data, fds, _, _ = socket.recv_fds(client, _MESSAGE, 3)
+                except ConnectionResetError:  # the client was killed (a Ctrl-C, ...)
+                    data, fds = b"", []
                 if not data:  # the client is done: what still runs is left over
                     _kill([pid for pid, c in children.values() if c is client])
                     del clients[fd]
