@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -69,22 +70,22 @@ def mbpoll(port: str, unit: int, table: Table, address: int, count: int,
 
 @contextmanager
 def sniffing(tap: str, *args: str, shown: int = 0) -> Iterator[list[str]]:
-    """``rtupoll sniff`` on the tap while the block runs; its stdout lines afterwards.
-    With ``shown=N`` it is stopped only once it has printed N lines (or after a 30 s
-    hang guard): a busy machine's sniffer may read the last reply after the block ends."""
+    """``rtupoll sniff`` on the tap while the block runs; its stdout lines, as it prints
+    them (``printed`` waits for one), all of them afterwards. With ``shown=N`` it is
+    stopped only once it has printed N lines (or after a 30 s hang guard): a busy
+    machine's sniffer may read the last reply after the block ends."""
     proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None and proc.stdout is not None
     ready = proc.stderr.readline()  # "listening on ..." once the port is open
     assert "listening on" in ready, ready + proc.stderr.read()
     lines: list[str] = []
-    printed: list[str] = []
     done = threading.Event()
 
     def read(out: IO[str]) -> None:
         for line in out:
-            printed.append(line.rstrip("\n"))
-            if len(printed) >= shown:
+            lines.append(line.rstrip("\n"))
+            if len(lines) >= shown:
                 done.set()
         done.set()
 
@@ -100,7 +101,14 @@ def sniffing(tap: str, *args: str, shown: int = 0) -> Iterator[list[str]]:
         reader.join(timeout=30)  # stdout is the reader's alone
         err = proc.stderr.read()
         assert proc.returncode == 0, err
-        lines += printed
+
+
+def printed(lines: list[str], text: str) -> None:
+    """Wait until the sniffer has printed a line holding ``text`` (a 30 s hang guard)."""
+    deadline = time.monotonic() + 30
+    while not any(text in line for line in lines):
+        assert time.monotonic() < deadline, lines
+        time.sleep(0.01)
 
 
 def records(lines: Sequence[str]) -> list[dict[str, Any]]:
@@ -161,6 +169,9 @@ def test_faults_are_reported_as_faults_and_never_as_values(sim: Sim, tmp_path: P
         mbpoll(bus.port, 3, co2.table, co2.address, 1)  # fine
         mbpoll(bus.port, 2, gap.table, gap.address, 1)  # 350 ms late: slow, but answered
         mbpoll(bus.port, 1, conc.table, conc.address, 2, timeout=0.7)  # dead: times out
+        # (judged by the sniffer's clock: a starved sniffer that read this request with the
+        # next one could not tell, so the next one waits until it has said so)
+        printed(lines, "NO REPLY")
         mbpoll(bus.port, 1, conc.table, conc.address, 2)  # exception 04
         mbpoll(bus.port, 1, conc.table, conc.address, 2)  # fine
     text = "\n".join(lines)
