@@ -281,6 +281,7 @@ def _no_leaked_simulator() -> Iterator[None]:
 # so a passing test never waits it out; only what must NOT come is given a short wait (a
 # busy machine can only make that pass). mbpoll's ``-o`` takes at most 10 s.
 ANSWERED = 10.0
+PATIENT = ("--timeout", f"{ANSWERED:g}")  # rtupoll's options for it
 DEAD = 0.1  # the timeout of a device that must not answer: waited out, so short
 # A reply judged only when the attempt's time is up (truncated, garbled, not the one asked
 # for: the rest may still come) costs its whole timeout: asked with a short one and, while
@@ -309,6 +310,17 @@ def dead_at(site: Site, dead: Collection[int]) -> Site:
     devices = tuple(dataclasses.replace(d, timeout=DEAD) if d.address in dead else d
                     for d in bus.devices)
     return dataclasses.replace(site, buses=(dataclasses.replace(bus, devices=devices),))
+
+
+def live_and_dead(tmp_path: Path, port: str) -> Path:
+    """A site file: huiwen-aq@3, which answers, and radar-level@4, dead. The dead one's
+    timeout is waited out: ``DEAD``; the live one gets ``ANSWERED`` (its answers end the
+    waits: ``--timeout`` would give it the dead one's)."""
+    site = tmp_path / "site.yaml"
+    site.write_text(f"buses:\n  - port: {port}\n    devices:\n"
+                    f"      - {{profile: huiwen-aq, address: 3, timeout: {ANSWERED:g}}}\n"
+                    f"      - {{profile: radar-level, address: 4, timeout: {DEAD:g}}}\n")
+    return site
 
 
 class RawPort:

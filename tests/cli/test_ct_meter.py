@@ -8,9 +8,9 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+import conftest
 import pytest
 from click.testing import CliRunner, Result
-from conftest import ANSWERED
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
@@ -18,7 +18,7 @@ from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 DEV = "chint-dtsu666@1"
-PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
+PATIENT = (*conftest.PATIENT, "--retries", "0")
 # a real meter's terminals (korneliuszm/nd45_dtsu666_converter's scan): 0.035 A at IrAt 200
 CT_METER = [f"{DEV}.current_ratio=200", f"{DEV}.voltage_ratio=1.0", f"{DEV}.current_l1=0.035",
             f"{DEV}.power_l1=8.0", f"{DEV}.voltage_l1=230.7", f"{DEV}.frequency=50.0",

@@ -16,13 +16,11 @@ from typing import Any
 
 import serial
 from click.testing import CliRunner, Result
-from conftest import ANSWERED, DEAD
+from conftest import ANSWERED, PATIENT, live_and_dead
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.records import POLL_KEYS
-
-PATIENT = ("--timeout", f"{ANSWERED:g}")
 
 
 def poll(*args: str) -> Result:
@@ -51,17 +49,6 @@ def test_once_json_gives_one_record_per_field_with_the_poll_keys(
     assert by[4, "air_gap_cm"]["value"] == 123
     assert {r["status"] for r in recs} == {"ok"} and {r["error"] for r in recs} == {""}
     assert all(r["time"].endswith("Z") and r["time"][10] == "T" for r in recs)
-
-
-def live_and_dead(tmp_path: Path, port: str) -> Path:
-    """A site file: huiwen-aq@3, which answers, and radar-level@4, dead. The dead one's
-    timeout is waited out: 0.1 s; the live one gets all the time a busy machine's simulator
-    thread may need (its answers end the waits: --timeout would give it the 0.1 s too)."""
-    site = tmp_path / "site.yaml"
-    site.write_text(f"buses:\n  - port: {port}\n    devices:\n"
-                    f"      - {{profile: huiwen-aq, address: 3, timeout: {ANSWERED:g}}}\n"
-                    f"      - {{profile: radar-level, address: 4, timeout: {DEAD:g}}}\n")
-    return site
 
 
 def test_once_with_a_dead_device_names_it_and_exits_9(sim: Callable[..., SimulatedBus],

@@ -7,10 +7,10 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+import conftest
 import pytest
 from cli_runner import rtupoll
 from click.testing import CliRunner, Result
-from conftest import ANSWERED
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
@@ -19,7 +19,7 @@ from rtupoll.ui.records import READ_KEYS
 
 Sim = Callable[..., SimulatedBus]
 
-PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
+PATIENT = (*conftest.PATIENT, "--retries", "0")
 
 
 def run(*args: str) -> Result:

@@ -11,15 +11,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import conftest
 from click.testing import CliRunner, Result
-from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
-PATIENT = ("--timeout", f"{ANSWERED:g}", "--retries", "0")
+PATIENT = (*conftest.PATIENT, "--retries", "0")
 
 
 def run(*args: str, stdin: str | None = None) -> Result:

@@ -23,7 +23,7 @@ from tests.brokers import free_port
 
 Sim = Callable[..., SimulatedBus]
 MBPOLL = shutil.which("mbpoll")
-PATIENT = f"{ANSWERED:g}"
+ANSWERED_S = f"{ANSWERED:g}"  # (as mbpoll's -o and rtupoll's options take it)
 
 
 @contextmanager
@@ -56,7 +56,7 @@ def rtupoll(*args: str) -> Iterator[tuple[subprocess.Popen[str], int]]:
 def mbpoll(port: int, *args: str, write: tuple[str, ...] = ()
            ) -> subprocess.CompletedProcess[str]:
     assert MBPOLL is not None
-    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", PATIENT, *args,
+    return subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-1", "-o", ANSWERED_S, *args,
                            "127.0.0.1", *write], capture_output=True, text=True, timeout=60)
 
 
@@ -69,7 +69,7 @@ def test_mbpoll_reads_and_writes_through_rtupoll_polling_the_same_line(sim: Sim)
     bus = sim("huiwen-aq@3", "net-irnet-pro@1", tick=None)
     bus.set(3, "co2", 640)
     with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "0", "--timeout",
-                 PATIENT, "--format", "json", "huiwen-aq@3", "net-irnet-pro@1") as (proc, port):
+                 ANSWERED_S, "--format", "json", "huiwen-aq@3", "net-irnet-pro@1") as (proc, port):
         read = mbpoll(port, "-a", "3", "-t", "3", "-r", "30007", "-c", "4")  # 0x7536..
         wrote = mbpoll(port, "-a", "1", "-t", "4:hex", "-r", "513",
                        write=("0x0000", "0x4248"))
@@ -92,7 +92,7 @@ def test_mbpoll_reads_and_writes_through_rtupoll_polling_the_same_line(sim: Sim)
 def test_a_pure_gateway_serves_rtu_over_tcp(sim: Sim) -> None:
     bus = sim("radar-level@4", tick=None)
     bus.set(4, "air_gap_cm", 321)
-    with rtupoll("--port", bus.port, "--serve-timeout", PATIENT,
+    with rtupoll("--port", bus.port, "--serve-timeout", ANSWERED_S,
                  "rtu+tcp://127.0.0.1:PORT") as (proc, port), \
             socket.create_connection(("127.0.0.1", port), timeout=30) as s:  # (hang guards:
         s.sendall(with_crc(bytes.fromhex("04 03 00 00 00 01")))

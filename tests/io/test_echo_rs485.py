@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from cli_runner import rtupoll as in_process
 from click.testing import CliRunner
-from conftest import ANSWERED
+from conftest import ANSWERED, PATIENT
 from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
@@ -23,8 +23,6 @@ from rtupoll.io import serialport
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus, simulated_bus
-
-PATIENT = ("--timeout", f"{ANSWERED:g}")
 
 
 @pytest.fixture

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner, Result
-from conftest import ANSWERED, DEAD
+from conftest import live_and_dead
 
 from rtupoll.cli import cli
 from rtupoll.config.site import from_specs
@@ -149,10 +149,7 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead"])
     bus.set(3, "co2", 777)
     bus.set(3, "temperature", -3)
-    site = tmp_path / "site.yaml"  # the dead one asked with a short timeout
-    site.write_text(f"buses:\n  - port: {bus.port}\n    devices:\n"
-                    f"      - {{profile: huiwen-aq, address: 3, timeout: {ANSWERED:g}}}\n"
-                    f"      - {{profile: radar-level, address: 4, timeout: {DEAD:g}}}\n")
+    site = live_and_dead(tmp_path, bus.port)  # the dead one asked with a short timeout
     before = time.time_ns()
     out = tmp_path / "readings.lp"
     result = poll("-c", str(site), "--once", "--format", "influx", "-o", str(out))

@@ -23,7 +23,7 @@ from typing import IO, Any
 
 import pytest
 from cli_runner import Ran, rtupoll
-from conftest import ANSWERED
+from conftest import PATIENT
 from forked_cli import rtupoll_popen
 
 from rtupoll.model.interpret import interpret
@@ -52,7 +52,6 @@ devices:
 """
 
 
-PATIENT = ("--timeout", f"{ANSWERED:g}")
 
 
 def readable(pid: str) -> list[Field]:
