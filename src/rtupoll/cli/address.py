@@ -63,7 +63,7 @@ if TYPE_CHECKING:
                    "for CO2Meter boards) when none of them is on this bus.")
 @format_option("text", "json")
 @profiles_option
-def set_address(device: str | None, new: str | None, port: str, baudrate: int | None,
+def set_address(device: str | None, new: str | None, port: str | None, baudrate: int | None,
                 parity: str | None, stopbits: str | None, timeout: float | None,
                 retries: int | None, plan_file: Path | None, interactive: bool, dry_run: bool,
                 yes: bool, allow_reserved: bool, fmt: str, profile_dirs: tuple[Path, ...]
