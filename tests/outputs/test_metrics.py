@@ -29,8 +29,8 @@ from virtual import simulated
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
-from rtupoll.errors import install_command
 from rtupoll.config.site import from_specs
+from rtupoll.errors import install_command
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.outputs.metrics import SchedulerCollector, field_metric, parse_listen

@@ -170,7 +170,8 @@ def test_profiles_list_and_search_keep_one_line_a_profile_at_80_columns() -> Non
             ([RTUPOLL, "profiles", "list", "|", "tail", "-n", "22"], ids[-8:]),
             ([RTUPOLL, "profiles", "search", "battery_soc"], ["epever-tracer", "renogy-rover"])):
         with terminal(80, 24, command) as screen:
-            lines = wait_for(screen, lambda s: any(want[-1] in x for x in s))
+            last = want[-1]
+            lines = wait_for(screen, lambda s, last=last: any(last in x for x in s))
         text = "\n".join(lines)
         assert all(len(x) <= 80 for x in lines), text
         for pid in want:  # each profile one line, its verification level and match whole
