@@ -282,6 +282,10 @@ class Profile:
     extends: str = ""  # the id of the profile this one was built on
     provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
+    # what the device says of itself: read device identification's objects (FC 43/14:
+    # object id -> text) and report server id's server id bytes (FC 17), as documented
+    identification: tuple[tuple[int, str], ...] = ()
+    server_id: bytes = b""
 
     def line_setting(self, field: Field) -> str:
         """What writing ``field`` changes about how the device is reached: "address"

@@ -82,7 +82,7 @@ from dataclasses import dataclass, field
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
-from rtupoll.rtu.functions import MAX_FRAME, reply_length
+from rtupoll.rtu.functions import MAX_FRAME, echoed_by_design, reply_length
 from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
 from rtupoll.rtu.timing import Framing
 
@@ -279,8 +279,9 @@ class Line:
 
     def _is_echo(self, request: bytes) -> bool:
         """Echo off, ``request`` came back: an echo, unless it is byte for byte a normal
-        reply (FC05/06) and no echo has been seen on this line yet."""
-        return self.counts.echoes > 0 or request[1] not in (5, 6)
+        reply (FC05/06, FC08's return query data) and no echo has been seen on this line
+        yet."""
+        return self.counts.echoes > 0 or not echoed_by_design(request)
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
@@ -299,7 +300,7 @@ class Line:
         """The first CRC-valid reply frame in the buffer, wherever it starts."""
         buf = bytes(self._buf)
         for i in range(max(0, len(buf) - 3)):
-            n = reply_length(buf[i : i + 3])
+            n = reply_length(buf[i : i + MAX_FRAME])
             if n is not None and i + n <= len(buf) and crc_ok(buf[i : i + n]):
                 return i, buf[i : i + n]
         return None
@@ -341,7 +342,7 @@ class Line:
         for head in (bytes((exp.unit, exp.function)), bytes((exp.unit, exp.function | 0x80))):
             i = buf.find(head)
             if i >= 0:
-                n = reply_length(buf[i : i + 3])
+                n = reply_length(buf[i : i + MAX_FRAME])
                 if n is not None and i + n <= len(buf):
                     return f"CRC error in reply: {buf[i : i + n][:24].hex(' ')}"
         return None
