@@ -58,7 +58,7 @@ import serial
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import PortError
-from rtupoll.io import serialport
+from rtupoll.io import serialport, taps
 from rtupoll.io.interface import LineBus, raise_failed
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
@@ -119,6 +119,7 @@ class Bus(LineBus):
         self._lock = asyncio.Lock()
         self._port: _Port | None = None
         self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight

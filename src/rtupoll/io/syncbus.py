@@ -35,7 +35,7 @@ from collections.abc import Awaitable
 from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
-from rtupoll.io import serialport
+from rtupoll.io import serialport, taps
 from rtupoll.io.interface import LineBus
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
@@ -71,6 +71,7 @@ class SyncBus(LineBus):
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
         self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,

@@ -78,6 +78,7 @@ plain silence (``DeviceTimeout``).
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rtupoll.frozen import frozen
@@ -158,6 +159,9 @@ class Line:
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
+        # who looks at the line's bytes (--traffic, --capture): (sent?, bytes), as they go
+        # out and come in; None: nobody, and nothing is called
+        self.tap: Callable[[bool, bytes], None] | None = None
 
     # -- when the next frame may go ------------------------------------------
 
@@ -177,6 +181,8 @@ class Line:
 
     def send(self, request: bytes, now: float) -> None:
         """``request`` starts on the wire at ``now``; its answer is awaited (not a broadcast)."""
+        if self.tap is not None:
+            self.tap(True, request)
         self.tx_end = now + self.framing.wire_time(len(request))
         self.drain_for = 0.0
         if self._idle_burst:
@@ -205,6 +211,8 @@ class Line:
         reply that ends the attempt, or None (keep waiting)."""
         if not data:
             return None
+        if self.tap is not None:
+            self.tap(False, data)
         self.last_rx = now
         if self._echo:
             data, garbled = self._take_echo(data)
