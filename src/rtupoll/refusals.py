@@ -51,9 +51,13 @@ class Refusals:
 
     def __init__(self, what: str, log: logging.Logger, *, every: float = EVERY,
                  clock: Callable[[], float] = time.monotonic,
-                 extra: dict[str, Any] | None = None) -> None:
-        """``what`` names the listener in the line (``--http 127.0.0.1:8080``)."""
+                 extra: dict[str, Any] | None = None, noun: str = "connection",
+                 verb: str = "refused") -> None:
+        """``what`` names the listener in the line (``--http 127.0.0.1:8080``); ``noun``
+        and ``verb`` what happened (``request``: "refused 3 requests"; ``message`` and
+        ``dropped``: "dropped 1 message")."""
         self.what, self.log, self.every, self.clock = what, log, every, clock
+        self.noun, self.verb = noun, verb
         self.extra = extra if extra is not None else {"event": "refused"}
         self.total = 0
         self.counts: Counter[str] = Counter()  # since the start
@@ -89,10 +93,10 @@ class Refusals:
             return
         n = sum(self._unlogged.values())
         parts = ", ".join(f"{c} {REASONS.get(k, k)}" for k, c in self._unlogged.most_common())
-        since = "" if self._last is None else f" in the last {self.clock() - self._last:.0f} s"
+        since = "" if self._last is None else f" in the last {self.clock() - self._last:.3g} s"
         first = " (counted from now on, one line per " \
             f"{self.every:g} s)" if self._last is None else ""
-        self.log.warning("%s: refused %d connection%s%s: %s%s", self.what, n,
+        self.log.warning("%s: %s %d %s%s%s: %s%s", self.what, self.verb, n, self.noun,
                          "" if n == 1 else "s", since, parts, first, extra=self.extra)
         self._unlogged.clear()
         self._last = self.clock()
