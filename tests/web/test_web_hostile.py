@@ -25,7 +25,9 @@ import pytest
 from conftest import ANSWERED
 
 from rtupoll.sim.runner import SimulatedBus
-from tests.web_helpers import Proc, running, until
+from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
+from tests.web_helpers import Proc, get_json, running, until
+from tests.web_helpers import get as http_get
 
 POLL = ["poll", "--format", "json", "--log-format", "text", "--interval", "0.5",
         "--timeout", "0.5"]
@@ -270,3 +272,61 @@ def test_hostile_requests_are_400_or_401_and_a_line_a_minute(
     # one line at the first bad request, and the counts of the rest when it stopped
     assert 1 <= len(bad) <= 2, err
     assert len(err) < 4000, err
+
+
+# -- rtupoll web --mqtt: hostile retained messages on a real mosquitto --------------------
+
+def test_the_fleet_viewer_survives_hostile_retained_messages(broker: Broker,
+                                                            tmp_path: Path) -> None:
+    import json
+    import subprocess
+
+    def publish(topic: str, payload: str | bytes, retain: bool = True) -> None:
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
+                        *(["-r"] if retain else []), "-t", topic, "-s"],
+                       input=payload.encode() if isinstance(payload, str) else payload,
+                       check=True, timeout=30)
+
+    huge = "9" * 400
+    probe = {"profile": "probe", "address": 1, "bus": "line1", "fields": {
+        "temperature": {"label": "temperature", "unit": "°C", "kind": "number",
+                        "precision": 1}}}
+    publish("rtupoll/good/bridge/info", json.dumps({"gateway": "good", "devices": {
+        "probe": probe}}))
+    publish("rtupoll/good/probe", json.dumps({"temperature": 21.5}))
+    # the hostile ones: a precision of 10^8, a 400-digit number, not JSON, wrong types,
+    # a device whose state is a list, 900 kB for a gateway nobody knows
+    publish("rtupoll/bad/bridge/info", json.dumps({"gateway": "bad", "devices": {
+        "d": {"fields": {"v": {"kind": "number", "precision": 100_000_000},
+                         "w": {"kind": "number", "precision": int(huge)}}}}}))
+    publish("rtupoll/bad/d", f'{{"v": 1.25, "w": {huge}}}')
+    publish("rtupoll/worse/bridge/info", f'{{"gateway": {huge}, "devices": [')
+    publish("rtupoll/worst/bridge/info", '{"devices": {"x": 5}, "version": [1, 2]}')
+    publish("rtupoll/worst/x", "[1, 2, 3]")
+    publish("rtupoll/nobody/thing", b"x" * 900_000)
+    with running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                 name="web") as p:
+        def fields() -> dict[str, str]:
+            state = get_json(p.url + "api/state")
+            return {f"{d['key']}/{f['name']}": f["text"] for g in state["gateways"]
+                    for b in g["buses"] for d in b["devices"] for f in d["fields"]}
+
+        got = until(lambda: (f := fields()).get("rtupoll/good/probe/temperature") == "21.5"
+                    and f.get("rtupoll/bad/d/v") and f, "the good gateway's reading")
+        assert got["rtupoll/bad/d/v"] == "1.250000"  # 6 decimals at most
+        assert got["rtupoll/bad/d/w"] == "not published" or len(got["rtupoll/bad/d/w"]) < 40
+        status_, _, body = http_get(p.url + "api/state")
+        assert status_ == 200 and len(body) < 20_000
+        # live, hostile and good in turn: each good one is shown, the session stays
+        for i in range(3):
+            publish("rtupoll/bad/d", f'{{"v": {huge}}}'.encode(), retain=False)
+            publish("rtupoll/bad/d", b"{\xff not json", retain=False)
+            publish("rtupoll/good/probe", json.dumps({"temperature": 30.5 + i}),
+                    retain=False)
+            until(lambda: fields().get("rtupoll/good/probe/temperature") == f"{30 + i}.5",
+                  f"the good reading {30 + i}")
+        assert get_json(p.url + "api/state")["broker"] == "connected"
+    err = p.stderr()
+    assert "Traceback" not in err and "reconnecting" not in err and "lost" not in err, err
+    dropped = [line for line in err.splitlines() if "dropped" in line]
+    assert 1 <= len(dropped) <= 2, err  # one line, and the counts of the rest at the stop

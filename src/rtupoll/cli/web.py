@@ -85,6 +85,7 @@ async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
         reader.cancel()
         await asyncio.gather(reader, return_exceptions=True)
         await server.stop()
+        fleet.dropped.flush()
 
 
 async def _read(fleet: Fleet, settings: MqttSettings, prefix: str,
