@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import IO
 
 from rtupoll.figures import quantile
 
@@ -68,9 +69,14 @@ def main() -> None:
     ap.add_argument("--header-timeout", type=float, default=20.0)
     ap.add_argument("--requests", type=int, default=200)
     args = ap.parse_args()
-    err = tempfile.NamedTemporaryFile("w+", suffix=".stderr")
+    with tempfile.NamedTemporaryFile("w+", suffix=".stderr") as err:
+        run(args, err)
+
+
+def run(args: argparse.Namespace, err: IO[str]) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "rtupoll", "poll", "--simulate",
-                             "--format", "json", "--log-format", "text", "--http", "127.0.0.1:0",
+                             "--format", "json", "--log-format", "text",
+                             "--http", "127.0.0.1:0",
                              "--http-max-connections", str(args.cap),
                              "--http-header-timeout", str(args.header_timeout)],
                             stdout=subprocess.DEVNULL, stderr=err)
@@ -97,7 +103,6 @@ def main() -> None:
         show(f"{args.hostile} half-open held ({open_fds} fds)", proc.pid,
              latencies(port, args.requests), args.requests)
         start = time.monotonic()
-        closed = 0
         for s in held:
             s.settimeout(args.header_timeout + 30)
             try:
@@ -105,7 +110,6 @@ def main() -> None:
                     pass
             except OSError:
                 pass
-            closed += 1
             s.close()
         took = time.monotonic() - start
         show(f"after they were closed ({took:.1f} s)", proc.pid,

@@ -13,9 +13,12 @@ bound a busy machine could miss."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import os
 import resource
+import shutil
 import socket
+import subprocess
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -279,7 +282,6 @@ def test_hostile_requests_are_400_or_401_and_a_line_a_minute(
 def test_the_fleet_viewer_survives_hostile_retained_messages(broker: Broker,
                                                             tmp_path: Path) -> None:
     import json
-    import subprocess
 
     def publish(topic: str, payload: str | bytes, retain: bool = True) -> None:
         subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
@@ -323,10 +325,48 @@ def test_the_fleet_viewer_survives_hostile_retained_messages(broker: Broker,
             publish("rtupoll/bad/d", b"{\xff not json", retain=False)
             publish("rtupoll/good/probe", json.dumps({"temperature": 30.5 + i}),
                     retain=False)
-            until(lambda: fields().get("rtupoll/good/probe/temperature") == f"{30 + i}.5",
-                  f"the good reading {30 + i}")
+            want = f"{30 + i}.5"
+            until(lambda want=want: fields().get("rtupoll/good/probe/temperature") == want,
+                  f"the good reading {want}")
         assert get_json(p.url + "api/state")["broker"] == "connected"
     err = p.stderr()
     assert "Traceback" not in err and "reconnecting" not in err and "lost" not in err, err
     dropped = [line for line in err.splitlines() if "dropped" in line]
     assert 1 <= len(dropped) <= 2, err  # one line, and the counts of the rest at the stop
+
+
+@pytest.mark.skipif(shutil.which("mbpoll") is None, reason="mbpoll is not installed "
+                    "(scripts/test installs it)")
+def test_half_open_dashboard_connections_leave_the_gateway_its_clients(
+        sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    """The issue's case: systemd's usual limit of 1,024 descriptors, 1,100 connections
+    that each sent half a request. At the dashboard's cap the rest are refused, so the
+    gateway's listener beside it still takes a Modbus TCP client (mbpoll)."""
+    from tests.brokers import free_port
+    bus = sim("huiwen-aq@3")
+    bus.set(3, "co2", 777)
+    serve = free_port()
+    with running([*POLL, "-p", bus.port, "--serve", f"127.0.0.1:{serve}", "--http",
+                  "127.0.0.1:0", "huiwen-aq@3"], tmp_path) as p:
+        resource.prlimit(p.proc.pid, resource.RLIMIT_NOFILE, (1024, 1024))
+        hostile = []
+        try:
+            for _ in range(1100):
+                s = connect(p)
+                with contextlib.suppress(OSError):  # refused at the cap: reset
+                    s.sendall(HALF)
+                hostile.append(s)
+            done = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(serve), "-1", "-o", "2",
+                                   "-a", "3", "-t", "3", "-r", "30009", "-0", "-c", "1",
+                                   "127.0.0.1"], capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0 and "777" in done.stdout, done.stdout + done.stderr
+            fds = len(os.listdir(f"/proc/{p.proc.pid}/fd"))
+            assert fds < 1024 - 400, fds  # the cap (256) and the 503s' short linger
+        finally:
+            for s in hostile:
+                s.close()
+        until(lambda: status(ask(p, get())) == 200, "the dashboard serves again")
+    err = no_traceback(p)
+    refused = [line for line in err.splitlines() if "--http" in line and "refused" in line]
+    assert len(refused) <= 2, err  # the first, and the counts at the stop
+    assert 0 < sum(int(line.split(" refused ")[1].split()[0]) for line in refused) <= 1100 - 256
