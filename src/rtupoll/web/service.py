@@ -205,6 +205,9 @@ class WebReload:
                                (f" (no longer {was})" if was else ""))
             if (new.token, dict(new.users)) != (old.token, dict(old.users)):
                 changes.append("http: authentication changed")
+            if (limits := _limits(new)) != _limits(old):
+                changes.append("http: limits now " + ", ".join(
+                    f"{k} {v}" for k, v in limits.items()))
             if self.bound is not None and (warning := new.warning()):
                 log.warning("%s", warning, extra={"event": "http"})
         self.bound = None
@@ -215,6 +218,15 @@ class WebReload:
         if self.bound is not None:
             await self.bound.stop()
             self.bound = None
+
+
+def _limits(settings: HttpSettings) -> dict[str, str]:
+    """The listener's limits as a reload's line shows them."""
+    from rtupoll.config.http_settings import LIMITS
+
+    return {k: (f"{v:g} s" if isinstance(v, float) else
+                ", ".join(v) or "none" if isinstance(v, tuple) else str(v))
+            for k in LIMITS for v in (getattr(settings, k),)}
 
 
 def _where(settings: HttpSettings) -> tuple[str, int]:
