@@ -370,3 +370,44 @@ def test_half_open_dashboard_connections_leave_the_gateway_its_clients(
     refused = [line for line in err.splitlines() if "--http" in line and "refused" in line]
     assert len(refused) <= 2, err  # the first, and the counts at the stop
     assert 0 < sum(int(line.split(" refused ")[1].split()[0]) for line in refused) <= 1100 - 256
+
+
+def server_side(server_at: tuple[str, int], client: socket.socket) -> str | None:
+    """The kernel's TCP state (``/proc/net/tcp``, hex: 01 established, 04 closed with data
+    still queued) of the listener's end of ``client``'s connection; None: gone."""
+    def hexed(host: str, port: int) -> str:
+        return f"{socket.inet_aton(host)[::-1].hex().upper()}:{port:04X}"
+
+    server, me = hexed(*server_at), hexed(*client.getsockname())
+    with open("/proc/net/tcp") as f:
+        for line in f.read().splitlines()[1:]:
+            fields = line.split()
+            if fields[1] == server and fields[2] == me:
+                return fields[3]
+    return None
+
+
+def test_a_client_that_never_reads_is_reset_its_buffers_freed(dashboard: Dashboard
+                                                               ) -> None:
+    """Requests pipelined, their answers never read (a small receive buffer): the
+    answers fill the kernel's queue, then the listener's; after ``idle_timeout`` of that
+    the connection is reset, so neither the process nor the kernel keeps the ~3 MB of
+    answers. Other clients are served meanwhile."""
+    with socket.create_server(("127.0.0.1", 0)) as listener, \
+            socket.create_connection(listener.getsockname()) as c:
+        assert server_side(listener.getsockname(), c) == "01"  # the helper sees a socket
+    with dashboard("--http-idle-timeout", "1") as p:
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.settimeout(ANSWERED)
+        s.connect(where(p))
+        request = get().replace(b"Connection: close", b"Connection: keep-alive")
+        s.sendall(request * 2000)
+        assert status(ask(p, get())) == 200
+        until(lambda: server_side(where(p), s) is None, "the listener's end reset and gone")
+        with pytest.raises(ConnectionResetError):
+            while s.recv(65536):
+                pass
+        s.close()
+        assert status(ask(p, get())) == 200
+    no_traceback(p)

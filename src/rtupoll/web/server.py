@@ -38,6 +38,8 @@ import hmac
 import importlib.resources
 import logging
 import os
+import socket
+import struct
 import sys
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, Protocol
@@ -246,9 +248,10 @@ class Conn(asyncio.Protocol):
     else aiohttp's handler inside, under two deadlines: ``header_timeout`` from the
     first byte of a request until its headers are in (the middleware ``begin``s it), and
     ``idle_timeout`` while no request is under way (from the start and from each
-    request's ``end``). A connection past its deadline is closed."""
+    request's ``end``), and ``idle_timeout`` too while what it was sent waits for it to
+    read (its transport paused our writing). A connection past its deadline is closed."""
 
-    __slots__ = ("busy", "gate", "inner", "phase", "timer", "transport")
+    __slots__ = ("busy", "gate", "inner", "phase", "stall", "timer", "transport")
 
     def __init__(self, gate: Gate) -> None:
         self.gate = gate
@@ -257,6 +260,7 @@ class Conn(asyncio.Protocol):
         self.timer: asyncio.TimerHandle | None = None
         self.busy = False
         self.phase = ""  # "idle_timeout", "header_timeout" or "" (a request is handled)
+        self.stall: asyncio.TimerHandle | None = None  # while its writes wait for it
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -295,15 +299,32 @@ class Conn(asyncio.Protocol):
         return self.inner.eof_received() if self.inner is not None else None
 
     def pause_writing(self) -> None:
+        """Its buffer is full: a client that reads nothing of it for ``idle_timeout``
+        (an event stream or an answer it never reads) is closed, its buffer freed."""
         if self.inner is not None:
             self.inner.pause_writing()
+            if self.stall is None:
+                self.stall = asyncio.get_running_loop().call_later(
+                    self.gate.server.settings.idle_timeout, self._stalled)
 
     def resume_writing(self) -> None:
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
         if self.inner is not None:
             self.inner.resume_writing()
 
+    def _stalled(self) -> None:
+        self.stall = None
+        if self.transport is not None and self.inner is not None:
+            self.gate.closed["unread"] = self.gate.closed.get("unread", 0) + 1
+            reset(self.transport)
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
         if self.phase == "refused":
             self.gate.lingering -= 1
             self.phase = ""
@@ -345,9 +366,19 @@ class Conn(asyncio.Protocol):
             return
         self.gate.closed[self.phase] = self.gate.closed.get(self.phase, 0) + 1
         if t.get_write_buffer_size():  # it does not read what it was sent either
-            t.abort()
+            reset(t)
         else:
             t.close()
+
+
+def reset(transport: asyncio.Transport) -> None:
+    """Close a connection whose client does not read: a reset (SO_LINGER 0), so that
+    neither the transport's buffer nor the kernel's queue of it outlives the close."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    transport.abort()
 
 
 class RequestLog:
