@@ -56,15 +56,23 @@ def web(url: str, **opts: Any) -> None:
     aiomqtt_module()
     if warning := http.warning():
         click.echo(f"rtupoll: {warning}", err=True)
-    asyncio.run(_main(settings, prefix, http))
+    from rtupoll.ui import logs
+
+    root = logging.getLogger("rtupoll")
+    level = root.level
+    # the dropped messages and refused connections, one line a minute, as poll logs them
+    handler = logs.setup("text", level=logging.WARNING)
+    try:
+        asyncio.run(_main(settings, prefix, http))
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
 
 
 async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
-    from rtupoll.ui import logs
     from rtupoll.web.fleet import Fleet
     from rtupoll.web.server import Server
 
-    logs.setup("text", level=logging.WARNING)  # the dropped messages, refused connections
     fleet = Fleet(prefix, f"{settings.where}/{prefix}")
     server = Server(http, fleet)
     stop = stop_event()
