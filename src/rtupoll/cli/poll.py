@@ -368,12 +368,14 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
                *, echo: bool = False) -> Iterator[list[SimulatedBus]]:
     """Start the simulator in-process: the devices on lines that could exist (the seed
     devices by default: four at 9600 and the CO2Meter board at 115200), one port each.
-    With devices named and a baud rate, they are one line at that rate, as asked."""
+    With devices named and a baud rate, they are one line at that rate, as asked. Where
+    there are no pseudo-terminals (Windows) each line is served over TCP on loopback."""
     from rtupoll.sim.runner import simulated_lines
+    from rtupoll.sim.server import PTYS
 
     with simulated_lines([f"{d.profile}@{d.address}" for d in devices], baudrate=baudrate,
                          one_line=bool(devices and baudrate), faults=tuple(faults),
-                         echo=echo) as lines:
+                         echo=echo, tcp=not PTYS) as lines:
         yield list(lines)
 
 
