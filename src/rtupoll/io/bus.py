@@ -301,14 +301,20 @@ class Bus(LineBus):
     def _quiet(self, delay: float) -> bool:
         """Wait the last ``delay`` seconds of the silence, holding the event loop, in
         ``select`` on rtupoll's own ``Serial``: one system call that both waits and sees
-        a byte arrive. True when bytes came (they went to the line). A gateway keeps the
+        a byte arrive. True when bytes came (they went to the line). A port with no
+        descriptor (Windows, ``rfc2217://``, ``socket://``) sleeps, then takes what came
+        meanwhile (``rtupoll.io.waits``: stamped late, never early). A gateway keeps the
         silence on its own line: a plain sleep."""
         port = self._slot.port if self._slot is not None else None
         if port is None or not port.is_open:
             time.sleep(delay)
             return False
+        fd = port.device_fd
+        if fd is None:
+            time.sleep(delay)
+            return self._took_input()
         try:
-            ready, _, _ = select.select([port.fileno()], [], [], delay)
+            ready, _, _ = select.select([fd], [], [], delay)
         except (OSError, ValueError):  # closed meanwhile: the write that follows says so
             return False
         return bool(ready) and self._took_input()
@@ -321,8 +327,11 @@ class Bus(LineBus):
         try:  # what waits: one read on the non-blocking port pymodbus's transport made
             if port is None or not port.is_open:
                 data = b""
+            elif port.timeout == 0 or port.pumped:
+                data = port.read(_CHUNK)
             else:  # (a timeout other than 0 would block: then only what waits is asked)
-                data = port.read(_CHUNK if port.timeout == 0 else port.in_waiting)
+                waiting = port.in_waiting
+                data = port.read(waiting) if waiting else b""
         except (OSError, serial.SerialException):  # the write that follows fails too
             return False
         if data:

@@ -57,6 +57,7 @@ SCHEME = "nodtr"
 _PREFIX = f"{SCHEME}://"
 OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
 _OWN_PREFIX = f"{OWN}://"
+NETWORK = ("rfc2217://", "socket://")  # pyserial's serial ports over a network
 
 
 @frozen
@@ -149,7 +150,7 @@ class Slot:
 
     deassert_dtr: bool = False
     rs485: Rs485 | None = None
-    port: Serial | None = None
+    port: Any = None  # the OwnPort (a Serial, or an OwnPort over a URL's class)
     direction: str = ""  # "kernel" or "rts" once open with rs485
     error: str = ""  # why the port opened but cannot be used as asked (one line)
 
@@ -159,20 +160,26 @@ _SLOTS: weakref.WeakValueDictionary[int, Slot] = weakref.WeakValueDictionary()
 _slot_ids = itertools.count(1)
 
 
-class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
-    """A pyserial port that opens with DTR and RTS deasserted (``slot``: when its
-    ``Slot`` says so; ``nodtr://``: always), and tells its ``Slot`` it is open."""
+class OwnPort:
+    """What rtupoll's port adds to the pyserial class that opens it (a device's
+    ``serial.Serial``; for ``rfc2217://`` and ``socket://`` the URL's own class): DTR and
+    RTS deasserted before the open (``slot``: when its ``Slot`` says so; ``nodtr://``:
+    always), its ``Slot`` told it is open, one system call per read and write where the
+    port is a descriptor, ``write_timeout = 0`` (pymodbus's) taken by a port that refuses
+    it (RFC 2217's client) as no write timeout, and, for a port with no descriptor, one
+    to wait on (``fileno``: a ``waits.Pump``), so pymodbus's event loop can."""
 
     slot: Slot | None = None
     _toggle: RtsToggle | None = None  # RTS driven around each write (--rs485 without kernel)
+    _pump: Any = None  # a waits.Pump once a descriptor was asked of a port with none
 
-    def open(self) -> None:
+    def open(self: Any) -> None:
         # Setting the lines on a closed port only records the state; open() applies it
         # immediately after the open system call (serialposix: _update_dtr_state).
         if self.slot is None or self.slot.deassert_dtr:
             self.dtr = False
             self.rts = False
-        super().open()
+        super().open()  # type: ignore[misc]
         self._toggle = None
         slot = self.slot
         if slot is None:
@@ -186,45 +193,130 @@ class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hin
                 self.close()
                 raise serial.SerialException(slot.error) from None
 
-    def read(self, size: int = 1) -> bytes:
+    def close(self: Any) -> None:
+        pump, self._pump = self._pump, None
+        if pump is not None:
+            pump.close()
+        super().close()  # type: ignore[misc]
+
+    @property
+    def pumped(self) -> bool:
+        """Whether reads come from a ``waits.Pump`` (non-blocking, whatever ``timeout``)."""
+        return self._pump is not None
+
+    @property
+    def device_fd(self: Any) -> int | None:
+        """The port's own descriptor when it is a character device, else None."""
+        from rtupoll.io import waits
+
+        return waits.real_fd(super())
+
+    def fileno(self: Any) -> int:
+        """The port's descriptor; for a port with none (``rfc2217://``), that of a
+        ``waits.Pump``, which a thread fills with what the port receives."""
+        if self._pump is None:
+            try:  # a device's, or socket://'s own socket
+                return super().fileno()  # type: ignore[misc,no-any-return]
+            except (OSError, ValueError, AttributeError):  # none (io.UnsupportedOperation)
+                from rtupoll.io import waits
+
+                self.timeout = waits.SLICE  # the pump's reads wait; ours read its socket
+                self._pump = waits.Pump(waits.PortWait(_Base(self)))
+        return self._pump.fileno()  # type: ignore[no-any-return]
+
+    @property
+    def in_waiting(self: Any) -> int:
+        if self._pump is not None:
+            return self._pump.in_waiting()  # type: ignore[no-any-return]
+        return super().in_waiting  # type: ignore[misc,no-any-return]
+
+    @property
+    def write_timeout(self: Any) -> float | None:
+        return self._write_timeout  # type: ignore[no-any-return]
+
+    @write_timeout.setter
+    def write_timeout(self: Any, value: float | None) -> None:
+        setter = serial.SerialBase.write_timeout.fset
+        try:
+            setter(self, value)
+        except NotImplementedError:  # RFC 2217's client: "write_timeout is not supported"
+            setter(self, None)  # its writes are a socket's sendall: they never wait long
+
+    def read(self: Any, size: int = 1) -> bytes:
         """pyserial's ``read``; on a non-blocking port (``timeout`` 0, as pymodbus's
         transport sets it and reads once the event loop saw bytes waiting) one
         ``os.read`` of what waits, without pyserial's per-call ``Timeout`` and
         ``select``: one system call less each. Nothing read (the port, VMIN 0, says
         the same when nothing waits and when it was hung up) is pyserial's to judge:
-        its ``select`` tells the two apart, and a port gone raises as it always did."""
-        if self.timeout != 0 or not self.is_open:
-            return super().read(size)  # type: ignore[no-any-return]
+        its ``select`` tells the two apart, and a port gone raises as it always did.
+        A port with no descriptor (Windows, ``rfc2217://``) reads as pyserial reads it,
+        or from its ``Pump`` once it has one."""
+        if self._pump is not None:
+            return self._pump.read(size)  # type: ignore[no-any-return]
+        fd = getattr(self, "fd", None)
+        if self.timeout != 0 or not self.is_open or not isinstance(fd, int):
+            return super().read(size)  # type: ignore[misc,no-any-return]
         try:
-            data = os.read(self.fd, size)
+            data = os.read(fd, size)
         except BlockingIOError:
             data = b""
         except OSError as exc:  # the adapter unplugged (EIO), ...: pyserial's error
             raise serial.SerialException(f"read failed: {exc}") from None
         if data:
             return data
-        return super().read(size)  # type: ignore[no-any-return]
+        return super().read(size)  # type: ignore[misc,no-any-return]
 
-    def write(self, data: bytes) -> int | None:
+    def write(self: Any, data: bytes) -> int | None:
         """pyserial's ``write``; on a non-blocking port (``write_timeout`` 0, as pymodbus's
         transport sets it) with no RTS to toggle, one ``os.write``: what fitted is
         returned (0 when the port's buffer is full, where pyserial would spin until
         all of it went), the caller hands the rest to the transport."""
         if self._toggle is None:
-            if self.write_timeout != 0 or not self.is_open:
-                return super().write(data)  # type: ignore[no-any-return]
+            fd = getattr(self, "fd", None)
+            if self.write_timeout != 0 or not self.is_open or not isinstance(fd, int):
+                return super().write(data)  # type: ignore[misc,no-any-return]
             try:
-                return os.write(self.fd, data)
+                return os.write(fd, data)
             except BlockingIOError:
                 return 0
             except OSError as exc:
                 raise serial.SerialException(f"write failed: {exc}") from None
-        return self._toggle.write(super().write, data)
+        return self._toggle.write(super().write, data)  # type: ignore[misc,no-any-return]
 
 
-def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
+class _Base:
+    """An ``OwnPort``'s pyserial class's own ``read`` and ``in_waiting`` (for its pump)."""
+
+    def __init__(self, port: OwnPort) -> None:
+        self._port = port
+        self.read = super(OwnPort, port).read  # type: ignore[misc]
+        self.timeout = port.timeout
+
+    @property
+    def in_waiting(self) -> int:
+        return super(OwnPort, self._port).in_waiting  # type: ignore[misc,no-any-return]
+
+
+class Serial(OwnPort, serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
+    """rtupoll's port on a device (``/dev/ttyUSB0``, ``COM3``): ``OwnPort`` over the
+    platform's pyserial class."""
+
+
+def own_class(url: str, slot: Slot | None) -> type[OwnPort]:
+    """The class rtupoll opens ``url`` with: ``Serial`` for a device, ``OwnPort`` over the
+    URL's own pyserial class for ``rfc2217://``, ``socket://``, ...; bound to ``slot``."""
+    base: type = serial.Serial
+    if "://" in url:
+        base = type(serial.serial_for_url(url, do_not_open=True))
+    if base is serial.Serial:
+        return Serial if slot is None else type("Serial", (Serial,), {"slot": slot})
+    return type("Serial", (OwnPort, base), {"slot": slot})
+
+
+def serial_class_for_url(url: str) -> tuple[str, type[OwnPort]]:
     """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial);
-    ``rtupoll://N/dev/ttyUSB0`` -> (``/dev/ttyUSB0``, a Serial bound to slot N)."""
+    ``rtupoll://N/PORT`` -> (``PORT``, rtupoll's class for it bound to slot N): PORT a
+    device (``/dev/ttyUSB0``, ``COM3``) or a URL (``rfc2217://HOST:PORT``)."""
     low = url.lower()
     if low.startswith(_PREFIX):
         return url[len(_PREFIX):], Serial
@@ -232,7 +324,7 @@ def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
         number, _, path = url[len(_OWN_PREFIX):].partition("/")
         slot = _SLOTS.get(int(number)) if number.isdigit() else None
         if slot is not None:
-            return "/" + path, type("Serial", (Serial,), {"slot": slot})
+            return path, own_class(path, slot)
     raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
 
 
@@ -247,19 +339,22 @@ def register() -> None:
 def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
           ) -> tuple[str, Slot | None]:
     """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
-    ``Serial`` object: for a device path (and ``nodtr://``), ``rtupoll://N/PATH``; other
-    URLs (``socket://``, ``rfc2217://``) pass unchanged, with no slot."""
+    ``Serial`` object: ``rtupoll://N/PORT`` for a device (``/dev/ttyUSB0``, ``COM3``, and
+    ``nodtr://``'s) and for pyserial's network ports (``rfc2217://``, ``socket://``, whose
+    modem lines are the server's: DTR is left as it is); other URLs pass unchanged, with
+    no slot."""
     if port.lower().startswith(_PREFIX):
         port, deassert_dtr = port[len(_PREFIX):], True
-    if "://" in port or not port.startswith("/"):
+    network = port.lower().startswith(NETWORK)
+    if ("://" in port and not network) or (network and rs485 is not None):
         if rs485 is not None:
             raise UsageError(f"{port}: --rs485 drives a serial port's RTS line; this is not "
                              "a serial port")
         return port_url(port, deassert_dtr=deassert_dtr), None
     number = next(_slot_ids)
-    slot = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
+    slot = Slot(deassert_dtr=deassert_dtr and not network, rs485=rs485)
     _SLOTS[number] = slot
-    return f"{_OWN_PREFIX}{number}{port}", slot
+    return f"{_OWN_PREFIX}{number}/{port}", slot
 
 
 def release(url: str) -> None:
@@ -293,7 +388,7 @@ def gateway(port: str) -> tuple[str, int] | None:
 def device_path(port: str) -> str:
     """The filesystem path behind a port, ``nodtr://`` or ``rtupoll://N`` URL."""
     if port.lower().startswith(_OWN_PREFIX):
-        return "/" + port[len(_OWN_PREFIX):].partition("/")[2]
+        return port[len(_OWN_PREFIX):].partition("/")[2]
     return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
 
 

@@ -4,7 +4,7 @@
 async transport: this driver does what ``rtupoll.rtu.transaction.Transaction``
 says with pyserial's ``Serial`` (opened through ``rtupoll.io.serialport``, so DTR,
 ``--rs485`` and the error wording are the port's own) or a plain socket to an
-RTU-over-TCP gateway, waiting in ``select`` and reading ``time.monotonic()``. The
+RTU-over-TCP gateway, waiting in ``rtupoll.io.waits`` and reading the line's clock. The
 rules -- checks, attempts, retries, the silence, the drain, resynchronisation, late
 replies, statistics -- are the same objects the async ``rtupoll.io.bus.Bus`` drives
 (``LineBus``, ``Transaction``, ``Line``); only the waiting differs. It imports
@@ -17,10 +17,11 @@ never suspend, because nothing here awaits, and ``run`` drives such a coroutine 
 its end without an event loop. A job that awaits anything else (a sleep, a task) is
 a programming error, said at once (``RuntimeError``), not a hang.
 
-- **Silence and deadlines** are waited for in ``select``, whose timeout has
-  microseconds (asyncio's timers have milliseconds), so the request goes at
-  ``Line.ready_at`` exactly; bytes that arrive meanwhile go to the line, and the
-  silence starts again.
+- **Silence and deadlines** are waited for in the port's ``rtupoll.io.waits.Wait``
+  (``select`` on a tty or a socket, whose timeout has microseconds; pyserial's own
+  ``read`` on a port with no descriptor: Windows, ``rfc2217://``, ``socket://``), so the
+  request goes at ``Line.ready_at``; bytes that arrive meanwhile go to the line, and
+  the silence starts again.
 - **A port that goes away** (the read fails, or ends) is closed: ``PortError``, as
   the async bus says it.
 """
@@ -28,14 +29,12 @@ a programming error, said at once (``RuntimeError``), not a hang.
 from __future__ import annotations
 
 import contextlib
-import os
-import select
 import time
 from collections.abc import Awaitable
 from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
-from rtupoll.io import serialport
+from rtupoll.io import serialport, waits
 from rtupoll.io.interface import LineBus
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
@@ -43,7 +42,6 @@ from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
 
 T = TypeVar("T")
 
-_CHUNK = 4096
 
 
 def run(job: Awaitable[T]) -> T:
@@ -77,7 +75,7 @@ class SyncBus(LineBus):
                                                  deassert_dtr=settings.deassert_dtr)
         self._connect_timeout = connect_timeout
         self._port: Any = None  # pyserial's Serial, or a socket to a gateway
-        self._fd = -1
+        self._take: waits.Wait | None = None  # the port's wait (rtupoll.io.waits)
 
     # -- opening and closing -------------------------------------------------
 
@@ -107,11 +105,11 @@ class SyncBus(LineBus):
             self._port.setblocking(False)
         else:
             self._port = self._open_serial()
-        self._fd = self._port.fileno()
+        self._take = waits.wait_on(self._port)
         self.line.opened(time.monotonic())  # a fresh port: count the silence from now
 
     def disconnect(self) -> None:
-        port, self._port, self._fd = self._port, None, -1
+        port, self._port, self._take = self._port, None, None
         if port is not None:
             with contextlib.suppress(OSError):
                 port.close()
@@ -124,7 +122,7 @@ class SyncBus(LineBus):
             return serial.serial_for_url(
                 self._url, exclusive=True, baudrate=s.baudrate, bytesize=s.bytesize,
                 parity=serialport.line_parity(s.port, s.parity), stopbits=s.stopbits,
-                timeout=0)
+                timeout=waits.SLICE)  # (PortWait's; FdWait reads the descriptor itself)
         except (OSError, ValueError) as exc:  # SerialException is an OSError
             if self._slot is not None and self._slot.error:
                 raise PortError(self._slot.error) from None  # opens, but not as asked
@@ -186,27 +184,23 @@ class SyncBus(LineBus):
                 if ending:
                     tx.expired(now)
                 return False
-            ready, _, _ = select.select([self._fd], [], [], left)
-            if not ready:
-                continue
-            data = self._read()
-            if not data:  # nothing after all (the port is non-blocking)
+            data = self._read(left)
+            if not data:
                 continue
             over = tx.received(data, time.monotonic())
             if not ending or over:
                 return True
 
-    def _read(self) -> bytes:
+    def _read(self, left: float) -> bytes:
+        """What arrives within ``left`` seconds; the port (or the gateway's connection)
+        gone: closed, and ``PortError``."""
+        assert self._take is not None  # connected
         try:
-            data = os.read(self._fd, _CHUNK)
-        except BlockingIOError:
-            return b""
-        except OSError:
-            data = b""
-        if not data:  # the port (or the gateway's connection) is gone
+            return self._take(left)
+        except waits.Gone:
             self.disconnect()
-            raise PortError(f"{self.settings.port} went away during the transaction")
-        return data
+            raise PortError(f"{self.settings.port} went away during the transaction"
+                            ) from None
 
     def _write(self, frame: bytes) -> None:
         try:

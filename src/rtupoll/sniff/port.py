@@ -13,12 +13,11 @@ Arrival times are wall-clock seconds since the epoch, taken from the monotonic c
 
 from __future__ import annotations
 
-import os
-import select
 import time
 from collections.abc import Callable, Iterator
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io import waits
 from rtupoll.io.serialport import Serial, gateway, open_error
 from rtupoll.rtu.timing import Framing
 
@@ -38,33 +37,24 @@ class ListenPort:
         port.bytesize = framing.bytesize
         port.parity = framing.parity
         port.stopbits = framing.stopbits
-        port.timeout = 0
+        port.timeout = waits.SLICE  # (PortWait's: a port with no descriptor, Windows's)
         port.exclusive = True
         try:
             port.open()
         except (OSError, ValueError) as exc:
             raise PortError(open_error(path, exc)) from None
         self.path, self._port = path, port
-        self._fd = port.fileno()
+        self._take = waits.wait_on(port)
         mono, wall = time.monotonic(), time.time()
         self.clock: Callable[[], float] = lambda: wall + (time.monotonic() - mono)
 
     def chunks(self, stop: Callable[[], bool]) -> Iterator[tuple[bytes, float]]:
         """``(bytes, arrival)`` as they come; ``(b"", now)`` every ``POLL`` s of quiet."""
         while not stop():
-            ready, _, _ = select.select([self._fd], [], [], POLL)
-            if not ready:
-                yield b"", self.clock()
-                continue
             try:
-                data = os.read(self._fd, 4096)
-            except BlockingIOError:
-                continue
-            except OSError as exc:
-                raise PortError(f"{self.path}: {exc.strerror or exc} (adapter unplugged?)"
-                                ) from None
-            if not data:  # ready, yet nothing to read: the port hung up (as pyserial says)
-                raise PortError(f"{self.path}: the port hung up (adapter unplugged?)")
+                data = self._take(POLL)
+            except waits.Gone as exc:
+                raise PortError(f"{self.path}: {exc} (adapter unplugged?)") from None
             yield data, self.clock()
 
     def close(self) -> None:
