@@ -11,7 +11,7 @@ the 3.5-character silence, the drain after a timeout, which received bytes answe
 which request (resynchronisation past noise, foreign and late frames, the late-reply
 accounting), garbled replies known at once, an adapter's echo -- is
 ``rtupoll.rtu.line.Line``'s; this module drives them with what went out, what came in
-and ``time.monotonic()``.
+and the line's clock (``rtupoll.io.clock``).
 
 - **One transaction in flight**: the bus's lock spans silence, request, reply and
   retries, so devices polled from several tasks never interleave on the wire. A
@@ -58,7 +58,7 @@ import serial
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import PortError
-from rtupoll.io import serialport
+from rtupoll.io import clock, serialport
 from rtupoll.io.interface import LineBus, raise_failed
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
@@ -180,7 +180,7 @@ class Bus(LineBus):
         if ok and self.connected:
             _OPEN.add(self)
             self._loop = asyncio.get_running_loop()  # the port's callbacks run on it
-            self.line.opened(time.monotonic())  # a fresh port: count the silence from now
+            self.line.opened(clock.now())  # a fresh port: count the silence from now
             return
         self._port.close()
         self._port = None
@@ -204,11 +204,11 @@ class Bus(LineBus):
         """``tx`` under the lock, once no earlier request's late reply could be mistaken
         for its answer (waited for without the lock)."""
         while True:
-            now = time.monotonic()
+            now = clock.now()
             if tx.hazard_until(now) > now:
                 await self._hazard_clear(tx)
             await self._lock.acquire()
-            now = time.monotonic()
+            now = clock.now()
             if tx.hazard_until(now) <= now:
                 break
             self._lock.release()  # another task's request made one: wait again
@@ -234,14 +234,14 @@ class Bus(LineBus):
             outcome = "port"
             raise
         finally:
-            self.stats.add(tx, time.monotonic() - started, outcome=outcome)
+            self.stats.add(tx, clock.now() - started, outcome=outcome)
             self._lock.release()
 
     async def _hazard_clear(self, tx: Transaction) -> None:
         """Wait (without holding the bus) until no earlier request's late reply could be
         taken for ``tx``'s answer; an arriving answer ends the wait early."""
         while True:
-            now = time.monotonic()
+            now = clock.now()
             until = tx.hazard_until(now)
             if until <= now:
                 return
@@ -262,7 +262,7 @@ class Bus(LineBus):
 
         def send() -> None:
             nonlocal timer
-            delay = tx.ready_at() - time.monotonic()
+            delay = tx.ready_at() - clock.now()
             hold = _SLEEP_MAX if len(_OPEN) < 2 else _SLEEP_SHARED
             if delay > hold:  # the event loop's timer, which fires up to 1 ms late,
                 timer = loop.call_later(delay - hold, send)  # for all but the end
@@ -274,7 +274,7 @@ class Bus(LineBus):
                 over.set_exception(PortError(f"{self.settings.port} went away"))
                 return
             try:
-                tx.sent(time.monotonic())
+                tx.sent(clock.now())
                 self._send(tx.request)
             except Exception as exc:  # a callback's error would reach no one: the caller's
                 over.set_exception(exc)
@@ -283,10 +283,15 @@ class Bus(LineBus):
                 over.set_result(None)
             else:
                 self._tx, self._over = tx, over
-                timer = loop.call_at(tx.deadline, expire)
+                timer = loop.call_later(tx.deadline - clock.now(), expire)
 
         def expire() -> None:
-            tx.expired(time.monotonic())
+            nonlocal timer
+            now = clock.now()
+            if now < tx.deadline:  # the loop's timer is early (its clock is not the line's)
+                timer = loop.call_later(tx.deadline - now, expire)
+                return
+            tx.expired(now)
             if not over.done():
                 over.set_result(None)
 
@@ -362,7 +367,7 @@ class Bus(LineBus):
     def _received(self, data: bytes) -> None:
         """What the port received: every byte goes to the line (through the transaction
         in flight, which says when its attempt is over)."""
-        tx, now = self._tx, time.monotonic()
+        tx, now = self._tx, clock.now()
         if tx is None:
             self.line.receive(data, now)
         elif tx.received(data, now):

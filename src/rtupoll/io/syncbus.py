@@ -30,10 +30,11 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
+from rtupoll.io import clock as line_clock
 from rtupoll.io import serialport, waits
 from rtupoll.io.interface import LineBus
 from rtupoll.io.serialport import PortSettings
@@ -63,7 +64,14 @@ class SyncBus(LineBus):
     See the module docstring; ``drain`` and ``broadcast_turnaround`` as ``Bus``'s."""
 
     def __init__(self, settings: PortSettings, *, drain: float | None = None,
-                 connect_timeout: float = 3.0, broadcast_turnaround: float = 0.1) -> None:
+                 connect_timeout: float = 3.0, broadcast_turnaround: float = 0.1,
+                 clock: Callable[[], float] | None = None,
+                 sleep: Callable[[float], None] = time.sleep, opened: Any = None) -> None:
+        """``clock``: the line's (``rtupoll.io.clock.now``); ``sleep`` and ``opened`` (a
+        port already open, driven instead of opening ``settings.port``): for tests in
+        virtual time, with ``clock``."""
+        self._clock = clock or line_clock.now
+        self._sleep, self._opened = sleep, opened
         self.settings = settings
         self.framing = settings.framing
         self.stats = BusStats()
@@ -100,13 +108,15 @@ class SyncBus(LineBus):
         """Open the port; ``PortError`` says missing / busy / permission / refused."""
         if self._port is not None:
             return
-        if self._gateway:
+        if self._opened is not None:
+            self._port = self._opened
+        elif self._gateway:
             self._port = self._open_gateway(*self._gateway)
             self._port.setblocking(False)
         else:
             self._port = self._open_serial()
-        self._take = waits.wait_on(self._port)
-        self.line.opened(time.monotonic())  # a fresh port: count the silence from now
+        self._take = waits.wait_on(self._port, sleep=self._sleep)
+        self.line.opened(self._clock())  # a fresh port: count the silence from now
 
     def disconnect(self) -> None:
         port, self._port, self._take = self._port, None, None
@@ -141,7 +151,7 @@ class SyncBus(LineBus):
 
     async def _run(self, tx: Transaction) -> Done:
         self._wait_hazard(tx)
-        started = time.monotonic()
+        started = self._clock()
         outcome: str | None = None
         try:
             return await self._drive(tx)
@@ -149,7 +159,7 @@ class SyncBus(LineBus):
             outcome = "port"
             raise
         finally:
-            self.stats.add(tx, time.monotonic() - started, outcome=outcome)
+            self.stats.add(tx, self._clock() - started, outcome=outcome)
 
     async def _step(self, tx: Transaction, step: Send | Await) -> None:
         if isinstance(step, Await):
@@ -160,25 +170,25 @@ class SyncBus(LineBus):
         self.connect()
         if self._wait(tx, step.at, ending=False):
             return  # bytes came meanwhile: the silence starts again (ask next() again)
-        tx.sent(time.monotonic())
+        tx.sent(self._clock())
         self._write(step.frame)
 
     def _wait_hazard(self, tx: Transaction) -> None:
         """Until no earlier request's late reply could be taken for ``tx``'s answer
         (bytes that arrive meanwhile go to the line, and may end the wait early)."""
-        now = time.monotonic()
+        now = self._clock()
         while (until := tx.hazard_until(now)) > now:
             if self.connected:
                 self._wait(tx, until, ending=False)
             else:
-                time.sleep(until - now)
-            now = time.monotonic()
+                self._sleep(until - now)
+            now = self._clock()
 
     def _wait(self, tx: Transaction, until: float, *, ending: bool) -> bool:
         """Take in what arrives until ``until``: True when bytes came (``ending``: when
         they ended the attempt in flight); at ``until`` of an attempt, it expires."""
         while True:
-            now = time.monotonic()
+            now = self._clock()
             left = until - now
             if left <= 0:
                 if ending:
@@ -187,7 +197,7 @@ class SyncBus(LineBus):
             data = self._read(left)
             if not data:
                 continue
-            over = tx.received(data, time.monotonic())
+            over = tx.received(data, self._clock())
             if not ending or over:
                 return True
 

@@ -31,6 +31,7 @@ import socket
 import stat
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, Protocol
 
 CHUNK = 4096  # bytes read at most at once
@@ -60,12 +61,13 @@ def real_fd(port: Any) -> int | None:
         return None
 
 
-def wait_on(port: Any) -> Wait:
-    """The wait for an open ``port``: a pyserial ``Serial`` or a plain socket."""
+def wait_on(port: Any, *, sleep: Callable[[float], None] = time.sleep) -> Wait:
+    """The wait for an open ``port``: a pyserial ``Serial`` or a plain socket (``sleep``:
+    ``PortWait``'s, for tests in virtual time)."""
     if isinstance(port, socket.socket):
         return SocketWait(port)
     fd = real_fd(port)
-    return FdWait(fd) if fd is not None else PortWait(port)
+    return FdWait(fd) if fd is not None else PortWait(port, sleep=sleep)
 
 
 class FdWait:
@@ -113,7 +115,7 @@ class SocketWait:
 class PortWait:
     """pyserial's own ``read``/``in_waiting``, for a port with no descriptor to wait on."""
 
-    def __init__(self, port: Any, *, sleep: Any = time.sleep) -> None:
+    def __init__(self, port: Any, *, sleep: Callable[[float], None] = time.sleep) -> None:
         self.port, self._sleep = port, sleep
         if port.timeout != SLICE:
             port.timeout = SLICE  # once (module docstring)

@@ -7,8 +7,9 @@ transmitter on the pair and jam the bus. The adapter's transmitter must stay off
 (docs/sniff.md): an adapter with automatic direction control only transmits when
 written to, which this never does.
 
-Arrival times are wall-clock seconds since the epoch, taken from the monotonic clock
-(so they never jump backwards) plus the wall time at opening.
+Arrival times are wall-clock seconds since the epoch, taken from the line's clock
+(``rtupoll.io.clock``: monotonic, and fine enough to tell frames apart by their
+silence) plus the wall time at opening.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io import clock as line_clock
 from rtupoll.io import waits
 from rtupoll.io.serialport import Serial, gateway, open_error
 from rtupoll.rtu.timing import Framing
@@ -45,8 +47,8 @@ class ListenPort:
             raise PortError(open_error(path, exc)) from None
         self.path, self._port = path, port
         self._take = waits.wait_on(port)
-        mono, wall = time.monotonic(), time.time()
-        self.clock: Callable[[], float] = lambda: wall + (time.monotonic() - mono)
+        mono, wall = line_clock.now(), time.time()
+        self.clock: Callable[[], float] = lambda: wall + (line_clock.now() - mono)
 
     def chunks(self, stop: Callable[[], bool]) -> Iterator[tuple[bytes, float]]:
         """``(bytes, arrival)`` as they come; ``(b"", now)`` every ``POLL`` s of quiet."""
