@@ -203,16 +203,27 @@ def _dropped(hook: Any, unraisable: Any) -> None:
 
 def stop_event() -> asyncio.Event:
     """For a command that runs until stopped, in its event loop: an event SIGINT or
-    SIGTERM sets (the loop finishes what it writes, then stops); set at once if a Ctrl-C
+    SIGTERM sets (the loop finishes what it writes, then stops; where the loop takes no
+    signal handlers, Windows's, a Python handler sets it, so Ctrl-C ends a command there
+    as here, with the same exit code); set at once if a Ctrl-C
     came before and Python dropped its KeyboardInterrupt (``_dropped``: the command
     would otherwise run on, as if it had not come)."""
     import asyncio
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def noted(signum: int, frame: FrameType | None) -> None:  # (the loop's thread is ours)
+        loop.call_soon_threadsafe(stop.set)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+        try:
             loop.add_signal_handler(sig, stop.set)
+        except NotImplementedError:  # Windows's loop has none: Python's own handler, which
+            with contextlib.suppress(ValueError):  # wakes the loop (its wakeup socket)
+                signal.signal(sig, noted)  # (put back when the command ends: _process)
+        except (RuntimeError, ValueError):  # not the main thread
+            pass
     if _LOST:
         stop.set()
     return stop
