@@ -228,9 +228,11 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                  metrics=metrics, log_format=log_format, http=http, gateway=gateway)
         if fmt == "table" and not once and not faults:
             dead = lines[0].config.devices[-1].address  # one that exists on this bus
+            from rtupoll.io.port_errors import example_port
+
             click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
                        "or --baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
-                       "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
+                       f"-p {example_port()} -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
         if devices or port:
@@ -246,9 +248,11 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
+            from rtupoll.io.port_errors import example_port
+
             raise UsageError(f"which port is {devices[0].profile}@{devices[0].address} on? "
-                             "give --port PORT (or $RTUPOLL_PORT), e.g. -p /dev/ttyUSB0, or "
-                             "--simulate to try it without hardware")
+                             f"give --port PORT (or $RTUPOLL_PORT), e.g. -p {example_port()}, "
+                             "or --simulate to try it without hardware")
         if not port:
             raise UsageError("nothing to poll: give --config FILE, or --port PORT and DEVICEs "
                              "(PROFILE@ADDRESS), or --simulate to try it without hardware")
@@ -432,7 +436,7 @@ def _table_shown(fmt: str, output: Path | None) -> bool:
 
 def _adapter_warnings(site: Site) -> None:
     """One line per USB adapter whose latency timer adds more than 1 ms to every reply."""
-    from rtupoll.io.serialport import latency_timer, latency_warning
+    from rtupoll.io.latency import latency_timer, latency_warning
 
     for bus in site.buses:
         warning = latency_warning(bus.port, latency_timer(bus.port))

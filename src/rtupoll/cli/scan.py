@@ -20,7 +20,7 @@ from rtupoll.cli.options import format_option, line_options, profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
-from rtupoll.io.serialport import latency_timer, latency_warning
+from rtupoll.io.latency import latency_timer, latency_warning
 from rtupoll.jobs.scan import (
     LATENCY,
     Found,

@@ -68,7 +68,9 @@ def port_optional(command: click.Command) -> click.Command:
 
 def need_port(port: str | None) -> str:
     if not port:
-        raise UsageError("which port? give --port PORT (e.g. -p /dev/ttyUSB0, or "
+        from rtupoll.io.port_errors import example_port
+
+        raise UsageError(f"which port? give --port PORT (e.g. -p {example_port()}, or "
                          "tcp://HOST:PORT for a gateway), or set $RTUPOLL_PORT")
     return port
 

@@ -60,6 +60,8 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 from rtupoll.errors import PortError
 from rtupoll.io import clock, serialport
 from rtupoll.io.interface import LineBus, raise_failed
+from rtupoll.io.latency import latency_timer
+from rtupoll.io.port_errors import gateway_error
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
@@ -120,7 +122,7 @@ class Bus(LineBus):
         self._port: _Port | None = None
         self.line = Line(self.framing, drain=drain, echo=settings.echo)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
-        self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
+        self.adapter_latency = latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight
         self._over: asyncio.Future[None] | None = None  # set when that attempt is over
         self._loop: asyncio.AbstractEventLoop | None = None  # the port's, once open
@@ -174,7 +176,7 @@ class Bus(LineBus):
         except TimeoutError as exc:
             ok = False
             if self._gateway:  # it does not answer: trying again would only wait again
-                why = serialport.gateway_error(*self._gateway, exc, self._connect_timeout)
+                why = gateway_error(*self._gateway, exc, self._connect_timeout)
         except Exception:  # pymodbus, pyserial (ValueError: unknown URL)
             ok = False
         if ok and self.connected:

@@ -26,17 +26,14 @@ under ``rtupoll.io.serialport.protocol_nodtr`` and appends ``rtupoll.io.serialpo
 that list (``register()``, idempotent, called on import). ``serial_class_for_url``
 strips the scheme, so the port pyserial opens is the plain device path.
 
-Errors. A port that will not open is the commonest field problem, and "could not
-open port" helps nobody. ``open_error`` and ``gateway_error`` turn the OS error
-into what to do: missing (unplugged?), busy (another program holds it: pyserial's
-exclusive lock), permission denied (which group to join), not a serial port,
-gateway refused / unreachable / not answering.
+Errors. Why a port will not open is ``rtupoll.io.port_errors``'s to say (``diagnose_serial``
+and ``diagnose_gateway`` find the error after pymodbus swallowed it); an adapter's
+latency timer is ``rtupoll.io.latency``'s.
 """
 
 from __future__ import annotations
 
 import contextlib
-import errno
 import itertools
 import os
 import sys
@@ -399,60 +396,17 @@ def line_parity(port: str, parity: str) -> str:
     return "N" if os.path.realpath(device_path(port)).startswith("/dev/pts/") else parity
 
 
-def open_error(port: str, exc: BaseException) -> str:
-    """One line saying why ``port`` did not open, and what to do about it."""
-    path = device_path(port)
-    code = getattr(exc, "errno", None)
-    text = str(exc)
-    if code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY) or "exclusively lock" in text:
-        return (f"{path} is busy: another program has it open (close it, or stop the "
-                f"service using it: 'fuser {path}' shows which)")
-    if code in (errno.EACCES, errno.EPERM):
-        group = _group_of(path)
-        join = f"; add yourself to the '{group}' group and log in again" if group else ""
-        return f"permission denied opening {path}{join}"
-    if code in (errno.ENOENT, errno.ENXIO, errno.ENODEV) or (
-            code is None and not os.path.exists(path) and "://" not in path):
-        import glob
-
-        seen = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
-        hint = f" (serial ports present: {', '.join(seen)})" if seen else \
-            " (is the adapter plugged in?)"
-        return f"{path} does not exist{hint}"
-    if code in (errno.ENOTTY, errno.EINVAL) or f"({errno.ENOTTY}, " in text:
-        # pyserial reports a failed termios call as "Could not configure port: (25, ...)"
-        return f"{path} is not a serial port"
-    if isinstance(exc, ValueError):
-        return f"{path}: {text}"
-    return f"cannot open {path}: {text or type(exc).__name__}"
-
-
-def gateway_error(host: str, port: int, exc: BaseException, timeout: float) -> str:
-    """One line saying why an RTU-over-TCP gateway did not accept a connection."""
-    import socket
-
-    where = f"gateway {host}:{port}"
-    if isinstance(exc, ConnectionRefusedError):
-        return f"{where} refused the connection (wrong port, or the gateway allows one client)"
-    if isinstance(exc, socket.gaierror):
-        return f"{where}: cannot resolve {host!r}"
-    if isinstance(exc, TimeoutError):  # asyncio's too (3.11+)
-        return f"{where} did not answer within {timeout:g} s (unreachable or filtered)"
-    code = getattr(exc, "errno", None)
-    if code in (errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN):
-        return f"{where} is unreachable ({os.strerror(code)})"
-    return f"cannot connect to {where}: {exc or type(exc).__name__}"
-
-
 def diagnose_serial(url: str, **settings: Any) -> str | None:
     """Try to open ``url`` the way pymodbus does; why it fails, or None if it opens.
 
     Used only after a failed open, to name the reason (pymodbus swallows it).
     """
+    from rtupoll.io.port_errors import open_error
+
     try:
         port = serial.serial_for_url(url, exclusive=True, **settings)
     except (OSError, ValueError) as exc:
-        return open_error(url, exc)
+        return open_error(device_path(url), exc)
     port.close()
     return None
 
@@ -464,57 +418,13 @@ async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
     except (TimeoutError, OSError) as exc:
+        from rtupoll.io.port_errors import gateway_error
+
         return gateway_error(host, port, exc, timeout)
     writer.close()
     with contextlib.suppress(OSError):
         await writer.wait_closed()
     return None
-
-
-LATENCY_OK = 0.001  # seconds: an adapter latency timer above this is worth lowering
-UDEV_RULE = ('ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", '
-             'ATTR{latency_timer}="1"')
-
-
-def latency_timer(port: str, *, root: str = "/") -> float | None:
-    """A USB-serial adapter's latency timer in seconds (Linux: ``/sys/bus/usb-serial/
-    devices/ttyUSBn/latency_timer``, in ms), or None for any other port or when unknown.
-
-    The adapter holds received bytes up to this long before passing them on (FTDI: 16 ms
-    by default), so every reply seems that much slower. ``root``: where ``/sys`` and
-    ``/dev`` are looked up (tests give a directory tree of their own)."""
-    if "://" in port.replace(_PREFIX, ""):
-        return None
-    path = device_path(port)
-    if root != "/":
-        path = os.path.join(root, path.lstrip("/"))
-    tty = os.path.basename(os.path.realpath(path))
-    if not tty.startswith("ttyUSB"):
-        return None
-    try:
-        with open(os.path.join(root, "sys/bus/usb-serial/devices", tty, "latency_timer")) as f:
-            return int(f.read().strip()) / 1000
-    except (OSError, ValueError):
-        return None
-
-
-def latency_warning(port: str, latency: float | None) -> str | None:
-    """One line for the user when ``port``'s adapter latency timer is above 1 ms."""
-    if latency is None or latency <= LATENCY_OK:
-        return None
-    tty = os.path.basename(os.path.realpath(device_path(port)))
-    return (f"{port}: the USB adapter's latency timer is {latency * 1000:g} ms, added to "
-            f"every reply; lower it with 'echo 1 | sudo tee /sys/bus/usb-serial/devices/"
-            f"{tty}/latency_timer' or for good with the udev rule {UDEV_RULE}")
-
-
-def _group_of(path: str) -> str:
-    try:
-        import grp  # POSIX only
-
-        return grp.getgrgid(os.stat(path).st_gid).gr_name
-    except (ImportError, OSError, KeyError):
-        return ""
 
 
 register()

@@ -37,6 +37,8 @@ from rtupoll.errors import PortError
 from rtupoll.io import clock as line_clock
 from rtupoll.io import serialport, waits
 from rtupoll.io.interface import LineBus
+from rtupoll.io.latency import latency_timer
+from rtupoll.io.port_errors import gateway_error, open_error
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
@@ -77,7 +79,7 @@ class SyncBus(LineBus):
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
         self.line = Line(self.framing, drain=drain, echo=settings.echo)
-        self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
+        self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
                                                  deassert_dtr=settings.deassert_dtr)
@@ -136,7 +138,7 @@ class SyncBus(LineBus):
         except (OSError, ValueError) as exc:  # SerialException is an OSError
             if self._slot is not None and self._slot.error:
                 raise PortError(self._slot.error) from None  # opens, but not as asked
-            raise PortError(serialport.open_error(self._url, exc)) from None
+            raise PortError(open_error(serialport.device_path(self._url), exc)) from None
 
     def _open_gateway(self, host: str, port: int) -> Any:
         import socket
@@ -144,7 +146,7 @@ class SyncBus(LineBus):
         try:
             return socket.create_connection((host, port), timeout=self._connect_timeout)
         except OSError as exc:  # refused, unreachable, unresolved, timed out
-            raise PortError(serialport.gateway_error(host, port, exc,
+            raise PortError(gateway_error(host, port, exc,
                                                      self._connect_timeout)) from None
 
     # -- one transaction (rtu.transaction says what; this drives it) ----------------

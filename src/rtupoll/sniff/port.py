@@ -20,7 +20,8 @@ from collections.abc import Callable, Iterator
 from rtupoll.errors import PortError, UsageError
 from rtupoll.io import clock as line_clock
 from rtupoll.io import waits
-from rtupoll.io.serialport import Serial, gateway, open_error
+from rtupoll.io.port_errors import open_error
+from rtupoll.io.serialport import Serial, gateway
 from rtupoll.rtu.timing import Framing
 
 POLL = 0.02  # seconds between ticks while the line is quiet
