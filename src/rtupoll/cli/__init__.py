@@ -189,6 +189,7 @@ def _from_interrupt(exc: BaseException | None) -> bool:
     return False
 
 
+_AWAKE = 0.2  # s: how soon a Ctrl-C is seen where the loop takes no signal handlers
 _LOST: list[bool] = []  # a Ctrl-C's KeyboardInterrupt that Python dropped, this command
 
 
@@ -216,12 +217,18 @@ def stop_event() -> asyncio.Event:
     def noted(signum: int, frame: FrameType | None) -> None:  # (the loop's thread is ours)
         loop.call_soon_threadsafe(stop.set)
 
+    def awake() -> None:  # a Python handler runs once the loop's select returns
+        if not stop.is_set():
+            loop.call_later(_AWAKE, awake)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
             loop.add_signal_handler(sig, stop.set)
-        except NotImplementedError:  # Windows's loop has none: Python's own handler, which
-            with contextlib.suppress(ValueError):  # wakes the loop (its wakeup socket)
-                signal.signal(sig, noted)  # (put back when the command ends: _process)
+        except NotImplementedError:  # Windows's loops have none: Python's own handler
+            with contextlib.suppress(ValueError):  # (put back when the command ends: _process)
+                signal.signal(sig, noted)
+            if sig == signal.SIGINT:
+                awake()  # its select is not interrupted by Ctrl-C: it wakes this often
         except (RuntimeError, ValueError):  # not the main thread
             pass
     if _LOST:

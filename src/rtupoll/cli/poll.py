@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
+from rtupoll import aio
 from rtupoll.cli import stop_event
 from rtupoll.cli.options import (
     LineOptions,
@@ -410,12 +411,12 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             view = PollView(scheduler.buses, title=title, live=not once,
                             footers=[s.footer for s in services])
         if once:
-            readings = asyncio.run(_once(scheduler, writer, services))
+            readings = aio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
             _report_failures(site, readings)
         else:
-            asyncio.run(_forever(scheduler, writer, view, console, services))
+            aio.run(_forever(scheduler, writer, view, console, services))
 
 
 def _table_shown(fmt: str, output: Path | None) -> bool:

@@ -158,7 +158,6 @@ def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
 
             with syncbus.SyncBus(settings) as sync:
                 return syncbus.run(job(sync))  # type: ignore[arg-type]  # a BusLike, not a Bus
-        import asyncio
 
         from rtupoll.io.bus import Bus
 
@@ -166,7 +165,9 @@ def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
             async with Bus(settings) as bus:
                 return await job(bus)
 
-        return asyncio.run(main())
+        from rtupoll import aio
+
+        return aio.run(main())
     except DeviceTimeout as exc:
         if not on_timeout:
             raise

@@ -55,7 +55,9 @@ def web(url: str, **opts: Any) -> None:
     aiomqtt_module()
     if warning := http.warning():
         click.echo(f"rtupoll: {warning}", err=True)
-    asyncio.run(_main(settings, prefix, http))
+    from rtupoll import aio
+
+    aio.run(_main(settings, prefix, http))
 
 
 async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
