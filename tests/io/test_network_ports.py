@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
@@ -20,6 +21,7 @@ from rfc2217_server import Rfc2217Server
 
 from rtupoll.io import serialport, waits
 from rtupoll.io.syncbus import SyncBus
+from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -94,3 +96,18 @@ def test_guess(line: tuple[str, SimulatedBus]) -> None:
                   "input:30009")  # co2
     assert ran.returncode == 0, ran.stderr
     assert "0x7539 (30009) │ u16  │                │ 1234" in ran.stdout
+
+
+def test_sniff_listens_on_a_network_serial_port(sim: Sim, tmp_path: Path) -> None:
+    """``sniff -p rfc2217://...``: the tap of a line served by an RFC 2217 server (an
+    adapter on the pair, elsewhere), heard through the portable wait, values decoded."""
+    from tests.sniff.test_sniff import mbpoll, records, sniffing
+
+    tap = str(tmp_path / "tap")
+    bus = sim("huiwen-aq@3", tick=None, tap=tap, sets=["huiwen-aq@3.co2=901"])
+    with Rfc2217Server(tap) as url, sniffing(url, "--format", "json", "huiwen-aq@3",
+                                             shown=1) as lines:
+        mbpoll(bus.port, 3, Table.INPUT, 30009, 1)  # co2, 0x7539
+    got = [r for r in records(lines) if r.get("field") == "co2"]
+    assert got, lines
+    assert got[0]["value"] == 901

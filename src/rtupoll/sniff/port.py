@@ -1,7 +1,7 @@
 """The tap: a serial port opened for listening only.
 
 pyserial directly, used read-only: this module never calls ``write``, and the port is
-opened with DTR and RTS deasserted (``io.serialport.Serial``), because on adapters
+opened with DTR and RTS deasserted (``io.serialport.OwnPort``), because on adapters
 whose RS-485 driver is enabled by RTS an asserted RTS would put the sniffer's
 transmitter on the pair and jam the bus. The adapter's transmitter must stay off
 (docs/sniff.md): an adapter with automatic direction control only transmits when
@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 from rtupoll.errors import PortError, UsageError
 from rtupoll.io import clock as line_clock
 from rtupoll.io import waits
 from rtupoll.io.port_errors import open_error
-from rtupoll.io.serialport import Serial, gateway
+from rtupoll.io.serialport import NETWORK, gateway, own_class
 from rtupoll.rtu.timing import Framing
 
 POLL = 0.02  # seconds between ticks while the line is quiet
@@ -31,10 +32,12 @@ class ListenPort:
     """A serial port that is only ever read from."""
 
     def __init__(self, path: str, framing: Framing) -> None:
-        if gateway(path) is not None or "://" in path:
+        if gateway(path) is not None or ("://" in path and
+                                         not path.lower().startswith(NETWORK)):
             raise UsageError(f"{path}: sniff listens on a serial port (an RS-485 adapter on "
-                             "the pair); a TCP gateway only shows its own master's traffic")
-        port = Serial()
+                             "the pair, or one served by rfc2217:// or socket://); a TCP "
+                             "gateway only shows its own master's traffic")
+        port: Any = own_class(path, None)()
         port.port = path
         port.baudrate = framing.baudrate
         port.bytesize = framing.bytesize
