@@ -482,12 +482,12 @@ def _serial(bus: BusConfig) -> tuple[object, ...]:
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
     """What one healthy cycle should cost: each read's frames and silences on the wire
-    (``rtu.transaction_wire_time``) plus the device's turnaround."""
+    (``rtu.transaction_wire_time``) plus the device's turnaround and idle gap."""
     total = 0.0
     for b in blocks:
         request, response = read_frame_sizes(b.count, coils=not b.table.is_register)
         total += transaction_wire_time(framing, request, response)
-        total += config.profile.limits.turnaround
+        total += config.profile.limits.turnaround + config.gap
     return max(total, 1e-3)
 
 

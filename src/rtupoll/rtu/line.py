@@ -19,6 +19,22 @@ request to that unit may go only once the line has been silent that long: counte
 the silence is, from the last byte on the line, whoever sent it (``ready_at(unit=)``).
 A unit without one costs one dictionary look-up.
 
+**Learned idle gap.** A device that needs a gap nobody set looks slow: its first
+attempt, sent right after another device's reply, is not heard; the retry, after a
+whole timeout of silence, is answered. Taken for a late answer to the first attempt,
+that would raise the learned timeout to its ceiling and starve the device. So when an
+attempt that heard nothing at all was sent after a shorter silence than the retry
+that was answered, the answer is the retry's (its reply time counted from the retry,
+never counted late) and the unit's gap is raised: to twice the silence that was not
+enough (at least ``GAP_STEP``), never beyond the silence that was (or ``GAP_MAX``).
+The unanswered attempts stay outstanding, *suspect*: should one still be answered,
+the device heard it and is slow, not deaf: the reply is counted late as ever (so the
+timeout learns), the learned gap is dropped and not learned again for that unit for
+``GAP_REFUTED`` seconds. At ``GAP_MAX`` the evidence no longer counts as a gap. A
+learned gap halves every ``GAP_HALF_LIFE`` seconds (a device that needed a pause for
+a while is not slowed for ever; one that still needs it raises it again after one
+unheard attempt) and is gone below the silence (``learned_gap``).
+
 **Which reply answers which request.** RTU has no transaction id: a read reply carries
 only the unit, the function and a byte count, so a late reply to one request looks
 exactly like the answer to the next request of the same shape. A timer alone cannot
@@ -84,6 +100,7 @@ plain silence (``DeviceTimeout``).
 
 from __future__ import annotations
 
+import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
@@ -97,6 +114,10 @@ HORIZON = 60.0  # seconds after which no late reply is expected, whatever the ev
 LATE_FACTOR = 12  # a request that timed out may still be answered this many timeouts late
 SETTLE_FACTOR = 3  # an answered-looking request may still be answered this many latencies late
 DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
+GAP_STEP = 0.01  # seconds: the least idle gap learned
+GAP_MAX = 1.0  # seconds: the longest idle gap learned; beyond, a device is slow, not deaf
+GAP_HALF_LIFE = 600.0  # seconds in which a learned idle gap halves
+GAP_REFUTED = 600.0  # seconds a unit whose unheard attempt was answered after all learns none
 ECHO_HINT = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
              "always on): add --echo (echo: true on the bus in a site file)")
 
@@ -109,6 +130,10 @@ class Outstanding:
     expect: Expect
     sent: float  # when its first byte went out
     expires: float  # after this no answer to it is expected any more
+    idle: float = 0.0  # the silence on the line before it went
+    retry: bool = False  # a retry of the same request within one transaction
+    silent: bool = False  # its attempt ended with nothing received at all
+    suspect: bool = False  # taken for not heard by the device (``Line._unheard``)
 
 
 @frozen
@@ -137,6 +162,7 @@ class LineCounts:
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
     echoes: int = 0  # requests that came back with echo off (the adapter echoes)
+    gap_raised: Counter[int] = field(default_factory=Counter)  # learned idle gap raises
 
 
 class Line:
@@ -171,6 +197,10 @@ class Line:
         # the gap each unit gets (set, the line's), only where above the 3.5 characters
         self._gap: dict[int, float] = {}
         self._quiet = max(framing.silence, idle_gap)  # any other unit's
+        # per unit, a learned idle gap: (seconds, since when); refuted: until when none is
+        self._learned: dict[int, tuple[float, float]] = {}
+        self._refuted: dict[int, float] = {}
+        self._suspected: set[int] = set()  # units with suspects outstanding
 
     # -- when the next frame may go ------------------------------------------
 
@@ -186,8 +216,14 @@ class Line:
         """The silence a request to ``unit`` waits for (the 3.5 characters at least)."""
         return self._gap.get(unit, self._quiet)
 
+    @property
+    def learned_gap(self) -> dict[int, float]:
+        """Per unit, the idle gap learned (as of its last request), where one is."""
+        return {unit: gap for unit, (gap, _) in self._learned.items()}
+
     def _regap(self, unit: int) -> None:
-        gap = max(self._gap_set.get(unit, 0.0), self.idle_gap)
+        learned = self._learned.get(unit)
+        gap = max(self._gap_set.get(unit, 0.0), self.idle_gap, learned[0] if learned else 0.0)
         if gap > self.framing.silence:
             self._gap[unit] = gap
         else:
@@ -209,8 +245,12 @@ class Line:
 
     # -- sending ---------------------------------------------------------------
 
-    def send(self, request: bytes, now: float) -> None:
-        """``request`` starts on the wire at ``now``; its answer is awaited (not a broadcast)."""
+    def send(self, request: bytes, now: float, *, retry: bool = False) -> None:
+        """``request`` starts on the wire at ``now``; its answer is awaited (not a
+        broadcast). ``retry``: a retry of the same request (``Transaction``)."""
+        idle = now - max(self.last_rx, self.tx_end)
+        if self._learned and request[0] in self._learned:
+            self._decay(request[0], now)
         self.tx_end = now + self.framing.wire_time(len(request))
         self.drain_for = 0.0
         if self._idle_burst:
@@ -224,7 +264,7 @@ class Line:
         if exp is None:  # a broadcast: nobody answers
             self.attempt = None
             return
-        entry = Outstanding(request, exp, now, now + self._settle(exp.unit))
+        entry = Outstanding(request, exp, now, now + self._settle(exp.unit), idle, retry)
         self._outstanding.setdefault(exp.unit, deque()).append(entry)
         self.attempt = Attempt(entry)
 
@@ -351,8 +391,21 @@ class Line:
         if not fits:
             self.counts.unsolicited += 1
             return False
-        gone = min(fits, key=lambda e: e.expires)
+        in_flight = att.entry if att is not None else None
         queue = self._outstanding[unit]
+        if len(fits) > 1 and in_flight in fits and self._unheard(unit, fits, in_flight, began):
+            for e in fits:  # answered; the attempts that were not heard: see _unheard
+                if e is in_flight or (e.silent and not e.suspect):
+                    queue.remove(e)
+            if not queue:
+                del self._outstanding[unit]
+            self._latency[unit] = max(began - in_flight.sent, 0.95 * self._latency.get(unit, 0.0))
+            self.reply_time[unit] = max(
+                0.0, began - in_flight.sent - self.framing.wire_time(len(in_flight.request)))
+            return True
+        if unit in self._suspected and any(e.suspect for e in fits):
+            self._refute(unit, began)  # one taken for not heard may be answered: it was heard
+        gone = min(fits, key=lambda e: e.expires)
         queue.remove(gone)
         if not queue:  # nothing unanswered: the next request's hazard check is quick
             del self._outstanding[unit]
@@ -361,13 +414,75 @@ class Line:
         self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))
         took = self.reply_time[unit] = max(
             0.0, began - oldest - self.framing.wire_time(len(first.request)))
-        in_flight = att.entry if att is not None else None
         taken = in_flight is not None and all(e.request == in_flight.request for e in fits)
         # late: another request's reply, or (in order) an earlier attempt's of this one
         if not taken or first is not in_flight:
             self.counts.late[unit] += 1
             self.late_reply_time[unit] = took
         return taken
+
+    # -- the learned idle gap ---------------------------------------------------
+
+    def _unheard(self, unit: int, fits: list[Outstanding], in_flight: Outstanding | None,
+                 began: float) -> bool:
+        """Whether one frame that fits ``fits`` (the attempt in flight among them) is the
+        answer in flight's, the others not heard by the device (module docstring):
+
+        - a retry answered after a longer silence than every earlier attempt of it, none
+          of which heard anything: they were not heard. The first time (for the unit)
+          they stay outstanding as *suspects*, so that an answer to one is still seen;
+          the second time (a suspect among them, or a gap learned already) the unit's
+          gap is raised and they are forgotten;
+        - suspects, and an attempt in flight sent after a longer silence than any of
+          them: its answer (the suspects stay).
+
+        Anything else, a suspect among them, refutes (``_refute``)."""
+        assert in_flight is not None
+        older = [e for e in fits if e is not in_flight]
+        if any(e.request != in_flight.request or not _longer(in_flight.idle, e.idle)
+               for e in older) or self._refuted.get(unit, -math.inf) > began:
+            return False
+        fresh = [e for e in older if not e.suspect]
+        if not fresh:
+            return True  # suspects only: the answer in flight's
+        if not in_flight.retry or not all(e.silent for e in fresh):
+            return False
+        short = max(e.idle for e in fresh)
+        if short >= GAP_MAX:  # that long a silence was not enough: no gap explains it
+            return False
+        if len(fresh) == len(older) and unit not in self._learned:  # the first time
+            for e in fresh:
+                e.suspect = True
+            self._suspected.add(unit)
+            return True
+        was = self._learned.get(unit, (0.0, began))[0]
+        gap = min(GAP_MAX, in_flight.idle, max(GAP_STEP, 2 * short))
+        self._learned[unit] = (max(gap, was), began)
+        self._regap(unit)
+        self.counts.gap_raised[unit] += 1
+        for e in older:
+            e.suspect = False
+        return True
+
+    def _refute(self, unit: int, now: float) -> None:
+        """An attempt taken for unheard may have been answered: ``unit`` is slow, not deaf.
+        Its learned gap goes, and it learns none for ``GAP_REFUTED`` seconds."""
+        self._refuted[unit] = now + GAP_REFUTED
+        self._suspected.discard(unit)
+        for e in self._outstanding.get(unit, ()):
+            e.suspect = False
+        if self._learned.pop(unit, None) is not None:
+            self._regap(unit)
+
+    def _decay(self, unit: int, now: float) -> None:
+        """A learned gap halves every ``GAP_HALF_LIFE`` seconds; below the silence it is gone."""
+        gap, since = self._learned[unit]
+        left = gap * 0.5 ** ((now - since) / GAP_HALF_LIFE)
+        if left <= self.framing.silence:
+            del self._learned[unit]
+        else:
+            self._learned[unit] = (left, now)
+        self._regap(unit)
 
     def _garbled(self, att: Attempt) -> str | None:
         """A complete frame from the unit with the request's function and a bad CRC."""
@@ -393,6 +508,7 @@ class Line:
         if att is None:
             return None
         unit = att.entry.expect.unit
+        att.entry.silent = not att.rx
         late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
                    SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
@@ -432,3 +548,8 @@ class Line:
                 queue.remove(e)
             if not queue:
                 del self._outstanding[unit]
+
+
+def _longer(idle: float, than: float) -> bool:
+    """A silence that tells apart from ``than``: twice as long, and ``GAP_STEP`` longer."""
+    return idle >= max(2 * than, than + GAP_STEP)

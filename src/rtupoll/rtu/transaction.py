@@ -170,7 +170,7 @@ class Transaction:
     def sent(self, now: float) -> None:
         """The request started on the wire at ``now``."""
         framing = self.line.framing
-        self.line.send(self.request, now)
+        self.line.send(self.request, now, retry=self.attempts > 0)
         self.attempts += 1
         self.wire += framing.wire_time(len(self.request))
         if self.request[0] == 0:  # a broadcast: nobody answers

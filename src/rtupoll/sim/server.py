@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import math
 import os
 import struct
 import termios
@@ -75,6 +76,8 @@ class _Link:
         self.server, self.write, self.hang_up = server, write, hang_up
         self.deframer = Deframer()
         self.free_at = 0.0  # when the wire is free for the next reply
+        self.last_byte = -math.inf  # when the last byte on the line ended (either way)
+        self._idle = math.inf  # the silence before the frame being received began
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
@@ -83,11 +86,16 @@ class _Link:
         now = srv.loop.time()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
             self.write(data)
-        srv.to_tap(data, now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0))
+        ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
+        srv.to_tap(data, ends)
+        if not self.deframer.buffer:  # a frame may begin here: the silence before it
+            self._idle = now - self.last_byte
+        self.last_byte = max(self.last_byte, ends)
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now)
+                self._respond(chunk, now, self._idle)
+            self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
         self._flush = srv.loop.call_later(QUIET, self._quiet) if self.deframer.buffer else None
@@ -98,11 +106,11 @@ class _Link:
         if left:
             self.server.log(self.server.loop.time(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now)
+        replies = srv.engine.handle(frame, now, idle)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -120,6 +128,7 @@ class _Link:
             return
         srv = self.server
         now = srv.loop.time()
+        self.last_byte = max(self.last_byte, now)  # its last byte leaves the wire now
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
         srv.to_tap(tx.data)
