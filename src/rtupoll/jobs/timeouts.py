@@ -141,6 +141,7 @@ class DeviceTiming:
         self._late_seen: int | None = None
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
         self._gap = 0.0  # the idle gap last told to the bus
+        self.seen: Evidence | None = None  # the bus's evidence after the last transaction
 
     @property
     def timeout(self) -> float:
@@ -192,7 +193,7 @@ class DeviceTiming:
         """``answered``: the transaction got a reply (data or an exception reply)."""
         if bus is None:
             return
-        evidence = bus.evidence(unit)
+        evidence = self.seen = bus.evidence(unit)
         if answered and evidence.reply_time is not None:
             self.estimator.answered(evidence.reply_time)
         self._take_late(evidence)

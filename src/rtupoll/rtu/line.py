@@ -159,10 +159,18 @@ class Attempt:
 
 @dataclass
 class LineCounts:
+    """What the line saw, per unit where it is a unit's: every attempt is counted once,
+    by how it ended (answered, ``garbled`` or ``timeouts``; an echo seen with echo off
+    counts in ``echoes`` only)."""
+
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
     echoes: int = 0  # requests that came back with echo off (the adapter echoes)
     gap_raised: Counter[int] = field(default_factory=Counter)  # learned idle gap raises
+    sent: Counter[int] = field(default_factory=Counter)  # attempts (requests put on the wire)
+    garbled: Counter[int] = field(default_factory=Counter)  # attempts ended by a garbled reply
+    timeouts: Counter[int] = field(default_factory=Counter)  # attempts that got no reply
+    retried: Counter[int] = field(default_factory=Counter)  # answered only by a retry
 
 
 class Line:
@@ -216,6 +224,10 @@ class Line:
         """The silence a request to ``unit`` waits for (the 3.5 characters at least)."""
         return self._gap.get(unit, self._quiet)
 
+    def gap_learned(self, unit: int) -> bool:
+        """Whether ``unit``'s gap is (also) learned."""
+        return unit in self._learned
+
     @property
     def learned_gap(self) -> dict[int, float]:
         """Per unit, the idle gap learned (as of its last request), where one is."""
@@ -265,6 +277,7 @@ class Line:
             self.attempt = None
             return
         entry = Outstanding(request, exp, now, now + self._settle(exp.unit), idle, retry)
+        self.counts.sent[exp.unit] += 1
         self._outstanding.setdefault(exp.unit, deque()).append(entry)
         self.attempt = Attempt(entry)
 
@@ -310,6 +323,8 @@ class Line:
             self._consume(start + len(frame))
             if self._explain(frame, began) and att is not None:
                 self.attempt = None
+                if att.entry.retry:
+                    self.counts.retried[frame[0]] += 1
                 return Answer(frame, self.reply_time[frame[0]])
         if len(self._buf) > 2 * MAX_FRAME:
             self._consume(len(self._buf) - MAX_FRAME)
@@ -318,6 +333,7 @@ class Line:
             if why:  # the request got its reply, garbled: it is settled, not outstanding
                 self.attempt = None
                 self._settle_garbled(att.entry)
+                self.counts.garbled[att.entry.expect.unit] += 1
                 return Garbled(why)
         return None
 
@@ -347,6 +363,7 @@ class Line:
         if att is None:  # a broadcast's echo: nothing waits for it
             self.counts.unsolicited += 1
             return b"", None
+        self.counts.garbled[att.entry.expect.unit] += 1
         return b"", Garbled(f"the adapter's echo differs from the request sent (expected "
                             f"{sent[:n].hex(' ')}, got {data[:n].hex(' ')}): a collision, or "
                             "an adapter that does not echo (then drop --echo)")
@@ -512,7 +529,9 @@ class Line:
         late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
                    SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
-        return diagnose(bytes(att.rx), att.entry.expect)
+        why = diagnose(bytes(att.rx), att.entry.expect)
+        (self.counts.garbled if why else self.counts.timeouts)[unit] += 1
+        return why
 
     def hazard_until(self, request: bytes, now: float) -> float:
         """Until when ``request`` must not be sent: while an earlier, different request

@@ -28,7 +28,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rtupoll")
 _EXTRA = ("event", "bus", "device", "profile", "address", "state", "status", "error", "file",
-          "ok", "timeouts", "late", "garbled", "exceptions")
+          "ok", "timeouts", "late", "garbled", "exceptions", "attempts", "timed_out_attempts",
+          "garbled_attempts", "retried", "idle_gap")
 
 
 class JsonFormatter(logging.Formatter):
@@ -140,7 +141,10 @@ class StateLog(Service):
         extra = {"event": "device", "bus": bus, "device": name,
                  "profile": dev.config.profile.id, "address": dev.config.address,
                  "state": st.state.value, "ok": st.ok, "timeouts": st.timeouts,
-                 "late": st.late, "garbled": st.garbled, "exceptions": st.exception_count}
+                 "late": st.late, "garbled": st.garbled, "exceptions": st.exception_count,
+                 "attempts": st.attempts, "timed_out_attempts": st.timed_out,
+                 "garbled_attempts": st.garbled_attempts, "retried": st.retried,
+                 "idle_gap": st.idle_gap}
         if st.late and name not in self._late:  # the first late reply: once per device
             self._late.add(name)
             log.warning("%s on %s: a reply came after its timeout (counted late, never "
