@@ -409,6 +409,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             readings = asyncio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
+            _echo_found(scheduler)
             _report_failures(site, readings)
         else:
             asyncio.run(_forever(scheduler, writer, view, console, services))
@@ -541,6 +542,15 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         if stop.is_set():
             return
         live.refresh()
+
+
+def _echo_found(scheduler: Scheduler) -> None:
+    """``--once``: one stderr line per bus whose adapter's echo was found (and consumed)."""
+    from rtupoll.rtu.line import ECHO_FOUND
+
+    for bp in scheduler.buses:
+        if getattr(bp.transport, "echo_found", False):
+            click.echo(f"rtupoll: {bp.config.name}: {ECHO_FOUND}", err=True)
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

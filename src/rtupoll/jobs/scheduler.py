@@ -500,11 +500,13 @@ def open_real_bus(config: BusConfig) -> BusLike:
     from rtupoll.io.bus import Bus, PortSettings
     from rtupoll.io.serialport import Rs485
 
-    return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
-                            bytesize=config.bytesize, stopbits=config.stopbits,
-                            deassert_dtr=config.deassert_dtr, echo=config.echo,
-                            rs485=Rs485(*config.rs485) if config.rs485 else None,
-                            idle_gap=config.idle_gap))
+    bus = Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
+                           bytesize=config.bytesize, stopbits=config.stopbits,
+                           deassert_dtr=config.deassert_dtr, echo=config.echo,
+                           rs485=Rs485(*config.rs485) if config.rs485 else None,
+                           idle_gap=config.idle_gap))
+    bus.line.adopt_echo = True  # an echo found without echo: carry on with it (ECHO_FOUND)
+    return bus
 
 
 class Scheduler:

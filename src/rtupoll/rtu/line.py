@@ -74,10 +74,15 @@ device that answers one request twice, and frames from a second master.
 before the device's reply. With ``echo`` on, the line consumes that echo as part of
 each attempt: the first bytes received after a request must be the request, byte for
 byte; anything else ends the attempt as garbled (a collision on the wire, or an
-adapter that does not echo). With ``echo`` off, a request coming back is detected:
-the attempt ends garbled with ``ECHO_HINT`` (reads and FC15/16, whose echo is no
-reply; FC05/06, whose echo is byte for byte the device's reply, once an echo has been
-seen on the line), never taken for the answer.
+adapter that does not echo). With ``echo`` off, a request coming back is detected on
+the first request, whether its bytes come one by one as they leave the wire or all
+at once (reads and FC15/16, whose echo is no reply; FC05/06, whose echo is byte for
+byte the device's reply, once an echo has been seen on the line): never taken for the
+answer, never counted late. Then either the attempt ends garbled with ``ECHO_HINT``
+(``Garbled.final``: a retry would come back the same; a one-shot command says to add
+--echo), or, with ``adopt_echo`` (``poll``), the echo is consumed and the line goes on
+with ``echo`` on (``echo_found``; ``ECHO_FOUND`` says so): the device's reply that
+follows is the first attempt's answer.
 
 **Reply time.** For every frame it explains, the line records the device's reply
 time: from the end of the request on the wire (its first byte's time plus its wire
@@ -120,6 +125,9 @@ GAP_HALF_LIFE = 600.0  # seconds in which a learned idle gap halves
 GAP_REFUTED = 600.0  # seconds a unit whose unheard attempt was answered after all learns none
 ECHO_HINT = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
              "always on): add --echo (echo: true on the bus in a site file)")
+ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
+              "always on): each echo is consumed from the first one on, as with --echo; say "
+              "so with --echo (echo: true on the bus in a site file)")
 
 
 @dataclass
@@ -147,6 +155,7 @@ class Answer:
 @frozen
 class Garbled:
     why: str
+    final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
 @dataclass
@@ -181,6 +190,10 @@ class Line:
                  echo: bool = False, idle_gap: float = 0.0) -> None:
         self.framing = framing
         self.echo = echo  # the adapter echoes each request: consume it
+        # echo off and a request comes back: consume it and turn echo on (``poll``),
+        # rather than end the transaction (a one-shot command says to add --echo)
+        self.adopt_echo = False
+        self.echo_found = False  # an echo came back with echo off (``adopt_echo``: adopted)
         self._echo = b""  # the echo still expected (echo on)
         self.counts = LineCounts()
         self._drain, self._horizon, self._drain_limit = drain, horizon, drain_limit
@@ -312,8 +325,13 @@ class Line:
                     return None  # the request coming back, perhaps: wait for the rest
                 if self._buf.startswith(request) and self._is_echo(request):
                     self.counts.echoes += 1
-                    self.attempt = None
-                    return Garbled(ECHO_HINT)
+                    self.echo_found = True
+                    if not self.adopt_echo:
+                        self.attempt = None
+                        return Garbled(ECHO_HINT, final=True)
+                    self.echo = True  # from now on each echo is consumed, as with --echo
+                    self._consume(len(request))
+                    del att.rx[:len(request)]
         while True:
             found = self._next_frame()
             if found is None:

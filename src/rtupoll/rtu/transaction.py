@@ -163,6 +163,8 @@ class Transaction:
             if isinstance(event, Answer):
                 return self._answered(event)
             self._failed("frame", event.why)
+            if event.final:  # (an echo: a retry would come back the same)
+                return self._give_up()
         if self.attempts > self.retries:
             return self._give_up()
         return Send(self.request, self.ready_at())

@@ -28,11 +28,13 @@ import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
+T = TypeVar("T")
 QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 # frames kept in the wire log: a window of the latest, so a simulator left running for days
 # holds the same memory as after its first minute (every frame ever seen is counted in
@@ -78,6 +80,7 @@ class _Link:
         self.free_at = 0.0  # when the wire is free for the next reply
         self.last_byte = -math.inf  # when the last byte on the line ended (either way)
         self._idle = math.inf  # the silence before the frame being received began
+        self._echo_at = 0.0  # when the last byte echoed (with wire timing) comes back
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
@@ -85,7 +88,7 @@ class _Link:
         srv = self.server
         now = srv.loop.time()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
-            self.write(data)
+            self._echo(data, now)
         ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
         srv.to_tap(data, ends)
         if not self.deframer.buffer:  # a frame may begin here: the silence before it
@@ -99,6 +102,25 @@ class _Link:
         if self._flush:
             self._flush.cancel()
         self._flush = srv.loop.call_later(QUIET, self._quiet) if self.deframer.buffer else None
+
+    def _echo(self, data: bytes, now: float) -> None:
+        """Hand the master's bytes back as a 2-wire adapter does: with wire timing each
+        byte as it leaves the wire (one character time after the one before, from the
+        last one still going out); without, all at once."""
+        srv, fr = self.server, self.server.framing
+        if fr is None:
+            self.write(data)
+            return
+        at = max(now, self._echo_at)
+        for i in range(len(data)):
+            at += fr.char_time
+            srv.later(at, self._echo_byte, data[i : i + 1])
+        self._echo_at = at
+
+    def _echo_byte(self, byte: bytes) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):  # nobody reading: lost, as on a wire
+                self.write(byte)
 
     def _quiet(self) -> None:
         self._flush = None
@@ -172,7 +194,7 @@ class Server:
         if self.on_wire:
             self.on_wire(frame)
 
-    def later(self, when: float, fn: Callable[[Transmission], None], tx: Transmission) -> None:
+    def later(self, when: float, fn: Callable[[T], None], tx: T) -> None:
         """Run ``fn(tx)`` at ``when``, to well under a millisecond.
 
         asyncio rounds its selector timeouts up to whole milliseconds, which at 115200

@@ -303,6 +303,8 @@ class PollView:
                 line.append(f" · {bus.load.rate(now):.0f} transactions/s")
             if bus.port_error:
                 line.append(f" · {bus.port_error}", style="bold red")
+            if getattr(bus.transport, "echo_found", False):  # (Line.adopt_echo)
+                line.append(" · the adapter echoes: add --echo", style="bold yellow")
             parts.append(line)
             heads = ("  device", "state", "ok", "retried", "timeout", "late", "garbled",
                      "except", "p50", "p95", "waits", "gap", "last ok")
