@@ -78,7 +78,8 @@ class SyncBus(LineBus):
         self.framing = settings.framing
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
         self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
