@@ -189,11 +189,17 @@ class DevicePoller:
         return readings
 
     def _due(self, block: Block, now: float) -> bool:
-        """A block of fields with their own ``interval`` is read when that has passed."""
+        """A block of fields with their own ``interval`` is read when that has passed, or
+        at once while one of its fields has no value: its latest reading failed (a port
+        that went away fails every field, the ones read just before it too)."""
         if block.interval is None:
             return True
         last = self.block_read.get((block.table, block.address, block.count))
-        return last is None or now - last >= block.interval - 1e-3
+        if last is None or now - last >= block.interval - 1e-3:
+            return True
+        latest = self.stats.latest
+        return any((r := latest.get(f.name)) is not None and r.value is None
+                   and r.status is not Status.ABSENT for f in block.fields)
 
     async def _probe_variant(self, transport: BusLike, retries: int) -> str:
         """Learn the device's variant once (until it answers, plan for the newest map);

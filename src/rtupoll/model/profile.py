@@ -22,6 +22,11 @@ from rtupoll.rtu.functions import MAX_REGISTERS
 _LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
 MAX_LABEL = 40  # characters in a field's label (docs/profiles.md, "Labels")
 _ASIDE = re.compile(r" \(|; ")
+# words that make a field's number a difference of its unit, never an absolute value:
+# +1.5 °C of correction is 2.7 °F, not 34.7 °F, and |-5 °C| is no temperature of 5 °C
+DIFFERENCE_WORDS = frozenset({"correction", "offset", "delta", "difference", "deviation",
+                              "hysteresis", "deadband", "magnitude", "adjustment",
+                              "compensation"})
 
 
 def first_clause(text: str) -> str:
@@ -145,6 +150,15 @@ class Field:
             return self.label
         text = first_clause(self.description) or self.name.replace("_", " ")
         return text[:1].upper() + text[1:]
+
+    @property
+    def difference(self) -> bool:
+        """Whether the value is a difference of its unit (a correction, an offset, a
+        delta, a hysteresis, a magnitude without its sign), by a word of its name or
+        title (``DIFFERENCE_WORDS``): shown and announced in its unit as it is, never
+        converted as an absolute value (kelvin to °C, HA's °C to °F) would be."""
+        words = set(self.name.split("_")) | set(re.findall(r"[a-z]+", self.title.lower()))
+        return not DIFFERENCE_WORDS.isdisjoint(words)
 
     @property
     def words(self) -> int:
