@@ -44,6 +44,7 @@ from rtupoll.errors import (
     PortError,
     RtupollError,
 )
+from rtupoll.figures import count
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
@@ -611,7 +612,7 @@ class Scheduler:
             try:
                 await bp.transport.open()
                 changes.append(f"opened bus {bp.config.name} ({bp.config.port}, "
-                               f"{bp.config.serial_text}): {len(bp.devices)} devices")
+                               f"{bp.config.serial_text}): {count(len(bp.devices), 'device')}")
             except RtupollError as exc:
                 changes.append(f"bus {bp.config.name}: {exc} (retrying)")
             self._opened.append(bp)
