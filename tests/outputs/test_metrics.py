@@ -397,3 +397,13 @@ def test_the_docs_metrics_table_lists_every_family_the_collector_has() -> None:
     gateway = {n + "_total" if n.endswith("requests") else n for n in gateway}
     assert emitted <= table, sorted(emitted - table)
     assert table <= emitted | gateway, sorted(table - emitted - gateway)
+
+
+def test_a_difference_in_kelvin_is_the_same_number_in_celsius() -> None:
+    import dataclasses
+
+    f = load_one("net-irnet-pro", []).field("temperature")
+    assert field_metric(f).convert(296.67) == pytest.approx(23.52)
+    offset = dataclasses.replace(f, name="temperature_offset")
+    m = field_metric(offset)
+    assert m.name == "rtupoll_temperature_offset_celsius" and m.convert(1.5) == 1.5
