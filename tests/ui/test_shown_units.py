@@ -13,13 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cli_runner import rtupoll
-from test_poll_view import scanned, show
 
 from rtupoll.config.library import load_one
 from rtupoll.model.interpret import display_value, field_words, interpret
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.live import PollView
 from rtupoll.web.state import poll_state
+from tests.ui.test_poll_view import scanned, show
 from tests.web_helpers import devices, field, get_json, running, until
 
 KELVIN = 296.67  # 23.52 °C
