@@ -126,7 +126,8 @@ def matches(p: Profile, text: str) -> str:
                         ("source", " ".join(d.title for d in p.provenance.sources))):
         if needle in value.lower():
             return what
-    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()]
+    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()
+             or needle in f.label.lower()]
     return f"field {', '.join(names[:3])}" + (" ..." if len(names) > 3 else "") if names else ""
 
 
@@ -245,7 +246,9 @@ _TABLE = {"coil": "co", "discrete": "di", "input": "ir", "holding": "hr"}
 @click.argument("files", nargs=-1, required=True, type=click.Path(path_type=Path))
 def check(files: tuple[Path, ...]) -> None:
     """Validate profile files (a directory: its *.yaml); print file:line: field: error for
-    each bad one. Each file is checked on its own: one that fails never hides another's."""
+    each bad one, and file:line: field: warning: for what loads but is doubtful (two
+    fields with one title, a title that is only a unit). Each file is checked on its own:
+    one that fails never hides another's."""
     bad = 0
     paths = [q for f in files for q in (sorted(f.glob("*.yaml")) if f.is_dir() else [f])]
     for path in paths:
@@ -260,7 +263,11 @@ def check(files: tuple[Path, ...]) -> None:
                 if where and Path(where) != path else ""
             click.echo(f"{parent}{exc}", err=True)
         else:
-            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields)")
+            for warning in p.warnings:  # doubtful, not wrong: the profile still loads
+                click.echo(warning, err=True)
+            n = len(p.warnings)
+            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields"
+                       + (f", {n} warning{'s' if n != 1 else ''}" if n else "") + ")")
     if bad:
         raise ProfileError(f"{bad} of {len(paths)} profile(s) have errors")
 
@@ -347,7 +354,10 @@ def _describe(f: Field) -> str:
                  f"every {f.interval:g} s"]
     tags += [f"{f.precision} decimals"] if f.precision is not None else []
     tags += [f"{_code(k, f)} = {c.name}" for k, c in f.sentinels.items()]
-    return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()
+    # a label (the name people see in Home Assistant and on the dashboard) leads
+    text = f"{f.label}: {f.description}" if f.label and f.description else f.label \
+        or f.description
+    return " ".join([text] + [f"[{t}]" for t in tags]).strip()
 
 
 def _code(k: int | float, f: Field) -> str:
