@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from rtupoll.refusals import Refusals
 from rtupoll.model.interpret import DISPLAY_UNITS, shown_number
 from rtupoll.model.profile import is_difference
+from rtupoll.refusals import Refusals
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub
 from rtupoll.web.state import json_value, number
