@@ -9,6 +9,7 @@ itself and says so on the page.
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
@@ -59,9 +60,11 @@ def web(url: str, **opts: Any) -> None:
 
 
 async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
+    from rtupoll.ui import logs
     from rtupoll.web.fleet import Fleet
     from rtupoll.web.server import Server
 
+    logs.setup("text", level=logging.WARNING)  # the dropped messages, refused connections
     fleet = Fleet(prefix, f"{settings.where}/{prefix}")
     server = Server(http, fleet)
     stop = stop_event()
@@ -102,7 +105,7 @@ async def _read(fleet: Fleet, settings: MqttSettings, prefix: str,
                     payload = message.payload
                     if not isinstance(payload, bytes):
                         payload = str(payload if payload is not None else "").encode()
-                    fleet.on_message(str(message.topic), payload)
+                    fleet.handle(str(message.topic), payload)  # never raises
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # aiomqtt.MqttError, OSError: the broker went away

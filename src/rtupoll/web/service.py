@@ -26,13 +26,12 @@ from rtupoll.web.state import Clocks, buses_event, device_delta, gateway_id, num
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
-    from aiohttp import web
-
     from rtupoll.config.http_settings import HttpSettings
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
     from rtupoll.outputs.metrics import MetricsService
+    from rtupoll.web.server import Listener
 
 log = logging.getLogger("rtupoll.web")
 BUS_EVERY = 2.0  # seconds between ``buses`` events
@@ -177,7 +176,7 @@ class WebReload:
     ``commit``."""
 
     def __init__(self, service: WebService, settings: HttpSettings | None,
-                 bound: web.TCPSite | None) -> None:
+                 bound: Listener | None) -> None:
         self.service, self.settings, self.bound = service, settings, bound
 
     @classmethod
