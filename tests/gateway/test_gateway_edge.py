@@ -129,7 +129,7 @@ def test_requests_not_read_yet_behind_a_hang_up_are_dropped_when_their_turn_come
 
 
 def test_connections_over_the_caps_are_closed_as_they_come_and_logged_once() -> None:
-    async def main() -> tuple[list[bytes], list[bytes], list[str], int, bytes]:
+    async def main() -> tuple[list[bytes], list[bytes], list[str], int, bytes, int]:
         async with gateway(max_clients=3, max_per_address=2) as (gw, line, logs):
             line.release.set()  # the line answers at once here
             port = gw.address[1]
@@ -148,10 +148,11 @@ def test_connections_over_the_caps_are_closed_as_they_come_and_logged_once() -> 
             for _, w in [*kept, *over, *other]:
                 w.close()
             return [*ends, full], replies, list(logs), gw.refused_connections, \
-                bytes.fromhex("03 02 00 07")
+                bytes.fromhex("03 02 00 07"), port
 
-    ends, replies, logs, refused, want = asyncio.run(main())
+    ends, replies, logs, refused, want, port = asyncio.run(main())
     assert ends == [b""] * 4 and replies == [want] * 3 and refused == 4
     lines = [x for x in logs if "refused" in x]
     assert len(lines) == 1, logs  # once per interval, whatever the count
-    assert "1 connection refused: 2 connections from 127.0.0.1 (max_per_address)" in lines[0]
+    assert lines[0].startswith(f"gateway tcp://127.0.0.1:{port}: refused 1 connection: 1 from "
+                               "127.0.0.1 over max_per_address 2 (counted from now on"), lines

@@ -8,6 +8,7 @@ that sends a write and leaves before its turn: the device never gets the write."
 from __future__ import annotations
 
 import os
+import resource
 import select
 import socket
 import struct
@@ -137,3 +138,33 @@ def wait_for_line_in_wire(bus: SimulatedBus, unit: int) -> None:
     while not [f for f in bus.wire if f.direction == "in" and f.data[:1] == bytes((unit,))]:
         assert time.monotonic() < deadline, "the request never reached the line"
         time.sleep(0.01)
+
+
+def test_out_of_file_descriptors_it_says_so_once_and_serves_again_when_they_close(
+        sim: Sim) -> None:
+    """The process's limit lowered as a service manager's would be, the caps above it:
+    idle connections take every descriptor; the accepts that fail meanwhile are counted
+    in one line, never a traceback each; once they close, a client is served."""
+    bus = sim("huiwen-aq@3", tick=None)
+    limit = 64
+    with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "1",
+                 "--timeout", f"{ANSWERED:g}", "--format", "json", "--serve-max-clients",
+                 "5000", "--serve-max-per-address", "5000", "huiwen-aq@3") as (proc, port):
+        resource.prlimit(proc.pid, resource.RLIMIT_NOFILE, (limit, limit))
+        used = len(os.listdir(f"/proc/{proc.pid}/fd"))
+        idle = [socket.create_connection(("127.0.0.1", port), HANG)
+                for _ in range(limit - used + 20)]  # more than it has descriptors left
+        log = wait_for_line(proc, "out of file descriptors (EMFILE)")
+        for s in idle:
+            s.close()
+        with socket.create_connection(("127.0.0.1", port), HANG) as s:
+            s.settimeout(HANG)
+            reply = ask(s, 1, 3, READ_CO2)
+    _, err = proc.communicate()
+    log += err
+    assert reply[:2] == b"\x04\x08"
+    assert "Traceback" not in log and "Too many open files" not in log, log[-2000:]
+    lines = [x for x in log.splitlines() if f"{port}: refused" in x]
+    assert 1 <= len(lines) <= 2, lines  # the first, and what was left at the stop
+    assert "out of file descriptors (EMFILE) (counted from now on" in lines[0]
+    assert proc.returncode == 0, err

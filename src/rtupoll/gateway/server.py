@@ -30,12 +30,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import logging
 import select
 import socket
 import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rtupoll.backoff import after_failures
 from rtupoll.config.gateway_settings import ServeConfig
@@ -56,6 +57,7 @@ from rtupoll.gateway.pdu import (
 )
 from rtupoll.gateway.turns import Places, Turns
 from rtupoll.jobs.stats import State
+from rtupoll.refusals import Refusals, watch
 from rtupoll.rtu.effects import Effect, effect, writes
 
 if TYPE_CHECKING:
@@ -69,7 +71,6 @@ EVENTS = 5  # log lines kept for the live table
 STOP_WAIT = 2.0  # seconds a stopping gateway lets a request on the line complete
 HIGH_WATER = 16 * 1024  # bytes of a client's replies unread before its worker waits
 READ_LIMIT = 8 * 1024  # bytes read ahead from a client (asyncio pauses reading beyond 2x)
-REFUSED_EVERY = 60.0  # seconds between the log lines about refused connections
 HANGUP = getattr(select, "POLLRDHUP", 0) | getattr(select, "POLLHUP", 0) | \
     getattr(select, "POLLERR", 0)
 
@@ -101,6 +102,18 @@ class SilentUnits:
 
 RULES = ("allow", "read_only", "cache", "broadcast", "setup_writes", "queue", "timeout",
          "client_queue", "max_clients", "max_per_address")
+
+
+class _Lines(logging.Logger):
+    """``Refusals``' log, as the gateway's own lines: its log (stderr) and the events
+    under its line in the live table."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        super().__init__("rtupoll.gateway")
+        self._gateway = gateway
+
+    def warning(self, msg: object, *args: object, **kwargs: Any) -> None:
+        self._gateway.say(str(msg) % args)
 
 
 class ClientGone(Exception):
@@ -184,9 +197,10 @@ class Gateway:
         self.events: deque[str] = deque(maxlen=EVENTS)
         self.pending = 0  # requests queued or on the line, all clients
         self.places = Places(config.queue)
-        self.refused_connections = 0  # closed as they came: over max_clients/max_per_address
-        self._refused_logged = 0  # of those, in log lines already
-        self._refused_at: float | None = None  # when the last such line was logged
+        # connections closed as they came (over max_clients or max_per_address) and
+        # accepts that failed (EMFILE ...): counted, one log line a minute at most
+        self.refusals = Refusals(f"gateway {config.url}", _Lines(self), clock=clock)
+        self._unwatch: Callable[[], None] | None = None
         self._by_address: Counter[str] = Counter()  # connections open, by client address
         self._log, self._info, self._clock = log, info, clock
         self._server: asyncio.Server | None = None
@@ -206,6 +220,8 @@ class Gateway:
         self._server = server or await listen(self.config, self._handle)
         if self.config.port == 0:  # the port the system chose, in the log and the footer
             self.config = dataclasses.replace(self.config, port=self.address[1])
+        self.refusals.what = f"gateway {self.config.url}"
+        self._unwatch = watch(self._server.sockets, self.refusals)
 
     def reconfigure(self, config: ServeConfig) -> list[str]:
         """New rules on the same listener (a SIGHUP's ``serve:``): what changed. Clients
@@ -232,7 +248,15 @@ class Gateway:
         host, port = self._server.sockets[0].getsockname()[:2]
         return str(host), int(port)
 
+    @property
+    def refused_connections(self) -> int:
+        return self.refusals.total
+
     async def stop(self) -> None:
+        if self._unwatch is not None:  # (before the sockets close: their fds are reused)
+            self._unwatch()
+            self._unwatch = None
+        self.refusals.flush()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
@@ -256,6 +280,12 @@ class Gateway:
                 self.cache.put(dev.config.address, r.field.table, r.field.address,
                                r.value.raw, now)
 
+    def say(self, line: str) -> None:
+        """A line of the gateway's own (``gateway URL: ...``): the log and the events."""
+        self.events.append(line.split(": ", 1)[-1])
+        if self._log is not None:
+            self._log(line)
+
     def log(self, stats: ClientStats, message: str, *, once: str | None = None) -> None:
         """A log line about a client; with ``once``, only the first time for that reason."""
         if once is not None:
@@ -271,27 +301,10 @@ class Gateway:
     def _over_cap(self, host: str) -> str | None:
         """Why a new connection from ``host`` is refused (it is counted already), or None."""
         if len(self._writers) > self.config.max_clients:
-            return f"{self.config.max_clients} clients connected (max_clients)"
+            return f"over max_clients {self.config.max_clients}"
         if self._by_address[host] > self.config.max_per_address:
-            return (f"{self.config.max_per_address} connections from {host} "
-                    "(max_per_address)")
+            return f"from {host} over max_per_address {self.config.max_per_address}"
         return None
-
-    def _refused(self, reason: str) -> None:
-        """A connection over a cap, closed as it came: counted, and logged at most once
-        per ``REFUSED_EVERY`` seconds with the count since the last line."""
-        self.refused_connections += 1
-        now = self._clock()
-        if self._refused_at is not None and now - self._refused_at < REFUSED_EVERY:
-            return
-        n, self._refused_logged = self.refused_connections - self._refused_logged, \
-            self.refused_connections
-        self._refused_at = now
-        line = (f"gateway {self.config.url}: {n} connection{'s' * (n != 1)} refused: "
-                f"{reason} (the next such line in {REFUSED_EVERY:g} s at the earliest)")
-        self.events.append(line.split(": ", 1)[1])
-        if self._log is not None:
-            self._log(line)
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
                       ) -> None:
@@ -305,7 +318,7 @@ class Gateway:
         try:
             reason = self._over_cap(host)
             if reason is not None:
-                self._refused(reason)
+                self.refusals.refused(reason)
                 writer.close()
                 return
             await self._client(reader, writer, peer)
