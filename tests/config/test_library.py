@@ -130,6 +130,7 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("growatt-inverter", Table.INPUT, 0, _reply(1, 4, [1]), {"status": "NORMAL"}),
     # DDS238-2: total 7133 = 71.33 kWh; 0x0015 = 0x0101: address 1, baud code 1 (9600)
     ("hiking-dds238", Table.HOLDING, 0, _reply(1, 3, [0, 7133]), {"total_energy": 71.33}),
+    # DDS238-2 reactive power 0x000F is read signed, as Tasmota's driver reads it (int16_t)
     ("hiking-dds238", Table.HOLDING, 0x0F, _reply(1, 3, [65534]), {"reactive_power": -2}),
     ("hiking-dds238-v1", Table.HOLDING, 4, _reply(1, 3, [0, 1267, 0, 6024]),
      {"export_energy": 12.67, "import_energy": 60.24}),
@@ -180,7 +181,9 @@ def test_the_family_shares_registers_through_extends() -> None:
     assert sdm230.extends == "eastron-sdm120"
     assert sdm230.field("voltage") == sdm120.field("voltage")
     assert sdm230.addressing is sdm120.addressing and sdm230.kind == "energy meter"
-    assert "total_power_demand" in sdm230.names() and "total_power_demand" not in sdm120.names()
+    assert "resettable_active_energy" in sdm230.names()
+    assert "resettable_active_energy" not in sdm120.names()
+    assert "meter_code" in sdm120.names() and "meter_code" not in sdm230.names()
     sdm72 = load_one("eastron-sdm72dm")
     assert "voltage_l1" not in sdm72.names() and "total_power" in sdm72.names()
     assert sdm72.limits.max_registers == 60
@@ -235,6 +238,47 @@ def test_readme_lists_every_bundled_profile() -> None:
     section = text.split("## Device profiles", 1)[1].split("\n## ", 1)[0]
     listed = set(re.findall(r"^\| `([a-z0-9-]+)` \|", section, re.M))
     assert listed == set(BUNDLED)
+
+
+# every register each SDM120 document lists, as (table, wire address, registers): the
+# SDM120M protocol V2.5 and the older Eastron (Metering) Europe "SDM120 Protocol"
+_FLOAT = 2
+SDM120_V25 = [(Table.INPUT, a, _FLOAT) for a in (
+    0x00, 0x06, 0x0C, 0x12, 0x18, 0x1E, 0x46, 0x48, 0x4A, 0x4C, 0x4E,
+    0x54, 0x56, 0x58, 0x5A, 0x5C, 0x5E, 0x102, 0x108, 0x156, 0x158)] + [
+    (Table.HOLDING, a, _FLOAT) for a in (0x0C, 0x12, 0x14, 0x1C, 0x56)] + [
+    (Table.HOLDING, 0xF900, 1), (Table.HOLDING, 0xF910, 1), (Table.HOLDING, 0xF920, 1),
+    (Table.HOLDING, 0xFC00, 2), (Table.HOLDING, 0xFC02, 1), (Table.HOLDING, 0xFC03, 1)]
+SDM120_EUROPE = [(Table.INPUT, a, _FLOAT) for a in (
+    0x00, 0x06, 0x0C, 0x12, 0x18, 0x1E, 0x24, 0x46, 0x48, 0x4A, 0x4C, 0x4E, 0x156, 0x158)] + [
+    (Table.HOLDING, a, _FLOAT) for a in (0x0C, 0x12, 0x14, 0x1C)] + [
+    (Table.HOLDING, 0xF910, 1), (Table.HOLDING, 0xF920, 1)]
+
+
+@pytest.mark.parametrize("document", [SDM120_V25, SDM120_EUROPE], ids=["V2.5", "Europe"])
+def test_scan_names_an_sdm120_that_answers_every_register_of_its_document(
+        document: list[tuple[Table, int, int]]) -> None:
+    """Issue 49: an SDM120 answering its whole document (demand registers included) was
+    named an SDM230. The simulated SDM120 answers every register each document lists;
+    scan still names it an SDM120, and an SDM230 next to it an SDM230 (30385, which only
+    the SDM230's document lists)."""
+    from rtupoll.rtu.messages import ReadRequest
+    from rtupoll.sim.device import SimDevice, SimDeviceConfig
+
+    sdm120 = SimDevice(SimDeviceConfig(load_one("eastron-sdm120"), 5), tick=None)
+    for table, wire, count in document:
+        fc = 4 if table is Table.INPUT else 3
+        reply = sdm120.handle(ReadRequest(5, fc, wire, count))
+        assert reply is not None and reply[1] == fc, f"{table.value} {wire:#06x}: {reply!r}"
+    sdm230 = SimDevice(SimDeviceConfig(load_one("eastron-sdm230"), 6), tick=None)
+    assert sdm120.handle(ReadRequest(5, 4, 0x0180, 2)) == rtu.exception_response(5, 4, 2)
+    assert sdm230.handle(ReadRequest(6, 4, 0x0180, 2))[1] == 4  # type: ignore[index]
+    with simulated_bus(["eastron-sdm120@5", "eastron-sdm230@6", "eastron-sdm630@7"],
+                       tcp=True, tick=None) as bus:
+        result = run("scan", "--port", bus.port, "--baudrate", "9600", "--addresses", "5-7")
+    assert result.exit_code == 0, result.stderr
+    found = dict(re.findall(r"^ +(\d+) +9600 8N1 +([a-z0-9-]+)", result.stdout, re.M))
+    assert found == {"5": "eastron-sdm120", "6": "eastron-sdm230", "7": "eastron-sdm630"}
 
 
 def test_scan_tells_every_new_profile_apart() -> None:
