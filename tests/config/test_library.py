@@ -118,6 +118,13 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("abb-b23", Table.HOLDING, 0x5B2C, _reply(1, 3, [5000]), {"frequency": 50.0}),
     # EM24: INT32 low word first, x0.1: 2302 = 230.2 V
     ("carlo-gavazzi-em24", Table.HOLDING, 0, _reply(1, 3, [2302, 0]), {"voltage_l1": 230.2}),
+    # EM111/EM340: INT32 low word first, x0.1 (2302 = 230.2 V); Hz INT16 x0.1
+    ("carlo-gavazzi-em111", Table.HOLDING, 0, _reply(1, 3, [2302, 0]), {"voltage": 230.2}),
+    ("carlo-gavazzi-em111", Table.HOLDING, 0x0F, _reply(1, 3, [500]), {"frequency": 50.0}),
+    ("carlo-gavazzi-em340", Table.HOLDING, 0x0028, _reply(1, 3, [0xFFFF, 0x7FFF]),
+     {"total_power": "OVERFLOW"}),
+    ("carlo-gavazzi-em340", Table.HOLDING, 0x1105, _reply(1, 3, [0x0003]),
+     {"wiring_errors": ["WRONG_VOLTAGE_SEQUENCE", "PHASE_1_INVERTED"]}),
     # EPEVER 0x3200 = 0x0102: under-voltage (D3-D0 = 2), resistance abnormal (D8);
     # 0x3201 = 0x0009: running (D0), boost charging (D3-D2 = 2)
     ("epever-tracer", Table.INPUT, 0x3200, _reply(1, 4, [0x0102, 0x0009]),
