@@ -288,6 +288,30 @@ def test_scan_names_an_sdm120_that_answers_every_register_of_its_document(
     assert found == {"5": "eastron-sdm120", "6": "eastron-sdm230", "7": "eastron-sdm630"}
 
 
+def test_growatt_waits_the_850_ms_its_document_asks_for_between_commands() -> None:
+    """Growatt's V1.20: "wait for minimum 850 ms to send a new CMD after last CMD". The
+    profile says so (limits.idle_gap), and in a real poll cycle (three blocks of input
+    registers) each request reaches the simulated inverter at least 0.85 s after the
+    inverter's previous reply ended (the line keeps the gap from its last byte)."""
+    from rtupoll.config.site import from_specs
+    from rtupoll.sim.server import WireFrame
+
+    assert load_one("growatt-inverter").limits.idle_gap == 0.85
+    assert [d.gap for d in from_specs("/dev/ttyUSB0", [("growatt-inverter", 1)]).buses[0]
+            .devices] == [0.85]
+    wire: list[WireFrame] = []
+    with simulated_bus(["growatt-inverter@1"], tcp=True, tick=None,
+                       on_wire=wire.append) as bus:
+        result = run("poll", "--port", bus.port, "--once", "--format", "json",
+                     "growatt-inverter@1")
+    assert result.exit_code == 0, result.stderr
+    frames = [f for f in wire if f.direction in ("in", "out")]
+    assert len(frames) >= 4 and [f.direction for f in frames] == ["in", "out"] * (
+        len(frames) // 2)
+    gaps = [frames[i + 1].time - frames[i].time for i in range(1, len(frames) - 1, 2)]
+    assert min(gaps) >= 0.85, gaps
+
+
 def test_scan_tells_every_new_profile_apart() -> None:
     """One simulated bus with one of each new device: scan names each by its profile
     (the Eastron family included, told apart by registers only the bigger models have)."""
