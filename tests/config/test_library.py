@@ -112,6 +112,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("eastron-sdm630", Table.INPUT, 70, _reply(1, 4, [0x4248, 0x0000]), {"frequency": 50.0}),
     ("eastron-sdm72dm", Table.INPUT, 342, _reply(1, 4, [0x447A, 0x0000]),
      {"total_active_energy": 1000.0}),
+    ("eastron-sdm72dm-v2", Table.INPUT, 0x0500, _reply(1, 4, _f32(1500.0) + _f32(0.0)),
+     {"import_power": 1500.0, "export_power": 0.0}),
     # ABB: u32 voltage x0.1 (2310 = 231.0 V); the u32 "NaN" 0xFFFFFFFF is not a reading
     ("abb-b23", Table.HOLDING, 0x5B00, _reply(1, 3, [0, 2310, 0xFFFF, 0xFFFF]),
      {"voltage_l1": 231.0, "voltage_l2": "NOT_AVAILABLE"}),
@@ -218,7 +220,8 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
 
 
 @pytest.mark.parametrize(("text", "found", "why"), [
-    ("EASTRON", {"eastron-sdm120", "eastron-sdm230", "eastron-sdm630", "eastron-sdm72dm"},
+    ("EASTRON", {"eastron-sdm120", "eastron-sdm230", "eastron-sdm630", "eastron-sdm72dm",
+                 "eastron-sdm72dm-v2"},
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
