@@ -114,6 +114,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"total_active_energy": 1000.0}),
     ("eastron-sdm72dm-v2", Table.INPUT, 0x0500, _reply(1, 4, _f32(1500.0) + _f32(0.0)),
      {"import_power": 1500.0, "export_power": 0.0}),
+    # Janitza UMG 96RM: big-endian floats at their decimal register numbers
+    ("janitza-umg96rm", Table.HOLDING, 19050, _reply(1, 3, _f32(50.0)), {"frequency": 50.0}),
     # ABB: u32 voltage x0.1 (2310 = 231.0 V); the u32 "NaN" 0xFFFFFFFF is not a reading
     ("abb-b23", Table.HOLDING, 0x5B00, _reply(1, 3, [0, 2310, 0xFFFF, 0xFFFF]),
      {"voltage_l1": 231.0, "voltage_l2": "NOT_AVAILABLE"}),
