@@ -157,6 +157,19 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"status_word": ["READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED",
                       "VOLTAGE_ENABLED", "QUICK_STOP_OFF", "REMOTE", "TARGET_REACHED"],
       "output_frequency": 48.5}),
+    # SINAMICS V20: 40024 FREQ OUTPUT x100 (5000 = 50.00 Hz), 40025 SPEED in rpm
+    ("siemens-sinamics-v20", Table.HOLDING, 23, _reply(1, 3, [5000, 1455]),
+     {"output_frequency": 50.0, "motor_speed": 1455}),
+    # Optidrive E3: register 7 (wire 6) output frequency 1dp: 100 = 10.0 Hz
+    ("invertek-optidrive-e3", Table.HOLDING, 6, _reply(1, 3, [100]), {"output_frequency": 10.0}),
+    # SenseCAP soil probe, the manual's FC04 sample: 21.92 °C, 37.31 %, 590 µS/cm
+    ("sensecap-soil-ec02", Table.INPUT, 0, _reply(1, 4, [0x0890, 0x0E93, 0x024E]),
+     {"temperature": 21.92, "moisture": 37.31, "conductivity": 590}),
+    # Renke RS-FX-N01, the guide's example: step 2 (east), 90°
+    ("renke-rs-fx-n01", Table.HOLDING, 0, _reply(1, 3, [2, 90]),
+     {"wind_direction_step": "E", "wind_direction": 90}),
+    # Senseair S8, TDE2067's CO2 read: IR4 = 0x190 = 400 ppm
+    ("senseair-s8", Table.INPUT, 3, _reply(254, 4, [0x190]), {"co2": 400}),
 ]
 
 
