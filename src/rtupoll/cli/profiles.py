@@ -228,7 +228,9 @@ _TABLE = {"coil": "co", "discrete": "di", "input": "ir", "holding": "hr"}
 @click.argument("files", nargs=-1, required=True, type=click.Path(path_type=Path))
 def check(files: tuple[Path, ...]) -> None:
     """Validate profile files (a directory: its *.yaml); print file:line: field: error for
-    each bad one. Each file is checked on its own: one that fails never hides another's."""
+    each bad one, and file:line: field: warning: for what loads but is doubtful (two
+    fields with one title, a title that is only a unit). Each file is checked on its own:
+    one that fails never hides another's."""
     bad = 0
     paths = [q for f in files for q in (sorted(f.glob("*.yaml")) if f.is_dir() else [f])]
     for path in paths:
@@ -243,7 +245,11 @@ def check(files: tuple[Path, ...]) -> None:
                 if where and Path(where) != path else ""
             click.echo(f"{parent}{exc}", err=True)
         else:
-            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields)")
+            for warning in p.warnings:  # doubtful, not wrong: the profile still loads
+                click.echo(warning, err=True)
+            n = len(p.warnings)
+            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields"
+                       + (f", {n} warning{'s' if n != 1 else ''}" if n else "") + ")")
     if bad:
         raise ProfileError(f"{bad} of {len(paths)} profile(s) have errors")
 

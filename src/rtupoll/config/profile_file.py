@@ -22,6 +22,7 @@ from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
 from rtupoll.errors import EncodeError
 from rtupoll.model.codec import ByteOrder, DataType, Layout, bits_range, encode
 from rtupoll.model.profile import (
+    MAX_LABEL,
     AddressChange,
     Addresses,
     Addressing,
@@ -37,6 +38,7 @@ from rtupoll.model.profile import (
     Severity,
     Variant,
     Verification,
+    squashed,
 )
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
@@ -54,7 +56,7 @@ _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing",
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
-               "interval", "counter", "typical", "scale_by", "decode"}
+               "interval", "counter", "typical", "scale_by", "decode", "label"}
 
 
 def read_profile(path: Path) -> tuple[Profile, list[Source]]:
@@ -84,6 +86,7 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
     _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]), [fields[i] for i in plain])
     _check_shared(field_nodes, fields)
     scale_by.check(field_nodes, fields)
+    warnings = _check_titles(field_nodes, fields)
     by_name = {f.name: f for f in fields}
 
     profile = Profile(
@@ -107,6 +110,7 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         variant=_variant(top["variant"], by_name) if "variant" in top else None,
         provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
+        warnings=warnings,
     )
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")
@@ -360,7 +364,57 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         interval=_opt(m, "interval", _interval, None), counter=counter,
         typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
         scale_by=scale_by.names(m["scale_by"]) if "scale_by" in m else (), transform=transform,
+        label=_label(m["label"]) if "label" in m else "",
     )
+
+
+def _label(node: Node) -> str:
+    """``label``: the field's short name for people, one line of at most MAX_LABEL
+    characters (what else a label must be is checked with the other fields')."""
+    text = node.text()
+    if not text.strip():
+        raise node.fail("an empty label")
+    if text != text.strip() or any(c in text for c in "\n\r\t"):
+        raise node.fail(f"{text!r}: a label is one line, with no spaces at its ends")
+    if len(text) > MAX_LABEL:
+        raise node.fail(f"{len(text)} characters; a label has at most {MAX_LABEL}")
+    return text
+
+
+def _check_titles(nodes: list[Node], fields: list[Field]) -> tuple[str, ...]:
+    """Each field's title (``Field.title``: its label, else from its description) must say
+    what it measures and tell it from the profile's other fields: not only a unit (any
+    unit of the profile's fields), at most MAX_LABEL characters, and none equal to
+    another's (case and spaces aside). A ``label:`` that breaks this is an error; a title
+    from a description, a warning (returned, one per field, for ``profiles check``)."""
+    units = {squashed(f.unit) for f in fields if f.unit}
+    first: dict[str, int] = {}
+    problems: dict[int, str] = {}
+    for i, f in enumerate(fields):
+        key = squashed(f.title)
+        j = first.setdefault(key, i)
+        if j != i:
+            g = fields[j]
+            if g.label and not f.label:  # the label is the one to blame
+                i, f, j, g = j, g, i, f
+            where = f"line {g.line}" if nodes[j].file == nodes[i].file else \
+                f"{Path(nodes[j].file).name}:{g.line}"
+            problems.setdefault(i, f"the title of {g.name} ({where}) too")
+        if key in units:
+            problems.setdefault(i, "only a unit")
+        elif len(f.title) > MAX_LABEL:
+            problems.setdefault(i, f"{len(f.title)} characters (at most {MAX_LABEL})")
+    warnings: list[str] = []
+    for i, problem in sorted(problems.items()):
+        f, node = fields[i], nodes[i]
+        given = node.key("label") if f.label else None
+        if given is not None:
+            raise given.fail(f"{f.title!r} is {problem}: a label says what the field "
+                             "measures, and tells it from the profile's other fields")
+        at = node.key("description") or node.key("name") or node
+        warnings.append(str(at.fail(f"warning: {f.name} is titled {f.title!r}, {problem}; "
+                                    "give it a 'label:'")))
+    return tuple(warnings)
 
 
 def _wire_address(node: Node, addressing: Addressing, table: Table, written: int) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import re
 from collections.abc import Mapping
 
 from rtupoll.errors import UsageError
@@ -19,6 +20,20 @@ from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 
 _LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
+MAX_LABEL = 40  # characters in a field's label (docs/profiles.md, "Labels")
+_ASIDE = re.compile(r" \(|; ")
+
+
+def first_clause(text: str) -> str:
+    """A description up to its first aside (`` (`` or ``; ``), without a trailing
+    ``.:,``, capitalised: ``"kWh (+) total"`` -> ``"KWh"``; "" for none."""
+    out = _ASIDE.split(text, maxsplit=1)[0].strip().rstrip(".:,")
+    return out[:1].upper() + out[1:]
+
+
+def squashed(text: str) -> str:
+    """Text compared as a label or unit is: without spaces, case folded."""
+    return "".join(text.split()).casefold()
 
 
 class Addressing(str, enum.Enum):
@@ -118,7 +133,18 @@ class Field:
     scale_by: tuple[str, ...] = ()
     # a documented encoding the stored number is unfolded by (``decode:``, model.transforms)
     transform: Transform | None = None
+    label: str = ""  # the profile's ``label:`` ("" when it gives none: see ``title``)
     line: int = 0
+
+    @property
+    def title(self) -> str:
+        """The field's short name for people (Home Assistant's entity name, the
+        dashboard's column): its ``label``, else its description up to the first aside,
+        else its name in words (``import_active_energy`` -> ``"Import active energy"``)."""
+        if self.label:
+            return self.label
+        text = first_clause(self.description) or self.name.replace("_", " ")
+        return text[:1].upper() + text[1:]
 
     @property
     def words(self) -> int:
@@ -282,6 +308,10 @@ class Profile:
     extends: str = ""  # the id of the profile this one was built on
     provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
+    # what the loader found doubtful but not wrong (``file:line: path: warning``): two
+    # fields with one title, a title that is only a unit or too long, in a profile that
+    # gives those fields no ``label:``; ``rtupoll profiles check`` prints them
+    warnings: tuple[str, ...] = ()
 
     def line_setting(self, field: Field) -> str:
         """What writing ``field`` changes about how the device is reached: "address"

@@ -20,7 +20,7 @@ shows as unknown; every polled field is in every message, ``outputs.mqtt_state``
 is available only when both ``BASE/bridge/state`` and ``BASE/DEVICE/availability`` say
 ``online``. Identifiers are ``rtupoll_<gateway_id>_<device>[_<entity>]``: the same on
 every run, and distinct between gateways on one broker. Names are the profile's labels
-(``outputs.fleet.label``); an enum code the manual does not list is ``unknown`` in the
+(``Field.title``); an enum code the manual does not list is ``unknown`` in the
 enum sensor and no option in a select; a number box spans what the profile allows.
 Each device also has two diagnostic entities from ``_rtupoll`` and ``last_seen``.
 """
@@ -39,7 +39,6 @@ from rtupoll.outputs.fleet import (
     LAST_SEEN,
     STATUS_KEY,
     choice_label,
-    label,
     precision,
     version,
 )
@@ -164,7 +163,7 @@ def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
     v = _value(field)
     out: dict[str, dict[str, Any]] = {}
     t = field.layout.type
-    name = label(field)
+    name = field.title
     if field.enum:
         documented = [c.name for c in field.enum.values()]
         options = list(documented)

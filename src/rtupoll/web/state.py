@@ -63,10 +63,6 @@ def kind_of(f: Field) -> str:
     return "number"
 
 
-def label_of(f: Field) -> str:
-    return f.name.replace("_", " ")
-
-
 _META: dict[int, tuple[Field, dict[str, Any]]] = {}  # id(field) -> (field, its meta)
 
 
@@ -76,7 +72,7 @@ def field_meta(f: Field) -> dict[str, Any]:
     if got is None or got[0] is not f:
         text = (f.description or "").strip()
         got = _META[id(f)] = (f, {
-            "name": f.name, "label": label_of(f),
+            "name": f.name, "label": f.title,
             "description": text.splitlines()[0] if text else "",
             "unit": f.unit, "kind": kind_of(f), "precision": f.precision})
         if len(_META) > 100_000:  # profiles reloaded again and again: start afresh
