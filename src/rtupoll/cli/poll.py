@@ -242,7 +242,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         if served is not None:
             raise UsageError("with --config, set serve: per bus in the site file")
         if given_line_options() != LineOptions():
-            raise UsageError("with --config, set echo: and rs485: per bus in the site file")
+            raise UsageError("with --config, set echo:, rs485: and idle_gap: per bus in the "
+                             "site file")
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
@@ -357,10 +358,11 @@ def _split(fields: str | None) -> list[str]:
 
 
 def _with_line_options(site: Site) -> Site:
-    """--echo and --rs485 on every bus of a site made from the command line."""
+    """--echo, --rs485 and --idle-gap on every bus of a site made from the command line."""
     given = given_line_options()
     return dataclasses.replace(site, buses=tuple(
-        dataclasses.replace(b, echo=given.echo, rs485=given.rs485) for b in site.buses))
+        dataclasses.replace(b, echo=given.echo, rs485=given.rs485, idle_gap=given.idle_gap)
+        for b in site.buses))
 
 
 @contextlib.contextmanager

@@ -38,6 +38,7 @@ from rtupoll.model.profile import (
     Severity,
     Variant,
     Verification,
+    idle_gap_error,
     squashed,
 )
 from rtupoll.rtu import Table
@@ -252,7 +253,7 @@ def _serial(node: Node) -> Serial:
 
 def _limits(node: Node) -> Limits:
     m = node.mapping({"max_registers", "max_gap", "functions", "timeout", "retries",
-                      "turnaround", "silent_on_error", "lost_after_powerup"})
+                      "turnaround", "silent_on_error", "lost_after_powerup", "idle_gap"})
     d = Limits()
     timeout = m["timeout"].number() if "timeout" in m else d.timeout
     if not 0.01 <= timeout <= 30:
@@ -268,7 +269,18 @@ def _limits(node: Node) -> Limits:
         turnaround=_opt(m, "turnaround", Node.number, d.turnaround),
         silent_on_error=_opt(m, "silent_on_error", Node.flag, False),
         lost_after_powerup=_opt(m, "lost_after_powerup", lambda n: n.integer(0, 100), 0),
+        idle_gap=_opt(m, "idle_gap", idle_gap, 0.0),
     )
+
+
+
+def idle_gap(node: Node) -> float:
+    """An ``idle_gap:`` in seconds (a profile's ``limits``; a site file's device or bus)."""
+    gap = node.number()
+    why = idle_gap_error(gap)
+    if why:
+        raise node.fail(why)
+    return float(gap)
 
 
 def _addresses(node: Node) -> Addresses:

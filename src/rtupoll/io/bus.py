@@ -118,7 +118,8 @@ class Bus(LineBus):
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
         self._port: _Port | None = None
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight

@@ -70,7 +70,8 @@ class SyncBus(LineBus):
         self.framing = settings.framing
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
         self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,

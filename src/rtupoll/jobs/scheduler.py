@@ -254,7 +254,7 @@ class DevicePoller:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
         cfg = self.config
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
-                                  ceiling=cfg.timeout_ceiling)
+                                  ceiling=cfg.timeout_ceiling, gap=cfg.gap)
 
     async def _transact(self, read: Awaitable[T], *, via: BusLike | None = None
                         ) -> tuple[Status, str, T | None]:
@@ -477,7 +477,7 @@ class BusPoller:
 def _serial(bus: BusConfig) -> tuple[object, ...]:
     """What a bus's port is opened with: equal means the open port can stay open."""
     return (bus.port, bus.baudrate, bus.parity, bus.bytesize, bus.stopbits, bus.deassert_dtr,
-            bus.echo, bus.rs485)
+            bus.echo, bus.rs485, bus.idle_gap)
 
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
@@ -502,7 +502,8 @@ def open_real_bus(config: BusConfig) -> BusLike:
     return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
                             bytesize=config.bytesize, stopbits=config.stopbits,
                             deassert_dtr=config.deassert_dtr, echo=config.echo,
-                            rs485=Rs485(*config.rs485) if config.rs485 else None))
+                            rs485=Rs485(*config.rs485) if config.rs485 else None,
+                            idle_gap=config.idle_gap))
 
 
 class Scheduler:

@@ -140,6 +140,7 @@ class DeviceTiming:
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
+        self._gap = 0.0  # the idle gap last told to the bus
 
     @property
     def timeout(self) -> float:
@@ -153,19 +154,23 @@ class DeviceTiming:
         return "learned" if self.estimator.learned else "profile"
 
     def before(self, bus: BusLike | None, unit: int, *, pinned: float | None = None,
-               ceiling: float | None = None) -> float:
+               ceiling: float | None = None, gap: float | None = None) -> float:
         """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
         ``ceiling``: the device's configuration now, which a reload may change). The
         bus's evidence (``BusLike.evidence``: a value) is read; the patience a late
         reply is still expected with is told back (``BusLike.set_patience``). The
         evidence itself (``after`` reads it once per transaction) is read here only when
-        the count of late replies moved: one read per transaction."""
+        the count of late replies moved: one read per transaction. ``gap``: the idle gap
+        the device needs (``BusLike.set_idle_gap``), told to the bus when it changes."""
         self.pinned = pinned
         est = self.estimator
         top = CEILING if ceiling is None else ceiling
         if bus is None:
             est.ceiling, self._bounds = top, None
             return self.timeout
+        if gap is not None and gap != self._gap:
+            bus.set_idle_gap(unit, gap)
+            self._gap = gap
         bounds = (FLOOR + self.silence + bus.adapter_latency, top)
         if bounds != self._bounds:  # the first time, a reload, the adapter's latency known
             est.ceiling = top

@@ -179,6 +179,14 @@ class Serial:
     deassert_dtr: bool = False  # open the port with DTR and RTS deasserted (DTR resets some boards)
 
 
+IDLE_GAP_MAX = 10.0  # seconds: the longest ``idle_gap`` a device may be given
+
+
+def idle_gap_error(gap: float) -> str | None:
+    """Why ``gap`` (seconds) cannot be an idle gap (profile, site file, --idle-gap)."""
+    return None if 0 <= gap <= IDLE_GAP_MAX else f"{gap:g} s is outside 0..{IDLE_GAP_MAX:g} s"
+
+
 @frozen
 class Limits:
     max_registers: int = MAX_REGISTERS  # per read request
@@ -189,6 +197,7 @@ class Limits:
     turnaround: float = 0.005  # typical time from request end to reply start, seconds
     silent_on_error: bool = False  # malformed/unsupported requests get no reply at all
     lost_after_powerup: int = 0  # requests a freshly powered device may drop
+    idle_gap: float = 0.0  # silence on the line the device needs before a request, seconds
 
 
 @frozen

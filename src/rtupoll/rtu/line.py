@@ -12,6 +12,13 @@ must also have been quiet for the drain period (by default the timeout that expi
 but never longer than ``drain_limit`` drain periods: a line that never goes quiet
 must not hold the master for ever.
 
+**Idle gap.** Some devices hear a request only after a longer silence than 3.5
+characters (the "T delay" of their manuals: Growatt asks for 850 ms between commands).
+``set_idle_gap`` gives a unit its gap (``idle_gap`` on the line: every unit's), and a
+request to that unit may go only once the line has been silent that long: counted, as
+the silence is, from the last byte on the line, whoever sent it (``ready_at(unit=)``).
+A unit without one costs one dictionary look-up.
+
 **Which reply answers which request.** RTU has no transaction id: a read reply carries
 only the unit, the function and a byte count, so a late reply to one request looks
 exactly like the answer to the next request of the same shape. A timer alone cannot
@@ -137,7 +144,7 @@ class Line:
 
     def __init__(self, framing: Framing, *, drain: float | None = None,
                  horizon: float = HORIZON, drain_limit: int = DRAIN_LIMIT,
-                 echo: bool = False) -> None:
+                 echo: bool = False, idle_gap: float = 0.0) -> None:
         self.framing = framing
         self.echo = echo  # the adapter echoes each request: consume it
         self._echo = b""  # the echo still expected (echo on)
@@ -158,12 +165,39 @@ class Line:
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
+        # the silence before a request: the line's (every unit's) and per unit, as set
+        self.idle_gap = idle_gap
+        self._gap_set: dict[int, float] = {}
+        # the gap each unit gets (set, the line's), only where above the 3.5 characters
+        self._gap: dict[int, float] = {}
+        self._quiet = max(framing.silence, idle_gap)  # any other unit's
 
     # -- when the next frame may go ------------------------------------------
 
-    def ready_at(self, *, drain: bool = True) -> float:
-        """The earliest time the next request may start (``drain``: honour a drain)."""
-        ready = max(self.last_rx, self.tx_end) + self.framing.silence
+    def set_idle_gap(self, unit: int, seconds: float) -> None:
+        """The silence ``unit`` needs on the line before a request to it (0: none beyond
+        the line's ``idle_gap`` and the 3.5 characters)."""
+        if self._gap_set.get(unit, 0.0) == seconds:
+            return
+        self._gap_set[unit] = seconds
+        self._regap(unit)
+
+    def gap(self, unit: int) -> float:
+        """The silence a request to ``unit`` waits for (the 3.5 characters at least)."""
+        return self._gap.get(unit, self._quiet)
+
+    def _regap(self, unit: int) -> None:
+        gap = max(self._gap_set.get(unit, 0.0), self.idle_gap)
+        if gap > self.framing.silence:
+            self._gap[unit] = gap
+        else:
+            self._gap.pop(unit, None)
+
+    def ready_at(self, *, drain: bool = True, unit: int | None = None) -> float:
+        """The earliest time the next request (to ``unit``: its idle gap) may start
+        (``drain``: honour a drain)."""
+        gap = self._quiet if unit is None else self._gap.get(unit, self._quiet)
+        ready = max(self.last_rx, self.tx_end) + gap
         if drain and self.drain_for:
             quiet = max(self.last_rx, self.timeout_at) + self.drain_for
             ready = max(ready, min(quiet, self.timeout_at + self._drain_limit * self.drain_for))

@@ -148,8 +148,8 @@ class Transaction:
 
     def ready_at(self) -> float:
         """When the next attempt may go: the first honours the drain, a retry only the
-        silence."""
-        return self.line.ready_at(drain=self.attempts == 0)
+        silence (the unit's idle gap, ``Line.set_idle_gap``, for both)."""
+        return self.line.ready_at(drain=self.attempts == 0, unit=self.request[0])
 
     def next(self) -> Step:
         """What the driver does now."""

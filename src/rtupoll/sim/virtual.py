@@ -45,11 +45,12 @@ class VirtualBus(LineBus):
     def __init__(self, engine: Engine, framing: Framing | None = None, *,
                  clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
-                 echo: bool = False) -> None:
-        """``echo``: behind an adapter that echoes each request (and the line expects it)."""
+                 echo: bool = False, idle_gap: float = 0.0) -> None:
+        """``echo``: behind an adapter that echoes each request (and the line expects it);
+        ``idle_gap``: the line's (``Line.idle_gap``)."""
         self.engine = engine
         self.framing = framing or Framing(115200)
-        self.line = Line(self.framing, echo=echo)
+        self.line = Line(self.framing, echo=echo, idle_gap=idle_gap)
         self.echo = echo
         self.stats = BusStats()
         self.sent: list[bytes] = []  # every request put on the line, for tests
