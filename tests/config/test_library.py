@@ -170,6 +170,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"wind_direction_step": "E", "wind_direction": 90}),
     # Senseair S8, TDE2067's CO2 read: IR4 = 0x190 = 400 ppm
     ("senseair-s8", Table.INPUT, 3, _reply(254, 4, [0x190]), {"co2": 400}),
+    # Growatt MIN (V1.20): Fac 3025 x0.01 Hz, Vac1 3026 x0.1 V
+    ("growatt-min", Table.INPUT, 3025, _reply(1, 4, [5000, 2300]),
+     {"grid_frequency": 50.0, "grid_voltage": 230.0}),
 ]
 
 
@@ -225,7 +228,7 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter"}, "kind"),
+    ("pv inverter", {"growatt-inverter", "growatt-min"}, "kind"),
     ("battery_soc", {"epever-tracer", "renogy-rover"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
