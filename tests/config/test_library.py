@@ -173,6 +173,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Growatt MIN (V1.20): Fac 3025 x0.01 Hz, Vac1 3026 x0.1 V
     ("growatt-min", Table.INPUT, 3025, _reply(1, 4, [5000, 2300]),
      {"grid_frequency": 50.0, "grid_voltage": 230.0}),
+    # Growatt SPH (V1.20): SOC 1014 in 1 %, Fac 37 x0.01 Hz
+    ("growatt-sph", Table.INPUT, 1013, _reply(1, 4, [523, 76]),
+     {"battery_voltage": 52.3, "battery_soc": 76}),
 ]
 
 
@@ -228,7 +231,7 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter", "growatt-min"}, "kind"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph"}, "kind"),
     ("battery_soc", {"epever-tracer", "renogy-rover"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
