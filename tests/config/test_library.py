@@ -232,7 +232,7 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
     ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph"}, "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover"}, "field battery_soc"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:
