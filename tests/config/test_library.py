@@ -176,6 +176,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Growatt SPH (V1.20): SOC 1014 in 1 %, Fac 37 x0.01 Hz
     ("growatt-sph", Table.INPUT, 1013, _reply(1, 4, [523, 76]),
      {"battery_voltage": 52.3, "battery_soc": 76}),
+    # Waveshare relay: holding 0x8000 software version, 100 = v1.00
+    ("waveshare-modbus-rtu-relay", Table.HOLDING, 0x8000, _reply(1, 3, [100]),
+     {"software_version": 1.0}),
 ]
 
 
