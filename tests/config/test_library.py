@@ -179,6 +179,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Waveshare relay: holding 0x8000 software version, 100 = v1.00
     ("waveshare-modbus-rtu-relay", Table.HOLDING, 0x8000, _reply(1, 3, [100]),
      {"software_version": 1.0}),
+    # Huawei SUN2000: 32085 grid frequency gain 100 (5000 = 50.00 Hz), 32087 temperature gain 10
+    ("huawei-sun2000", Table.HOLDING, 32085, _reply(1, 3, [5000, 9757, 269]),
+     {"grid_frequency": 50.0, "efficiency": 97.57, "internal_temperature": 26.9}),
 ]
 
 
@@ -234,7 +237,8 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph"}, "kind"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000"},
+     "kind"),
     ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
