@@ -182,6 +182,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Huawei SUN2000: 32085 grid frequency gain 100 (5000 = 50.00 Hz), 32087 temperature gain 10
     ("huawei-sun2000", Table.HOLDING, 32085, _reply(1, 3, [5000, 9757, 269]),
      {"grid_frequency": 50.0, "efficiency": 97.57, "internal_temperature": 26.9}),
+    # R4DCB08, the sheet's examples: 00DB = 21.9 °C, FF90 = -11.2 °C, 8000 = no sensor
+    ("r4dcb08", Table.HOLDING, 0, _reply(1, 3, [0x00DB, 0xFF90, 0x8000]),
+     {"temperature_1": 21.9, "temperature_2": -11.2, "temperature_3": "NO_SENSOR"}),
 ]
 
 
