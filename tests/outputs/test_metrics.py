@@ -30,6 +30,7 @@ from virtual import simulated
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
+from rtupoll.errors import install_command
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.outputs.metrics import SchedulerCollector, field_metric, parse_listen
@@ -253,8 +254,8 @@ def test_without_prometheus_client_it_says_what_to_install(
     monkeypatch.setitem(sys.modules, "prometheus_client", None)  # import fails
     result = poll("-p", bus.port, "--once", "--metrics", "127.0.0.1:0", "huiwen-aq@3")
     assert result.exit_code == 2
-    assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: pip install "
-                                     "'rtupoll[metrics]'")
+    assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: "
+                                     + install_command("metrics")[1])
 
 
 def test_metrics_in_the_site_file(tmp_path: Path) -> None:

@@ -19,7 +19,6 @@ from rtupoll.cli.target import (
     Target,
     load_target,
     need_port,
-    port_optional,
     port_settings,
     run_on_bus,
     speed_note,
@@ -97,7 +96,6 @@ def fields_of(profile: Profile, names: Sequence[str], force: bool) -> list[Field
     return fields
 
 
-@port_optional
 @click.command()
 @click.argument("device", metavar="DEVICE")
 @click.argument("items", nargs=-1, metavar="[FIELD|SPEC]...")

@@ -338,9 +338,9 @@ class Profile:
         for f in self.fields:
             if f.name == name:
                 return f
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(name, self.names(), n=3)
+        hint = close_names(name, self.names(), n=3)
         raise UsageError(f"{self.id} has no field {name!r}"
                          + (f" (did you mean {' or '.join(map(repr, hint))}?)" if hint else "")
                          + f"; 'rtupoll profiles show {self.id}' lists them")

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.gateway_settings import host_port
-from rtupoll.errors import UsageError
+from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
@@ -381,8 +381,7 @@ class MetricsService(Service):
         try:
             import prometheus_client  # noqa: F401
         except ImportError:
-            raise UsageError("--metrics needs prometheus_client: pip install "
-                             "'rtupoll[metrics]'") from None
+            raise MissingLibrary("--metrics", "metrics") from None
         self.collector: SchedulerCollector | None = None
         self.others: list[Any] = list(others)
         self.registry: CollectorRegistry | None = None
