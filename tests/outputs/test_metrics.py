@@ -371,3 +371,40 @@ def test_where_metrics_listen() -> None:
             await svc.stop()
 
     asyncio.run(main())
+
+
+def test_the_docs_metrics_table_lists_every_family_the_collector_has() -> None:
+    """docs/service.md's table against a scrape of a polling scheduler: every family
+    that is not a field's is there, and every family it names is one rtupoll has (the
+    gateway's three come from ``gateway.metrics``, with ``--serve``)."""
+    import re
+
+    from rtupoll.gateway import metrics as gateway_metrics
+
+    bus, clock = simulated(["radar-level@4"])
+    scheduler = Scheduler(from_specs("virtual", [("radar-level", 4)], check_serial=False),
+                          open_bus=lambda _: bus, clock=clock)
+    collector = SchedulerCollector(scheduler)
+    asyncio.run(_cycles(scheduler, 1, collector))
+    fields = {field_metric(f).name for f in scheduler.buses[0].devices[0].config.fields}
+    counters = {m.name: m.type for m in collector.collect()}
+    emitted = {n + ("_total" if t == "counter" else "") for n, t in counters.items()
+               if not any(n == f or n.startswith(f"{f}_") for f in fields)}
+    assert {"rtupoll_late_replies_total", "rtupoll_device_timeout_seconds"} <= emitted
+    text = (Path(__file__).parents[2] / "docs" / "service.md").read_text()
+    table = set(re.findall(r"^\| `(rtupoll_[a-z_]+)` \|", text, re.M))
+    gateway = set(re.findall(r'"(rtupoll_gateway_[a-z_]+)"',
+                             Path(gateway_metrics.__file__).read_text()))
+    gateway = {n + "_total" if n.endswith("requests") else n for n in gateway}
+    assert emitted <= table, sorted(emitted - table)
+    assert table <= emitted | gateway, sorted(table - emitted - gateway)
+
+
+def test_a_difference_in_kelvin_is_the_same_number_in_celsius() -> None:
+    import dataclasses
+
+    f = load_one("net-irnet-pro", []).field("temperature")
+    assert field_metric(f).convert(296.67) == pytest.approx(23.52)
+    offset = dataclasses.replace(f, name="temperature_offset")
+    m = field_metric(offset)
+    assert m.name == "rtupoll_temperature_offset_celsius" and m.convert(1.5) == 1.5

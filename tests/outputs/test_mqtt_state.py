@@ -84,6 +84,31 @@ def test_every_polled_field_is_in_every_state_with_its_last_value() -> None:
     assert fourth["_rtupoll"] == {"status": "failed", "error": "timeout: no reply"}
 
 
+def test_the_status_is_never_ok_while_a_field_is_null_for_a_failed_read() -> None:
+    """A slow field whose last read failed (the port went away) stays null in the scans
+    that do not read it: those say partial, with its failure, until it has a value."""
+    dev = meter()
+    pub, _ = publisher()
+    pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230),
+                                    ok(dev, "import_active_energy", F32_12)])
+    lost = states(pub.readings(dev, True, 1.7e9, [
+        bad(dev, "voltage", Status.PORT, "/dev/ttyUSB0: gone"),
+        bad(dev, "import_active_energy", Status.PORT, "/dev/ttyUSB0: gone")]))[0]
+    assert lost["_rtupoll"] == {"status": "failed", "error": "port: /dev/ttyUSB0: gone"}
+    back = states(pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230)]))[0]
+    assert back["voltage"] == 230.0 and back["import_active_energy"] is None
+    assert back["_rtupoll"] == {"status": "partial", "error": "port: /dev/ttyUSB0: gone"}
+    read = states(pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230),
+                                                  ok(dev, "import_active_energy", F32_12)]))
+    assert read[0]["import_active_energy"] == 12.0
+    assert read[0]["_rtupoll"] == {"status": "ok", "error": None}
+    # a field this generation lacks is null and no failure
+    absent = states(pub.readings(dev, True, 1.7e9, [
+        ok(dev, "voltage", F32_230),
+        bad(dev, "frequency", Status.ABSENT, "not in map version 0")]))[0]
+    assert absent["frequency"] is None and absent["_rtupoll"]["status"] == "ok"
+
+
 def test_availability_when_it_changes_and_again_after_a_reconnect() -> None:
     dev = meter()
     pub, _ = publisher()

@@ -314,8 +314,18 @@ def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: b
     assert settings is not None
     if remove:
         gone = mqtt_out.remove_discovery_now(settings, site)
-        click.echo(f"rtupoll: removed {len(gone)} Home Assistant discovery configs from "
-                   f"{settings.where} ({settings.discovery_prefix}/device/...)", err=True)
+        if not gone.configs and not gone.topics:
+            click.echo(f"rtupoll: nothing to remove: {settings.where} holds no Home "
+                       f"Assistant discovery config of gateway {settings.gateway_id!r} and "
+                       f"no retained topic under {settings.base}", err=True)
+        else:
+            from rtupoll.figures import count
+
+            configs = count(len(gone.configs), "Home Assistant discovery config")
+            click.echo(f"rtupoll: removed {configs} ({settings.discovery_prefix}/device/...)"
+                       f" and {count(len(gone.topics), 'retained topic')} under "
+                       f"{settings.base} (bridge state and info, availability) from "
+                       f"{settings.where}", err=True)
         return True
     # under the live table its news is a footer line rather than log lines
     services.append(mqtt_out.MqttService(settings, site, once=once,

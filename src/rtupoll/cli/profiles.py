@@ -353,7 +353,10 @@ def _describe(f: Field) -> str:
                  f"every {f.interval:g} s"]
     tags += [f"{f.precision} decimals"] if f.precision is not None else []
     tags += [f"{_code(k, f)} = {c.name}" for k, c in f.sentinels.items()]
-    return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()
+    # a label (the name people see in Home Assistant and on the dashboard) leads
+    text = f"{f.label}: {f.description}" if f.label and f.description else f.label \
+        or f.description
+    return " ".join([text] + [f"[{t}]" for t in tags]).strip()
 
 
 def _code(k: int | float, f: Field) -> str:

@@ -44,6 +44,7 @@ from rtupoll.errors import (
     PortError,
     RtupollError,
 )
+from rtupoll.figures import count
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
@@ -189,11 +190,17 @@ class DevicePoller:
         return readings
 
     def _due(self, block: Block, now: float) -> bool:
-        """A block of fields with their own ``interval`` is read when that has passed."""
+        """A block of fields with their own ``interval`` is read when that has passed, or
+        at once while one of its fields has no value: its latest reading failed (a port
+        that went away fails every field, the ones read just before it too)."""
         if block.interval is None:
             return True
         last = self.block_read.get((block.table, block.address, block.count))
-        return last is None or now - last >= block.interval - 1e-3
+        if last is None or now - last >= block.interval - 1e-3:
+            return True
+        latest = self.stats.latest
+        return any((r := latest.get(f.name)) is not None and r.value is None
+                   and r.status is not Status.ABSENT for f in block.fields)
 
     async def _probe_variant(self, transport: BusLike, retries: int) -> str:
         """Learn the device's variant once (until it answers, plan for the newest map);
@@ -606,7 +613,7 @@ class Scheduler:
             try:
                 await bp.transport.open()
                 changes.append(f"opened bus {bp.config.name} ({bp.config.port}, "
-                               f"{bp.config.serial_text}): {len(bp.devices)} devices")
+                               f"{bp.config.serial_text}): {count(len(bp.devices), 'device')}")
             except RtupollError as exc:
                 changes.append(f"bus {bp.config.name}: {exc} (retrying)")
             self._opened.append(bp)

@@ -22,6 +22,11 @@ from rtupoll.rtu.functions import MAX_REGISTERS
 _LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
 MAX_LABEL = 40  # characters in a field's label (docs/profiles.md, "Labels")
 _ASIDE = re.compile(r" \(|; ")
+# words that make a field's number a difference of its unit, never an absolute value:
+# +1.5 °C of correction is 2.7 °F, not 34.7 °F, and |-5 °C| is no temperature of 5 °C
+DIFFERENCE_WORDS = frozenset({"correction", "offset", "delta", "difference", "deviation",
+                              "hysteresis", "deadband", "magnitude", "adjustment",
+                              "compensation"})
 
 
 def first_clause(text: str) -> str:
@@ -29,6 +34,14 @@ def first_clause(text: str) -> str:
     ``.:,``, capitalised: ``"kWh (+) total"`` -> ``"KWh"``; "" for none."""
     out = _ASIDE.split(text, maxsplit=1)[0].strip().rstrip(".:,")
     return out[:1].upper() + out[1:]
+
+
+def is_difference(name: str, title: str) -> bool:
+    """Whether a field of this name and title is a difference of its unit (a word of
+    either is one of ``DIFFERENCE_WORDS``): ``Field.difference``, and the same rule for
+    a field known only by its name and label (a fleet viewer's ``bridge/info``)."""
+    words = set(name.split("_")) | set(re.findall(r"[a-z]+", title.lower()))
+    return not DIFFERENCE_WORDS.isdisjoint(words)
 
 
 def squashed(text: str) -> str:
@@ -145,6 +158,14 @@ class Field:
             return self.label
         text = first_clause(self.description) or self.name.replace("_", " ")
         return text[:1].upper() + text[1:]
+
+    @property
+    def difference(self) -> bool:
+        """Whether the value is a difference of its unit (a correction, an offset, a
+        delta, a hysteresis, a magnitude without its sign), by a word of its name or
+        title (``DIFFERENCE_WORDS``): shown and announced in its unit as it is, never
+        converted as an absolute value (kelvin to °C, HA's °C to °F) would be."""
+        return is_difference(self.name, self.title)
 
     @property
     def words(self) -> int:

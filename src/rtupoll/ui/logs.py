@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.figures import iso_time
+from rtupoll.figures import count, iso_time
 from rtupoll.jobs.services import Service
 from rtupoll.ui.records import to_json
 
@@ -107,8 +107,8 @@ class StateLog(Service):
         self._scheduler = scheduler
         self._index()
         for bp in scheduler.buses:
-            log.info("polling %s (%s, %s): %d devices", bp.config.name, bp.config.port,
-                     bp.config.serial_text, len(bp.devices),
+            log.info("polling %s (%s, %s): %s", bp.config.name, bp.config.port,
+                     bp.config.serial_text, count(len(bp.devices), "device"),
                      extra={"event": "bus", "bus": bp.config.name})
 
     def _index(self) -> None:
