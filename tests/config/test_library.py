@@ -172,6 +172,34 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"status_word": ["READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED",
                       "VOLTAGE_ENABLED", "QUICK_STOP_OFF", "REMOTE", "TARGET_REACHED"],
       "output_frequency": 48.5}),
+    # SINAMICS V20: 40024 FREQ OUTPUT x100 (5000 = 50.00 Hz), 40025 SPEED in rpm
+    ("siemens-sinamics-v20", Table.HOLDING, 23, _reply(1, 3, [5000, 1455]),
+     {"output_frequency": 50.0, "motor_speed": 1455}),
+    # Optidrive E3: register 7 (wire 6) output frequency 1dp: 100 = 10.0 Hz
+    ("invertek-optidrive-e3", Table.HOLDING, 6, _reply(1, 3, [100]), {"output_frequency": 10.0}),
+    # SenseCAP soil probe, the manual's FC04 sample: 21.92 °C, 37.31 %, 590 µS/cm
+    ("sensecap-soil-ec02", Table.INPUT, 0, _reply(1, 4, [0x0890, 0x0E93, 0x024E]),
+     {"temperature": 21.92, "moisture": 37.31, "conductivity": 590}),
+    # Renke RS-FX-N01, the guide's example: step 2 (east), 90°
+    ("renke-rs-fx-n01", Table.HOLDING, 0, _reply(1, 3, [2, 90]),
+     {"wind_direction_step": "E", "wind_direction": 90}),
+    # Senseair S8, TDE2067's CO2 read: IR4 = 0x190 = 400 ppm
+    ("senseair-s8", Table.INPUT, 3, _reply(254, 4, [0x190]), {"co2": 400}),
+    # Growatt MIN (V1.20): Fac 3025 x0.01 Hz, Vac1 3026 x0.1 V
+    ("growatt-min", Table.INPUT, 3025, _reply(1, 4, [5000, 2300]),
+     {"grid_frequency": 50.0, "grid_voltage": 230.0}),
+    # Growatt SPH (V1.20): SOC 1014 in 1 %, Fac 37 x0.01 Hz
+    ("growatt-sph", Table.INPUT, 1013, _reply(1, 4, [523, 76]),
+     {"battery_voltage": 52.3, "battery_soc": 76}),
+    # Waveshare relay: holding 0x8000 software version, 100 = v1.00
+    ("waveshare-modbus-rtu-relay", Table.HOLDING, 0x8000, _reply(1, 3, [100]),
+     {"software_version": 1.0}),
+    # Huawei SUN2000: 32085 grid frequency gain 100 (5000 = 50.00 Hz), 32087 temperature gain 10
+    ("huawei-sun2000", Table.HOLDING, 32085, _reply(1, 3, [5000, 9757, 269]),
+     {"grid_frequency": 50.0, "efficiency": 97.57, "internal_temperature": 26.9}),
+    # R4DCB08, the sheet's examples: 00DB = 21.9 °C, FF90 = -11.2 °C, 8000 = no sensor
+    ("r4dcb08", Table.HOLDING, 0, _reply(1, 3, [0x00DB, 0xFF90, 0x8000]),
+     {"temperature_1": 21.9, "temperature_2": -11.2, "temperature_3": "NO_SENSOR"}),
 ]
 
 
@@ -230,8 +258,9 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter"}, "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover"}, "field battery_soc"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000"},
+     "kind"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:
@@ -248,11 +277,15 @@ def test_profiles_search_without_a_match_is_a_usage_error() -> None:
     assert "no profile matches 'no-such-device-anywhere'" in result.stderr
 
 
-def test_readme_lists_every_bundled_profile() -> None:
-    text = README.read_text(encoding="utf-8")
-    section = text.split("## Device profiles", 1)[1].split("\n## ", 1)[0]
+def test_the_docs_list_every_bundled_profile_and_the_readme_points_there() -> None:
+    """One home for the list (docs/profiles.md), no count to go stale in the README."""
+    text = (README.parent / "docs" / "profiles.md").read_text(encoding="utf-8")
+    section = text.split("\n## The bundled profiles", 1)[1].split("\n## ", 1)[0]
     listed = set(re.findall(r"^\| `([a-z0-9-]+)` \|", section, re.M))
     assert listed == set(BUNDLED)
+    readme = README.read_text(encoding="utf-8")
+    assert "(docs/profiles.md)" in readme.split("## Device profiles", 1)[1]
+    assert not re.search(r"\b\d+ profiles\b|[Tt]wenty", readme)
 
 
 # every register each SDM120 document lists, as (table, wire address, registers): the

@@ -115,7 +115,7 @@ def port_options(f: F) -> F:
                      default=None, help="Parity (default: the profile's).")(f)
     f = click.option("--baudrate", "-b", type=click.IntRange(300, 4_000_000), default=None,
                      help="Baud rate (default: the profile's).")(f)
-    f = click.option("--port", "-p", required=True, envvar="RTUPOLL_PORT",
+    f = click.option("--port", "-p", envvar="RTUPOLL_PORT",
                      help="Serial port (/dev/ttyUSB0), or tcp://HOST:PORT for an RTU-over-TCP "
                           "gateway. Also $RTUPOLL_PORT.")(f)
     return f

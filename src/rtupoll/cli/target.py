@@ -57,15 +57,6 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
     return Target(note_use(load_one(pid, profile_dirs)) if pid else None, unit)
 
 
-def port_optional(command: click.Command) -> click.Command:
-    """Make ``--port`` optional in click, so ``need_port`` can say where a port comes from
-    (click's own message does not mention $RTUPOLL_PORT)."""
-    for p in command.params:
-        if p.name == "port":
-            p.required = False
-    return command
-
-
 def need_port(port: str | None) -> str:
     if not port:
         raise UsageError("which port? give --port PORT (e.g. -p /dev/ttyUSB0, or "
@@ -73,14 +64,15 @@ def need_port(port: str | None) -> str:
     return port
 
 
-def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
-                  stopbits: str | None) -> PortSettings:
-    """The profile's serial settings (9600 8N1 without one), each overridable."""
+def port_settings(profile: Profile | None, port: str | None, baudrate: int | None,
+                  parity: str | None, stopbits: str | None) -> PortSettings:
+    """The profile's serial settings (9600 8N1 without one), each overridable; the port
+    from --port or $RTUPOLL_PORT (``need_port`` says so when neither is given)."""
     from rtupoll.io.serialport import PortSettings
 
     s = profile.serial if profile else None
     return PortSettings(
-        port=port,
+        port=need_port(port),
         baudrate=baudrate or (s.baudrate if s else 9600),
         parity=(parity or (s.parity if s else "N")).upper(),
         bytesize=s.bytesize if s else 8,

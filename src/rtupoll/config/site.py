@@ -308,9 +308,9 @@ def _field(profile: Profile, name: str, fail: Callable[[str], RtupollError]) -> 
                 raise fail(f"{name} is never polled: reading it has side effects "
                            f"({f.description or 'see the profile'}); use 'rtupoll read'")
             return f
-    import difflib
+    from rtupoll.model.names import close_names
 
-    hint = difflib.get_close_matches(name, profile.names(), n=1)
+    hint = close_names(name, profile.names())
     raise fail(f"{profile.id} has no field {name!r}"
                + (f" (did you mean {hint[0]!r}?)" if hint else ""))
 
@@ -426,9 +426,9 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
     known = sorted({n for p in profiles for n in p.names()})
     for f in wanted:
         if f not in known:
-            import difflib
+            from rtupoll.model.names import close_names
 
-            hint = difflib.get_close_matches(f, known, n=1)
+            hint = close_names(f, known)
             raise UsageError(f"--fields: no device here has a field {f!r}"
                              + (f" (did you mean {hint[0]!r}?)" if hint else ""))
     chosen: list[tuple[Field, ...]] = []

@@ -36,6 +36,14 @@ def first_clause(text: str) -> str:
     return out[:1].upper() + out[1:]
 
 
+def is_difference(name: str, title: str) -> bool:
+    """Whether a field of this name and title is a difference of its unit (a word of
+    either is one of ``DIFFERENCE_WORDS``): ``Field.difference``, and the same rule for
+    a field known only by its name and label (a fleet viewer's ``bridge/info``)."""
+    words = set(name.split("_")) | set(re.findall(r"[a-z]+", title.lower()))
+    return not DIFFERENCE_WORDS.isdisjoint(words)
+
+
 def squashed(text: str) -> str:
     """Text compared as a label or unit is: without spaces, case folded."""
     return "".join(text.split()).casefold()
@@ -167,8 +175,7 @@ class Field:
         delta, a hysteresis, a magnitude without its sign), by a word of its name or
         title (``DIFFERENCE_WORDS``): shown and announced in its unit as it is, never
         converted as an absolute value (kelvin to °C, HA's °C to °F) would be."""
-        words = set(self.name.split("_")) | set(re.findall(r"[a-z]+", self.title.lower()))
-        return not DIFFERENCE_WORDS.isdisjoint(words)
+        return is_difference(self.name, self.title)
 
     @property
     def words(self) -> int:
@@ -362,9 +369,9 @@ class Profile:
         for f in self.fields:
             if f.name == name:
                 return f
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(name, self.names(), n=3)
+        hint = close_names(name, self.names(), n=3)
         raise UsageError(f"{self.id} has no field {name!r}"
                          + (f" (did you mean {' or '.join(map(repr, hint))}?)" if hint else "")
                          + f"; 'rtupoll profiles show {self.id}' lists them")

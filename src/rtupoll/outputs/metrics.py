@@ -45,7 +45,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.gateway_settings import host_port
-from rtupoll.errors import UsageError
+from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
@@ -99,8 +99,9 @@ SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): 
 RESERVED = frozenset({
     f"rtupoll_{n}{suffix}" for n in (
         "device_up", "device_state", "device_info", "requests", "exceptions", "cycles",
-        "last_good_reading_age_seconds", "request_duration_seconds", "bus_utilisation_ratio",
-        "bus_transactions", "bus_busy_seconds", "bus_port_up", "bus_port_losses")
+        "late_replies", "device_timeout_seconds", "last_good_reading_age_seconds",
+        "request_duration_seconds", "bus_utilisation_ratio", "bus_transactions",
+        "bus_busy_seconds", "bus_port_up", "bus_port_losses")
     for suffix in ("", "_total", "_bucket", "_count", "_sum", "_created")})
 
 
@@ -158,6 +159,8 @@ def field_metric(f: Field) -> FieldMetric:
     if unit and base.endswith("_" + _word(unit)):  # level_cm: the name says the unit
         return FieldMetric(PREFIX + base, kind, f"{what}, in {unit}", decimals=known)
     word, scale, offset = UNITS.get(unit, (_word(unit), 1.0, 0.0))
+    if f.difference:  # a correction of 1.5 K is one of 1.5 °C: scaled, never offset
+        offset = 0.0
     spelled = SPELLED.get(unit)
     if spelled and (scale, offset) != (1, 0) and f"_{spelled}_" in f"_{base}_":
         base = f"_{base}_".replace(f"_{spelled}_", "_").strip("_") or "field"
@@ -381,8 +384,7 @@ class MetricsService(Service):
         try:
             import prometheus_client  # noqa: F401
         except ImportError:
-            raise UsageError("--metrics needs prometheus_client: pip install "
-                             "'rtupoll[metrics]'") from None
+            raise MissingLibrary("--metrics", "metrics") from None
         self.collector: SchedulerCollector | None = None
         self.others: list[Any] = list(others)
         self.registry: CollectorRegistry | None = None
