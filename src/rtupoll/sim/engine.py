@@ -76,6 +76,9 @@ class Deframer:
         return left
 
 
+PAUSE = 0.02  # seconds: a pause fault's default
+
+
 @dataclass(frozen=True)
 class Transmission:
     """One reply to put on the wire: bytes, the device's turnaround and a fault delay."""
@@ -86,6 +89,7 @@ class Transmission:
     explicit: bool = False  # the turnaround was set for this device (applies without --baud)
     delay: float = 0.0  # extra, from a slow fault: the reply arrives this much later
     notes: tuple[str, ...] = ()
+    pause: float = 0.0  # a pause fault: the reply's second half goes this much later
 
 
 class Engine:
@@ -160,7 +164,11 @@ class Engine:
             if exc is not None:
                 notes.insert(0, f"exception {reply[2]}")
             ta = d.config.turnaround
+            pause = next(((f.arg if f.arg is not None else PAUSE) for f in hits
+                          if f.kind == "pause"), 0.0)
+            if pause:
+                notes.append(f"pause {pause * 1000:g} ms")
             out.append(Transmission(data, at, d.profile.limits.turnaround if ta is None else ta,
-                                    ta is not None, delay, tuple(notes)))
+                                    ta is not None, delay, tuple(notes), pause))
         self.replies += len(out)
         return out

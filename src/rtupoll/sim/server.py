@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import math
 import os
 import struct
@@ -147,6 +148,13 @@ class _Link:
             end = start + (fr.wire_time(len(tx.data)) if fr else 0.0)
             if not tx.delay:  # a late reply collides on a real bus; it does not hold it
                 self.free_at = end + silence
+            if tx.pause:  # the first half, then the rest after the pause
+                half = len(tx.data) // 2
+                first = dataclasses.replace(tx, data=tx.data[:half])
+                rest = dataclasses.replace(tx, data=tx.data[half:], notes=())
+                srv.later(end + tx.delay, self._send, first)
+                srv.later(end + tx.delay + tx.pause, self._send, rest)
+                continue
             srv.later(end + tx.delay, self._send, tx)
 
     def _send(self, tx: Transmission) -> None:
