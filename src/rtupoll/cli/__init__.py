@@ -109,9 +109,9 @@ class LazyGroup(click.Group):
                         ) -> tuple[str | None, click.Command | None, list[str]]:
         name = args[0] if args else ""
         if name and not name.startswith("-") and name not in COMMANDS:
-            import difflib
+            from rtupoll.model.names import close_names
 
-            hint = difflib.get_close_matches(name, COMMANDS, n=1)
+            hint = close_names(name, COMMANDS)
             raise click.UsageError(f"no command {name!r}"
                                    + (f" (did you mean {hint[0]!r}?)" if hint else ""), ctx)
         return super().resolve_command(ctx, args)
