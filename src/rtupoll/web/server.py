@@ -237,7 +237,9 @@ class Gate:
         self.open = 0
         self.lingering = 0  # refused ones whose 503 is being read
         self.refusals = Refusals(f"{server.what} {where}", log)
-        self.closed = {"header_timeout": 0, "idle_timeout": 0}  # connections, by deadline
+        # connections closed for what only a hostile or broken client does (an idle one
+        # closed is no news): one line a minute
+        self.expired = Refusals(f"{server.what} {where}", log, verb="closed")
 
     def __call__(self) -> Conn:
         return Conn(self)
@@ -317,7 +319,8 @@ class Conn(asyncio.Protocol):
     def _stalled(self) -> None:
         self.stall = None
         if self.transport is not None and self.inner is not None:
-            self.gate.closed["unread"] = self.gate.closed.get("unread", 0) + 1
+            self.gate.expired.refused(f"not reading what they were sent for "
+                                      f"{self.gate.server.settings.idle_timeout:g} s")
             reset(self.transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -364,11 +367,16 @@ class Conn(asyncio.Protocol):
         t = self.transport
         if t is None or self.inner is None or t.is_closing():
             return
-        self.gate.closed[self.phase] = self.gate.closed.get(self.phase, 0) + 1
-        if t.get_write_buffer_size():  # it does not read what it was sent either
+        settings = self.gate.server.settings
+        if t.get_write_buffer_size():  # it does not read what it was sent
+            self.gate.expired.refused(f"not reading what they were sent for "
+                                      f"{settings.idle_timeout:g} s")
             reset(t)
-        else:
-            t.close()
+            return
+        if self.phase == "header_timeout":
+            self.gate.expired.refused(f"with their headers not all in after "
+                                      f"{settings.header_timeout:g} s")
+        t.close()
 
 
 def reset(transport: asyncio.Transport) -> None:
@@ -669,7 +677,8 @@ class Listener(web.BaseSite):
         if sockets:
             port = sockets[0].getsockname()[1]
             host = f"[{self.host}]" if ":" in self.host else self.host
-            self.gate.refusals.what = f"{self.gate.server.what} {host}:{port}"
+            self.gate.refusals.what = self.gate.expired.what = \
+                f"{self.gate.server.what} {host}:{port}"
         self._unwatch = watch(sockets, self.gate.refusals)
 
     async def stop(self) -> None:
@@ -677,4 +686,5 @@ class Listener(web.BaseSite):
             self._unwatch()
             self._unwatch = None
         self.gate.refusals.flush()
+        self.gate.expired.flush()
         await super().stop()
