@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import http.client
 import os
 import resource
 import shutil
@@ -149,9 +150,16 @@ def test_the_connection_cap_refuses_more_and_says_so_once(dashboard: Dashboard) 
     with dashboard("--http-max-connections", "5", "--http-idle-timeout", "60") as p:
         held = [connect(p) for _ in range(5)]
         until(lambda: status(ask(p, get())) == 503, "the sixth connection refused")
-        for _ in range(20):
+        for _ in range(19):
             answer = ask(p, get())
             assert status(answer) == 503 and b"too many connections" in answer
+        # a well-formed answer, as an HTTP client reads it
+        conn = http.client.HTTPConnection(*where(p), timeout=ANSWERED)
+        conn.request("GET", "/api/state")
+        resp = conn.getresponse()
+        assert (resp.status, resp.getheader("Retry-After"), resp.read()) == (
+            503, "10", b"rtupoll: too many connections, retry later\n")
+        conn.close()
         for s in held:
             s.close()
         until(lambda: status(ask(p, get())) == 200, "served again once they are closed")

@@ -223,9 +223,10 @@ def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -
 
 
 LINGER = 1.0  # seconds a refused connection is given to read its 503
-REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\n"
-           b"Content-Length: 39\r\nConnection: close\r\nRetry-After: 10\r\n\r\n"
-           b"rtupoll: too many connections, retry\r\n\r\n")
+_BUSY = b"rtupoll: too many connections, retry later\n"
+REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+           b"Content-Length: %d\r\nConnection: close\r\nRetry-After: 10\r\n\r\n%s"
+           % (len(_BUSY), _BUSY))
 
 
 class Gate:
