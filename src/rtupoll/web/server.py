@@ -223,6 +223,11 @@ def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -
 
 
 LINGER = 1.0  # seconds a refused connection is given to read its 503
+MAX_HEAD = 32 << 10  # bytes a connection may send from one request's headers to the next
+_BIG = b"rtupoll: request headers too large\n"
+TOO_LARGE = (b"HTTP/1.1 431 Request Header Fields Too Large\r\n"
+             b"Content-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
+             b"Connection: close\r\n\r\n%s" % (len(_BIG), _BIG))
 _BUSY = b"rtupoll: too many connections, retry later\n"
 REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
            b"Content-Length: %d\r\nConnection: close\r\nRetry-After: 10\r\n\r\n%s"
@@ -254,7 +259,7 @@ class Conn(asyncio.Protocol):
     request's ``end``), and ``idle_timeout`` too while what it was sent waits for it to
     read (its transport paused our writing). A connection past its deadline is closed."""
 
-    __slots__ = ("busy", "gate", "inner", "phase", "stall", "timer", "transport")
+    __slots__ = ("busy", "gate", "got", "inner", "phase", "stall", "timer", "transport")
 
     def __init__(self, gate: Gate) -> None:
         self.gate = gate
@@ -264,6 +269,7 @@ class Conn(asyncio.Protocol):
         self.busy = False
         self.phase = ""  # "idle_timeout", "header_timeout" or "" (a request is handled)
         self.stall: asyncio.TimerHandle | None = None  # while its writes wait for it
+        self.got = 0  # bytes received since the last request's headers were in
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -292,7 +298,18 @@ class Conn(asyncio.Protocol):
         self._wait("idle_timeout")
 
     def data_received(self, data: bytes) -> None:
-        if self.inner is None:
+        if self.inner is None or self.transport is None:
+            return
+        self.got += len(data)
+        if self.got > MAX_HEAD:  # headers of 1 MB (aiohttp's own bound) on every
+            # connection would hold 256 MB: a request is a few kB, nothing comes after
+            # an event stream's request
+            self.gate.expired.refused(f"with more than {MAX_HEAD >> 10} kB of headers")
+            if self.busy:
+                reset(self.transport)
+            else:
+                self.transport.write(TOO_LARGE)
+                self.transport.close()
             return
         if not self.busy and self.phase != "header_timeout":
             self._wait("header_timeout")
@@ -319,7 +336,8 @@ class Conn(asyncio.Protocol):
 
     def _stalled(self) -> None:
         self.stall = None
-        if self.transport is not None and self.inner is not None:
+        if self.transport is not None and self.inner is not None and \
+                not self.transport.is_closing():
             self.gate.expired.refused(f"not reading what they were sent for "
                                       f"{self.gate.server.settings.idle_timeout:g} s")
             reset(self.transport)
@@ -343,6 +361,7 @@ class Conn(asyncio.Protocol):
     def begin(self) -> None:
         """A request's headers are in: no deadline while it is handled."""
         self.busy = True
+        self.got = 0
         self._cancel()
         self.phase = ""
 
