@@ -465,3 +465,15 @@ def test_every_size_in_the_fleet_is_bounded() -> None:
     for i in range(f.MAX_GATEWAYS + 5):
         fleet.handle(f"rtupoll/g{i}/bridge/info", json.dumps({"devices": {}}).encode())
     assert len(fleet.gateways) == f.MAX_GATEWAYS
+
+
+def test_the_fleet_shows_kelvin_as_celsius_as_a_polling_process_does() -> None:
+    """A gateway publishes its device's unit (the IRNET's K, bridge/info says so); the
+    fleet's page shows it as every screen does (``model.interpret.shown_number``)."""
+    from rtupoll.web.fleet import field_json, shown_value
+    meta = {"label": "Sensor temperature", "unit": "K", "kind": "number", "precision": 2}
+    got = field_json("temperature", meta, {"temperature": 296.67}, 1.8e9, "")
+    assert (got["value"], got["text"], got["unit"]) == (23.52, "23.52", "°C")
+    offset = {**meta, "label": "Temperature offset"}  # a difference moves by no 273.15
+    assert shown_value("temperature_offset", offset, 1.5) == 1.5
+    assert shown_value("co2", {"unit": "ppm"}, 612) == 612

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
+from rtupoll import aio
 from rtupoll.cli import stop_event
 from rtupoll.cli.options import (
     LineOptions,
@@ -228,9 +229,11 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                  metrics=metrics, log_format=log_format, http=http, gateway=gateway)
         if fmt == "table" and not once and not faults:
             dead = lines[0].config.devices[-1].address  # one that exists on this bus
+            from rtupoll.io.port_errors import example_port
+
             click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
                        "or --baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
-                       "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
+                       f"-p {example_port()} -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
         if devices or port:
@@ -242,13 +245,16 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         if served is not None:
             raise UsageError("with --config, set serve: per bus in the site file")
         if given_line_options() != LineOptions():
-            raise UsageError("with --config, set echo: and rs485: per bus in the site file")
+            raise UsageError("with --config, set echo:, rs485: and idle_gap: per bus in the "
+                             "site file")
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
+            from rtupoll.io.port_errors import example_port
+
             raise UsageError(f"which port is {devices[0].profile}@{devices[0].address} on? "
-                             "give --port PORT (or $RTUPOLL_PORT), e.g. -p /dev/ttyUSB0, or "
-                             "--simulate to try it without hardware")
+                             f"give --port PORT (or $RTUPOLL_PORT), e.g. -p {example_port()}, "
+                             "or --simulate to try it without hardware")
         if not port:
             raise UsageError("nothing to poll: give --config FILE, or --port PORT and DEVICEs "
                              "(PROFILE@ADDRESS), or --simulate to try it without hardware")
@@ -313,8 +319,18 @@ def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: b
     assert settings is not None
     if remove:
         gone = mqtt_out.remove_discovery_now(settings, site)
-        click.echo(f"rtupoll: removed {len(gone)} Home Assistant discovery configs from "
-                   f"{settings.where} ({settings.discovery_prefix}/device/...)", err=True)
+        if not gone.configs and not gone.topics:
+            click.echo(f"rtupoll: nothing to remove: {settings.where} holds no Home "
+                       f"Assistant discovery config of gateway {settings.gateway_id!r} and "
+                       f"no retained topic under {settings.base}", err=True)
+        else:
+            from rtupoll.figures import count
+
+            configs = count(len(gone.configs), "Home Assistant discovery config")
+            click.echo(f"rtupoll: removed {configs} ({settings.discovery_prefix}/device/...)"
+                       f" and {count(len(gone.topics), 'retained topic')} under "
+                       f"{settings.base} (bridge state and info, availability) from "
+                       f"{settings.where}", err=True)
         return True
     # under the live table its news is a footer line rather than log lines
     services.append(mqtt_out.MqttService(settings, site, once=once,
@@ -357,10 +373,11 @@ def _split(fields: str | None) -> list[str]:
 
 
 def _with_line_options(site: Site) -> Site:
-    """--echo and --rs485 on every bus of a site made from the command line."""
+    """--echo, --rs485 and --idle-gap on every bus of a site made from the command line."""
     given = given_line_options()
     return dataclasses.replace(site, buses=tuple(
-        dataclasses.replace(b, echo=given.echo, rs485=given.rs485) for b in site.buses))
+        dataclasses.replace(b, echo=given.echo, rs485=given.rs485, idle_gap=given.idle_gap)
+        for b in site.buses))
 
 
 @contextlib.contextmanager
@@ -368,12 +385,14 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
                *, echo: bool = False) -> Iterator[list[SimulatedBus]]:
     """Start the simulator in-process: the devices on lines that could exist (the seed
     devices by default: four at 9600 and the CO2Meter board at 115200), one port each.
-    With devices named and a baud rate, they are one line at that rate, as asked."""
+    With devices named and a baud rate, they are one line at that rate, as asked. Where
+    there are no pseudo-terminals (Windows) each line is served over TCP on loopback."""
     from rtupoll.sim.runner import simulated_lines
+    from rtupoll.sim.server import PTYS
 
     with simulated_lines([f"{d.profile}@{d.address}" for d in devices], baudrate=baudrate,
                          one_line=bool(devices and baudrate), faults=tuple(faults),
-                         echo=echo) as lines:
+                         echo=echo, tcp=not PTYS) as lines:
         yield list(lines)
 
 
@@ -404,12 +423,13 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             view = PollView(scheduler.buses, title=title, live=not once,
                             footers=[s.footer for s in services])
         if once:
-            readings = asyncio.run(_once(scheduler, writer, services))
+            readings = aio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
+            _echo_found(scheduler)
             _report_failures(site, readings)
         else:
-            asyncio.run(_forever(scheduler, writer, view, console, services))
+            aio.run(_forever(scheduler, writer, view, console, services))
 
 
 def _table_shown(fmt: str, output: Path | None) -> bool:
@@ -430,7 +450,7 @@ def _table_shown(fmt: str, output: Path | None) -> bool:
 
 def _adapter_warnings(site: Site) -> None:
     """One line per USB adapter whose latency timer adds more than 1 ms to every reply."""
-    from rtupoll.io.serialport import latency_timer, latency_warning
+    from rtupoll.io.latency import latency_timer, latency_warning
 
     for bus in site.buses:
         warning = latency_warning(bus.port, latency_timer(bus.port))
@@ -539,6 +559,15 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         if stop.is_set():
             return
         live.refresh()
+
+
+def _echo_found(scheduler: Scheduler) -> None:
+    """``--once``: one stderr line per bus whose adapter's echo was found (and consumed)."""
+    from rtupoll.rtu.line import ECHO_FOUND
+
+    for bp in scheduler.buses:
+        if getattr(bp.transport, "echo_found", False):
+            click.echo(f"rtupoll: {bp.config.name}: {ECHO_FOUND}", err=True)
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

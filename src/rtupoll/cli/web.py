@@ -56,6 +56,7 @@ def web(url: str, **opts: Any) -> None:
     aiomqtt_module()
     if warning := http.warning():
         click.echo(f"rtupoll: {warning}", err=True)
+    from rtupoll import aio
     from rtupoll.ui import logs
 
     root = logging.getLogger("rtupoll")
@@ -63,7 +64,7 @@ def web(url: str, **opts: Any) -> None:
     # the dropped messages and refused connections, one line a minute, as poll logs them
     handler = logs.setup("text", level=logging.WARNING)
     try:
-        asyncio.run(_main(settings, prefix, http))
+        aio.run(_main(settings, prefix, http))
     finally:
         root.removeHandler(handler)
         root.setLevel(level)

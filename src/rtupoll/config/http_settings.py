@@ -24,7 +24,7 @@ from dataclasses import field, replace
 from typing import TYPE_CHECKING
 
 from rtupoll.config.gateway_settings import LOOPBACK, host_port
-from rtupoll.errors import UsageError
+from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.frozen import frozen
 
 if TYPE_CHECKING:
@@ -99,7 +99,7 @@ def require_aiohttp() -> None:
     try:
         import aiohttp  # noqa: F401
     except ImportError:
-        raise UsageError("the dashboard needs aiohttp: pip install 'rtupoll[web]'") from None
+        raise MissingLibrary("the dashboard", "web") from None
 
 
 def parse_listen(text: str) -> tuple[str, int]:

@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
+from rtupoll.model.interpret import DISPLAY_UNITS, shown_number
+from rtupoll.model.profile import is_difference
 from rtupoll.refusals import Refusals
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub
@@ -248,7 +250,7 @@ class Fleet:
         for name, meta in fields.items():
             if meta.get("kind", "number") == "number" and (v := number(values.get(name))) \
                     is not None:
-                self.trends.add(key, name, at, v)
+                self.trends.add(key, name, at, shown_value(name, meta, v))
         self._publish(gw, dev)
 
     def _publish(self, gw: Gateway, dev: Device) -> None:
@@ -371,13 +373,28 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
             "fields": fields}
 
 
+def shown_value(name: str, meta: dict[str, Any], value: Any) -> Any:
+    """A number as a person is shown it (``model.interpret.shown_number``): what the
+    gateway published in its device's unit (``meta``: the field's ``bridge/info``)."""
+    unit = str(meta.get("unit") or "")
+    if unit not in DISPLAY_UNITS or isinstance(value, bool) \
+            or not isinstance(value, (int, float)):
+        return value
+    precision = meta.get("precision") if isinstance(meta.get("precision"), int) else None
+    label = str(meta.get("label") or "")
+    return shown_number(unit, value, precision, difference=is_difference(name, label))
+
+
 def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: float | None,
                error: str) -> dict[str, Any]:
     kind = str(meta.get("kind") or "number")
     precision = meta.get("precision")
+    label = str(meta.get("label") or name.replace("_", " "))
+    unit = str(meta.get("unit") or "")
+    shown = DISPLAY_UNITS.get(unit)  # kelvin as °C, as a polling process's page shows it
     out: dict[str, Any] = {
-        "name": name, "label": str(meta.get("label") or name.replace("_", " ")),
-        "description": "", "unit": str(meta.get("unit") or ""), "kind": kind,
+        "name": name, "label": label,
+        "description": "", "unit": shown[0] if shown else unit, "kind": kind,
         "precision": precision, "value": None, "text": "", "severity": "ok", "status": "",
         "error": "", "badges": [], "last": None}
     if at is None:
@@ -391,6 +408,7 @@ def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: floa
     if value is None:
         out["status"], out["text"], out["error"] = "failed", "no reading", error
         return out
+    value = shown_value(name, meta, value)
     out["status"], out["value"] = "ok", json_value(value)
     if kind == "flags" and isinstance(value, list):
         out["badges"] = [{"name": str(n), "severity": "info"} for n in value]

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.http_settings import merge
 from rtupoll.jobs.services import Service
+from rtupoll.model.interpret import DISPLAY_UNITS, display_value
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub, Server
 from rtupoll.web.state import Clocks, buses_event, device_delta, gateway_id, number, poll_state
@@ -81,6 +82,9 @@ class WebService(Service):
         name = dev.config.name
         for r in readings:
             if r.value is not None and (v := number(r.value.output)) is not None:
+                if r.field.unit in DISPLAY_UNITS:  # drawn in the unit it is shown in
+                    shown = number(display_value(r.value)[0])
+                    v = v if shown is None else shown
                 self.trends.add(name, r.field.name, r.time, v)
         if self._prom is not None:
             self._prom.on_readings(dev, readings)
