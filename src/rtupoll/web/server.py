@@ -41,6 +41,7 @@ import os
 import socket
 import struct
 import sys
+from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import urlsplit
@@ -58,6 +59,8 @@ log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
 BATCH = 0.25  # seconds the events gather before they are written, the same to every stream
 BEHIND = 4 << 20  # bytes a stream may fall behind before it is given a snapshot instead
+BUDGET = 32 << 20  # bytes all streams may be behind together (the furthest behind drop)
+CHUNK = 256 << 10  # bytes written to a stream at a time
 CLOSE_WAIT = 0.5  # seconds open requests get to finish when the authentication changes
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -74,12 +77,14 @@ SECURITY_HEADERS = {
 class Client:
     """One event stream's bytes to write, in order; a client that falls ``BEHIND`` bytes
     behind (a browser that stopped reading) drops them and gets a fresh snapshot when it
-    reads again, never a backlog."""
+    reads again, never a backlog. ``take`` hands out at most ``CHUNK`` bytes at a time
+    (more when one event is larger), so what waits for a slow reader stays here,
+    counted, not in its transport's buffer."""
 
     __slots__ = ("behind", "queue", "size", "wake")
 
     def __init__(self) -> None:
-        self.queue: list[bytes] = []
+        self.queue: deque[bytes] = deque()
         self.size = 0
         self.behind = False
         self.wake = asyncio.Event()
@@ -90,16 +95,26 @@ class Client:
         self.queue.append(data)
         self.size += len(data)
         if self.size > BEHIND:
-            self.queue.clear()
-            self.size, self.behind = 0, True
+            self.drop()
+        self.wake.set()
+
+    def drop(self) -> None:
+        """Behind: what waits is dropped; a snapshot comes next."""
+        self.queue.clear()
+        self.size, self.behind = 0, True
         self.wake.set()
 
     def take(self) -> bytes:
-        out = b"".join(self.queue)
-        self.queue.clear()
-        self.size = 0
-        self.wake.clear()
-        return out
+        out: list[bytes] = []
+        n = 0
+        while self.queue and (not out or n + len(self.queue[0]) <= CHUNK):
+            b = self.queue.popleft()
+            out.append(b)
+            n += len(b)
+        self.size -= n
+        if not self.queue:
+            self.wake.clear()
+        return b"".join(out)
 
 
 def encode(event: str, data: str) -> bytes:
@@ -137,8 +152,16 @@ class Hub:
             return
         out = b"".join(encode(event, data if isinstance(data, str) else data())
                        for event, data in pending.values())
+        total = 0
         for c in self.clients:
             c.put(out)
+            total += c.size
+        if total > BUDGET:  # many slow readers: the furthest behind start afresh
+            for c in sorted(self.clients, key=lambda c: c.size, reverse=True):
+                total -= c.size
+                c.drop()
+                if total <= BUDGET:
+                    break
 
     def join(self) -> Client:
         """A new client, before its snapshot is made (in the same step of the loop)."""
@@ -149,7 +172,9 @@ class Hub:
 
     def rejoin(self, client: Client) -> None:
         """A client that fell behind starts afresh, before its new snapshot is made."""
-        client.take()
+        client.queue.clear()
+        client.size = 0
+        client.wake.clear()
         client.behind = False
         self.epoch += 1
 
