@@ -130,11 +130,10 @@ def test_half_sent_and_idle_connections_are_closed_at_their_deadlines(dashboard:
             assert closed_after(s) - opened >= idle
         # a keep-alive client: answered, then idle, then closed
         with connect(p) as s:
+            asked = time.monotonic()  # before its idle time can start: a lower bound
             s.sendall(get().replace(b"Connection: close", b"Connection: keep-alive"))
-            got = s.recv(65536)
-            answered = time.monotonic()
-            assert status(got) == 200
-            assert closed_after(s) - answered >= idle * 0.99  # its first bytes came earlier
+            assert status(s.recv(65536)) == 200
+            assert closed_after(s) - asked >= idle
         for s in [*silent, loris, *(s for s, _ in half)]:
             s.close()
         assert status(ask(p, get())) == 200
