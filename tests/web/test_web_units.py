@@ -501,3 +501,23 @@ def test_the_fleet_shows_kelvin_as_celsius_as_a_polling_process_does() -> None:
     offset = {**meta, "label": "Temperature offset"}  # a difference moves by no 273.15
     assert shown_value("temperature_offset", offset, 1.5) == 1.5
     assert shown_value("co2", {"unit": "ppm"}, 612) == 612
+
+
+def test_a_gateways_trends_outlive_its_info_again_but_not_its_devices() -> None:
+    from rtupoll.web.fleet import Fleet
+    now = [1_800_000_000.0]
+    fleet = Fleet("rtupoll", clock=lambda: now[0])
+    one = {"fields": {"t": {"kind": "number", "precision": 1}}}
+    feed(fleet, "rtupoll/site/bridge/info", {"devices": {"a": one, "b": one}})
+    feed(fleet, "rtupoll/site/x/bridge/info", {"devices": {"y": one}})
+    for topic in ("rtupoll/site/a", "rtupoll/site/b", "rtupoll/site/x/y"):
+        feed(fleet, topic, {"t": 1.5})
+    now[0] += 10
+    feed(fleet, "rtupoll/site/bridge/info", {"devices": {"a": one}})  # again, without b
+    assert fleet.trend("rtupoll/site/a", "t")["v"] == [1.5]
+    assert fleet.trend("rtupoll/site/b", "t")["v"] == []
+    assert fleet.fields == 2
+    feed(fleet, "rtupoll/site/bridge/info", "")  # gone for good: not the one under it
+    assert fleet.trend("rtupoll/site/a", "t")["v"] == []
+    assert fleet.trend("rtupoll/site/x/y", "t")["v"] == [1.5]
+    assert fleet.fields == 1
