@@ -213,16 +213,16 @@ class Fleet:
         for name, d in devices.items():
             if not isinstance(d, dict):
                 continue
-            if len(gw.devices) >= MAX_DEVICES:
+            # keyed by the device's topic level (``BASE/<level>`` is its state), with
+            # the site's name for it under "name"
+            level = _UNSAFE.sub("_", str(name))
+            if len(gw.devices) >= MAX_DEVICES or len(level) > MAX_TEXT:
                 cut += 1
                 continue
             fields = _field_infos(d.get("fields"), room)
             cut += max(0, (len(d["fields"]) if isinstance(d.get("fields"), dict) else 0)
                        - len(fields))
             room -= len(fields)
-            # keyed by the device's topic level (``BASE/<level>`` is its state), with
-            # the site's name for it under "name"
-            level = _UNSAFE.sub("_", str(name))[:MAX_TEXT]
             meta = {"profile": short(d.get("profile") or ""), "bus": short(d.get("bus") or ""),
                     "address": d.get("address") if isinstance(d.get("address"), int) and
                     not isinstance(d.get("address"), bool) and 0 <= d["address"] <= 255 else "",
