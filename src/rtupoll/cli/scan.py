@@ -137,7 +137,7 @@ def scan(port: str | None, addresses: str, baudrates: str | None, parities: str,
         results = once_each(results)
     _report(results, fmt)
     if not results:
-        raise DeviceTimeout("no device answered at any address and setting scanned")
+        raise DeviceTimeout(nothing_found(settings, library))
     ids = sum(f.profile is not None for f in results)
     click.echo(f"{ids} identified, {len(results) - ids} unknown or garbled", err=True)
     if write_config is not None:
@@ -248,6 +248,27 @@ def _write(path: Path, port: str, results: Sequence[Found], dirs: Sequence[Path]
 def _probe(text: str) -> Read:
     spec = parse_spec(text)
     return (spec.table, spec.address, spec.words)
+
+
+def nothing_found(settings: Sequence[Setting], library: Sequence[Profile]) -> str:
+    """Why a scan found nothing, in one line: the speeds and parities tried, and the
+    settings not tried that the library's devices run at (parity first: many meters
+    run 8E1, and a scan at N never hears them)."""
+    rates = list(dict.fromkeys(s.baudrate for s in settings))
+    pars = list(dict.fromkeys(s.parity for s in settings))
+    text = (f"no device answered at any address at {', '.join(map(str, rates))} baud, "
+            f"parity {', '.join(pars)}")
+    others = [p for p in ("N", "E", "O") if p not in pars]
+    if not others:
+        return text
+    runs: dict[str, list[str]] = {}
+    for prof in library:
+        if prof.serial.parity not in pars:
+            runs.setdefault(prof.serial.parity, []).append(prof.id)
+    said = "; ".join(f"{', '.join(ids[:3])}{' ...' if len(ids) > 3 else ''} run at "
+                     f"parity {p}" for p, ids in runs.items())
+    return (f"{text}; not tried: parity {', '.join(others)}"
+            + (f" ({said}: add --parity {','.join([*pars, *runs])})" if runs else ""))
 
 
 def _parity(text: str) -> str:
