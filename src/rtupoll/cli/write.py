@@ -126,7 +126,7 @@ def write(device: str, assignments: tuple[str, ...], port: str | None, baudrate:
         how = ([f"--{addressing.replace('_', '-')}"] if addressing != "pdu" else []) + \
             (["--type", type_name] if type_name != "u16" else []) + \
             (["--order", order] if order else [])
-        with _applied_if_interrupted(sent, _check(port, target, raws, how)):
+        with _applied_if_interrupted(sent, _check(settings.port, target, raws, how)):
             rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing, sent),
                               on_timeout=speed_note(settings, target.profile, baudrate),
                               blocking=True)
@@ -143,7 +143,7 @@ def write(device: str, assignments: tuple[str, ...], port: str | None, baudrate:
                                            for op, fv in zip(ops, now, strict=True)]), yes)
             return await _fields(bus, target.unit, ops, timing, sent)
 
-        with _applied_if_interrupted(sent, _check(port, target, ops)):
+        with _applied_if_interrupted(sent, _check(settings.port, target, ops)):
             rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
                                                                    baudrate), blocking=True)
     who = target.name if target.profile else f"unit {target.unit}"

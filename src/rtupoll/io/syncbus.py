@@ -85,7 +85,8 @@ class SyncBus(LineBus):
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr)
+                                                 deassert_dtr=settings.deassert_dtr,
+                                                 parity=settings.parity)
         self._connect_timeout = connect_timeout
         self._port: Any = None  # pyserial's Serial, or a socket to a gateway
         self._take: waits.Wait | None = None  # the port's wait (rtupoll.io.waits)

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io.serialport import pty_parity_of
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
@@ -89,7 +90,9 @@ class _Link:
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
-    def received(self, data: bytes) -> None:
+    def received(self, data: bytes, parity: str | None = None) -> None:
+        """Bytes from the master; ``parity``: the one it sent them at (a pty's, as the
+        master marked it), None where there is none (TCP)."""
         srv = self.server
         now = srv.loop.time()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
@@ -102,7 +105,7 @@ class _Link:
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now, self._idle)
+                self._respond(chunk, now, self._idle, parity)
             self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
@@ -133,11 +136,12 @@ class _Link:
         if left:
             self.server.log(self.server.loop.time(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf,
+                 parity: str | None = None) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now, idle)
+        replies = srv.engine.handle(frame, now, idle, parity)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -252,7 +256,7 @@ class Server:
             if mismatch:  # a real device sees framing errors at the wrong speed: silence
                 self.log(self.loop.time(), "in", data, f"garbage: {mismatch}")
                 return
-            pty_link.received(data)
+            pty_link.received(data, pty_parity_of(slave))
 
         self.loop.add_reader(master, readable)
         if link:
@@ -298,8 +302,9 @@ class Server:
 
         A pty carries bytes at any speed, but pyserial still sets the speed it was asked
         for on the tty; comparing it lets 'rtupoll scan' find a device at its own baud rate
-        and nowhere else, as on a real wire. (Linux ptys drop the parity flags, so a
-        parity mismatch cannot be modelled this way.)
+        and nowhere else, as on a real wire. (Parity is each device's to hear: a pty has
+        no parity bit, but a master marks the parity it set, ``serialport.pty_parity``,
+        and ``Engine.handle`` lets only the devices at that parity hear the request.)
         """
         if not self.framing:
             return None
