@@ -12,7 +12,7 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
 - the start is the profile's ``limits.timeout`` (the manual's word);
 - the target is a high percentile (``QUANTILE``) of the last ``WINDOW`` reply times
   times ``MARGIN``, never below the floor: ``FLOOR`` plus the 3.5-character silence
-  plus the USB adapter's latency timer (``io.serialport.latency_timer``), never above
+  plus the USB adapter's latency timer (``io.latency.latency_timer``), never above
   the ceiling (``CEILING``, or the site file's ``timeout_ceiling:`` / ``--timeout-ceiling``);
 - **up at once**: a reply slower than the timeout allows for raises it straight to
   ``MARGIN`` times that reply time; a **late reply** (heard after its request timed

@@ -78,11 +78,12 @@ plain silence (``DeviceTimeout``).
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
-from rtupoll.rtu.functions import MAX_FRAME, reply_length
+from rtupoll.rtu.functions import MAX_FRAME, echoed_by_design, reply_length
 from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
 from rtupoll.rtu.timing import Framing
 
@@ -158,6 +159,9 @@ class Line:
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
+        # who looks at the line's bytes (--traffic, --capture): (sent?, bytes), as they go
+        # out and come in; None: nobody, and nothing is called
+        self.tap: Callable[[bool, bytes], None] | None = None
 
     # -- when the next frame may go ------------------------------------------
 
@@ -177,6 +181,8 @@ class Line:
 
     def send(self, request: bytes, now: float) -> None:
         """``request`` starts on the wire at ``now``; its answer is awaited (not a broadcast)."""
+        if self.tap is not None:
+            self.tap(True, request)
         self.tx_end = now + self.framing.wire_time(len(request))
         self.drain_for = 0.0
         if self._idle_burst:
@@ -205,6 +211,8 @@ class Line:
         reply that ends the attempt, or None (keep waiting)."""
         if not data:
             return None
+        if self.tap is not None:
+            self.tap(False, data)
         self.last_rx = now
         if self._echo:
             data, garbled = self._take_echo(data)
@@ -279,8 +287,9 @@ class Line:
 
     def _is_echo(self, request: bytes) -> bool:
         """Echo off, ``request`` came back: an echo, unless it is byte for byte a normal
-        reply (FC05/06) and no echo has been seen on this line yet."""
-        return self.counts.echoes > 0 or request[1] not in (5, 6)
+        reply (FC05/06, FC08's return query data) and no echo has been seen on this line
+        yet."""
+        return self.counts.echoes > 0 or not echoed_by_design(request)
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
@@ -299,7 +308,7 @@ class Line:
         """The first CRC-valid reply frame in the buffer, wherever it starts."""
         buf = bytes(self._buf)
         for i in range(max(0, len(buf) - 3)):
-            n = reply_length(buf[i : i + 3])
+            n = reply_length(buf[i : i + MAX_FRAME])
             if n is not None and i + n <= len(buf) and crc_ok(buf[i : i + n]):
                 return i, buf[i : i + n]
         return None
@@ -341,7 +350,7 @@ class Line:
         for head in (bytes((exp.unit, exp.function)), bytes((exp.unit, exp.function | 0x80))):
             i = buf.find(head)
             if i >= 0:
-                n = reply_length(buf[i : i + 3])
+                n = reply_length(buf[i : i + MAX_FRAME])
                 if n is not None and i + n <= len(buf):
                     return f"CRC error in reply: {buf[i : i + n][:24].hex(' ')}"
         return None

@@ -20,10 +20,8 @@ import collections
 import contextlib
 import os
 import struct
-import termios
 import threading
 import time
-import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +36,12 @@ QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 # Engine.requests/replies; --verbose prints them all as they pass)
 WIRE_LOG = 1000
 TIMER_SLACK = 0.0015  # asyncio timers fire up to 1 ms late; the rest is slept exactly
+# pseudo-terminals are POSIX's (Linux, macOS); Windows has none: there a simulated line is
+# served over TCP only (``serve_tcp``), and asking for a pty is one line (``NO_PTY``)
+PTYS = hasattr(os, "openpty")
+NO_PTY = ("a simulated serial port is a pseudo-terminal, which only POSIX systems (Linux, "
+          "macOS) have: on Windows serve it over TCP (--tcp 127.0.0.1:5020) and give "
+          "rtupoll --port tcp://127.0.0.1:5020")
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,6 +188,10 @@ class Server:
     # -- transports ---------------------------------------------------------
     async def serve_pty(self, link: str | None = None) -> str:
         """Open a pseudo-terminal; returns the path a client opens (or the link to it)."""
+        if not PTYS:
+            raise UsageError(NO_PTY)
+        import tty  # (POSIX only, as ptys are)
+
         master, slave = os.openpty()
         self._fds += [master, slave]
         tty.setraw(slave)  # no echo, no line editing: bytes pass as they are
@@ -216,6 +224,10 @@ class Server:
     async def serve_tap(self, link: str) -> str:
         """A second pty that receives a copy of every byte on the line (for a sniffer);
         ``link`` becomes a symbolic link to it. Bytes written to it are ignored."""
+        if not PTYS:
+            raise UsageError(f"--tap: {NO_PTY}")
+        import tty
+
         master, slave = os.openpty()
         self._fds += [master, slave]
         tty.setraw(slave)
@@ -252,6 +264,8 @@ class Server:
         """
         if not self.framing:
             return None
+        import termios  # (a pty's: POSIX only)
+
         ospeed = termios.tcgetattr(fd)[5]
         want = self.framing.baudrate
         if ospeed != getattr(termios, f"B{want}", ospeed):

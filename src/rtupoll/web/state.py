@@ -87,7 +87,11 @@ def number(value: object) -> float | None:
     """The value a trend draws: a finite int or float (no bool, enum or text)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    return float(value) if math.isfinite(value) else None
+    try:
+        f = float(value)
+    except OverflowError:  # an integer beyond a float's range
+        return None
+    return f if math.isfinite(f) else None
 
 
 def json_value(value: object) -> object:
