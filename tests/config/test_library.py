@@ -185,6 +185,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # R4DCB08, the sheet's examples: 00DB = 21.9 °C, FF90 = -11.2 °C, 8000 = no sensor
     ("r4dcb08", Table.HOLDING, 0, _reply(1, 3, [0x00DB, 0xFF90, 0x8000]),
      {"temperature_1": 21.9, "temperature_2": -11.2, "temperature_3": "NO_SENSOR"}),
+    # Deye V118: 182 battery temperature +1000 offset x0.1 (1200 = 20.0 °C), 183 x0.01 V
+    ("deye-sg-lp1", Table.HOLDING, 182, _reply(1, 3, [1200, 4100, 76]),
+     {"battery_temperature": 20.0, "battery_voltage": 41.0, "battery_soc": 76}),
 ]
 
 
@@ -240,9 +243,10 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000"},
-     "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000",
+                     "deye-sg-lp1"}, "kind"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1"},
+     "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:
