@@ -188,6 +188,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Deye V118: 182 battery temperature +1000 offset x0.1 (1200 = 20.0 °C), 183 x0.01 V
     ("deye-sg-lp1", Table.HOLDING, 182, _reply(1, 3, [1200, 4100, 76]),
      {"battery_temperature": 20.0, "battery_voltage": 41.0, "battery_soc": 76}),
+    # DFRobot SEN0483, the wiki's read: 0x0025 = 37 = 3.7 m/s
+    ("dfrobot-sen0483", Table.HOLDING, 0, _reply(2, 3, [0x0025]), {"wind_speed": 3.7}),
 ]
 
 
