@@ -190,6 +190,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"battery_temperature": 20.0, "battery_voltage": 41.0, "battery_soc": 76}),
     # DFRobot SEN0483, the wiki's read: 0x0025 = 37 = 3.7 m/s
     ("dfrobot-sen0483", Table.HOLDING, 0, _reply(2, 3, [0x0025]), {"wind_speed": 3.7}),
+    # DFRobot SEN0482 V2, the wiki's values: 028F = 65.5°, 0004 = east
+    ("dfrobot-sen0482", Table.HOLDING, 0, _reply(2, 3, [0x028F, 4]),
+     {"wind_direction": 65.5, "wind_direction_16": "E"}),
 ]
 
 
