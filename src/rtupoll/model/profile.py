@@ -54,7 +54,8 @@ class Addressing(str, enum.Enum):
 
     ``pdu``: the address as sent in the request (0-based, e.g. 0x0006).
     ``direct``: a Modicon-looking reference sent literally (30006 goes out as 0x7536).
-    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001.
+    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001
+    (or, past 9999, a 6-digit 3xxxxx/4xxxxx one: the reference - 300001/400001).
     ``one_based``: a register number N; the wire address is N - 1.
     """
 
@@ -65,14 +66,16 @@ class Addressing(str, enum.Enum):
 
     def to_wire(self, table: Table, written: int) -> int:
         if self is Addressing.MODICON:
-            return int(written - table.modicon_base - 1)
+            base = table.modicon_base
+            return int(written - (base * 10 if written > base + 9999 else base) - 1)
         if self is Addressing.ONE_BASED:
             return written - 1
         return written
 
     def to_written(self, table: Table, wire: int) -> int:
         if self is Addressing.MODICON:
-            return int(wire + table.modicon_base + 1)
+            base = table.modicon_base
+            return int(wire + (base if wire < 9999 else base * 10) + 1)
         if self is Addressing.ONE_BASED:
             return wire + 1
         return wire
@@ -81,6 +84,13 @@ class Addressing(str, enum.Enum):
         """The address as the manual writes it."""
         written = self.to_written(table, wire)
         return f"0x{written:04X}" if self is Addressing.PDU else str(written)
+
+
+def is_modicon_reference(table: Table, reference: int) -> bool:
+    """A 5-digit (30001..39999) or 6-digit (300001..365536) reference into ``table``."""
+    base = table.modicon_base
+    six = base * 10
+    return base < reference <= base + 9999 or six < reference <= six + 65536
 
 
 class Severity(str, enum.Enum):
