@@ -205,6 +205,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"battery_temperature": 20.0, "battery_voltage": 41.0, "battery_soc": 76}),
     # DFRobot SEN0483, the wiki's read: 0x0025 = 37 = 3.7 m/s
     ("dfrobot-sen0483", Table.HOLDING, 0, _reply(2, 3, [0x0025]), {"wind_speed": 3.7}),
+    # Growatt MAX (V1.20): Vac2 42 and Vac3 46 in 0.1 V
+    ("growatt-max", Table.INPUT, 42, _reply(1, 4, [2315, 141]),
+     {"grid_voltage_l2": 231.5, "grid_current_l2": 14.1}),
     # DFRobot SEN0482 V2, the wiki's values: 028F = 65.5°, 0004 = east
     ("dfrobot-sen0482", Table.HOLDING, 0, _reply(2, 3, [0x028F, 4]),
      {"wind_direction": 65.5, "wind_direction_16": "E"}),
@@ -266,8 +269,8 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000",
-                     "deye-sg-lp1"}, "kind"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "growatt-max",
+                     "huawei-sun2000", "deye-sg-lp1"}, "kind"),
     ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1"},
      "field battery_soc"),
 ])
