@@ -211,6 +211,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # DFRobot SEN0482 V2, the wiki's values: 028F = 65.5°, 0004 = east
     ("dfrobot-sen0482", Table.HOLDING, 0, _reply(2, 3, [0x028F, 4]),
      {"wind_direction": 65.5, "wind_direction_16": "E"}),
+    # Deye V104 (three-phase LV): 586 battery temperature +1000 offset x0.1, 587 x0.01 V
+    ("deye-sg-lp3", Table.HOLDING, 586, _reply(1, 3, [1000, 5280, 81]),
+     {"battery_temperature": 0.0, "battery_voltage": 52.8, "battery_soc": 81}),
 ]
 
 
@@ -270,8 +273,9 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
     ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "growatt-max",
-                     "huawei-sun2000", "deye-sg-lp1"}, "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1"},
+                     "huawei-sun2000", "deye-sg-lp1", "deye-sg-lp3"}, "kind"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1",
+                     "deye-sg-lp3"},
      "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
