@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,11 +39,26 @@ def retain(broker: Broker, topic: str, payload: str) -> None:
 def settled(broker: Broker, sub: Subscriber, after: int = 0) -> list[tuple[str, str]]:
     """Every message ``sub`` saw (from index ``after``) until a marker published now
     comes back (markers, the remover's own ``BASE/bridge/sync/...`` too, left out)."""
-    subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
-                    "-t", "test/marker", "-m", "x"], check=True, timeout=10)
+    # published until it comes back: one published before the broker has ``sub``'s
+    # subscription (a fresh one, on a busy machine) reaches nobody
+    for _ in range(120):
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q",
+                        "1", "-t", "test/marker", "-m", "x"], check=True, timeout=10)
+        if _came(sub, after):
+            break
     sub.wait(lambda m: m.topic == "test/marker", after=after)
     return [(m.topic, m.payload) for m in sub.messages[after:]
             if m.topic != "test/marker" and "/bridge/sync/" not in m.topic]
+
+
+def _came(sub: Subscriber, after: int) -> bool:
+    """The marker arrived within half a second."""
+    deadline = time.monotonic() + 0.5
+    while time.monotonic() < deadline:
+        if any(m.topic == "test/marker" for m in sub.messages[after:]):
+            return True
+        time.sleep(0.02)
+    return False
 
 
 def test_on_an_empty_broker_nothing_is_sent(broker: Broker, tmp_path: Path) -> None:

@@ -683,4 +683,6 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
 
 def remove_discovery_now(settings: MqttSettings, site: Site) -> Removed:
     """``--mqtt-remove-discovery``, from synchronous code."""
-    return asyncio.run(remove_discovery(settings, site))
+    from rtupoll import aio
+
+    return aio.run(remove_discovery(settings, site))
