@@ -35,7 +35,7 @@ from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
 from rtupoll.io import clock as line_clock
-from rtupoll.io import serialport, waits
+from rtupoll.io import serialport, taps, waits
 from rtupoll.io.interface import LineBus
 from rtupoll.io.latency import latency_timer
 from rtupoll.io.serialport import PortSettings
@@ -77,7 +77,9 @@ class SyncBus(LineBus):
         self.framing = settings.framing
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
