@@ -25,6 +25,8 @@ from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
+# pyserial's RFC 2217 client names its reader thread the old way (Python 3.10's warning)
+pytestmark = pytest.mark.filterwarnings(r"ignore:set(Daemon|Name)\(\) is deprecated")
 DEVICES = ("huiwen-aq@3", "radar-level@4")
 
 
