@@ -56,6 +56,7 @@ from typing import Any
 
 import serial
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
+from pymodbus.transport.serialtransport import SerialTransport
 
 from rtupoll.errors import PortError
 from rtupoll.io import clock, serialport, taps
@@ -87,6 +88,13 @@ _OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()  # the buses open in this proces
 _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this often
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 _CHUNK = 1024  # bytes read at most at once (as pymodbus's transport reads)
+
+# pymodbus polls a serial port every 0.5 ms on Windows (``force_poll``, chosen by the
+# platform's name: x1.9 the CPU per transaction, benchmarks/portable_wait.py) and waits
+# on its descriptor elsewhere. rtupoll's port always offers one to wait on (a tty's, or
+# the ``waits.Pump`` of a port that has none: Windows's COM ports, ``rfc2217://``), and
+# its loop is the selector loop everywhere (``rtupoll.aio``): the event loop waits.
+SerialTransport.force_poll = False
 
 _PYMODBUS_LOG = logging.getLogger("pymodbus")
 if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked for it

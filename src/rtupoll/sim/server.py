@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io import clock as line_clock
 from rtupoll.io.serialport import pty_parity_of
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
@@ -53,7 +54,7 @@ NO_PTY = ("a simulated serial port is a pseudo-terminal, which only POSIX system
 class WireFrame:
     """Bytes seen on the simulated wire: ``in`` from the master, ``out`` from devices."""
 
-    time: float  # time.monotonic() (the event loop's clock)
+    time: float  # the line's clock (rtupoll.io.clock), as every time on a bus
     direction: str  # "in" or "out" ("none": a request got no reply; only to on_wire)
     data: bytes
     note: str = ""  # what it is: a request summary, "garbage", or the faults applied
@@ -94,7 +95,7 @@ class _Link:
         """Bytes from the master; ``parity``: the one it sent them at (a pty's, as the
         master marked it), None where there is none (TCP)."""
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
             self._echo(data, now)
         ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
@@ -134,7 +135,7 @@ class _Link:
         self._flush = None
         left = self.deframer.flush()
         if left:
-            self.server.log(self.server.loop.time(), "in", left, "garbage")
+            self.server.log(line_clock.now(), "in", left, "garbage")
 
     def _respond(self, frame: bytes, now: float, idle: float = math.inf,
                  parity: str | None = None) -> None:
@@ -165,7 +166,7 @@ class _Link:
         if self.closed:
             return
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
         self.last_byte = max(self.last_byte, now)  # its last byte leaves the wire now
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
@@ -220,12 +221,12 @@ class Server:
 
         def run() -> None:
             self._pending.discard(box.pop())
-            rest = when - self.loop.time()
+            rest = when - line_clock.now()
             if rest > 0:
                 time.sleep(rest)
             fn(tx)
 
-        box.append(self.loop.call_at(when - TIMER_SLACK, run))
+        box.append(self.loop.call_later(when - TIMER_SLACK - line_clock.now(), run))
         self._pending.add(box[0])
 
     # -- transports ---------------------------------------------------------
@@ -254,7 +255,7 @@ class Server:
                 return
             mismatch = self._line_mismatch(slave)
             if mismatch:  # a real device sees framing errors at the wrong speed: silence
-                self.log(self.loop.time(), "in", data, f"garbage: {mismatch}")
+                self.log(line_clock.now(), "in", data, f"garbage: {mismatch}")
                 return
             pty_link.received(data, pty_parity_of(slave))
 
@@ -284,14 +285,14 @@ class Server:
         """Copy bytes on the line to the tap: now, or at ``at`` (when they end on the wire)."""
         if self._tap is None:
             return
-        if at is not None and at > self.loop.time():
+        if at is not None and at > line_clock.now():
             box: list[asyncio.TimerHandle] = []
 
             def copy() -> None:
                 self._pending.discard(box.pop())
                 self.to_tap(data)
 
-            box.append(self.loop.call_at(at, copy))
+            box.append(self.loop.call_later(at - line_clock.now(), copy))
             self._pending.add(box[0])
             return
         with contextlib.suppress(OSError):  # nobody listening, the pty buffer full: lost
