@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
+import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path, PurePath
 from types import TracebackType
 from typing import Any
@@ -42,6 +44,9 @@ PREFIX = HOME / "prefix"
 WINE = shutil.which("wine64") or "/usr/lib/wine/wine64"
 WINESERVER = shutil.which("wineserver") or "/usr/lib/wine/wineserver"
 PORTS_KEY = r"HKLM\Software\Wine\Ports"
+# what Python on Windows writes to a pipe: the ANSI code page (Wine's is 1252 whatever
+# the Unix locale, as a western Windows's); a console gets Unicode
+ENCODING = "cp1252"
 
 
 def winpath(path: str | PurePath) -> str:
@@ -117,7 +122,7 @@ class Wine:
         """``python.exe ARGS`` under Wine; stdout and stderr are pipes unless given."""
         kwargs.setdefault("stdout", subprocess.PIPE)
         kwargs.setdefault("stderr", subprocess.PIPE)
-        return subprocess.Popen(self.argv(*args), stdin=stdin, text=True,
+        return subprocess.Popen(self.argv(*args), stdin=stdin, encoding=ENCODING,
                                 env=environment(env), **kwargs)
 
     def run(self, *args: str, input: str | None = None, timeout: float = 120,
@@ -125,7 +130,7 @@ class Wine:
             cwd: str | Path | None = None) -> Ran:
         """``python.exe ARGS`` under Wine, to its end."""
         start = time.monotonic()
-        proc = subprocess.run(self.argv(*args), input=input, capture_output=True, text=True,
+        proc = subprocess.run(self.argv(*args), input=input, capture_output=True, encoding=ENCODING,
                               timeout=timeout, env=environment(env), cwd=cwd,
                               stdin=None if input is not None else subprocess.DEVNULL)
         return Ran(proc.returncode, proc.stdout, proc.stderr, time.monotonic() - start)
@@ -133,6 +138,10 @@ class Wine:
     def rtupoll(self, *args: str, **kwargs: Any) -> Ran:
         """``python.exe -m rtupoll ARGS`` under Wine (the Windows form of ``rtupoll``)."""
         return self.run("-m", "rtupoll", *args, **kwargs)
+
+    def running(self, *args: str, **kwargs: Any) -> Running:
+        """``python.exe -m rtupoll ARGS`` under Wine, left running (``Running``)."""
+        return Running(self.popen("-m", "rtupoll", *args, **kwargs))
 
 
 class Ran:
@@ -147,3 +156,69 @@ class Ran:
     def __repr__(self) -> str:
         return (f"Ran(returncode={self.returncode}, stdout={self.stdout[-2000:]!r}, "
                 f"stderr={self.stderr[-2000:]!r})")
+
+
+class Running:
+    """A Windows command left running: its output lines as they come, ended by a Ctrl-C.
+
+    Wine turns a SIGINT to the Unix process of a Windows console process into that
+    process's CTRL_C_EVENT (CPython raises KeyboardInterrupt, as on Windows): that is
+    the Ctrl-C sent here (``interrupt``)."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.proc = proc
+        self.lines: list[str] = []
+        self._seen = threading.Condition()
+        self._pump = threading.Thread(target=self._read, daemon=True)
+        self._pump.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._seen:
+                self.lines.append(line.rstrip("\n"))
+                self._seen.notify_all()
+        with self._seen:
+            self._seen.notify_all()
+
+    def wait(self, match: Callable[[list[str]], bool], timeout: float = 60) -> list[str]:
+        """The lines so far, once ``match(lines)`` holds (AssertionError after ``timeout``,
+        a hang guard, or when the command ended first)."""
+        deadline = time.monotonic() + timeout
+        with self._seen:
+            while not match(self.lines):
+                left = deadline - time.monotonic()
+                if left <= 0 or (not self._pump.is_alive()):
+                    raise AssertionError(f"not printed: {self.lines[-20:]}; "
+                                         f"exit {self.proc.poll()}; stderr: {self.stderr()}")
+                self._seen.wait(min(left, 0.5))
+            return list(self.lines)
+
+    def stderr(self) -> str:
+        if self.proc.poll() is None or self.proc.stderr is None:
+            return "(running)"
+        return self.proc.stderr.read()
+
+    def interrupt(self, timeout: float = 60) -> tuple[int, str]:
+        """Ctrl-C; then its exit code and standard error, once it ended."""
+        self.proc.send_signal(signal.SIGINT)
+        return self.end(timeout)
+
+    def end(self, timeout: float = 60) -> tuple[int, str]:
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            raise AssertionError(f"did not end within {timeout} s of a Ctrl-C") from None
+        self._pump.join(timeout=10)
+        assert self.proc.stderr is not None
+        return self.proc.returncode, self.proc.stderr.read()
+
+    def __enter__(self) -> Running:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
