@@ -89,4 +89,5 @@ def test_scan_over_two_parities_lists_the_meter_once_and_names_parity_when_empty
     assert empty.exit_code == 4
     line = empty.stderr.strip().splitlines()[-1]
     assert "19200 baud, parity N" in line and "not tried: parity E, O" in line
-    assert "schneider-iem3155" in line and "--parity N,E" in line
+    assert "run at parity E: add --parity N,E" in line  # named by the profiles that do
+    assert "schneider-iem3155" in line or " ... run at parity E" in line

@@ -241,11 +241,11 @@ class OwnPort:
         except NotImplementedError:  # RFC 2217's client: "write_timeout is not supported"
             setter(self, None)  # its writes are a socket's sendall: they never wait long
 
-    def _reconfigure_port(self: Any, force_update: bool = False) -> None:
+    def _reconfigure_port(self: Any, *args: Any, **kwargs: Any) -> None:
         """pyserial's, which every setting (pymodbus sets the timeouts) goes through; then,
         on a pty opened without the line's parity (``line_parity``), the parity marked
         (``pty_parity``): pyserial's own would clear the mark."""
-        super()._reconfigure_port(force_update)  # type: ignore[misc]
+        super()._reconfigure_port(*args, **kwargs)  # type: ignore[misc]  # (URL classes: none)
         slot = self.slot
         if slot is not None and slot.parity != "N" and self.parity == "N" and \
                 getattr(self, "fd", None) is not None:
