@@ -16,7 +16,7 @@ import serial
 from cli_runner import rtupoll
 
 from rtupoll.io.latency import latency_timer, latency_warning
-from rtupoll.io.port_errors import example_port, open_error
+from rtupoll.io.port_errors import example_port, open_error, present_ports
 
 WIN_BUSY = serial.SerialException(
     "could not open port 'COM3': PermissionError(13, 'Access is denied.', None, 5)")
@@ -173,3 +173,15 @@ def test_the_installed_command_says_it_in_one_line(tmp_path: Path) -> None:
         ran = rtupoll("poll", "--once", "-p", port, "huiwen-aq@3")
         assert ran.returncode == 3 and words in ran.stderr, ran.stderr
     assert not os.path.exists("COM3")
+
+
+def test_a_port_listing_that_fails_lists_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """pyserial's Windows listing under Wine 8.0 fails on import (its cfgmgr32 has no
+    CM_MapCrToWin32Err): the advice goes without the list, never a traceback."""
+    from serial.tools import list_ports
+
+    def broken() -> list[object]:
+        raise AttributeError("function 'CM_MapCrToWin32Err' not found")
+
+    monkeypatch.setattr(list_ports, "comports", broken)
+    assert present_ports() == []

@@ -11,8 +11,10 @@ code, never a traceback.
 from __future__ import annotations
 
 import _signal  # type: ignore[import-not-found]  # the builtin behind signal: already loaded
+import codecs
 import contextlib
 import functools
+import io
 import os
 import sys
 from types import FrameType
@@ -289,6 +291,13 @@ def _process() -> Iterator[None]:
         sys.stdout = open(1, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
     if sys.stderr is None:
         sys.stderr = open(2, "w", encoding="utf-8", closefd=False)  # noqa: SIM115
+    for stream in (sys.stdout, sys.stderr):
+        # a code page (Windows's ANSI one, 1252, where output is a pipe or a file) lacks
+        # characters of some profiles' texts and of the tables: a '?' for those, not a
+        # UnicodeEncodeError's traceback
+        if (isinstance(stream, io.TextIOWrapper)
+                and codecs.lookup(stream.encoding).name != "utf-8"):
+            stream.reconfigure(errors="replace")
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     hook = sys.unraisablehook
     _LOST.clear()

@@ -45,10 +45,13 @@ def present_ports() -> list[tuple[str, str]]:
     """The serial ports this machine has, with their USB descriptions (pyserial's
     ``list_ports``), adapters first; ports that are only names (a PC's legacy ttyS with
     nothing behind it: no hardware id) left out."""
-    from serial.tools import list_ports
+    try:
+        from serial.tools import list_ports
 
-    found = [(p.device, p.description or "") for p in list_ports.comports()
-             if (p.hwid or "n/a") != "n/a"]
+        ports = list_ports.comports()
+    except Exception:  # (advice only: Wine 8.0's cfgmgr32 lacks what pyserial's Windows
+        return []      # listing looks up on import, CM_MapCrToWin32Err)
+    found = [(p.device, p.description or "") for p in ports if (p.hwid or "n/a") != "n/a"]
     return sorted(found, key=lambda p: (not ("USB" in p[1] or "ACM" in p[0]), p[0]))
 
 

@@ -112,6 +112,17 @@ class SocketWait:
         return data
 
 
+# Wine (8.0) ends a COM port's read whose timeout ran out with ERROR_TIMEOUT, which
+# pyserial's Windows backend raises ("GetOverlappedResult failed (OSError(22, 'Timeout.',
+# None, 1460))"); Windows completes it with the bytes read so far (none), as a timeout
+ERROR_TIMEOUT = 1460
+
+
+def timed_out(exc: Exception) -> bool:
+    """pyserial's error for a read that only timed out (Wine: ``ERROR_TIMEOUT``)."""
+    return f", {ERROR_TIMEOUT}))" in str(exc)
+
+
 class PortWait:
     """pyserial's own ``read``/``in_waiting``, for a port with no descriptor to wait on."""
 
@@ -126,7 +137,12 @@ class PortWait:
         port = self.port
         try:
             if left >= SLICE:
-                first: bytes = port.read(1)  # returns with the first byte, or after SLICE
+                try:
+                    first: bytes = port.read(1)  # returns with the first byte, or after SLICE
+                except serial.SerialException as exc:
+                    if not timed_out(exc):
+                        raise
+                    return b""
                 if not first:
                     return b""
                 waiting = port.in_waiting
