@@ -20,8 +20,7 @@ from conftest import ANSWERED
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError
 from rtupoll.io.serialport import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
-from rtupoll.jobs.holes import read_all
-from rtupoll.model.planner import plan
+from rtupoll.jobs.device import read_fields
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.runner import SimulatedBus
 
@@ -74,9 +73,9 @@ def test_the_planner_and_the_holes_run_on_it_unchanged(sim: Sim) -> None:
 
     profile = load_one("huiwen-aq")
     with SyncBus(PortSettings(bus_sim.port)) as bus:
-        values, refused = run(read_all(bus, 1, plan([profile.field("co2")], profile),
-                                       timeout=ANSWERED, retries=0))
-    assert refused == [] and [(v.field.name, v.value) for v in values] == [("co2", 612)]
+        got = run(read_fields(bus, profile, 1, [profile.field("co2")], timeout=ANSWERED,
+                              retries=0, probe=True))
+    assert got.refused == () and [(v.field.name, v.value) for v in got.values] == [("co2", 612)]
 
 
 def test_a_job_that_awaits_anything_else_is_refused() -> None:

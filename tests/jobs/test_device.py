@@ -58,7 +58,7 @@ def test_default_fields_of_each_seed_device(sim: Sim, pid: str) -> None:
     async def go() -> tuple[list[Any], int]:
         async with Bus(settings) as bus:
             got = await read_fields(bus, profile, unit, profile.default_fields())
-            return got, bus.stats.transactions
+            return list(got.values), bus.stats.transactions
     got, transactions = run(go())
     assert [fv.field.name for fv in got] == [f.name for f in profile.default_fields()]
     for fv in got:
@@ -76,10 +76,14 @@ def test_irnet_variant_probe(sim: Sim) -> None:
             new, old = await probe_variant(bus, p, 1), await probe_variant(bus, p, 2)
             wanted = [p.field("full_scale"), p.field("calibration_gas_level")]
             got = await read_fields(bus, p, 2, wanted, variant=old)
-            with pytest.raises(DeviceException) as info:  # asked blindly: the device says no
-                await read_fields(bus, p, 2, wanted)
-            assert info.value.code == 2
-            return new, old, [fv.field.name for fv in got]
+            assert got.missing == {"calibration_gas_level": "not present (data structure 0)"}
+            probed = await read_fields(bus, p, 2, wanted, probe=True)
+            assert (probed.variant, probed.missing) == (0, got.missing)
+            blind = await read_fields(bus, p, 2, wanted)  # asked blindly: the device says no
+            assert [(f.name, e.code) for f, e in blind.refused] == [("calibration_gas_level", 2)]
+            assert isinstance(blind.error(), DeviceException)
+            assert [fv.field.name for fv in blind.values] == ["full_scale"]  # bisected
+            return new, old, [fv.field.name for fv in got.values]
     assert run(go()) == (1, 0, ["full_scale"])
 
 
@@ -107,7 +111,7 @@ def test_values_come_back_in_request_order_and_errors_propagate() -> None:
     p: Profile = load_one("huiwen-aq")
     wanted = [p.field(n) for n in ("co2_level", "pm25", "hcho", "pm25")]
     rec = Recorder()
-    got = run(read_fields(rec, p, 3, wanted))
+    got = run(read_fields(rec, p, 3, wanted)).values
     assert [fv.field.name for fv in got] == ["co2_level", "pm25", "hcho"]
     assert len(rec.calls) == 2
     assert got[1].raw == (30006,)

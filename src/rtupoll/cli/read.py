@@ -24,7 +24,7 @@ from rtupoll.cli.target import (
     speed_note,
     timing_options,
 )
-from rtupoll.errors import FrameError, RefusedError, UsageError
+from rtupoll.errors import RefusedError, UsageError
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.model.codec import ByteOrder, words_to_hex
@@ -160,39 +160,19 @@ class PartialRead(Exception):
 
 async def read_named(bus: Any, target: Target, fields: list[Field], timing: Timing
                      ) -> list[Row]:
-    """Read through the planner; fields the device's variant lacks are reported, not read."""
-    from rtupoll.jobs.device import probe_variant
-    from rtupoll.jobs.holes import FieldsRefused, read_all
-    from rtupoll.model.planner import plan
-    from rtupoll.model.scaling import scale_values
-    from rtupoll.rtu import exception_name
+    """Read through the one read job (``jobs.device.read_fields``): the variant asked
+    first where the fields need it, a block refused with exception 02 bisected; every
+    field that read is a row, the others say why not."""
+    from rtupoll.jobs.device import read_fields
 
-    profile = target.profile
-    assert profile is not None
-    missing: dict[str, str] = {}
-    if profile.variant and any(f.since for f in fields):
-        variant = await probe_variant(bus, profile, target.unit)
-        if variant is not None:
-            for f in fields:
-                if f.since > variant:
-                    missing[f.name] = f"not present ({profile.variant.name} {variant})"
-    present = [f for f in fields if f.name not in missing]
-    # a block refused with exception 02 is split until the refused fields are found
-    values, refused = await read_all(bus, target.unit, plan(present, profile),
-                                     timeout=timing.timeout, retries=timing.retries)
-    for f, exc in refused:
-        missing[f.name] = f"refused: exception {exc.code:02d} {exception_name(exc.code)}"
-    values, unscaled = scale_values(values, missing)  # scale_by: x the factors read
-    for u in unscaled:
-        missing[u.field.name] = f"not scaled: {u.reason}"
-    by_name = {fv.field.name: fv for fv in values}
-    rows = [(f, by_name.get(f.name), missing.get(f.name, "")) for f in fields]
-    if refused:  # printed, then exit 5 (``read``)
-        raise PartialRead(rows, FieldsRefused(refused))
-    if unscaled:  # a factor that reads no ratio: printed, then exit 7
-        u = unscaled[0]
-        raise PartialRead(rows, FrameError(f"unit {target.unit}: {u.field.name} not scaled: "
-                                           f"{u.reason}"))
+    assert target.profile is not None
+    got = await read_fields(bus, target.profile, target.unit, fields, timeout=timing.timeout,
+                            retries=timing.retries, probe=True)
+    by_name = {fv.field.name: fv for fv in got.values}
+    rows = [(f, by_name.get(f.name), got.missing.get(f.name, "")) for f in fields]
+    error = got.error()
+    if error is not None:  # printed, then exit 5 (refused) or 7 (not scaled)
+        raise PartialRead(rows, error)
     return rows
 
 

@@ -76,6 +76,11 @@ def pieces(block: Block) -> list[Block]:
     return out
 
 
+def refused_reading(block: Block) -> str:
+    """Why a hole found by bisection is learned: ``exception 02 reading input 0x753A+8``."""
+    return f"exception 02 reading {block.table.value} 0x{block.address:04X}+{block.count}"
+
+
 def show(registers: Iterable[Register]) -> str:
     """``input 0x7540-0x7541, 0x7550``: registers as short ranges."""
     by_table: dict[Table, list[int]] = {}
@@ -155,30 +160,6 @@ async def _split(bus: BusLike, unit: int, piece: Block, values: list[FieldValue]
                          refused, timeout=timeout, retries=retries)
         return
     values += decode_block(piece, words)
-
-
-async def read_all(bus: BusLike, unit: int, blocks: Sequence[Block], *, timeout: float,
-                   retries: int) -> tuple[list[FieldValue], list[tuple[Field, DeviceException]]]:
-    """Read ``blocks`` once (``rtupoll read``): a block refused with exception 02 is
-    bisected, so every field that answers is read and each refused field is named with
-    its exception. Another exception, a timeout or a garbled reply propagates."""
-    values: list[FieldValue] = []
-    refused: list[tuple[Field, DeviceException]] = []
-    for block in blocks:
-        try:
-            words = await bus.read(unit, block.table, block.address, block.count,
-                                   timeout=timeout, retries=retries)
-        except DeviceException as exc:
-            found = await bisect(bus, unit, block, timeout=timeout, retries=retries) \
-                if exc.code == 2 else None
-            if found is None:
-                refused += [(f, exc) for f in block.fields]
-                continue
-            values += found.values
-            refused += found.refused
-            continue
-        values += decode_block(block, words)
-    return values, refused
 
 
 class FieldsRefused(DeviceException):

@@ -47,8 +47,16 @@ from rtupoll.errors import (
 from rtupoll.figures import count
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
-from rtupoll.jobs.device import probe_variant, read_block
-from rtupoll.jobs.holes import Bisection, HoleMemory, Register, bisect, gaps
+from rtupoll.jobs.device import (
+    BlockRead,
+    Read,
+    after_refusal,
+    needs_variant,
+    probe_variant,
+    read_block,
+    read_fields,
+)
+from rtupoll.jobs.holes import HoleMemory, Register, refused_reading
 from rtupoll.jobs.race import first_of
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
@@ -99,8 +107,7 @@ class DevicePoller:
         self.block_read: dict[tuple[Table, int, int], float] = {}
         # fields only some generations of the map have (IRNET data structure 1): ask the
         # device which it is before reading them, and report the others as absent
-        self.variant_unknown = config.profile.variant is not None and any(
-            f.since for f in config.fields)
+        self.variant_unknown = needs_variant(config.profile, config.fields)
         self.absent: tuple[Field, ...] = ()
         self.absent_why = ""
         self.variant: int | None = None  # as the device said (probe_variant)
@@ -163,8 +170,7 @@ class DevicePoller:
             status, error, values = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
                 via=transport)
-            if status is Status.EXCEPTION and self.refused == 2 and \
-                    (gaps(block) or len(block.fields) > 1):
+            if status is Status.EXCEPTION and self.refused == 2:
                 found = await self._find_holes(transport, block, retries)
                 if found is not None:  # the refused fields alone keep the exception
                     for f, exc in found.refused:
@@ -238,24 +244,38 @@ class DevicePoller:
         return True
 
     async def _find_holes(self, transport: BusLike, block: Block, retries: int
-                          ) -> Bisection | None:
-        """``block`` got exception 02: bisect (``jobs.holes``); what read, and which
-        fields the device refuses; from then on the refused registers are not bridged
-        and a refused field is read alone."""
+                          ) -> BlockRead | None:
+        """``block`` got exception 02: bisect (``jobs.device.after_refusal``); what read,
+        and which fields the device refuses; from then on the refused registers are not
+        bridged and a refused field is read alone."""
         key = (block.table, block.address, block.count)
         if key in self.holes.tried:
             return None
+        refusal = DeviceException(2, unit=self.config.address,
+                                  function=block.table.read_function)
         try:
-            found = await bisect(transport, self.config.address, block,
-                                 timeout=self.timeout(transport), retries=retries)
+            found = await after_refusal(transport, self.config.address, block, refusal,
+                                        timeout=self.timeout(transport), retries=retries)
         except BusError:
             return None
         if found is None:
             self.holes.tried.add(key)
             return None
-        self.learn_holes(found.holes, f"exception 02 reading {block.table.value} "
-                                      f"0x{block.address:04X}+{block.count}")
+        self.learn_holes(found.holes, refused_reading(block))
         return found
+
+    async def read_now(self, transport: BusLike, fields: Sequence[Field]) -> Read:
+        """``fields`` read now, between cycles (MQTT ``get``), by the one read job with
+        what the cycles learned: the variant (asked first while unknown) and the holes. The
+        holes this read finds are learned as the cycle's are: the cycles plan around them."""
+        cfg = self.config
+        got = await read_fields(transport, cfg.profile, cfg.address, fields,
+                                timeout=cfg.response_timeout, retries=cfg.retry_count,
+                                variant=self.variant, probe=self.variant_unknown,
+                                holes=self.holes.registers)
+        for block, registers in got.holes:
+            self.learn_holes(registers, refused_reading(block))
+        return got
 
     def timeout(self, transport: BusLike) -> float:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""

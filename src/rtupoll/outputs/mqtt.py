@@ -532,14 +532,14 @@ class MqttService(Service):
     async def _command(self, verb: str, name: str, t: str, payload: bytes) -> None:
         """``BASE/DEVICE/set`` or ``.../get``: run it, publish its one result on
         ``.../result``, whatever the payload holds."""
-        done: dict[str, Any] = {}  # what a set wrote and read back before a failure
+        done: dict[str, Any] = {}  # what a set wrote and read back (a get read) before a failure
         try:
             found = self._find(name)
             if found is None:
                 raise UsageError(f"{name} is not polled now (the site file was reloaded)")
             bp, dev = found
             values = await (self._set(bp, dev, t, payload, done) if verb == "set" else
-                            self._get(bp, dev, t, payload))
+                            self._get(bp, dev, t, payload, done))
             if values is None:  # a get of everything: the next state answers it
                 return
             result = cmd.ok(values)
@@ -567,8 +567,8 @@ class MqttService(Service):
         bp.poll_now(dev)
         return done
 
-    async def _get(self, bp: BusPoller, dev: DevicePoller, t: str, payload: bytes
-                   ) -> dict[str, Any] | None:
+    async def _get(self, bp: BusPoller, dev: DevicePoller, t: str, payload: bytes,
+                   done: dict[str, Any]) -> dict[str, Any] | None:
         """The fields asked for, read now; None for all of them (the next state)."""
         cfg = dev.config
         fields = cmd.plan_get(cfg, payload)
@@ -576,7 +576,7 @@ class MqttService(Service):
             self.publisher.forced.add(t)
             bp.poll_now(dev)
             return None
-        return await bp.submit(lambda transport: cmd.apply_get(transport, cfg, fields))
+        return await bp.submit(lambda transport: cmd.apply_get(transport, dev, fields, done))
 
 
 def backoff(attempt: int, rand: Callable[[], float] = random.random) -> float:

@@ -12,7 +12,9 @@ code, read back and compared (``jobs.writes.verify``). The answer on
 
 ``BASE/DEVICE/get``: empty (or ``{}``) reads the whole device now, ahead of the
 schedule; a list of field names (or ``{"fields": [...]}``) reads those fields, polled
-or not, and answers on ``BASE/DEVICE/get/result`` like ``set``.
+or not, as ``rtupoll read`` reads them (the one read job, with the variant and the holes
+the poller learned), and answers on ``BASE/DEVICE/get/result`` like ``set``: a field the
+device refuses is an exception (exit code 5) whose ``values`` are every other field.
 
 Whatever a payload holds, it is bounded before it is parsed (``MAX_PAYLOAD`` bytes,
 ``MAX_DEPTH`` levels of nesting), a key given twice is refused (JSON would silently keep
@@ -39,7 +41,7 @@ from rtupoll.errors import (
     UsageError,
     VerificationError,
 )
-from rtupoll.jobs.device import Timing, read_fields
+from rtupoll.jobs.device import Timing
 from rtupoll.jobs.writes import WriteOp, plan_write, read_back, verify, write
 from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import FieldValue
@@ -49,6 +51,7 @@ from rtupoll.ui.records import finite
 if TYPE_CHECKING:
     from rtupoll.config.site import DeviceConfig
     from rtupoll.io.interface import BusLike
+    from rtupoll.jobs.scheduler import DevicePoller
 
 WRITES_OFF = ("writes over MQTT are off: start poll with --mqtt-allow-writes, or set "
               "mqtt.allow_writes: true in the site file")
@@ -225,11 +228,17 @@ def plan_get(dev: DeviceConfig, payload: bytes) -> list[Field] | None:
     return fields
 
 
-async def apply_get(bus: BusLike, dev: DeviceConfig, fields: Sequence[Field]
-                    ) -> dict[str, Any]:
-    got = await read_fields(bus, dev.profile, dev.address, fields,
-                            timeout=dev.response_timeout, retries=dev.retry_count)
-    return {fv.field.name: value_of(fv) for fv in got}
+async def apply_get(bus: BusLike, dev: DevicePoller, fields: Sequence[Field],
+                    done: dict[str, Any]) -> dict[str, Any]:
+    """``fields`` read now as ``rtupoll read`` reads them (``DevicePoller.read_now``: the
+    one read job, with the variant and the holes the poller learned); ``done`` collects
+    every value read, which a failure (a field refused, exit 5) carries too."""
+    got = await dev.read_now(bus, fields)
+    done.update((fv.field.name, value_of(fv)) for fv in got.values)
+    error = got.error()
+    if error is not None:
+        raise error
+    return dict(done)
 
 
 def value_of(fv: FieldValue) -> Any:
@@ -247,5 +256,5 @@ def failed(exc: RtupollError, values: dict[str, Any] | None = None) -> dict[str,
     status = next((s for cls, s in _STATUS if isinstance(exc, cls)), "error")
     out: dict[str, Any] = {"status": status, "exit_code": exc.exit_code, "error": str(exc)}
     if values:
-        out["values"] = values  # the fields written (and read back) before the failure
+        out["values"] = values  # written (and read back) before the failure; a get's read
     return out
