@@ -12,7 +12,7 @@ neither asyncio nor pymodbus, which is most of what a one-shot read used to pay 
 before it sent a byte (benchmarks/README.md, read_vs_mbpoll.py).
 
 Its methods are ``BusLike``'s coroutines, so the jobs written for any bus
-(``jobs.holes.read_all``, ``jobs.device.probe_variant``) run on it unchanged; they
+(``jobs.device.read_fields``, ``jobs.device.probe_variant``) run on it unchanged; they
 never suspend, because nothing here awaits, and ``run`` drives such a coroutine to
 its end without an event loop. A job that awaits anything else (a sleep, a task) is
 a programming error, said at once (``RuntimeError``), not a hang.
