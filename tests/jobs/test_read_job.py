@@ -117,3 +117,33 @@ def test_a_get_plans_around_the_holes_the_poller_learned_and_teaches_it_its_own(
     assert asked(bus, n) == by_get
     assert [r.status for r in readings] == [Status.OK] * len(dev.config.fields)
     assert dev.stats.exceptions[2] == 0
+
+
+def test_a_get_asks_the_variant_the_poller_did_not_need_and_the_poller_takes_it() -> None:
+    """An IRNET-PRO on data structure 0 (no calibration gas level), polled for a field every
+    structure has: a get of one that only structure 1 has asks the variant first, as
+    ``read`` does, and reports the field not present instead of reading it into
+    exception 02."""
+    profile = load_one("net-irnet-pro")
+    wanted = [profile.field("full_scale"), profile.field("calibration_gas_level")]
+
+    def bus() -> VirtualBus:
+        clock = VirtualClock()
+        engine = Engine([SimDeviceConfig(profile, 1, variant=0)], tick=None)
+        return VirtualBus(engine, Framing(9600), clock=clock, sleep=clock.sleep)
+
+    by_read = bus()
+    read = asyncio.run(read_fields(by_read, profile, 1, wanted, probe=True))
+    by_get = bus()
+    config = from_specs("virtual", [("net-irnet-pro", 1)], baudrate=9600,
+                        fields=["concentration"]).buses[0]
+    dev = BusPoller(config, by_get, backoff=Backoff()).devices[0]
+    assert dev.variant is None and not dev.variant_unknown  # its own fields need none
+    got = asyncio.run(dev.read_now(by_get, wanted))
+    assert asked(by_get) == asked(by_read) and len(asked(by_read)) == 2  # variant, field
+    for result in (read, got):
+        assert (result.variant, dict(result.missing)) == (
+            0, {"calibration_gas_level": "not present (data structure 0)"})
+        assert [fv.field.name for fv in result.values] == ["full_scale"]
+        assert result.error() is None and result.refused == ()
+    assert dev.variant == 0

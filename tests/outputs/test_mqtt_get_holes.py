@@ -117,7 +117,7 @@ def test_get_over_a_hole_reads_what_read_reads_and_the_poller_learns_the_hole(
 def test_a_field_the_device_refuses_fails_the_get_as_read_fails_with_the_others_read(
         sim: Callable[..., SimulatedBus]) -> None:
     """pm25's own register refused: ``read`` prints the other five and exits 5; the get's
-    result is that exit code and line, with the other five values."""
+    result is that exit code and line, with the values read printed (pm25 null)."""
     pinned = {"tvoc": 0.25, "hcho": 0.02, "co2": 800, "temperature": 21, "humidity": 40}
     line = sim("huiwen-aq@3", tick=None, faults=["3:hole=30006"],
                sets=[f"huiwen-aq@3.{n}={v}" for n, v in pinned.items()])
@@ -140,6 +140,6 @@ def test_a_field_the_device_refuses_fails_the_get_as_read_fails_with_the_others_
         asyncio.run(cmd.apply_get(bus, dev, [profile.field(n) for n in SIX], done))
     result = cmd.failed(info.value, done)
     assert result == {"status": "exception", "exit_code": 5, "error": result["error"],
-                      "values": pinned}
+                      "values": shown}
     assert read.stderr.strip() == f"rtupoll: {result['error']}"
     assert result["error"].startswith("pm25: ")

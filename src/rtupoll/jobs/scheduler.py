@@ -217,15 +217,20 @@ class DevicePoller:
             retries=retries), via=transport)
         if status is not Status.OK:  # a reply that is no answer: the reads say what is wrong
             return error if status is Status.TIMEOUT else ""
+        self._take_variant(variant)
+        return ""
+
+    def _take_variant(self, variant: int | None) -> None:
+        """The device said which variant it is: plan for it, its missing fields absent."""
+        cfg = self.config
         self.variant_unknown = False
         if variant is None:
-            return ""
+            return
         self.variant = variant
         self.replan()
         self.absent = tuple(f for f in cfg.fields if f.since > variant)
         assert cfg.profile.variant is not None
         self.absent_why = f"not in {cfg.profile.variant.name} {variant}"
-        return ""
 
     def replan(self) -> None:
         """Plan the reads again (the variant became known, holes were learned)."""
@@ -266,13 +271,16 @@ class DevicePoller:
 
     async def read_now(self, transport: BusLike, fields: Sequence[Field]) -> Read:
         """``fields`` read now, between cycles (MQTT ``get``), by the one read job with
-        what the cycles learned: the variant (asked first while unknown) and the holes. The
-        holes this read finds are learned as the cycle's are: the cycles plan around them."""
+        what the cycles learned: the variant (asked first while unknown) and the holes. What
+        this read finds (the variant it asked, holes) is learned as the cycle's is: the cycles
+        plan for it."""
         cfg = self.config
         got = await read_fields(transport, cfg.profile, cfg.address, fields,
                                 timeout=cfg.response_timeout, retries=cfg.retry_count,
-                                variant=self.variant, probe=self.variant_unknown,
+                                variant=self.variant, probe=self.variant is None,
                                 holes=self.holes.registers)
+        if self.variant is None and got.variant is not None:
+            self._take_variant(got.variant)
         for block, registers in got.holes:
             self.learn_holes(registers, refused_reading(block))
         return got

@@ -231,10 +231,12 @@ def plan_get(dev: DeviceConfig, payload: bytes) -> list[Field] | None:
 async def apply_get(bus: BusLike, dev: DevicePoller, fields: Sequence[Field],
                     done: dict[str, Any]) -> dict[str, Any]:
     """``fields`` read now as ``rtupoll read`` reads them (``DevicePoller.read_now``: the
-    one read job, with the variant and the holes the poller learned); ``done`` collects
-    every value read, which a failure (a field refused, exit 5) carries too."""
+    one read job, with the variant and the holes the poller learned); ``done`` gets each
+    field's value as ``read --format json`` gives it (null: not in the device's variant,
+    or refused), which a failure (a field refused, exit 5) carries too."""
     got = await dev.read_now(bus, fields)
-    done.update((fv.field.name, value_of(fv)) for fv in got.values)
+    read = {fv.field.name: value_of(fv) for fv in got.values}
+    done.update((f.name, read.get(f.name)) for f in fields)
     error = got.error()
     if error is not None:
         raise error
