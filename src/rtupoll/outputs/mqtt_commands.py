@@ -14,7 +14,7 @@ code, read back and compared (``jobs.writes.verify``). The answer on
 schedule; a list of field names (or ``{"fields": [...]}``) reads those fields, polled
 or not, as ``rtupoll read`` reads them (the one read job, with the variant and the holes
 the poller learned), and answers on ``BASE/DEVICE/get/result`` like ``set``: a field the
-device refuses is an exception (exit code 5) whose ``values`` are every other field.
+device refuses is an exception (exit code 5) whose ``values`` hold what was read.
 
 Whatever a payload holds, it is bounded before it is parsed (``MAX_PAYLOAD`` bytes,
 ``MAX_DEPTH`` levels of nesting), a key given twice is refused (JSON would silently keep
