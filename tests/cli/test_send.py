@@ -19,7 +19,7 @@ from rtupoll.rtu.match import answers, expect_for
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
-FIXTURES = Path(__file__).parents[1] / "fixtures" / "profiles"
+FIXTURES = Path(__file__).parents[1] / "fixtures" / "send"
 # KBR multicomp F144 manual, "Device information", example Modbus RTU: request and reply
 KBR_REQUEST = "01 2B 0E 01 00 70 77"
 KBR_REPLY = ("01 2B 0E 01 01 00 00 03 00 08 4B 42 52 20 47 6D 62 48 01 12 6D 75 6C 74 69 63"

@@ -62,6 +62,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scan": ("rtupoll.cli.scan:scan", "Find and identify the devices on a bus."),
     "guess": ("rtupoll.cli.guess:guess", "Rank interpretations of an unknown device's registers."),
     "send": ("rtupoll.cli.send:send", "Send one request of any function, decoded and raw."),
+    "doctor": ("rtupoll.cli.doctor:doctor", "Check the adapter and a device: findings, fixes."),
     "decode": ("rtupoll.cli.decode:decode", "Decode captured RTU frames."),
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
     "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),

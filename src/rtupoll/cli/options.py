@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -9,6 +10,7 @@ from typing import TypeVar
 import click
 
 from rtupoll.frozen import frozen
+from rtupoll.model.profile import idle_gap_error
 
 F = TypeVar("F", bound=Callable[..., object])
 
@@ -26,10 +28,11 @@ def format_option(*choices: str) -> Callable[[F], F]:
 
 @frozen
 class LineOptions:
-    """--echo and --rs485: how the adapter meets the line (``line_options``)."""
+    """--echo, --rs485, --idle-gap: how the adapter meets the line (``line_options``)."""
 
     echo: bool = False
     rs485: tuple[float, float] | None = None  # (before, after) in seconds; None: off
+    idle_gap: float = 0.0  # seconds of silence every device gets before a request
 
 
 _LINE_KEY = "rtupoll.line_options"
@@ -37,17 +40,26 @@ _TRAFFIC_KEY = "rtupoll.traffic"
 
 
 def line_options(f: F) -> F:
-    """--echo, --rs485, --rs485-delays: adapters that echo, transceivers whose
-    direction is on RTS. Kept in the click context (``given_line_options``), so every
-    command that opens a port takes them without a parameter of its own."""
+    """--echo, --rs485, --rs485-delays, --idle-gap: adapters that echo, transceivers
+    whose direction is on RTS, devices that need a longer silence. Kept in the click
+    context (``given_line_options``), so every command that opens a port takes them
+    without a parameter of its own."""
     def keep(ctx: click.Context, param: click.Parameter, value: object) -> None:
         if value in (None, False):
             return
         now = ctx.meta.get(_LINE_KEY, LineOptions())
         if param.name == "echo":
-            ctx.meta[_LINE_KEY] = LineOptions(True, now.rs485)
+            ctx.meta[_LINE_KEY] = dataclasses.replace(now, echo=True)
         elif param.name == "rs485":
-            ctx.meta[_LINE_KEY] = LineOptions(now.echo, now.rs485 or (0.0, 0.0))
+            ctx.meta[_LINE_KEY] = dataclasses.replace(now, rs485=now.rs485 or (0.0, 0.0))
+        elif param.name == "idle_gap":
+            gap = float(str(value)) if _is_number(str(value)) else -1.0
+            why = idle_gap_error(gap)
+            if why:
+                raise click.BadParameter(f"{value!r}: seconds of silence, e.g. 0.05 "
+                                         f"({'not a number' if gap == -1.0 else why})",
+                                         ctx=ctx, param=param)
+            ctx.meta[_LINE_KEY] = dataclasses.replace(now, idle_gap=gap)
         else:
             text = str(value)
             try:
@@ -57,9 +69,14 @@ def line_options(f: F) -> F:
             if not 1 <= len(parts) <= 2 or any(not 0 <= x <= 1 for x in parts):
                 raise click.BadParameter(f"{text!r}: give BEFORE_MS[,AFTER_MS], each "
                                          "0..1000 (e.g. 0,0.5)", ctx=ctx, param=param)
-            ctx.meta[_LINE_KEY] = LineOptions(now.echo, (parts[0], parts[-1]
-                                                         if len(parts) > 1 else 0.0))
+            ctx.meta[_LINE_KEY] = dataclasses.replace(
+                now, rs485=(parts[0], parts[-1] if len(parts) > 1 else 0.0))
 
+    f = click.option("--idle-gap", metavar="SECONDS", default=None, expose_value=False,
+                     callback=keep,
+                     help="Silence the line must have before each request, for devices that "
+                          "need a pause between commands (at least; a profile's "
+                          "limits.idle_gap may ask for more).")(f)
     f = click.option("--rs485-delays", metavar="BEFORE_MS[,AFTER_MS]", default=None,
                      expose_value=False, callback=keep,
                      help="--rs485: milliseconds between raising RTS and the first bit, "
@@ -111,6 +128,13 @@ def traffic_options(f: F) -> F:
                      help="Show each frame sent and received on stderr: its time, "
                           "direction, port, bytes in hex and decoding.")(f)
     return f
+
+
+def _is_number(text: str) -> bool:
+    try:
+        return float(text) == float(text)  # not NaN
+    except ValueError:
+        return False
 
 
 def given_line_options() -> LineOptions:

@@ -245,7 +245,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         if served is not None:
             raise UsageError("with --config, set serve: per bus in the site file")
         if given_line_options() != LineOptions():
-            raise UsageError("with --config, set echo: and rs485: per bus in the site file")
+            raise UsageError("with --config, set echo:, rs485: and idle_gap: per bus in the "
+                             "site file")
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
@@ -372,10 +373,11 @@ def _split(fields: str | None) -> list[str]:
 
 
 def _with_line_options(site: Site) -> Site:
-    """--echo and --rs485 on every bus of a site made from the command line."""
+    """--echo, --rs485 and --idle-gap on every bus of a site made from the command line."""
     given = given_line_options()
     return dataclasses.replace(site, buses=tuple(
-        dataclasses.replace(b, echo=given.echo, rs485=given.rs485) for b in site.buses))
+        dataclasses.replace(b, echo=given.echo, rs485=given.rs485, idle_gap=given.idle_gap)
+        for b in site.buses))
 
 
 @contextlib.contextmanager
@@ -424,6 +426,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             readings = aio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
+            _echo_found(scheduler)
             _report_failures(site, readings)
         else:
             aio.run(_forever(scheduler, writer, view, console, services))
@@ -556,6 +559,15 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         if stop.is_set():
             return
         live.refresh()
+
+
+def _echo_found(scheduler: Scheduler) -> None:
+    """``--once``: one stderr line per bus whose adapter's echo was found (and consumed)."""
+    from rtupoll.rtu.line import ECHO_FOUND
+
+    for bp in scheduler.buses:
+        if getattr(bp.transport, "echo_found", False):
+            click.echo(f"rtupoll: {bp.config.name}: {ECHO_FOUND}", err=True)
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

@@ -85,12 +85,14 @@ def port_settings(profile: Profile | None, port: str | None, baudrate: int | Non
 
 
 def line_settings() -> dict[str, Any]:
-    """``PortSettings``' echo and rs485 from --echo and --rs485 (``cli.options``)."""
+    """``PortSettings``' echo, rs485 and idle_gap from --echo, --rs485 and --idle-gap
+    (``cli.options``)."""
     from rtupoll.cli.options import given_line_options
     from rtupoll.io.serialport import Rs485
 
     given = given_line_options()
-    return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None}
+    return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None,
+            "idle_gap": given.idle_gap}
 
 
 def timing_options(f: F) -> F:

@@ -38,6 +38,8 @@ from rtupoll.model.profile import (
     Severity,
     Variant,
     Verification,
+    idle_gap_error,
+    is_modicon_reference,
     squashed,
 )
 from rtupoll.numbers import parse_int
@@ -111,10 +113,10 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         variant=_variant(top["variant"], by_name) if "variant" in top else None,
         provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
-        warnings=warnings,
         identification=_identification(top["identification"])
         if "identification" in top else (),
         server_id=_hex_bytes(top["server_id"]) if "server_id" in top else b"",
+        warnings=warnings,
     )
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")
@@ -256,7 +258,7 @@ def _serial(node: Node) -> Serial:
 
 def _limits(node: Node) -> Limits:
     m = node.mapping({"max_registers", "max_gap", "functions", "timeout", "retries",
-                      "turnaround", "silent_on_error", "lost_after_powerup"})
+                      "turnaround", "silent_on_error", "lost_after_powerup", "idle_gap"})
     d = Limits()
     timeout = m["timeout"].number() if "timeout" in m else d.timeout
     if not 0.01 <= timeout <= 30:
@@ -272,7 +274,18 @@ def _limits(node: Node) -> Limits:
         turnaround=_opt(m, "turnaround", Node.number, d.turnaround),
         silent_on_error=_opt(m, "silent_on_error", Node.flag, False),
         lost_after_powerup=_opt(m, "lost_after_powerup", lambda n: n.integer(0, 100), 0),
+        idle_gap=_opt(m, "idle_gap", idle_gap, 0.0),
     )
+
+
+
+def idle_gap(node: Node) -> float:
+    """An ``idle_gap:`` in seconds (a profile's ``limits``; a site file's device or bus)."""
+    gap = node.number()
+    why = idle_gap_error(gap)
+    if why:
+        raise node.fail(why)
+    return float(gap)
 
 
 def _addresses(node: Node) -> Addresses:
@@ -425,9 +438,12 @@ def _wire_address(node: Node, addressing: Addressing, table: Table, written: int
     """The address on the wire of an address as the profile writes it."""
     if addressing in (Addressing.DIRECT, Addressing.MODICON) and table.is_register:
         base = table.modicon_base
-        if not base < written <= base + (9999 if addressing is Addressing.DIRECT else 65536):
+        if not (base < written <= base + 9999 if addressing is Addressing.DIRECT
+                else is_modicon_reference(table, written)):
             raise node.fail(f"{written} is not a {table.value} register reference "
-                            f"({base + 1}..{base + 9999})")
+                            f"({base + 1}..{base + 9999}"
+                            + (")" if addressing is Addressing.DIRECT
+                               else f", or {base * 10 + 1}..{base * 10 + 65536})"))
     wire = addressing.to_wire(table, written)
     if not 0 <= wire <= 0xFFFF:
         raise node.fail(f"wire address {wire} is outside 0..65535")
@@ -531,12 +547,15 @@ def _typical(node: Node, layout: Layout) -> float | str:
     return _fitting(node, node.number(), layout)
 
 
+_MAX_WRITTEN = 465536  # the highest address a profile may write: the 6-digit 4xxxxx form
+
+
 def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
     """``address``: a register, or ``REGISTER:SHIFT:WIDTH`` for a bit field inside one
     (read as written: YAML would take an unquoted 12288:4:4 for a base-60 number)."""
     text = node.text() if not node.is_mapping and not node.is_list else ""
     if ":" not in text:
-        return node.integer(0, 0x1FFFF), 0, 0
+        return node.integer(0, _MAX_WRITTEN), 0, 0
     parts = text.split(":")
     try:
         reg, shift, width = (int(p.strip(), 0) for p in parts)
@@ -544,8 +563,8 @@ def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
         raise node.fail(f"{text!r} is not REGISTER:SHIFT:WIDTH (e.g. 0x3200:4:4)") from None
     if dtype not in (DataType.U16, DataType.I16) or not table.is_register:
         raise node.fail(f"a bit field is u16 or i16 in a register, not {dtype.value}")
-    if not 0 <= reg <= 0x1FFFF:
-        raise node.fail(f"{reg} is outside 0..{0x1FFFF}")
+    if not 0 <= reg <= _MAX_WRITTEN:
+        raise node.fail(f"{reg} is outside 0..{_MAX_WRITTEN}")
     if not 0 <= shift <= 15 or not 1 <= width <= 16 - shift:
         raise node.fail(f"bits {shift}..{shift + width - 1} are not inside one 16-bit register")
     return reg, shift, width

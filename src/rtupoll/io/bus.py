@@ -120,7 +120,8 @@ class Bus(LineBus):
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
         self._port: _Port | None = None
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
         self.line.tap = taps.tap_for(settings.port, self.framing)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = latency_timer(settings.port) or 0.0

@@ -29,6 +29,7 @@ a programming error, said at once (``RuntimeError``), not a hang.
 from __future__ import annotations
 
 import contextlib
+import struct
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
@@ -78,7 +79,8 @@ class SyncBus(LineBus):
         self.framing = settings.framing
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
         self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
@@ -120,6 +122,27 @@ class SyncBus(LineBus):
             self._port = self._open_serial()
         self._take = waits.wait_on(self._port, sleep=self._sleep)
         self.line.opened(self._clock())  # a fresh port: count the silence from now
+
+    def rs485_mode(self) -> str:
+        """What the open port says of the kernel's RS-485 mode (Linux, TIOCGRS485):
+        "on" (the driver switches the transceiver's direction), "off" (it could), "none"
+        (no such mode: a pty, most USB adapters, which switch by themselves), or
+        "network" for a gateway or a port reached over the network."""
+        if self._gateway or not hasattr(self._port, "fileno"):
+            return "network"
+        try:
+            fd = self._port.fileno()
+        except (OSError, ValueError, AttributeError):
+            return "network" if "://" in self.settings.port else "none"
+        try:
+            import fcntl
+            import termios
+
+            request = getattr(termios, "TIOCGRS485", 0x542E)
+            flags = struct.unpack("8I", fcntl.ioctl(fd, request, bytes(32)))[0]
+        except (ImportError, OSError):
+            return "none"
+        return "on" if flags & 1 else "off"
 
     def disconnect(self) -> None:
         port, self._port, self._take = self._port, None, None

@@ -54,7 +54,8 @@ class Addressing(str, enum.Enum):
 
     ``pdu``: the address as sent in the request (0-based, e.g. 0x0006).
     ``direct``: a Modicon-looking reference sent literally (30006 goes out as 0x7536).
-    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001.
+    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001
+    (or, past 9999, a 6-digit 3xxxxx/4xxxxx one: the reference - 300001/400001).
     ``one_based``: a register number N; the wire address is N - 1.
     """
 
@@ -65,14 +66,16 @@ class Addressing(str, enum.Enum):
 
     def to_wire(self, table: Table, written: int) -> int:
         if self is Addressing.MODICON:
-            return int(written - table.modicon_base - 1)
+            base = table.modicon_base
+            return int(written - (base * 10 if written > base + 9999 else base) - 1)
         if self is Addressing.ONE_BASED:
             return written - 1
         return written
 
     def to_written(self, table: Table, wire: int) -> int:
         if self is Addressing.MODICON:
-            return int(wire + table.modicon_base + 1)
+            base = table.modicon_base
+            return int(wire + (base if wire < 9999 else base * 10) + 1)
         if self is Addressing.ONE_BASED:
             return wire + 1
         return wire
@@ -81,6 +84,13 @@ class Addressing(str, enum.Enum):
         """The address as the manual writes it."""
         written = self.to_written(table, wire)
         return f"0x{written:04X}" if self is Addressing.PDU else str(written)
+
+
+def is_modicon_reference(table: Table, reference: int) -> bool:
+    """A 5-digit (30001..39999) or 6-digit (300001..365536) reference into ``table``."""
+    base = table.modicon_base
+    six = base * 10
+    return base < reference <= base + 9999 or six < reference <= six + 65536
 
 
 class Severity(str, enum.Enum):
@@ -200,6 +210,14 @@ class Serial:
     deassert_dtr: bool = False  # open the port with DTR and RTS deasserted (DTR resets some boards)
 
 
+IDLE_GAP_MAX = 10.0  # seconds: the longest ``idle_gap`` a device may be given
+
+
+def idle_gap_error(gap: float) -> str | None:
+    """Why ``gap`` (seconds) cannot be an idle gap (profile, site file, --idle-gap)."""
+    return None if 0 <= gap <= IDLE_GAP_MAX else f"{gap:g} s is outside 0..{IDLE_GAP_MAX:g} s"
+
+
 @frozen
 class Limits:
     max_registers: int = MAX_REGISTERS  # per read request
@@ -210,6 +228,7 @@ class Limits:
     turnaround: float = 0.005  # typical time from request end to reply start, seconds
     silent_on_error: bool = False  # malformed/unsupported requests get no reply at all
     lost_after_powerup: int = 0  # requests a freshly powered device may drop
+    idle_gap: float = 0.0  # silence on the line the device needs before a request, seconds
 
 
 @frozen

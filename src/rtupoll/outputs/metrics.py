@@ -85,6 +85,9 @@ UNITS: dict[str, tuple[str, float, float]] = {
     "mg/m3": ("grams_per_cubic_meter", 1e-3, 0.0),
     "Ah": ("coulombs", 3600.0, 0.0), "mAh": ("coulombs", 3.6, 0.0),
     "°": ("degrees", 1.0, 0.0),
+    "Ω": ("ohms", 1.0, 0.0), "kΩ": ("ohms", 1e3, 0.0), "MΩ": ("ohms", 1e6, 0.0),
+    "µS/cm": ("siemens_per_meter", 1e-4, 0.0), "uS/cm": ("siemens_per_meter", 1e-4, 0.0),
+    "mS/cm": ("siemens_per_meter", 0.1, 0.0), "S/m": ("siemens_per_meter", 1.0, 0.0),
 }
 # a unit a field's name spells out (charging_amp_hours_today): dropped from the metric's
 # name when the value is converted, which then ends in the base unit instead
@@ -99,7 +102,8 @@ SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): 
 RESERVED = frozenset({
     f"rtupoll_{n}{suffix}" for n in (
         "device_up", "device_state", "device_info", "requests", "exceptions", "cycles",
-        "late_replies", "device_timeout_seconds", "last_good_reading_age_seconds",
+        "late_replies", "device_timeout_seconds", "attempts", "retried",
+        "device_idle_gap_seconds", "last_good_reading_age_seconds",
         "request_duration_seconds", "bus_utilisation_ratio", "bus_transactions",
         "bus_busy_seconds", "bus_port_up", "bus_port_losses")
     for suffix in ("", "_total", "_bucket", "_count", "_sum", "_created")})
@@ -230,6 +234,15 @@ class SchedulerCollector:
                                          labels=[*dev_labels, "code"])
         cycles = CounterMetricFamily("rtupoll_cycles", "Device cycles (scans)",
                                      labels=dev_labels)
+        attempts = CounterMetricFamily("rtupoll_attempts", "Requests put on the wire, retries "
+                                       "included, by how each ended (answered, timeout, "
+                                       "garbled)", labels=[*dev_labels, "outcome"])
+        retried = CounterMetricFamily("rtupoll_retried", "Transactions answered only by a "
+                                      "retry (also counted in rtupoll_requests outcome ok)",
+                                      labels=dev_labels)
+        gap = GaugeMetricFamily("rtupoll_device_idle_gap_seconds", "The silence on the line "
+                                "a request to the device waits for (set or learned; absent: "
+                                "the 3.5 characters only)", labels=[*dev_labels, "source"])
         late = CounterMetricFamily("rtupoll_late_replies", "Replies that came after their "
                                    "request had timed out (counted, never decoded)",
                                    labels=dev_labels)
@@ -279,6 +292,13 @@ class SchedulerCollector:
                 for code, n in sorted(st.exceptions.items()):
                     exceptions.add_metric([*labels, f"{code:02d}"], n)
                 cycles.add_metric(labels, st.cycles)
+                ended = st.timed_out + st.garbled_attempts
+                for outcome, n in (("answered", max(0, st.attempts - ended)),
+                                   ("timeout", st.timed_out), ("garbled", st.garbled_attempts)):
+                    attempts.add_metric([*labels, outcome], n)
+                retried.add_metric(labels, st.retried)
+                if st.idle_gap:
+                    gap.add_metric([*labels, st.gap_source], st.idle_gap)
                 late.add_metric(labels, st.late)
                 if st.timeout is not None:
                     waits.add_metric(labels, st.timeout)
@@ -290,8 +310,8 @@ class SchedulerCollector:
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
-        yield from (up, state, info, requests, exceptions, cycles, late, waits, age, latency,
-                    util, btx, busy, port_up, losses)
+        yield from (up, state, info, requests, exceptions, cycles, attempts, retried, late,
+                    waits, gap, age, latency, util, btx, busy, port_up, losses)
         yield from families.values()
 
     def _metric(self, dev: DevicePoller, f: Field) -> FieldMetric:

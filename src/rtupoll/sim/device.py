@@ -96,6 +96,9 @@ class SimDevice:
                                if f.kind == "hole" and f.arg is not None)
         self.shifts = frozenset(int(f.arg) for f in config.faults
                                 if f.kind == "shift" and f.arg is not None)
+        # the silence it needs on the line before it hears a request (fault ``gap=S``)
+        self.gap = max((f.arg for f in config.faults if f.kind == "gap" and f.arg is not None),
+                       default=0.0)
         self.requests = 0  # requests this device received (its faults count these)
         self.tick, self.start, self.ticks = tick, start, 0
         self.variant, self._exception_at = self._variant(config.variant)
