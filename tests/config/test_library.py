@@ -119,6 +119,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # ORNO OR-WE-514: u16 x0.01 Hz and V at 0x0130/0x0131; current u32 x0.001 A
     ("orno-or-we-514", Table.HOLDING, 0x0130, _reply(1, 3, [5001, 23012]),
      {"frequency": 50.01, "voltage": 230.12}),
+    # TAC4300-CT: the frequency is the float at input 0x0030 (an SDM630 has it at 0x0046)
+    ("taiye-tac4300ct", Table.INPUT, 0x0030, _reply(1, 4, _f32(50.0)), {"frequency": 50.0}),
     # ABB: u32 voltage x0.1 (2310 = 231.0 V); the u32 "NaN" 0xFFFFFFFF is not a reading
     ("abb-b23", Table.HOLDING, 0x5B00, _reply(1, 3, [0, 2310, 0xFFFF, 0xFFFF]),
      {"voltage_l1": 231.0, "voltage_l2": "NOT_AVAILABLE"}),
