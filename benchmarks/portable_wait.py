@@ -8,10 +8,12 @@ port's timeout and ``in_waiting``: what a Windows COM port, ``rfc2217://`` and
 process (so the benchmark's CPU is the driver's alone), one Huiwen module read over and
 over (co2, FC04 x1). The portable wait is given the same pty through pyserial with no
 descriptor offered (``device_fd`` None: exactly what ``wait_on`` sees of a COM port), so
-the two differ only in how they wait. For scale, pymodbus's own answer to a port with
-no descriptor, its polling transport (``SerialTransport.force_poll``, what pymodbus does
-on Windows), is measured the same way under rtupoll's async ``Bus``, against the same
-``Bus`` on the descriptor.
+the two differ only in how they wait. The async ``Bus`` (``poll``, ``scan``, the
+gateway) likewise: on the descriptor, and on a ``waits.Pump`` (what a port with no
+descriptor gets: Windows's COM ports, ``rfc2217://``). For scale, pymodbus's own answer
+to a port with no descriptor, its polling transport (``SerialTransport.force_poll``,
+which pymodbus turns on by itself on Windows and rtupoll turns off), is measured the
+same way against the same ``Bus`` on the descriptor.
 
 Rounds alternate (descriptor, portable, ...), each ``--transactions`` long; CPU is this
 process's ``time.process_time`` (all its threads), the rate transactions per second of

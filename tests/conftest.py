@@ -120,10 +120,13 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
     """The ``timing`` group (``-m timing``, scripts/test) imports only the test files
     that say ``mark.timing``: the group runs after the parallel run, so importing the
     other 100 files would be its wall time. Every other run checks that each test so
-    marked says it in its file (``pytest_collection_modifyitems``)."""
-    if (_timing_run(config) and collection_path.suffix == ".py"
+    marked says it in its file (``pytest_collection_modifyitems``). The ``windows``
+    group (``-m windows``) likewise imports only the files that say ``mark.windows``."""
+    said = ("mark.timing" if _timing_run(config) else
+            "mark.windows" if config.getoption("markexpr") == "windows" else None)
+    if (said and collection_path.suffix == ".py"
             and collection_path.name.startswith("test_")
-            and "mark.timing" not in collection_path.read_text(encoding="utf-8")):
+            and said not in collection_path.read_text(encoding="utf-8")):
         return True
     return None
 

@@ -170,3 +170,34 @@ def test_the_bus_reads_through_all_of_it(sim: Sim) -> None:
 
     values, why = asyncio.run(go())
     assert values == bus.registers(5, Table.INPUT, 1, 1) and why == "DeviceTimeout"
+
+
+def test_a_serial_port_is_waited_on_by_the_loop_never_polled(sim: Sim) -> None:
+    """pymodbus's ``SerialTransport.force_poll`` (True on Windows by the platform's name)
+    is False once rtupoll's bus is imported: the transport then registers the port's
+    ``fileno()`` with the loop's ``add_reader``, and rtupoll's port always has one (a
+    tty's, or a ``waits.Pump``'s where the port has none)."""
+    from pymodbus.transport.serialtransport import SerialTransport
+
+    assert SerialTransport.force_poll is False
+    bus = sim("huiwen-aq@3")
+    url, slot = serialport.claim(bus.port, deassert_dtr=False)
+    readers: list[int] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        add = loop.add_reader
+
+        def noted(fd: Any, *args: Any) -> None:
+            readers.append(fd)
+            add(fd, *args)
+
+        loop.add_reader = noted  # type: ignore[method-assign]
+        proto = Recorder(_serial_params(url))
+        assert await proto.connect()
+        await asyncio.sleep(0)
+        assert slot is not None and slot.port is not None
+        assert readers == [slot.port.fileno()]
+        proto.close()
+
+    asyncio.run(main())

@@ -117,3 +117,28 @@ def test_a_pump_gives_a_port_with_no_descriptor_one_to_wait_on(pty: tuple[int, s
     finally:
         pump.close()
         port.close()
+
+
+class _WinePort:
+    """pyserial's Windows port as Wine 8.0 runs it: a read whose timeout runs out raises
+    ERROR_TIMEOUT (tests/windows/ meet it on a real COM port under Wine)."""
+
+    timeout = waits.SLICE
+
+    def __init__(self, error: str) -> None:
+        self.error = error
+
+    def read(self, size: int) -> bytes:
+        raise serial.SerialException(self.error)
+
+    @property
+    def in_waiting(self) -> int:
+        return 0
+
+
+def test_a_read_that_only_timed_out_under_wine_is_nothing_yet() -> None:
+    timed_out = "GetOverlappedResult failed (OSError(22, 'Timeout.', None, 1460))"
+    assert waits.PortWait(_WinePort(timed_out))(waits.SLICE) == b""
+    with pytest.raises(waits.Gone):  # any other failure is the port's end
+        waits.PortWait(_WinePort("ClearCommError failed (OSError(9, 'Invalid handle.', None, "
+                                 "6))"))(waits.SLICE)

@@ -1,5 +1,5 @@
 """tests/ mirrors src/rtupoll/ (tests/README.md): every layer has its folder of tests,
-every test file is in a layer's folder (or cli/, project/), and no two test files share
+every test file is in a layer's folder (or cli/, project/, windows/), and no two test files share
 a name (pytest's default import mode, which the suite uses, needs that)."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 TESTS = Path(__file__).parents[1]
 SOURCE = TESTS.parent / "src" / "rtupoll"
 # folders that are not a package of src/rtupoll: the commands, the project as a whole,
-# and the shared data
-OWN = {"cli", "project", "fixtures"}
+# the Windows build under Wine, and the shared data
+OWN = {"cli", "project", "windows", "fixtures"}
 
 
 def layers() -> set[str]:

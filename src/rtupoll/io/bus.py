@@ -56,6 +56,7 @@ from typing import Any
 
 import serial
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
+from pymodbus.transport.serialtransport import SerialTransport
 
 from rtupoll.errors import PortError
 from rtupoll.io import clock, serialport, taps
@@ -88,6 +89,13 @@ _HAZARD_POLL = 0.01  # while waiting out a possible late reply, look again this 
 _BACKSTOP = 60.0  # pymodbus's own timeout (it never waits for a reply: the line does)
 _CHUNK = 1024  # bytes read at most at once (as pymodbus's transport reads)
 
+# pymodbus polls a serial port every 0.5 ms on Windows (``force_poll``, chosen by the
+# platform's name: x1.9 the CPU per transaction, benchmarks/portable_wait.py) and waits
+# on its descriptor elsewhere. rtupoll's port always offers one to wait on (a tty's, or
+# the ``waits.Pump`` of a port that has none: Windows's COM ports, ``rfc2217://``), and
+# its loop is the selector loop everywhere (``rtupoll.aio``): the event loop waits.
+SerialTransport.force_poll = False
+
 _PYMODBUS_LOG = logging.getLogger("pymodbus")
 if _PYMODBUS_LOG.level == logging.NOTSET:  # quiet, unless the application asked for it
     _PYMODBUS_LOG.setLevel(logging.CRITICAL + 1)
@@ -115,7 +123,8 @@ class Bus(LineBus):
         # pymodbus opens the port by this URL, through rtupoll's pyserial URL handler, so
         # that the Serial object is rtupoll's (``slot.port``) and written to at once
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr)
+                                                 deassert_dtr=settings.deassert_dtr,
+                                                 parity=settings.parity)
         self._connect_timeout = connect_timeout
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()

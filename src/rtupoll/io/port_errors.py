@@ -45,10 +45,13 @@ def present_ports() -> list[tuple[str, str]]:
     """The serial ports this machine has, with their USB descriptions (pyserial's
     ``list_ports``), adapters first; ports that are only names (a PC's legacy ttyS with
     nothing behind it: no hardware id) left out."""
-    from serial.tools import list_ports
+    try:
+        from serial.tools import list_ports
 
-    found = [(p.device, p.description or "") for p in list_ports.comports()
-             if (p.hwid or "n/a") != "n/a"]
+        ports = list_ports.comports()
+    except Exception:  # (advice only: Wine 8.0's cfgmgr32 lacks what pyserial's Windows
+        return []      # listing looks up on import, CM_MapCrToWin32Err)
+    found = [(p.device, p.description or "") for p in ports if (p.hwid or "n/a") != "n/a"]
     return sorted(found, key=lambda p: (not ("USB" in p[1] or "ACM" in p[0]), p[0]))
 
 
@@ -98,8 +101,7 @@ def _missing_hint(path: str, platform: str, present: Present | Callable[[], Pres
     """What to try instead of ``path``, which does not exist (with a leading space)."""
     m = _HOST_PORT.match(path)
     if m and not path.upper().startswith("COM"):
-        return (f" (an RTU-over-TCP gateway is written tcp://{path}; a serial port over "
-                f"the network rfc2217://{path} or socket://{path})")
+        return f" (a gateway is written tcp://{path}; a serial server rfc2217://{path})"
     ports = list(present() if callable(present) else present)
     listed = ", ".join(f"{d} ({desc})" if desc and desc != d else d for d, desc in ports)
     here = f"; serial ports present: {listed}" if listed else ""

@@ -27,9 +27,8 @@ from __future__ import annotations
 
 import os
 import select
-import socket
 import stat
-import threading
+import sys
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -64,7 +63,8 @@ def real_fd(port: Any) -> int | None:
 def wait_on(port: Any, *, sleep: Callable[[float], None] = time.sleep) -> Wait:
     """The wait for an open ``port``: a pyserial ``Serial`` or a plain socket (``sleep``:
     ``PortWait``'s, for tests in virtual time)."""
-    if isinstance(port, socket.socket):
+    sockets = sys.modules.get("socket")  # (not imported: the port is no socket; read's
+    if sockets is not None and isinstance(port, sockets.socket):  # start-up skips it)
         return SocketWait(port)
     fd = real_fd(port)
     return FdWait(fd) if fd is not None else PortWait(port, sleep=sleep)
@@ -112,6 +112,17 @@ class SocketWait:
         return data
 
 
+# Wine (8.0) ends a COM port's read whose timeout ran out with ERROR_TIMEOUT, which
+# pyserial's Windows backend raises ("GetOverlappedResult failed (OSError(22, 'Timeout.',
+# None, 1460))"); Windows completes it with the bytes read so far (none), as a timeout
+ERROR_TIMEOUT = 1460
+
+
+def timed_out(exc: Exception) -> bool:
+    """pyserial's error for a read that only timed out (Wine: ``ERROR_TIMEOUT``)."""
+    return f", {ERROR_TIMEOUT}))" in str(exc)
+
+
 class PortWait:
     """pyserial's own ``read``/``in_waiting``, for a port with no descriptor to wait on."""
 
@@ -126,7 +137,12 @@ class PortWait:
         port = self.port
         try:
             if left >= SLICE:
-                first: bytes = port.read(1)  # returns with the first byte, or after SLICE
+                try:
+                    first: bytes = port.read(1)  # returns with the first byte, or after SLICE
+                except serial.SerialException as exc:
+                    if not timed_out(exc):
+                        raise
+                    return b""
                 if not first:
                     return b""
                 waiting = port.in_waiting
@@ -146,6 +162,9 @@ class Pump:
     gone ends the thread and closes its end: the next ``read`` raises pyserial's error."""
 
     def __init__(self, wait: Wait) -> None:
+        import socket
+        import threading
+
         self._wait = wait
         self._r, self._w = socket.socketpair()
         self._r.setblocking(False)

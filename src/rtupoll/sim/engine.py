@@ -114,10 +114,11 @@ class Engine:
         have = ", ".join(d.name for d in self.devices)
         raise KeyError(f"no simulated device at {unit} (devices: {have})")
 
-    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
-               ) -> list[Transmission]:
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf,
+               parity: str | None = None) -> list[Transmission]:
         """One CRC-valid request -> what goes back on the wire (maybe nothing). ``idle``:
-        the silence on the line before it began (a device with a ``gap`` fault needs it)."""
+        the silence on the line before it began (a device with a ``gap`` fault needs it);
+        ``parity``: the parity it was sent at (None: any), only devices at it hear it."""
         self.requests += 1
         unit, fc = frame[0], frame[1]
         broadcast = unit == 0
@@ -134,6 +135,10 @@ class Engine:
         except Malformed as bad:
             request = bad
         for d in targets:
+            if parity is not None and parity != d.profile.serial.parity:  # to it, noise
+                self.why_silent = (f"{d.name}: sent at parity {parity}, the device runs at "
+                                   f"{d.profile.serial.parity}: parity errors, not a request")
+                continue
             if idle + 1e-9 < d.gap:  # the device's receiver was not ready: it never heard it
                 self.why_silent = (f"{d.name}: gap: the request came {idle * 1000:.1f} ms after "
                                    f"the last byte on the line; it needs {d.gap * 1000:g} ms")

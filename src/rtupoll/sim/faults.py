@@ -107,9 +107,9 @@ def parse_fault(spec: str) -> Fault:
     kind, has_arg, arg_text = rest.partition("=")
     kind = kind.strip().lower()
     if kind not in KINDS:
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(kind, list(KINDS), n=1)
+        hint = close_names(kind, KINDS)
         raise FaultSpecError(f"fault {spec!r}: unknown kind {kind!r}"
                              + (f" (did you mean {hint[0]!r}?)" if hint else "")
                              + f"; kinds: {', '.join(KINDS)}")

@@ -30,6 +30,8 @@ from pathlib import Path
 from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io import clock as line_clock
+from rtupoll.io.serialport import pty_parity_of
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
@@ -52,7 +54,7 @@ NO_PTY = ("a simulated serial port is a pseudo-terminal, which only POSIX system
 class WireFrame:
     """Bytes seen on the simulated wire: ``in`` from the master, ``out`` from devices."""
 
-    time: float  # time.monotonic() (the event loop's clock)
+    time: float  # the line's clock (rtupoll.io.clock), as every time on a bus
     direction: str  # "in" or "out" ("none": a request got no reply; only to on_wire)
     data: bytes
     note: str = ""  # what it is: a request summary, "garbage", or the faults applied
@@ -89,9 +91,11 @@ class _Link:
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
-    def received(self, data: bytes) -> None:
+    def received(self, data: bytes, parity: str | None = None) -> None:
+        """Bytes from the master; ``parity``: the one it sent them at (a pty's, as the
+        master marked it), None where there is none (TCP)."""
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
             self._echo(data, now)
         ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
@@ -102,7 +106,7 @@ class _Link:
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now, self._idle)
+                self._respond(chunk, now, self._idle, parity)
             self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
@@ -131,13 +135,14 @@ class _Link:
         self._flush = None
         left = self.deframer.flush()
         if left:
-            self.server.log(self.server.loop.time(), "in", left, "garbage")
+            self.server.log(line_clock.now(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf,
+                 parity: str | None = None) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now, idle)
+        replies = srv.engine.handle(frame, now, idle, parity)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -161,7 +166,7 @@ class _Link:
         if self.closed:
             return
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
         self.last_byte = max(self.last_byte, now)  # its last byte leaves the wire now
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
@@ -216,12 +221,12 @@ class Server:
 
         def run() -> None:
             self._pending.discard(box.pop())
-            rest = when - self.loop.time()
+            rest = when - line_clock.now()
             if rest > 0:
                 time.sleep(rest)
             fn(tx)
 
-        box.append(self.loop.call_at(when - TIMER_SLACK, run))
+        box.append(self.loop.call_later(when - TIMER_SLACK - line_clock.now(), run))
         self._pending.add(box[0])
 
     # -- transports ---------------------------------------------------------
@@ -250,9 +255,9 @@ class Server:
                 return
             mismatch = self._line_mismatch(slave)
             if mismatch:  # a real device sees framing errors at the wrong speed: silence
-                self.log(self.loop.time(), "in", data, f"garbage: {mismatch}")
+                self.log(line_clock.now(), "in", data, f"garbage: {mismatch}")
                 return
-            pty_link.received(data)
+            pty_link.received(data, pty_parity_of(slave))
 
         self.loop.add_reader(master, readable)
         if link:
@@ -280,14 +285,14 @@ class Server:
         """Copy bytes on the line to the tap: now, or at ``at`` (when they end on the wire)."""
         if self._tap is None:
             return
-        if at is not None and at > self.loop.time():
+        if at is not None and at > line_clock.now():
             box: list[asyncio.TimerHandle] = []
 
             def copy() -> None:
                 self._pending.discard(box.pop())
                 self.to_tap(data)
 
-            box.append(self.loop.call_at(at, copy))
+            box.append(self.loop.call_later(at - line_clock.now(), copy))
             self._pending.add(box[0])
             return
         with contextlib.suppress(OSError):  # nobody listening, the pty buffer full: lost
@@ -298,8 +303,9 @@ class Server:
 
         A pty carries bytes at any speed, but pyserial still sets the speed it was asked
         for on the tty; comparing it lets 'rtupoll scan' find a device at its own baud rate
-        and nowhere else, as on a real wire. (Linux ptys drop the parity flags, so a
-        parity mismatch cannot be modelled this way.)
+        and nowhere else, as on a real wire. (Parity is each device's to hear: a pty has
+        no parity bit, but a master marks the parity it set, ``serialport.pty_parity``,
+        and ``Engine.handle`` lets only the devices at that parity hear the request.)
         """
         if not self.framing:
             return None
