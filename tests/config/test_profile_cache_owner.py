@@ -98,3 +98,29 @@ def test_a_link_to_a_file_another_user_owns_is_not_followed_into_trust(
     file.symlink_to(elsewhere)
     not_mine(elsewhere, monkeypatch)
     assert compiled.load(path) is None
+
+
+def test_with_no_user_ids_as_on_windows_the_cache_is_the_users_local_app_data(
+        tmp_path: Path, cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Windows's ``os`` has no ``getuid`` and its ``os.stat`` no owner: the cache goes to
+    ``%LOCALAPPDATA%`` (private by its ACL), is written and read back there, and the
+    group/other bits a Windows stat shows (0o666 for any writable file) refuse nothing."""
+    monkeypatch.delattr(os, "getuid")
+    local = tmp_path / "AppData" / "Local"
+    monkeypatch.setenv("LOCALAPPDATA", str(local))
+    here = local / "rtupoll" / "cache" / "profiles"
+    assert compiled.directory() == here
+    path, real, file = setup(tmp_path, here)
+    assert file.parent == here and not cache.exists()
+    file.chmod(0o666)  # what os.stat says of every writable file on Windows
+    got = compiled.load(path)
+    assert got is not None and got.field("co2").unit == "forged" != real.field("co2").unit
+
+
+@pytest.mark.parametrize(("uid", "mode", "mine"), [
+    (1000, 0o100600, True), (1001, 0o100600, False), (1000, 0o100620, False),
+    (1000, 0o100602, False)])
+def test_the_owner_rule_where_there_are_user_ids(uid: int, mode: int, mine: bool) -> None:
+    st = os.stat_result((mode, 0, 0, 1, uid, 0, 0, 0, 0, 0))
+    assert compiled.owned(st, lambda: 1000) is mine
+    assert compiled.owned(st, None) is True  # no user ids (Windows): the folder's ACL decides

@@ -629,10 +629,10 @@ def test_find_reply_and_diagnose() -> None:
 
 
 def test_errno_messages() -> None:
-    from rtupoll.io.serialport import gateway_error, open_error
+    from rtupoll.io.port_errors import gateway_error, open_error
     assert "busy" in open_error("/dev/ttyUSB0", OSError(errno.EAGAIN, "Could not lock"))
     assert "permission denied" in open_error("/dev/ttyUSB0", OSError(errno.EACCES, "x"))
-    assert "does not exist" in open_error("nodtr:///dev/ttyUSB9", OSError(errno.ENOENT, "x"))
+    assert "does not exist" in open_error("/dev/ttyUSB9", OSError(errno.ENOENT, "x"))
     assert "not a serial port" in open_error("/tmp/x", OSError(errno.ENOTTY, "x"))
     assert "refused" in gateway_error("h", 1, ConnectionRefusedError(), 1)
     assert "did not answer" in gateway_error("h", 1, TimeoutError(), 1)

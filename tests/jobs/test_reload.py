@@ -205,6 +205,35 @@ def test_sighup_does_what_it_did_before_once_the_service_stops(
         signal.signal(signal.SIGHUP, was)
 
 
+def test_with_no_sighup_as_on_windows_polling_runs_and_nothing_is_reloaded(
+        sim: Callable[..., SimulatedBus], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Windows's ``signal`` has no SIGHUP: the service starts and stops without touching
+    signals (no AttributeError), polling goes on, and the handler is never installed."""
+    from rtupoll.jobs import reload
+
+    monkeypatch.setattr(reload, "HANGUP", None)
+    bus = sim("huiwen-aq@3")
+    path = site_file(tmp_path / "site.yaml", (bus.port, [AIR]))
+    seen: list[object] = []
+
+    async def main() -> None:
+        scheduler = Scheduler(load_site(path))
+        service = ReloadService(lambda: load_site(path))
+        async with Run(scheduler) as run:
+            await service.start(scheduler)
+            seen.append(signal.getsignal(signal.SIGHUP))
+            await run.more("air", 2)
+            await service.stop()
+
+    was = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        asyncio.run(main())
+    finally:
+        signal.signal(signal.SIGHUP, was)
+    assert seen == [signal.SIG_DFL]  # never the loop's handler
+
+
 def on_a_terminal_that_hangs_up(tmp_path: Path, *, nohup: bool) -> tuple[bool, str]:
     """``rtupoll poll`` on a terminal of its own (a fresh process leading its session,
     the pty its controlling terminal, as a shell starts it: ``setsid --ctty``), which

@@ -20,7 +20,7 @@ import pytest
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
 from rtupoll.figures import quantile
-from rtupoll.io.serialport import latency_timer, latency_warning
+from rtupoll.io.latency import latency_timer, latency_warning
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import State
 from rtupoll.jobs.timeouts import (

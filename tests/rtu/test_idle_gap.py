@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from rtupoll.rtu import Framing, Table, read_request, read_response
-from rtupoll.rtu.line import Answer, Line
+from rtupoll.rtu.line import GAP_HALF_LIFE, GAP_MAX, GAP_STEP, Answer, Line
 from rtupoll.rtu.transaction import Send, Transaction
 
 FR = Framing(9600)
@@ -75,3 +75,78 @@ def test_a_transaction_sends_its_first_attempt_and_retries_after_the_gap() -> No
     retry = tx.next()
     assert isinstance(retry, Send)
     assert retry.at == pytest.approx(step.at + FR.wire_time(8) + 0.85)
+
+
+# -- learned ------------------------------------------------------------------------------
+
+def unheard_then_answered(line: Line, at: float, request: bytes) -> Answer:
+    """One transaction: the first attempt goes right after the radar's reply and hears
+    nothing; the retry, after the timeout's silence, is answered 5 ms after it ends."""
+    line.send(req(7), at)
+    assert isinstance(line.receive(reply(7), at + 0.03), Answer)
+    first = line.ready_at(unit=request[0])
+    line.send(request, first)
+    assert line.expire(first + 0.5, 0.5) is None  # nothing at all: a timeout
+    retry = max(first + 0.5, line.ready_at(drain=False, unit=request[0]))
+    line.send(request, retry, retry=True)
+    answer = line.receive(reply(3), retry + FR.wire_time(8) + 0.005)
+    assert isinstance(answer, Answer)
+    return answer
+
+
+def test_a_device_that_hears_only_retries_after_a_long_silence_gets_a_gap_not_a_timeout(
+        ) -> None:
+    line = Line(FR)
+    answer = unheard_then_answered(line, 0.0, req(3))
+    # the answer is the retry's: its reply time counted from the retry, not late
+    assert answer.reply_time == pytest.approx(0.005)
+    assert line.counts.late[3] == 0 and line.learned_gap == {}  # once: not yet a gap
+    answer = unheard_then_answered(line, 2.0, req(3))
+    assert answer.reply_time == pytest.approx(0.005) and line.counts.late[3] == 0
+    # twice: the gap is twice the silence that was not enough (at least GAP_STEP)
+    assert line.learned_gap == {3: pytest.approx(GAP_STEP)}
+    assert line.counts.gap_raised[3] == 1
+    line.send(req(7), 4.0)
+    line.receive(reply(7), 4.03)
+    assert line.ready_at(unit=3) == pytest.approx(4.03 + GAP_STEP)
+    assert line.ready_at(unit=7) == pytest.approx(4.03 + FR.silence)  # the others: as before
+    unheard_then_answered(line, 6.0, req(3))  # still not enough: doubled
+    assert line.learned_gap == {3: pytest.approx(2 * GAP_STEP, rel=1e-3)}
+
+
+def test_a_learned_gap_is_bounded_and_halves_with_time() -> None:
+    line = Line(FR)
+    for k in range(12):
+        unheard_then_answered(line, 2.0 * k, req(3))
+    # the retry's silence worked and bounds it; GAP_MAX bounds it too
+    assert GAP_STEP < line.learned_gap[3] <= min(GAP_MAX, 0.5 + FR.wire_time(8))
+    top = line.learned_gap[3]
+    line.send(req(3), 24.0 + GAP_HALF_LIFE)
+    assert line.learned_gap[3] == pytest.approx(top / 2, rel=0.01)
+    line.send(req(3), 24.0 + 20 * GAP_HALF_LIFE)
+    assert line.learned_gap == {}  # below the silence: gone
+    assert line.ready_at(unit=3) == pytest.approx(line.ready_at(unit=7))
+
+
+def test_an_attempt_taken_for_unheard_that_is_answered_after_all_is_late_and_no_gap() -> None:
+    """A slow device, not a deaf one: the first attempt's answer comes after the retry's."""
+    line = Line(FR)
+    unheard_then_answered(line, 0.0, req(3))  # first attempt sent at about 0.034
+    assert line.receive(reply(3), 0.9) is None  # ... and here is its answer, late
+    assert line.counts.late[3] == 1
+    assert line.late_reply_time[3] > 0.5
+    for k in range(1, 4):  # the pattern again: no gap is learned for a while
+        unheard_then_answered(line, 2.0 * k, req(3))
+    assert line.learned_gap == {}
+
+
+def test_no_gap_when_the_first_attempt_had_as_long_a_silence_as_the_retry() -> None:
+    line = Line(FR)
+    for k in range(3):
+        at = 10.0 * k
+        line.send(req(3), at)  # alone on the line, after a long pause
+        line.expire(at + 0.5, 0.5)
+        line.send(req(3), at + 0.5 + FR.silence, retry=True)
+        line.receive(reply(3), at + 0.53)
+    assert line.learned_gap == {}
+    assert line.counts.late[3] == 3  # the old rule: a late answer to the first attempt

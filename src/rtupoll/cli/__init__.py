@@ -61,6 +61,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "set-address": ("rtupoll.cli.address:set_address", "Give a device a new address, verified."),
     "scan": ("rtupoll.cli.scan:scan", "Find and identify the devices on a bus."),
     "guess": ("rtupoll.cli.guess:guess", "Rank interpretations of an unknown device's registers."),
+    "send": ("rtupoll.cli.send:send", "Send one request of any function, decoded and raw."),
+    "doctor": ("rtupoll.cli.doctor:doctor", "Check the adapter and a device: findings, fixes."),
     "decode": ("rtupoll.cli.decode:decode", "Decode captured RTU frames."),
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
     "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),
@@ -189,6 +191,7 @@ def _from_interrupt(exc: BaseException | None) -> bool:
     return False
 
 
+_AWAKE = 0.2  # s: how soon a Ctrl-C is seen where the loop takes no signal handlers
 _LOST: list[bool] = []  # a Ctrl-C's KeyboardInterrupt that Python dropped, this command
 
 
@@ -203,16 +206,33 @@ def _dropped(hook: Any, unraisable: Any) -> None:
 
 def stop_event() -> asyncio.Event:
     """For a command that runs until stopped, in its event loop: an event SIGINT or
-    SIGTERM sets (the loop finishes what it writes, then stops); set at once if a Ctrl-C
+    SIGTERM sets (the loop finishes what it writes, then stops; where the loop takes no
+    signal handlers, Windows's, a Python handler sets it, so Ctrl-C ends a command there
+    as here, with the same exit code); set at once if a Ctrl-C
     came before and Python dropped its KeyboardInterrupt (``_dropped``: the command
     would otherwise run on, as if it had not come)."""
     import asyncio
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def noted(signum: int, frame: FrameType | None) -> None:  # (the loop's thread is ours)
+        loop.call_soon_threadsafe(stop.set)
+
+    def awake() -> None:  # a Python handler runs once the loop's select returns
+        if not stop.is_set():
+            loop.call_later(_AWAKE, awake)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+        try:
             loop.add_signal_handler(sig, stop.set)
+        except NotImplementedError:  # Windows's loops have none: Python's own handler
+            with contextlib.suppress(ValueError):  # (put back when the command ends: _process)
+                signal.signal(sig, noted)
+            if sig == signal.SIGINT:
+                awake()  # its select is not interrupted by Ctrl-C: it wakes this often
+        except (RuntimeError, ValueError):  # not the main thread
+            pass
     if _LOST:
         stop.set()
     return stop

@@ -223,7 +223,6 @@ def _interactive(target: Target, first: int | None, settings: Any,
                  commissioner: Callable[[Any], Commissioner], avoid: Mapping[int, str]
                  ) -> None:
     """Connect a sensor, press Enter, it gets the next free address; a summary as it goes."""
-    import asyncio  # here: a dry run or a plan file needs no event loop
 
     from rtupoll.io.bus import Bus
 
@@ -232,7 +231,9 @@ def _interactive(target: Target, first: int | None, settings: Any,
     address_field(profile)  # refused up front when the profile has no address method
     lo = profile.addresses.lo
     start = first if first is not None else (lo + 1 if lo == old else lo)
-    loop = asyncio.new_event_loop()
+    from rtupoll import aio
+
+    loop = aio.new_loop()
     bus = Bus(settings)
     done: list[int] = []
     failures: list[RtupollError] = []

@@ -36,6 +36,7 @@ class LineOptions:
 
 
 _LINE_KEY = "rtupoll.line_options"
+_TRAFFIC_KEY = "rtupoll.traffic"
 
 
 def line_options(f: F) -> F:
@@ -89,6 +90,43 @@ def line_options(f: F) -> F:
                      callback=keep,
                      help="The adapter echoes every request back (a 2-wire adapter whose "
                           "receiver is always on): consume the echo, which must match.")(f)
+    return traffic_options(f)
+
+
+def traffic_options(f: F) -> F:
+    """--traffic and --capture: the command's own frames, as log lines and a pcapng file
+    (``rtupoll.sniff.traffic``); nothing is loaded or called without them."""
+    def keep(ctx: click.Context, param: click.Parameter, value: object) -> None:
+        if value is None or value is False:
+            return
+        from rtupoll.io import taps
+        from rtupoll.sniff.traffic import Traffic
+
+        root = ctx.find_root()
+        traffic = root.meta.get(_TRAFFIC_KEY)
+        if not isinstance(traffic, Traffic):
+            traffic = root.meta[_TRAFFIC_KEY] = Traffic(None, None)
+            taps.listen(traffic)
+            root.call_on_close(traffic.close)
+            root.call_on_close(lambda: taps.listen(None))
+        if param.name == "traffic":
+            traffic.fmt = traffic.fmt or "text"
+        elif param.name == "traffic_format":
+            traffic.fmt = str(value)
+        else:
+            traffic.capture_path = Path(str(value))
+
+    f = click.option("--capture", "capture", metavar="FILE", default=None,
+                     type=click.Path(dir_okay=False), expose_value=False, callback=keep,
+                     help="Write the frames sent and received to FILE (pcapng, as 'sniff "
+                          "--capture': Wireshark and 'sniff --read' read it).")(f)
+    f = click.option("--traffic-format", type=click.Choice(["text", "json"]), default=None,
+                     expose_value=False, callback=keep,
+                     help="--traffic as text lines (default) or one JSON object a frame.")(f)
+    f = click.option("--traffic", is_flag=True, default=None, expose_value=False,
+                     callback=keep,
+                     help="Show each frame sent and received on stderr: its time, "
+                          "direction, port, bytes in hex and decoding.")(f)
     return f
 
 

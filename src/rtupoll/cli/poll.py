@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import click
 
+from rtupoll import aio
 from rtupoll.cli import stop_event
 from rtupoll.cli.options import (
     LineOptions,
@@ -228,9 +229,11 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
                  metrics=metrics, log_format=log_format, http=http, gateway=gateway)
         if fmt == "table" and not once and not faults:
             dead = lines[0].config.devices[-1].address  # one that exists on this bus
+            from rtupoll.io.port_errors import example_port
+
             click.echo(f"That was a simulated bus. Try --fault {dead}:dead (a dead device) "
                        "or --baud 9600 (real wire timing).\nYour own devices: rtupoll poll "
-                       "-p /dev/ttyUSB0 -b BAUDRATE PROFILE@ADDRESS...", err=True)
+                       f"-p {example_port()} -b BAUDRATE PROFILE@ADDRESS...", err=True)
         return
     if config is not None:
         if devices or port:
@@ -247,9 +250,11 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
+            from rtupoll.io.port_errors import example_port
+
             raise UsageError(f"which port is {devices[0].profile}@{devices[0].address} on? "
-                             "give --port PORT (or $RTUPOLL_PORT), e.g. -p /dev/ttyUSB0, or "
-                             "--simulate to try it without hardware")
+                             f"give --port PORT (or $RTUPOLL_PORT), e.g. -p {example_port()}, "
+                             "or --simulate to try it without hardware")
         if not port:
             raise UsageError("nothing to poll: give --config FILE, or --port PORT and DEVICEs "
                              "(PROFILE@ADDRESS), or --simulate to try it without hardware")
@@ -380,12 +385,14 @@ def _simulated(devices: Sequence[DeviceSpec], baudrate: int | None, faults: Sequ
                *, echo: bool = False) -> Iterator[list[SimulatedBus]]:
     """Start the simulator in-process: the devices on lines that could exist (the seed
     devices by default: four at 9600 and the CO2Meter board at 115200), one port each.
-    With devices named and a baud rate, they are one line at that rate, as asked."""
+    With devices named and a baud rate, they are one line at that rate, as asked. Where
+    there are no pseudo-terminals (Windows) each line is served over TCP on loopback."""
     from rtupoll.sim.runner import simulated_lines
+    from rtupoll.sim.server import PTYS
 
     with simulated_lines([f"{d.profile}@{d.address}" for d in devices], baudrate=baudrate,
                          one_line=bool(devices and baudrate), faults=tuple(faults),
-                         echo=echo) as lines:
+                         echo=echo, tcp=not PTYS) as lines:
         yield list(lines)
 
 
@@ -416,12 +423,13 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             view = PollView(scheduler.buses, title=title, live=not once,
                             footers=[s.footer for s in services])
         if once:
-            readings = asyncio.run(_once(scheduler, writer, services))
+            readings = aio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
+            _echo_found(scheduler)
             _report_failures(site, readings)
         else:
-            asyncio.run(_forever(scheduler, writer, view, console, services))
+            aio.run(_forever(scheduler, writer, view, console, services))
 
 
 def _table_shown(fmt: str, output: Path | None) -> bool:
@@ -442,7 +450,7 @@ def _table_shown(fmt: str, output: Path | None) -> bool:
 
 def _adapter_warnings(site: Site) -> None:
     """One line per USB adapter whose latency timer adds more than 1 ms to every reply."""
-    from rtupoll.io.serialport import latency_timer, latency_warning
+    from rtupoll.io.latency import latency_timer, latency_warning
 
     for bus in site.buses:
         warning = latency_warning(bus.port, latency_timer(bus.port))
@@ -551,6 +559,15 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         if stop.is_set():
             return
         live.refresh()
+
+
+def _echo_found(scheduler: Scheduler) -> None:
+    """``--once``: one stderr line per bus whose adapter's echo was found (and consumed)."""
+    from rtupoll.rtu.line import ECHO_FOUND
+
+    for bp in scheduler.buses:
+        if getattr(bp.transport, "echo_found", False):
+            click.echo(f"rtupoll: {bp.config.name}: {ECHO_FOUND}", err=True)
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

@@ -126,7 +126,8 @@ def matches(p: Profile, text: str) -> str:
                         ("source", " ".join(d.title for d in p.provenance.sources))):
         if needle in value.lower():
             return what
-    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()]
+    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()
+             or needle in f.label.lower()]
     return f"field {', '.join(names[:3])}" + (" ..." if len(names) > 3 else "") if names else ""
 
 

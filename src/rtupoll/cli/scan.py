@@ -7,7 +7,6 @@ also when interrupted (Ctrl-C shows the results so far, then exits 130).
 
 from __future__ import annotations
 
-import asyncio
 import json
 import sys
 from collections.abc import Sequence
@@ -20,7 +19,7 @@ from rtupoll.cli.options import format_option, line_options, profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.config.library import load_library
 from rtupoll.errors import DeviceTimeout, UsageError
-from rtupoll.io.serialport import latency_timer, latency_warning
+from rtupoll.io.latency import latency_timer, latency_warning
 from rtupoll.jobs.scan import (
     LATENCY,
     Found,
@@ -123,7 +122,9 @@ def scan(port: str | None, addresses: str, baudrates: str | None, parities: str,
 
     found: list[Found] = []
     try:
-        asyncio.run(_run(port, settings, units, library, probes, margin, found, first))
+        from rtupoll import aio
+
+        aio.run(_run(port, settings, units, library, probes, margin, found, first))
     except KeyboardInterrupt:
         click.echo("interrupted: the results so far", err=True)
         _report(merged(found), fmt)

@@ -84,7 +84,10 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
     line at N, with real wire timing. Or connect to --tcp.
     """
     from rtupoll.sim.runner import simulated_lines
+    from rtupoll.sim.server import NO_PTY, PTYS
 
+    if tcp is None and not PTYS:  # (Windows)
+        raise UsageError(NO_PTY)
     if link and tcp:
         raise UsageError("--link names a pty; it cannot be used with --tcp")
     if tcp is not None and (":" not in tcp or not tcp.rpartition(":")[2].isdigit()

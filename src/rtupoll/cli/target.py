@@ -59,7 +59,9 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
 
 def need_port(port: str | None) -> str:
     if not port:
-        raise UsageError("which port? give --port PORT (e.g. -p /dev/ttyUSB0, or "
+        from rtupoll.io.port_errors import example_port
+
+        raise UsageError(f"which port? give --port PORT (e.g. -p {example_port()}, or "
                          "tcp://HOST:PORT for a gateway), or set $RTUPOLL_PORT")
     return port
 
@@ -150,7 +152,6 @@ def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
 
             with syncbus.SyncBus(settings) as sync:
                 return syncbus.run(job(sync))  # type: ignore[arg-type]  # a BusLike, not a Bus
-        import asyncio
 
         from rtupoll.io.bus import Bus
 
@@ -158,7 +159,9 @@ def run_on_bus(settings: PortSettings, job: Callable[[Bus], Awaitable[T]], *,
             async with Bus(settings) as bus:
                 return await job(bus)
 
-        return asyncio.run(main())
+        from rtupoll import aio
+
+        return aio.run(main())
     except DeviceTimeout as exc:
         if not on_timeout:
             raise

@@ -2,7 +2,8 @@
 that needs the same unchanged profile neither imports the YAML parser nor validates it.
 
 One file per profile path, in ``$XDG_CACHE_HOME/rtupoll/profiles`` (``~/.cache/...``
-when that is unset). ``load`` takes a cached profile only when
+when that is unset; ``%LOCALAPPDATA%\\rtupoll\\cache\\profiles`` on Windows). ``load``
+takes a cached profile only when
 
 - the code that built it is this code: the stamp is the path, mtime and size of each
   module whose classes or rules make a ``Profile`` (as they were when the process first
@@ -25,9 +26,10 @@ unpickles the cache file again (a library of 24 profiles loads in 5 ms instead o
 Only the user's own cache is trusted: the directory and each file must be owned by the
 user and writable by no one else (a shared ``XDG_CACHE_HOME``, a directory another user
 created in advance, a CI cache); anything else is "not cached" (the profile file is
-read) and nothing is stored there. Loading a pickle can run code; besides the ownership
-check, the unpickler here builds nothing but the model's own classes, so a planted file
-cannot call anything else.
+read) and nothing is stored there. Windows has no owner or mode bits to check: its
+cache is in the user's ``%LOCALAPPDATA%``, private by that folder's ACL (``_own``).
+Loading a pickle can run code; besides the ownership check, the unpickler here builds
+nothing but the model's own classes, so a planted file cannot call anything else.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ import dataclasses
 import io
 import os
 import stat
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -68,7 +70,12 @@ class Source(NamedTuple):
 
 
 def directory() -> Path:
-    """Where the cache lives (XDG: an unset, empty or relative variable is ignored)."""
+    """Where the cache lives (XDG: an unset, empty or relative variable is ignored; on
+    Windows the user's own ``%LOCALAPPDATA%``, whatever XDG says: see ``_own``)."""
+    if not hasattr(os, "getuid"):
+        local = os.environ.get("LOCALAPPDATA", "")
+        if os.path.isabs(local):
+            return Path(local, "rtupoll", "cache", "profiles")
     base = os.environ.get("XDG_CACHE_HOME", "")
     if not os.path.isabs(base):
         base = os.path.join(os.path.expanduser("~"), ".cache")
@@ -102,10 +109,21 @@ def store(path: Path, built: Profile, sources: Sequence[Source]) -> None:
 
 
 def _own(st: os.stat_result) -> bool:
+    return owned(st, getattr(os, "getuid", None))
+
+
+def owned(st: os.stat_result, getuid: Callable[[], int] | None) -> bool:
     """Whether a cache directory or file is the user's alone: owned by the user, and
     neither group- nor other-writable (anyone else who could write there could plant a
-    forged profile: a wrong value reported ``ok``, a write aimed at another register)."""
-    return st.st_uid == os.getuid() and not st.st_mode & 0o022
+    forged profile: a wrong value reported ``ok``, a write aimed at another register).
+
+    Windows has neither (``os.stat`` gives no owner and mode bits that only mirror the
+    read-only attribute): there the cache is in ``%LOCALAPPDATA%`` (``directory``), in
+    the user's profile, whose ACL lets only the user, SYSTEM and the administrators in;
+    another user cannot plant a file there, so nothing more is checked."""
+    if getuid is None:
+        return True
+    return st.st_uid == getuid() and not st.st_mode & 0o022
 
 
 def _load(path: Path) -> Profile | None:

@@ -42,6 +42,7 @@ from rtupoll.model.profile import (
     is_modicon_reference,
     squashed,
 )
+from rtupoll.numbers import parse_int
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 
@@ -54,7 +55,7 @@ _ORDERS = [o.value for o in ByteOrder]
 _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing", "addresses",
              "limits", "byte_order", "byteorder", "wordorder", "fields", "identify",
              "set_address", "variant", "kind", "extends", "without",
-             "provenance"}
+             "provenance", "identification", "server_id"}
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
@@ -113,6 +114,9 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
         warnings=warnings,
+        identification=_identification(top["identification"])
+        if "identification" in top else (),
+        server_id=_hex_bytes(top["server_id"]) if "server_id" in top else b"",
     )
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")
@@ -687,6 +691,46 @@ def _variant(node: Node, by_name: Mapping[str, Field]) -> Variant:
         if "on_exception" in m else {}
     return Variant(name, m["name"].text(), on_exc)
 
+
+
+def _identification(node: Node) -> tuple[tuple[int, str], ...]:
+    """``identification``: the objects read device identification answers, by the
+    standard's name (``vendor_name`` ...) or a private id (``0x80``..``0xFF``)."""
+    from rtupoll.rtu.identification import OBJECT_KEYS
+
+    out = {}
+    for key, value in node.items():
+        name = key.text()
+        if name in OBJECT_KEYS:
+            obj = OBJECT_KEYS[name]
+        else:
+            try:
+                obj = parse_int(name)
+            except ValueError:
+                obj = -1
+            if not 0x80 <= obj <= 0xFF:
+                raise key.fail(f"not an identification object: {name!r} (one of "
+                               f"{', '.join(OBJECT_KEYS)}, or a private id 0x80..0xFF)")
+        text = value.text()
+        if not text.isascii() or not 0 < len(text) <= 240:
+            raise value.fail("an identification object is 1..240 ASCII characters")
+        out[obj] = text
+    missing = [k for k, o in OBJECT_KEYS.items() if o <= 2 and o not in out]
+    if missing:
+        raise node.fail(f"missing {missing[0]!r}: a device that identifies itself has the "
+                        "three basic objects (vendor_name, product_code, "
+                        "major_minor_revision)")
+    return tuple(sorted(out.items()))
+
+
+def _hex_bytes(node: Node) -> bytes:
+    try:
+        data = bytes.fromhex(node.text())
+    except ValueError:
+        raise node.fail("expected bytes in hex, e.g. '0A' or '01 02'") from None
+    if not 1 <= len(data) <= 240:
+        raise node.fail("1..240 bytes")
+    return data
 
 
 def _identity(text: str) -> str:

@@ -11,7 +11,7 @@ the 3.5-character silence, the drain after a timeout, which received bytes answe
 which request (resynchronisation past noise, foreign and late frames, the late-reply
 accounting), garbled replies known at once, an adapter's echo -- is
 ``rtupoll.rtu.line.Line``'s; this module drives them with what went out, what came in
-and ``time.monotonic()``.
+and the line's clock (``rtupoll.io.clock``).
 
 - **One transaction in flight**: the bus's lock spans silence, request, reply and
   retries, so devices polled from several tasks never interleave on the wire. A
@@ -58,8 +58,10 @@ import serial
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.errors import PortError
-from rtupoll.io import serialport
+from rtupoll.io import clock, serialport, taps
 from rtupoll.io.interface import LineBus, raise_failed
+from rtupoll.io.latency import latency_timer
+from rtupoll.io.port_errors import gateway_error
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
@@ -120,8 +122,9 @@ class Bus(LineBus):
         self._port: _Port | None = None
         self.line = Line(self.framing, drain=drain, echo=settings.echo,
                          idle_gap=settings.idle_gap)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
-        self.adapter_latency = serialport.latency_timer(settings.port) or 0.0
+        self.adapter_latency = latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight
         self._over: asyncio.Future[None] | None = None  # set when that attempt is over
         self._loop: asyncio.AbstractEventLoop | None = None  # the port's, once open
@@ -175,13 +178,13 @@ class Bus(LineBus):
         except TimeoutError as exc:
             ok = False
             if self._gateway:  # it does not answer: trying again would only wait again
-                why = serialport.gateway_error(*self._gateway, exc, self._connect_timeout)
+                why = gateway_error(*self._gateway, exc, self._connect_timeout)
         except Exception:  # pymodbus, pyserial (ValueError: unknown URL)
             ok = False
         if ok and self.connected:
             _OPEN.add(self)
             self._loop = asyncio.get_running_loop()  # the port's callbacks run on it
-            self.line.opened(time.monotonic())  # a fresh port: count the silence from now
+            self.line.opened(clock.now())  # a fresh port: count the silence from now
             return
         self._port.close()
         self._port = None
@@ -205,11 +208,11 @@ class Bus(LineBus):
         """``tx`` under the lock, once no earlier request's late reply could be mistaken
         for its answer (waited for without the lock)."""
         while True:
-            now = time.monotonic()
+            now = clock.now()
             if tx.hazard_until(now) > now:
                 await self._hazard_clear(tx)
             await self._lock.acquire()
-            now = time.monotonic()
+            now = clock.now()
             if tx.hazard_until(now) <= now:
                 break
             self._lock.release()  # another task's request made one: wait again
@@ -235,14 +238,14 @@ class Bus(LineBus):
             outcome = "port"
             raise
         finally:
-            self.stats.add(tx, time.monotonic() - started, outcome=outcome)
+            self.stats.add(tx, clock.now() - started, outcome=outcome)
             self._lock.release()
 
     async def _hazard_clear(self, tx: Transaction) -> None:
         """Wait (without holding the bus) until no earlier request's late reply could be
         taken for ``tx``'s answer; an arriving answer ends the wait early."""
         while True:
-            now = time.monotonic()
+            now = clock.now()
             until = tx.hazard_until(now)
             if until <= now:
                 return
@@ -263,7 +266,7 @@ class Bus(LineBus):
 
         def send() -> None:
             nonlocal timer
-            delay = tx.ready_at() - time.monotonic()
+            delay = tx.ready_at() - clock.now()
             hold = _SLEEP_MAX if len(_OPEN) < 2 else _SLEEP_SHARED
             if delay > hold:  # the event loop's timer, which fires up to 1 ms late,
                 timer = loop.call_later(delay - hold, send)  # for all but the end
@@ -275,7 +278,7 @@ class Bus(LineBus):
                 over.set_exception(PortError(f"{self.settings.port} went away"))
                 return
             try:
-                tx.sent(time.monotonic())
+                tx.sent(clock.now())
                 self._send(tx.request)
             except Exception as exc:  # a callback's error would reach no one: the caller's
                 over.set_exception(exc)
@@ -284,10 +287,15 @@ class Bus(LineBus):
                 over.set_result(None)
             else:
                 self._tx, self._over = tx, over
-                timer = loop.call_at(tx.deadline, expire)
+                timer = loop.call_later(tx.deadline - clock.now(), expire)
 
         def expire() -> None:
-            tx.expired(time.monotonic())
+            nonlocal timer
+            now = clock.now()
+            if now < tx.deadline:  # the loop's timer is early (its clock is not the line's)
+                timer = loop.call_later(tx.deadline - now, expire)
+                return
+            tx.expired(now)
             if not over.done():
                 over.set_result(None)
 
@@ -302,14 +310,20 @@ class Bus(LineBus):
     def _quiet(self, delay: float) -> bool:
         """Wait the last ``delay`` seconds of the silence, holding the event loop, in
         ``select`` on rtupoll's own ``Serial``: one system call that both waits and sees
-        a byte arrive. True when bytes came (they went to the line). A gateway keeps the
+        a byte arrive. True when bytes came (they went to the line). A port with no
+        descriptor (Windows, ``rfc2217://``, ``socket://``) sleeps, then takes what came
+        meanwhile (``rtupoll.io.waits``: stamped late, never early). A gateway keeps the
         silence on its own line: a plain sleep."""
         port = self._slot.port if self._slot is not None else None
         if port is None or not port.is_open:
             time.sleep(delay)
             return False
+        fd = port.device_fd
+        if fd is None:
+            time.sleep(delay)
+            return self._took_input()
         try:
-            ready, _, _ = select.select([port.fileno()], [], [], delay)
+            ready, _, _ = select.select([fd], [], [], delay)
         except (OSError, ValueError):  # closed meanwhile: the write that follows says so
             return False
         return bool(ready) and self._took_input()
@@ -322,8 +336,11 @@ class Bus(LineBus):
         try:  # what waits: one read on the non-blocking port pymodbus's transport made
             if port is None or not port.is_open:
                 data = b""
+            elif port.timeout == 0 or port.pumped:
+                data = port.read(_CHUNK)
             else:  # (a timeout other than 0 would block: then only what waits is asked)
-                data = port.read(_CHUNK if port.timeout == 0 else port.in_waiting)
+                waiting = port.in_waiting
+                data = port.read(waiting) if waiting else b""
         except (OSError, serial.SerialException):  # the write that follows fails too
             return False
         if data:
@@ -354,7 +371,7 @@ class Bus(LineBus):
     def _received(self, data: bytes) -> None:
         """What the port received: every byte goes to the line (through the transaction
         in flight, which says when its attempt is over)."""
-        tx, now = self._tx, time.monotonic()
+        tx, now = self._tx, clock.now()
         if tx is None:
             self.line.receive(data, now)
         elif tx.received(data, now):

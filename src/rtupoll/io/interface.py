@@ -167,6 +167,11 @@ class LineBus:
     # -- what the line knows ---------------------------------------------------------
 
     @property
+    def echo_found(self) -> bool:
+        """An echo came back without ``echo`` set (``Line.adopt_echo``: now consumed)."""
+        return self.line.echo_found
+
+    @property
     def unsolicited(self) -> int:
         """Frames and bursts of bytes that answered nothing this bus asked."""
         return int(self.line.counts.unsolicited)

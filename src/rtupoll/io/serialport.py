@@ -26,17 +26,14 @@ under ``rtupoll.io.serialport.protocol_nodtr`` and appends ``rtupoll.io.serialpo
 that list (``register()``, idempotent, called on import). ``serial_class_for_url``
 strips the scheme, so the port pyserial opens is the plain device path.
 
-Errors. A port that will not open is the commonest field problem, and "could not
-open port" helps nobody. ``open_error`` and ``gateway_error`` turn the OS error
-into what to do: missing (unplugged?), busy (another program holds it: pyserial's
-exclusive lock), permission denied (which group to join), not a serial port,
-gateway refused / unreachable / not answering.
+Errors. Why a port will not open is ``rtupoll.io.port_errors``'s to say (``diagnose_serial``
+and ``diagnose_gateway`` find the error after pymodbus swallowed it); an adapter's
+latency timer is ``rtupoll.io.latency``'s.
 """
 
 from __future__ import annotations
 
 import contextlib
-import errno
 import itertools
 import os
 import sys
@@ -57,6 +54,7 @@ SCHEME = "nodtr"
 _PREFIX = f"{SCHEME}://"
 OWN = "rtupoll"  # rtupoll://N/dev/ttyUSB0: the port of ``Slot`` N (``claim``)
 _OWN_PREFIX = f"{OWN}://"
+NETWORK = ("rfc2217://", "socket://")  # pyserial's serial ports over a network
 
 
 @frozen
@@ -150,7 +148,7 @@ class Slot:
 
     deassert_dtr: bool = False
     rs485: Rs485 | None = None
-    port: Serial | None = None
+    port: Any = None  # the OwnPort (a Serial, or an OwnPort over a URL's class)
     direction: str = ""  # "kernel" or "rts" once open with rs485
     error: str = ""  # why the port opened but cannot be used as asked (one line)
 
@@ -160,20 +158,26 @@ _SLOTS: weakref.WeakValueDictionary[int, Slot] = weakref.WeakValueDictionary()
 _slot_ids = itertools.count(1)
 
 
-class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
-    """A pyserial port that opens with DTR and RTS deasserted (``slot``: when its
-    ``Slot`` says so; ``nodtr://``: always), and tells its ``Slot`` it is open."""
+class OwnPort:
+    """What rtupoll's port adds to the pyserial class that opens it (a device's
+    ``serial.Serial``; for ``rfc2217://`` and ``socket://`` the URL's own class): DTR and
+    RTS deasserted before the open (``slot``: when its ``Slot`` says so; ``nodtr://``:
+    always), its ``Slot`` told it is open, one system call per read and write where the
+    port is a descriptor, ``write_timeout = 0`` (pymodbus's) taken by a port that refuses
+    it (RFC 2217's client) as no write timeout, and, for a port with no descriptor, one
+    to wait on (``fileno``: a ``waits.Pump``), so pymodbus's event loop can."""
 
     slot: Slot | None = None
     _toggle: RtsToggle | None = None  # RTS driven around each write (--rs485 without kernel)
+    _pump: Any = None  # a waits.Pump once a descriptor was asked of a port with none
 
-    def open(self) -> None:
+    def open(self: Any) -> None:
         # Setting the lines on a closed port only records the state; open() applies it
         # immediately after the open system call (serialposix: _update_dtr_state).
         if self.slot is None or self.slot.deassert_dtr:
             self.dtr = False
             self.rts = False
-        super().open()
+        super().open()  # type: ignore[misc]
         self._toggle = None
         slot = self.slot
         if slot is None:
@@ -187,45 +191,130 @@ class Serial(serial.Serial):  # type: ignore[misc]  # pyserial ships no type hin
                 self.close()
                 raise serial.SerialException(slot.error) from None
 
-    def read(self, size: int = 1) -> bytes:
+    def close(self: Any) -> None:
+        pump, self._pump = self._pump, None
+        if pump is not None:
+            pump.close()
+        super().close()  # type: ignore[misc]
+
+    @property
+    def pumped(self) -> bool:
+        """Whether reads come from a ``waits.Pump`` (non-blocking, whatever ``timeout``)."""
+        return self._pump is not None
+
+    @property
+    def device_fd(self: Any) -> int | None:
+        """The port's own descriptor when it is a character device, else None."""
+        from rtupoll.io import waits
+
+        return waits.real_fd(super())
+
+    def fileno(self: Any) -> int:
+        """The port's descriptor; for a port with none (``rfc2217://``), that of a
+        ``waits.Pump``, which a thread fills with what the port receives."""
+        if self._pump is None:
+            try:  # a device's, or socket://'s own socket
+                return super().fileno()  # type: ignore[misc,no-any-return]
+            except (OSError, ValueError, AttributeError):  # none (io.UnsupportedOperation)
+                from rtupoll.io import waits
+
+                self.timeout = waits.SLICE  # the pump's reads wait; ours read its socket
+                self._pump = waits.Pump(waits.PortWait(_Base(self)))
+        return self._pump.fileno()  # type: ignore[no-any-return]
+
+    @property
+    def in_waiting(self: Any) -> int:
+        if self._pump is not None:
+            return self._pump.in_waiting()  # type: ignore[no-any-return]
+        return super().in_waiting  # type: ignore[misc,no-any-return]
+
+    @property
+    def write_timeout(self: Any) -> float | None:
+        return self._write_timeout  # type: ignore[no-any-return]
+
+    @write_timeout.setter
+    def write_timeout(self: Any, value: float | None) -> None:
+        setter = serial.SerialBase.write_timeout.fset
+        try:
+            setter(self, value)
+        except NotImplementedError:  # RFC 2217's client: "write_timeout is not supported"
+            setter(self, None)  # its writes are a socket's sendall: they never wait long
+
+    def read(self: Any, size: int = 1) -> bytes:
         """pyserial's ``read``; on a non-blocking port (``timeout`` 0, as pymodbus's
         transport sets it and reads once the event loop saw bytes waiting) one
         ``os.read`` of what waits, without pyserial's per-call ``Timeout`` and
         ``select``: one system call less each. Nothing read (the port, VMIN 0, says
         the same when nothing waits and when it was hung up) is pyserial's to judge:
-        its ``select`` tells the two apart, and a port gone raises as it always did."""
-        if self.timeout != 0 or not self.is_open:
-            return super().read(size)  # type: ignore[no-any-return]
+        its ``select`` tells the two apart, and a port gone raises as it always did.
+        A port with no descriptor (Windows, ``rfc2217://``) reads as pyserial reads it,
+        or from its ``Pump`` once it has one."""
+        if self._pump is not None:
+            return self._pump.read(size)  # type: ignore[no-any-return]
+        fd = getattr(self, "fd", None)
+        if self.timeout != 0 or not self.is_open or not isinstance(fd, int):
+            return super().read(size)  # type: ignore[misc,no-any-return]
         try:
-            data = os.read(self.fd, size)
+            data = os.read(fd, size)
         except BlockingIOError:
             data = b""
         except OSError as exc:  # the adapter unplugged (EIO), ...: pyserial's error
             raise serial.SerialException(f"read failed: {exc}") from None
         if data:
             return data
-        return super().read(size)  # type: ignore[no-any-return]
+        return super().read(size)  # type: ignore[misc,no-any-return]
 
-    def write(self, data: bytes) -> int | None:
+    def write(self: Any, data: bytes) -> int | None:
         """pyserial's ``write``; on a non-blocking port (``write_timeout`` 0, as pymodbus's
         transport sets it) with no RTS to toggle, one ``os.write``: what fitted is
         returned (0 when the port's buffer is full, where pyserial would spin until
         all of it went), the caller hands the rest to the transport."""
         if self._toggle is None:
-            if self.write_timeout != 0 or not self.is_open:
-                return super().write(data)  # type: ignore[no-any-return]
+            fd = getattr(self, "fd", None)
+            if self.write_timeout != 0 or not self.is_open or not isinstance(fd, int):
+                return super().write(data)  # type: ignore[misc,no-any-return]
             try:
-                return os.write(self.fd, data)
+                return os.write(fd, data)
             except BlockingIOError:
                 return 0
             except OSError as exc:
                 raise serial.SerialException(f"write failed: {exc}") from None
-        return self._toggle.write(super().write, data)
+        return self._toggle.write(super().write, data)  # type: ignore[misc,no-any-return]
 
 
-def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
+class _Base:
+    """An ``OwnPort``'s pyserial class's own ``read`` and ``in_waiting`` (for its pump)."""
+
+    def __init__(self, port: OwnPort) -> None:
+        self._port = port
+        self.read = super(OwnPort, port).read  # type: ignore[misc]
+        self.timeout = port.timeout
+
+    @property
+    def in_waiting(self) -> int:
+        return super(OwnPort, self._port).in_waiting  # type: ignore[misc,no-any-return]
+
+
+class Serial(OwnPort, serial.Serial):  # type: ignore[misc]  # pyserial ships no type hints
+    """rtupoll's port on a device (``/dev/ttyUSB0``, ``COM3``): ``OwnPort`` over the
+    platform's pyserial class."""
+
+
+def own_class(url: str, slot: Slot | None) -> type[OwnPort]:
+    """The class rtupoll opens ``url`` with: ``Serial`` for a device, ``OwnPort`` over the
+    URL's own pyserial class for ``rfc2217://``, ``socket://``, ...; bound to ``slot``."""
+    base: type = serial.Serial
+    if "://" in url:
+        base = type(serial.serial_for_url(url, do_not_open=True))
+    if base is serial.Serial:
+        return Serial if slot is None else type("Serial", (Serial,), {"slot": slot})
+    return type("Serial", (OwnPort, base), {"slot": slot})
+
+
+def serial_class_for_url(url: str) -> tuple[str, type[OwnPort]]:
     """pyserial's handler hook: ``nodtr:///dev/ttyUSB0`` -> (``/dev/ttyUSB0``, Serial);
-    ``rtupoll://N/dev/ttyUSB0`` -> (``/dev/ttyUSB0``, a Serial bound to slot N)."""
+    ``rtupoll://N/PORT`` -> (``PORT``, rtupoll's class for it bound to slot N): PORT a
+    device (``/dev/ttyUSB0``, ``COM3``) or a URL (``rfc2217://HOST:PORT``)."""
     low = url.lower()
     if low.startswith(_PREFIX):
         return url[len(_PREFIX):], Serial
@@ -233,7 +322,7 @@ def serial_class_for_url(url: str) -> tuple[str, type[Serial]]:
         number, _, path = url[len(_OWN_PREFIX):].partition("/")
         slot = _SLOTS.get(int(number)) if number.isdigit() else None
         if slot is not None:
-            return "/" + path, type("Serial", (Serial,), {"slot": slot})
+            return path, own_class(path, slot)
     raise serial.SerialException(f"expected a {_PREFIX} URL, got {url!r}")
 
 
@@ -248,19 +337,22 @@ def register() -> None:
 def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
           ) -> tuple[str, Slot | None]:
     """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
-    ``Serial`` object: for a device path (and ``nodtr://``), ``rtupoll://N/PATH``; other
-    URLs (``socket://``, ``rfc2217://``) pass unchanged, with no slot."""
+    ``Serial`` object: ``rtupoll://N/PORT`` for a device (``/dev/ttyUSB0``, ``COM3``, and
+    ``nodtr://``'s) and for pyserial's network ports (``rfc2217://``, ``socket://``, whose
+    modem lines are the server's: DTR is left as it is); other URLs pass unchanged, with
+    no slot."""
     if port.lower().startswith(_PREFIX):
         port, deassert_dtr = port[len(_PREFIX):], True
-    if "://" in port or not port.startswith("/"):
+    network = port.lower().startswith(NETWORK)
+    if ("://" in port and not network) or (network and rs485 is not None):
         if rs485 is not None:
             raise UsageError(f"{port}: --rs485 drives a serial port's RTS line; this is not "
                              "a serial port")
         return port_url(port, deassert_dtr=deassert_dtr), None
     number = next(_slot_ids)
-    slot = Slot(deassert_dtr=deassert_dtr, rs485=rs485)
+    slot = Slot(deassert_dtr=deassert_dtr and not network, rs485=rs485)
     _SLOTS[number] = slot
-    return f"{_OWN_PREFIX}{number}{port}", slot
+    return f"{_OWN_PREFIX}{number}/{port}", slot
 
 
 def release(url: str) -> None:
@@ -294,7 +386,7 @@ def gateway(port: str) -> tuple[str, int] | None:
 def device_path(port: str) -> str:
     """The filesystem path behind a port, ``nodtr://`` or ``rtupoll://N`` URL."""
     if port.lower().startswith(_OWN_PREFIX):
-        return "/" + port[len(_OWN_PREFIX):].partition("/")[2]
+        return port[len(_OWN_PREFIX):].partition("/")[2]
     return port[len(_PREFIX):] if port.lower().startswith(_PREFIX) else port
 
 
@@ -305,60 +397,17 @@ def line_parity(port: str, parity: str) -> str:
     return "N" if os.path.realpath(device_path(port)).startswith("/dev/pts/") else parity
 
 
-def open_error(port: str, exc: BaseException) -> str:
-    """One line saying why ``port`` did not open, and what to do about it."""
-    path = device_path(port)
-    code = getattr(exc, "errno", None)
-    text = str(exc)
-    if code in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY) or "exclusively lock" in text:
-        return (f"{path} is busy: another program has it open (close it, or stop the "
-                f"service using it: 'fuser {path}' shows which)")
-    if code in (errno.EACCES, errno.EPERM):
-        group = _group_of(path)
-        join = f"; add yourself to the '{group}' group and log in again" if group else ""
-        return f"permission denied opening {path}{join}"
-    if code in (errno.ENOENT, errno.ENXIO, errno.ENODEV) or (
-            code is None and not os.path.exists(path) and "://" not in path):
-        import glob
-
-        seen = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
-        hint = f" (serial ports present: {', '.join(seen)})" if seen else \
-            " (is the adapter plugged in?)"
-        return f"{path} does not exist{hint}"
-    if code in (errno.ENOTTY, errno.EINVAL) or f"({errno.ENOTTY}, " in text:
-        # pyserial reports a failed termios call as "Could not configure port: (25, ...)"
-        return f"{path} is not a serial port"
-    if isinstance(exc, ValueError):
-        return f"{path}: {text}"
-    return f"cannot open {path}: {text or type(exc).__name__}"
-
-
-def gateway_error(host: str, port: int, exc: BaseException, timeout: float) -> str:
-    """One line saying why an RTU-over-TCP gateway did not accept a connection."""
-    import socket
-
-    where = f"gateway {host}:{port}"
-    if isinstance(exc, ConnectionRefusedError):
-        return f"{where} refused the connection (wrong port, or the gateway allows one client)"
-    if isinstance(exc, socket.gaierror):
-        return f"{where}: cannot resolve {host!r}"
-    if isinstance(exc, TimeoutError):  # asyncio's too (3.11+)
-        return f"{where} did not answer within {timeout:g} s (unreachable or filtered)"
-    code = getattr(exc, "errno", None)
-    if code in (errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EHOSTDOWN):
-        return f"{where} is unreachable ({os.strerror(code)})"
-    return f"cannot connect to {where}: {exc or type(exc).__name__}"
-
-
 def diagnose_serial(url: str, **settings: Any) -> str | None:
     """Try to open ``url`` the way pymodbus does; why it fails, or None if it opens.
 
     Used only after a failed open, to name the reason (pymodbus swallows it).
     """
+    from rtupoll.io.port_errors import open_error
+
     try:
         port = serial.serial_for_url(url, exclusive=True, **settings)
     except (OSError, ValueError) as exc:
-        return open_error(url, exc)
+        return open_error(device_path(url), exc)
     port.close()
     return None
 
@@ -370,57 +419,13 @@ async def diagnose_gateway(host: str, port: int, timeout: float) -> str | None:
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
     except (TimeoutError, OSError) as exc:
+        from rtupoll.io.port_errors import gateway_error
+
         return gateway_error(host, port, exc, timeout)
     writer.close()
     with contextlib.suppress(OSError):
         await writer.wait_closed()
     return None
-
-
-LATENCY_OK = 0.001  # seconds: an adapter latency timer above this is worth lowering
-UDEV_RULE = ('ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", '
-             'ATTR{latency_timer}="1"')
-
-
-def latency_timer(port: str, *, root: str = "/") -> float | None:
-    """A USB-serial adapter's latency timer in seconds (Linux: ``/sys/bus/usb-serial/
-    devices/ttyUSBn/latency_timer``, in ms), or None for any other port or when unknown.
-
-    The adapter holds received bytes up to this long before passing them on (FTDI: 16 ms
-    by default), so every reply seems that much slower. ``root``: where ``/sys`` and
-    ``/dev`` are looked up (tests give a directory tree of their own)."""
-    if "://" in port.replace(_PREFIX, ""):
-        return None
-    path = device_path(port)
-    if root != "/":
-        path = os.path.join(root, path.lstrip("/"))
-    tty = os.path.basename(os.path.realpath(path))
-    if not tty.startswith("ttyUSB"):
-        return None
-    try:
-        with open(os.path.join(root, "sys/bus/usb-serial/devices", tty, "latency_timer")) as f:
-            return int(f.read().strip()) / 1000
-    except (OSError, ValueError):
-        return None
-
-
-def latency_warning(port: str, latency: float | None) -> str | None:
-    """One line for the user when ``port``'s adapter latency timer is above 1 ms."""
-    if latency is None or latency <= LATENCY_OK:
-        return None
-    tty = os.path.basename(os.path.realpath(device_path(port)))
-    return (f"{port}: the USB adapter's latency timer is {latency * 1000:g} ms, added to "
-            f"every reply; lower it with 'echo 1 | sudo tee /sys/bus/usb-serial/devices/"
-            f"{tty}/latency_timer' or for good with the udev rule {UDEV_RULE}")
-
-
-def _group_of(path: str) -> str:
-    try:
-        import grp  # POSIX only
-
-        return grp.getgrgid(os.stat(path).st_gid).gr_name
-    except (ImportError, OSError, KeyError):
-        return ""
 
 
 register()

@@ -11,6 +11,10 @@ A SIGHUP is also what a terminal sends when it goes away (a closed window, a dro
 SSH session). ``poll`` started on a terminal that has since hung up stops as SIGTERM
 stops it, instead of polling on unseen and holding the port; one started without a
 terminal (a service) reloads, and so does one under ``nohup`` (SIGHUP ignored).
+
+Windows has no SIGHUP (``signal.HANGUP`` is None there): the service then starts and
+stops doing nothing, ``poll`` runs as everywhere, and a changed site file takes a
+restart (docs/polling.md).
 """
 
 from __future__ import annotations
@@ -32,6 +36,8 @@ if TYPE_CHECKING:
     from rtupoll.jobs.stats import Reading
 
 log = logging.getLogger("rtupoll.reload")
+
+HANGUP: signal.Signals | None = getattr(signal, "SIGHUP", None)  # None on Windows
 
 
 class Reopenable(Protocol):
@@ -60,10 +66,12 @@ class ReloadService(Service):
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
         self._name_buses()
-        was = signal.getsignal(signal.SIGHUP)
+        if HANGUP is None:  # no SIGHUP (Windows): nothing to reload on
+            return
+        was = signal.getsignal(HANGUP)
         self._on_terminal = was != signal.SIG_IGN and _has_terminal()
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, self.hangup)
+            asyncio.get_running_loop().add_signal_handler(HANGUP, self.hangup)
             self._was = was
 
     def hangup(self) -> None:
@@ -147,9 +155,9 @@ class ReloadService(Service):
         return None
 
     async def stop(self) -> None:
-        if self._was is not None:  # what SIGHUP did before, e.g. ignored under nohup
-            asyncio.get_running_loop().remove_signal_handler(signal.SIGHUP)
-            signal.signal(signal.SIGHUP, self._was)
+        if self._was is not None and HANGUP is not None:  # what SIGHUP did before (nohup)
+            asyncio.get_running_loop().remove_signal_handler(HANGUP)
+            signal.signal(HANGUP, self._was)
             self._was = None
         if self._pending is not None and not self._pending.done():
             self._pending.cancel()

@@ -286,6 +286,7 @@ class DevicePoller:
         st.requests += 1
         self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
+        st.line = self.timing.seen
         culprit = self.load.add(now, now - start,
                                 failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
                                 else None)
@@ -489,12 +490,12 @@ def _serial(bus: BusConfig) -> tuple[object, ...]:
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
     """What one healthy cycle should cost: each read's frames and silences on the wire
-    (``rtu.transaction_wire_time``) plus the device's turnaround."""
+    (``rtu.transaction_wire_time``) plus the device's turnaround and idle gap."""
     total = 0.0
     for b in blocks:
         request, response = read_frame_sizes(b.count, coils=not b.table.is_register)
         total += transaction_wire_time(framing, request, response)
-        total += config.profile.limits.turnaround
+        total += config.profile.limits.turnaround + config.gap
     return max(total, 1e-3)
 
 
@@ -506,11 +507,13 @@ def open_real_bus(config: BusConfig) -> BusLike:
     from rtupoll.io.bus import Bus, PortSettings
     from rtupoll.io.serialport import Rs485
 
-    return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
-                            bytesize=config.bytesize, stopbits=config.stopbits,
-                            deassert_dtr=config.deassert_dtr, echo=config.echo,
-                            rs485=Rs485(*config.rs485) if config.rs485 else None,
-                            idle_gap=config.idle_gap))
+    bus = Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
+                           bytesize=config.bytesize, stopbits=config.stopbits,
+                           deassert_dtr=config.deassert_dtr, echo=config.echo,
+                           rs485=Rs485(*config.rs485) if config.rs485 else None,
+                           idle_gap=config.idle_gap))
+    bus.line.adopt_echo = True  # an echo found without echo: carry on with it (ECHO_FOUND)
+    return bus
 
 
 class Scheduler:

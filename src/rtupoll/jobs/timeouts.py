@@ -12,7 +12,7 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
 - the start is the profile's ``limits.timeout`` (the manual's word);
 - the target is a high percentile (``QUANTILE``) of the last ``WINDOW`` reply times
   times ``MARGIN``, never below the floor: ``FLOOR`` plus the 3.5-character silence
-  plus the USB adapter's latency timer (``io.serialport.latency_timer``), never above
+  plus the USB adapter's latency timer (``io.latency.latency_timer``), never above
   the ceiling (``CEILING``, or the site file's ``timeout_ceiling:`` / ``--timeout-ceiling``);
 - **up at once**: a reply slower than the timeout allows for raises it straight to
   ``MARGIN`` times that reply time; a **late reply** (heard after its request timed
@@ -141,6 +141,7 @@ class DeviceTiming:
         self._late_seen: int | None = None
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
         self._gap = 0.0  # the idle gap last told to the bus
+        self.seen: Evidence | None = None  # the bus's evidence after the last transaction
 
     @property
     def timeout(self) -> float:
@@ -192,7 +193,7 @@ class DeviceTiming:
         """``answered``: the transaction got a reply (data or an exception reply)."""
         if bus is None:
             return
-        evidence = bus.evidence(unit)
+        evidence = self.seen = bus.evidence(unit)
         if answered and evidence.reply_time is not None:
             self.estimator.answered(evidence.reply_time)
         self._take_late(evidence)

@@ -348,6 +348,10 @@ class Profile:
     extends: str = ""  # the id of the profile this one was built on
     provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
+    # what the device says of itself: read device identification's objects (FC 43/14:
+    # object id -> text) and report server id's server id bytes (FC 17), as documented
+    identification: tuple[tuple[int, str], ...] = ()
+    server_id: bytes = b""
     # what the loader found doubtful but not wrong (``file:line: path: warning``): two
     # fields with one title, a title that is only a unit or too long, in a profile that
     # gives those fields no ``label:``; ``rtupoll profiles check`` prints them

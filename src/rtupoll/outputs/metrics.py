@@ -230,6 +230,15 @@ class SchedulerCollector:
                                          labels=[*dev_labels, "code"])
         cycles = CounterMetricFamily("rtupoll_cycles", "Device cycles (scans)",
                                      labels=dev_labels)
+        attempts = CounterMetricFamily("rtupoll_attempts", "Requests put on the wire, retries "
+                                       "included, by how each ended (answered, timeout, "
+                                       "garbled)", labels=[*dev_labels, "outcome"])
+        retried = CounterMetricFamily("rtupoll_retried", "Transactions answered only by a "
+                                      "retry (also counted in rtupoll_requests outcome ok)",
+                                      labels=dev_labels)
+        gap = GaugeMetricFamily("rtupoll_device_idle_gap_seconds", "The silence on the line "
+                                "a request to the device waits for (set or learned; absent: "
+                                "the 3.5 characters only)", labels=[*dev_labels, "source"])
         late = CounterMetricFamily("rtupoll_late_replies", "Replies that came after their "
                                    "request had timed out (counted, never decoded)",
                                    labels=dev_labels)
@@ -279,6 +288,13 @@ class SchedulerCollector:
                 for code, n in sorted(st.exceptions.items()):
                     exceptions.add_metric([*labels, f"{code:02d}"], n)
                 cycles.add_metric(labels, st.cycles)
+                ended = st.timed_out + st.garbled_attempts
+                for outcome, n in (("answered", max(0, st.attempts - ended)),
+                                   ("timeout", st.timed_out), ("garbled", st.garbled_attempts)):
+                    attempts.add_metric([*labels, outcome], n)
+                retried.add_metric(labels, st.retried)
+                if st.idle_gap:
+                    gap.add_metric([*labels, st.gap_source], st.idle_gap)
                 late.add_metric(labels, st.late)
                 if st.timeout is not None:
                     waits.add_metric(labels, st.timeout)
@@ -290,8 +306,8 @@ class SchedulerCollector:
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
-        yield from (up, state, info, requests, exceptions, cycles, late, waits, age, latency,
-                    util, btx, busy, port_up, losses)
+        yield from (up, state, info, requests, exceptions, cycles, attempts, retried, late,
+                    waits, gap, age, latency, util, btx, busy, port_up, losses)
         yield from families.values()
 
     def _metric(self, dev: DevicePoller, f: Field) -> FieldMetric:

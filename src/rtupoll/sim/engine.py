@@ -17,6 +17,7 @@ answer), and applies the faults due for that request.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -75,6 +76,9 @@ class Deframer:
         return left
 
 
+PAUSE = 0.02  # seconds: a pause fault's default
+
+
 @dataclass(frozen=True)
 class Transmission:
     """One reply to put on the wire: bytes, the device's turnaround and a fault delay."""
@@ -85,6 +89,7 @@ class Transmission:
     explicit: bool = False  # the turnaround was set for this device (applies without --baud)
     delay: float = 0.0  # extra, from a slow fault: the reply arrives this much later
     notes: tuple[str, ...] = ()
+    pause: float = 0.0  # a pause fault: the reply's second half goes this much later
 
 
 class Engine:
@@ -109,8 +114,10 @@ class Engine:
         have = ", ".join(d.name for d in self.devices)
         raise KeyError(f"no simulated device at {unit} (devices: {have})")
 
-    def handle(self, frame: bytes, now: float = 0.0) -> list[Transmission]:
-        """One CRC-valid request -> what goes back on the wire (maybe nothing)."""
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
+               ) -> list[Transmission]:
+        """One CRC-valid request -> what goes back on the wire (maybe nothing). ``idle``:
+        the silence on the line before it began (a device with a ``gap`` fault needs it)."""
         self.requests += 1
         unit, fc = frame[0], frame[1]
         broadcast = unit == 0
@@ -127,6 +134,10 @@ class Engine:
         except Malformed as bad:
             request = bad
         for d in targets:
+            if idle + 1e-9 < d.gap:  # the device's receiver was not ready: it never heard it
+                self.why_silent = (f"{d.name}: gap: the request came {idle * 1000:.1f} ms after "
+                                   f"the last byte on the line; it needs {d.gap * 1000:g} ms")
+                continue
             d.requests += 1
             d.catch_up(now)
             lose = d.profile.limits.lost_after_powerup or 3
@@ -153,7 +164,11 @@ class Engine:
             if exc is not None:
                 notes.insert(0, f"exception {reply[2]}")
             ta = d.config.turnaround
+            pause = next(((f.arg if f.arg is not None else PAUSE) for f in hits
+                          if f.kind == "pause"), 0.0)
+            if pause:
+                notes.append(f"pause {pause * 1000:g} ms")
             out.append(Transmission(data, at, d.profile.limits.turnaround if ta is None else ta,
-                                    ta is not None, delay, tuple(notes)))
+                                    ta is not None, delay, tuple(notes), pause))
         self.replies += len(out)
         return out

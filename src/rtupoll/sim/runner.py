@@ -17,7 +17,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
-import termios
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -71,6 +70,8 @@ class _LineServer(Server):
     def _line_mismatch(self, fd: int) -> str | None:
         if self.speed is None or self.framing is not None:
             return super()._line_mismatch(fd)
+        import termios  # (a pty's: POSIX only)
+
         ospeed = termios.tcgetattr(fd)[5]
         if ospeed != getattr(termios, f"B{self.speed}", ospeed):
             return f"sent at another baud rate than the line's {self.speed}"

@@ -18,26 +18,34 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
+import math
 import os
 import struct
-import termios
 import threading
 import time
-import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
+T = TypeVar("T")
 QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 # frames kept in the wire log: a window of the latest, so a simulator left running for days
 # holds the same memory as after its first minute (every frame ever seen is counted in
 # Engine.requests/replies; --verbose prints them all as they pass)
 WIRE_LOG = 1000
 TIMER_SLACK = 0.0015  # asyncio timers fire up to 1 ms late; the rest is slept exactly
+# pseudo-terminals are POSIX's (Linux, macOS); Windows has none: there a simulated line is
+# served over TCP only (``serve_tcp``), and asking for a pty is one line (``NO_PTY``)
+PTYS = hasattr(os, "openpty")
+NO_PTY = ("a simulated serial port is a pseudo-terminal, which only POSIX systems (Linux, "
+          "macOS) have: on Windows serve it over TCP (--tcp 127.0.0.1:5020) and give "
+          "rtupoll --port tcp://127.0.0.1:5020")
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +83,9 @@ class _Link:
         self.server, self.write, self.hang_up = server, write, hang_up
         self.deframer = Deframer()
         self.free_at = 0.0  # when the wire is free for the next reply
+        self.last_byte = -math.inf  # when the last byte on the line ended (either way)
+        self._idle = math.inf  # the silence before the frame being received began
+        self._echo_at = 0.0  # when the last byte echoed (with wire timing) comes back
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
@@ -82,15 +93,39 @@ class _Link:
         srv = self.server
         now = srv.loop.time()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
-            self.write(data)
-        srv.to_tap(data, now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0))
+            self._echo(data, now)
+        ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
+        srv.to_tap(data, ends)
+        if not self.deframer.buffer:  # a frame may begin here: the silence before it
+            self._idle = now - self.last_byte
+        self.last_byte = max(self.last_byte, ends)
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now)
+                self._respond(chunk, now, self._idle)
+            self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
         self._flush = srv.loop.call_later(QUIET, self._quiet) if self.deframer.buffer else None
+
+    def _echo(self, data: bytes, now: float) -> None:
+        """Hand the master's bytes back as a 2-wire adapter does: with wire timing each
+        byte as it leaves the wire (one character time after the one before, from the
+        last one still going out); without, all at once."""
+        srv, fr = self.server, self.server.framing
+        if fr is None:
+            self.write(data)
+            return
+        at = max(now, self._echo_at)
+        for i in range(len(data)):
+            at += fr.char_time
+            srv.later(at, self._echo_byte, data[i : i + 1])
+        self._echo_at = at
+
+    def _echo_byte(self, byte: bytes) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):  # nobody reading: lost, as on a wire
+                self.write(byte)
 
     def _quiet(self) -> None:
         self._flush = None
@@ -98,11 +133,11 @@ class _Link:
         if left:
             self.server.log(self.server.loop.time(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now)
+        replies = srv.engine.handle(frame, now, idle)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -113,6 +148,13 @@ class _Link:
             end = start + (fr.wire_time(len(tx.data)) if fr else 0.0)
             if not tx.delay:  # a late reply collides on a real bus; it does not hold it
                 self.free_at = end + silence
+            if tx.pause:  # the first half, then the rest after the pause
+                half = len(tx.data) // 2
+                first = dataclasses.replace(tx, data=tx.data[:half])
+                rest = dataclasses.replace(tx, data=tx.data[half:], notes=())
+                srv.later(end + tx.delay, self._send, first)
+                srv.later(end + tx.delay + tx.pause, self._send, rest)
+                continue
             srv.later(end + tx.delay, self._send, tx)
 
     def _send(self, tx: Transmission) -> None:
@@ -120,6 +162,7 @@ class _Link:
             return
         srv = self.server
         now = srv.loop.time()
+        self.last_byte = max(self.last_byte, now)  # its last byte leaves the wire now
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
         srv.to_tap(tx.data)
@@ -163,7 +206,7 @@ class Server:
         if self.on_wire:
             self.on_wire(frame)
 
-    def later(self, when: float, fn: Callable[[Transmission], None], tx: Transmission) -> None:
+    def later(self, when: float, fn: Callable[[T], None], tx: T) -> None:
         """Run ``fn(tx)`` at ``when``, to well under a millisecond.
 
         asyncio rounds its selector timeouts up to whole milliseconds, which at 115200
@@ -184,6 +227,10 @@ class Server:
     # -- transports ---------------------------------------------------------
     async def serve_pty(self, link: str | None = None) -> str:
         """Open a pseudo-terminal; returns the path a client opens (or the link to it)."""
+        if not PTYS:
+            raise UsageError(NO_PTY)
+        import tty  # (POSIX only, as ptys are)
+
         master, slave = os.openpty()
         self._fds += [master, slave]
         tty.setraw(slave)  # no echo, no line editing: bytes pass as they are
@@ -216,6 +263,10 @@ class Server:
     async def serve_tap(self, link: str) -> str:
         """A second pty that receives a copy of every byte on the line (for a sniffer);
         ``link`` becomes a symbolic link to it. Bytes written to it are ignored."""
+        if not PTYS:
+            raise UsageError(f"--tap: {NO_PTY}")
+        import tty
+
         master, slave = os.openpty()
         self._fds += [master, slave]
         tty.setraw(slave)
@@ -252,6 +303,8 @@ class Server:
         """
         if not self.framing:
             return None
+        import termios  # (a pty's: POSIX only)
+
         ospeed = termios.tcgetattr(fd)[5]
         want = self.framing.baudrate
         if ospeed != getattr(termios, f"B{want}", ospeed):

@@ -87,7 +87,11 @@ def number(value: object) -> float | None:
     """The value a trend draws: a finite int or float (no bool, enum or text)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    return float(value) if math.isfinite(value) else None
+    try:
+        f = float(value)
+    except OverflowError:  # an integer beyond a float's range
+        return None
+    return f if math.isfinite(f) else None
 
 
 def json_value(value: object) -> object:
@@ -151,6 +155,9 @@ def health_state(dev: DevicePoller, clocks: Clocks, *, latency: bool = True
     waiting = st.state in (State.RETRYING, State.OFFLINE)
     out = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
            "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
+           "attempts": st.attempts, "timed_out_attempts": st.timed_out,
+           "garbled_attempts": st.garbled_attempts, "retried": st.retried,
+           "idle_gap": st.idle_gap, "idle_gap_source": st.gap_source,
            "failures": st.failures, "timeout": st.timeout,
            "timeout_source": st.timeout_source, "last_seen": st.last_good_time,
            "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,
