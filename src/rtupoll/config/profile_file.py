@@ -113,10 +113,10 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         variant=_variant(top["variant"], by_name) if "variant" in top else None,
         provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
-        warnings=warnings,
         identification=_identification(top["identification"])
         if "identification" in top else (),
         server_id=_hex_bytes(top["server_id"]) if "server_id" in top else b"",
+        warnings=warnings,
     )
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")

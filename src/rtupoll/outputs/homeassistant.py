@@ -72,6 +72,8 @@ _UNITS: dict[str, tuple[str, str | None]] = {
     "m³": ("m³", "volume"), "L": ("L", "volume"), "m³/h": ("m³/h", "volume_flow_rate"),
     "L/min": ("L/min", "volume_flow_rate"), "dB": ("dB", "sound_pressure"),
     "dBm": ("dBm", "signal_strength"), "W/m²": ("W/m²", "irradiance"),
+    "µS/cm": ("µS/cm", "conductivity"), "mS/cm": ("mS/cm", "conductivity"),
+    "S/cm": ("S/cm", "conductivity"),
 }
 _ENERGY = {"energy"}
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
