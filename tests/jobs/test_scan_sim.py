@@ -174,3 +174,19 @@ def test_progress_bar_only_on_a_terminal(sim: Sim) -> None:
     os.close(master)
     assert proc.returncode == 0 and json.loads(out.decode().splitlines()[0])["address"] == 1
     assert b"found" in seen and b"\x1b[" in seen  # the live bar, drawn with escapes
+
+
+def test_an_identification_read_a_present_device_is_slow_to_answer_is_asked_again(
+        sim: Sim) -> None:
+    """The PZEM-016 named "unknown" on a loaded machine: its identification read timed
+    out once. A unit that answered is asked such a read once more, waiting longer, so a
+    slow answer is no evidence against a profile (an empty address still costs one
+    timeout). Here every identification read (the requests after the presence probes)
+    is answered 0.2 s late, past the probe's wait: still identified."""
+    after = len(presence_probes(list(load_library().profiles.values()))) + 1
+    bus = sim("peacefair-pzem016@2", faults=[f"2:slow=0.2@{after}-"], tick=None)
+    code, found, err = scan_json("--port", bus.port, "--addresses", "2", "--baudrate",
+                                 "9600")
+    assert code == 0, err
+    assert [(f["address"], f["profile"], f["status"]) for f in found] == [
+        (2, "peacefair-pzem016", "identified")]

@@ -245,8 +245,8 @@ def test_a_bad_or_busy_address_is_one_line_exit_2(sim: Callable[..., SimulatedBu
     bus = sim("huiwen-aq@3")
     bad = poll("-p", bus.port, "--once", "--metrics", "localhost", "huiwen-aq@3")
     assert bad.exit_code == 2
-    assert bad.stderr.strip() == ("rtupoll: metrics address 'localhost': expected HOST:PORT, "
-                                  "e.g. 127.0.0.1:9100")
+    assert bad.stderr.strip() == ("rtupoll: --metrics 'localhost': expected [HOST:]PORT, "
+                                  "e.g. 127.0.0.1:9464")
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
@@ -276,11 +276,23 @@ def test_metrics_in_the_site_file(tmp_path: Path) -> None:
             "      - {profile: huiwen-aq, address: 3}\n")
     path.write_text("metrics: 127.0.0.1:9464\n" + body)
     assert load_site(path).metrics == "127.0.0.1:9464"
-    path.write_text(body + "metrics: 9464\n")
+    path.write_text(body + "metrics: 9464\n")  # a port alone: loopback, as --metrics 9464
+    assert load_site(path).metrics == "9464"
+    path.write_text(body + "metrics: localhost\n")
     with pytest.raises(ConfigError) as bad:
         load_site(path)
-    assert str(bad.value) == (f"{path}:6: metrics: '9464': expected HOST:PORT, "
-                              "e.g. 127.0.0.1:9100")
+    assert str(bad.value) == (f"{path}:6: metrics: 'localhost': expected [HOST:]PORT, "
+                              "e.g. 127.0.0.1:9464")
+
+
+@pytest.mark.parametrize("given", ["9464", ":9464", "127.0.0.1:9464"])
+def test_metrics_http_and_serve_take_a_listen_address_alike(given: str) -> None:
+    """One rule (config/listen.py): a port alone is loopback, for each of the three."""
+    from rtupoll.config.gateway_settings import parse_listen as serve
+    from rtupoll.config.http_settings import parse_listen as http
+    from rtupoll.outputs.metrics import parse_listen as metrics
+
+    assert metrics(given) == http(given) == serve(given)[1:] == ("127.0.0.1", 9464)
 
 
 def test_a_nan_register_is_no_sample_and_no_influx_field(

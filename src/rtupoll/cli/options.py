@@ -166,8 +166,8 @@ def service_options(f: F) -> F:
                      help="Log device and port state changes on stderr: text, or one JSON "
                           "object per line (journald, Loki). Default: text when stderr is a "
                           "terminal or the journal, else errors only.")(f)
-    f = click.option("--metrics", "metrics", metavar="HOST:PORT", default=None,
-                     help="Serve Prometheus metrics at http://HOST:PORT/metrics; ':PORT' "
-                          "listens on 127.0.0.1 only, 0.0.0.0:PORT or [::]:PORT on every "
-                          "interface (also 'metrics:' in the site file).")(f)
+    f = click.option("--metrics", "metrics", metavar="[HOST:]PORT", default=None,
+                     help="Serve Prometheus metrics at http://HOST:PORT/metrics; a port "
+                          "alone listens on 127.0.0.1 only, 0.0.0.0:PORT or [::]:PORT on "
+                          "every interface (also 'metrics:' in the site file).")(f)
     return f

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from dataclasses import field
 from typing import TYPE_CHECKING
 
+from rtupoll.config.listen import host_port
 from rtupoll.errors import UsageError
 from rtupoll.frozen import frozen
 
@@ -18,7 +19,6 @@ if TYPE_CHECKING:
     from rtupoll.config.yamlsrc import Node
 
 Network = ipaddress.IPv4Network | ipaddress.IPv6Network
-LOOPBACK = "127.0.0.1"
 DEFAULT_QUEUE = 16  # client requests waiting for the line beyond each client's first
 #                     (all clients together, per bus); more: exception 0x0A
 DEFAULT_CLIENT_QUEUE = 4  # one client's requests waiting; beyond: its replies are not
@@ -54,19 +54,6 @@ class ServeConfig:
         return f"{'rtu+tcp' if self.framing == 'rtu' else 'tcp'}://{host}:{self.port}"
 
 
-def host_port(text: str, *, default_host: str, port_zero: bool, bare_port: bool = False
-              ) -> tuple[str, int] | None:
-    """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (``default_host``), and with ``bare_port``
-    ``PORT`` alone -> (host, port); None when ``text`` is none of them or the port is out
-    of range (0 only with ``port_zero``). Shared with ``--metrics`` (and the site file's
-    ``metrics:``), which give their own messages."""
-    host, sep, number = text.rpartition(":")
-    if not (sep or bare_port) or not number.isdigit() or \
-            not (0 if port_zero else 1) <= int(number) <= 65535:
-        return None
-    return host.strip("[]") or default_host, int(number)
-
-
 def parse_listen(text: str) -> tuple[str, str, int]:
     """``[SCHEME://][HOST:]PORT`` -> (framing, host, port); the host defaults to loopback.
 
@@ -79,7 +66,7 @@ def parse_listen(text: str) -> tuple[str, str, int]:
         if scheme.lower() not in SCHEMES:
             raise UsageError(f"{text!r}: the scheme is tcp:// (Modbus TCP) or rtu+tcp://")
         framing = SCHEMES[scheme.lower()]
-    got = host_port(rest.rstrip("/"), default_host=LOOPBACK, port_zero=False, bare_port=True)
+    got = host_port(rest.rstrip("/"), port_zero=False)
     if got is None:
         raise UsageError(f"{text!r}: expected [HOST:]PORT, e.g. 127.0.0.1:5020")
     return framing, *got

@@ -23,7 +23,7 @@ from collections.abc import Mapping
 from dataclasses import field, replace
 from typing import TYPE_CHECKING
 
-from rtupoll.config.gateway_settings import LOOPBACK, host_port
+from rtupoll.config.listen import listen_address
 from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.frozen import frozen
 
@@ -104,10 +104,7 @@ def require_aiohttp() -> None:
 
 def parse_listen(text: str) -> tuple[str, int]:
     """``HOST:PORT``, ``[v6]:PORT``, ``:PORT`` or ``PORT`` (these two: loopback)."""
-    got = host_port(text.strip(), default_host=LOOPBACK, port_zero=True, bare_port=True)
-    if got is None:
-        raise UsageError(f"--http {text!r}: expected [HOST:]PORT, e.g. 127.0.0.1:8080")
-    return got
+    return listen_address(text, "--http", "127.0.0.1:8080")
 
 
 def parse_user(text: str) -> tuple[str, str]:

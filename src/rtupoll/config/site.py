@@ -18,11 +18,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from rtupoll.config.gateway_settings import ServeConfig, host_port
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.gateway_settings import from_node as serve_from_node
 from rtupoll.config.http_settings import HttpSettings
 from rtupoll.config.http_settings import from_node as http_from_node
 from rtupoll.config.library import load_one, note_use
+from rtupoll.config.listen import host_port
 from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.config.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
@@ -179,10 +180,10 @@ def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
 
 
 def _listen(node: Node) -> str:
-    """``metrics: HOST:PORT`` (``:PORT``: loopback, as ``--metrics``)."""
+    """``metrics: [HOST:]PORT`` (a port alone: loopback, as ``--metrics``)."""
     text = node.text().strip()
-    if host_port(text, default_host="0.0.0.0", port_zero=True) is None:  # as --metrics
-        raise node.fail(f"{text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
+    if host_port(text) is None:  # as --metrics
+        raise node.fail(f"{text!r}: expected [HOST:]PORT, e.g. 127.0.0.1:9464")
     return text
 
 

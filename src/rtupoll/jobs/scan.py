@@ -168,6 +168,9 @@ def probe_timeout(framing: Framing, count: int, margin: float) -> float:
     return framing.wire_time(request + reply) + reply_wait(framing, margin)
 
 
+PRESENT = 4  # times the probe's wait, the second ask of a read a present unit did not answer
+
+
 def reply_wait(framing: Framing, margin: float) -> float:
     """The part of ``probe_timeout`` that is not wire time: what ``Bus.read`` is given
     as its timeout, since the bus adds the frames' wire time itself."""
@@ -212,16 +215,34 @@ class Identifier:
         self.bus, self.setting, self.margin = bus, setting, margin
         self.profiles = [p for p in profiles if p.identify]
 
-    async def ask(self, cache: dict[Read, Outcome], unit: int, read: Read) -> Outcome:
+    async def ask(self, cache: dict[Read, Outcome], unit: int, read: Read, *,
+                  present: bool = False) -> Outcome:
+        """One read's outcome, asked once. ``present``: the unit answered already, so a
+        read it does not answer is asked once more, waiting longer (a busy device, or a
+        busy machine's simulator, is no evidence against a profile), where an empty
+        address costs one timeout."""
         if read not in cache:
             table, address, count = read
             timeout = reply_wait(self.setting.framing, self.margin)
             try:
                 cache[read] = await self.bus.read(unit, table, address, count,
                                                   timeout=timeout, retries=0)
-            except (DeviceException, DeviceTimeout, FrameError) as exc:
+            except DeviceTimeout as exc:
+                cache[read] = exc
+                if present:
+                    await self._again(cache, unit, read, PRESENT * timeout)
+            except (DeviceException, FrameError) as exc:
                 cache[read] = exc
         return cache[read]
+
+    async def _again(self, cache: dict[Read, Outcome], unit: int, read: Read,
+                     timeout: float) -> None:
+        table, address, count = read
+        try:
+            cache[read] = await self.bus.read(unit, table, address, count, timeout=timeout,
+                                              retries=0)
+        except (DeviceException, DeviceTimeout, FrameError) as exc:
+            cache[read] = exc
 
     def order(self, cache: dict[Read, Outcome], unit: int) -> list[Profile]:
         """Candidates, most specific first; those an earlier answer contradicts are dropped."""
@@ -249,7 +270,8 @@ class Identifier:
             evidence = []
             for c in p.identify:
                 f = p.field(c.field)
-                got = await self.ask(cache, unit, (f.table, f.address, f.words))
+                got = await self.ask(cache, unit, (f.table, f.address, f.words),
+                                     present=True)
                 why = check_passes(c, p, unit, got)
                 if why is None:
                     break

@@ -44,7 +44,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.config.gateway_settings import host_port
+from rtupoll.config.listen import listen_address
 from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.services import Follow, Service
@@ -95,7 +95,6 @@ UNITS: dict[str, tuple[str, float, float]] = {
 SPELLED = {"Ah": "amp_hours", "mAh": "milliamp_hours", "Wh": "watt_hours",
            "kWh": "kilowatt_hours", "h": "hours", "min": "minutes", "d": "days",
            "ms": "milliseconds"}
-LOOPBACK = "127.0.0.1"
 SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): no float noise
 
 
@@ -113,10 +112,7 @@ RESERVED = frozenset({
 def parse_listen(text: str) -> tuple[str, int]:
     """``HOST:PORT``, ``[v6]:PORT`` or ``:PORT`` (loopback, as ``--serve``) -> (host, port).
     Every interface: ``0.0.0.0:PORT`` (IPv4) or ``[::]:PORT`` (IPv6 and IPv4)."""
-    got = host_port(text.strip(), default_host=LOOPBACK, port_zero=True)
-    if got is None:
-        raise UsageError(f"metrics address {text!r}: expected HOST:PORT, e.g. 127.0.0.1:9100")
-    return got
+    return listen_address(text, "--metrics", "127.0.0.1:9464")
 
 
 # ---------------------------------------------------------------------------
