@@ -51,12 +51,15 @@ HA_CLASSES: dict[str, tuple[set[str | None], set[str]]] = {
     "signal_strength": ({"dB", "dBm"}, {M}),
     "irradiance": ({"W/m²"}, {M}),
     "conductivity": ({"S/cm", "mS/cm", "µS/cm"}, {M}),
+    "speed": ({"m/s", "km/h", "mph", "kn", "ft/s", "mm/s"}, {M}),
+    "wind_speed": ({"m/s", "km/h", "mph", "kn", "ft/s", "Beaufort"}, {M}),
 }
 # classes HA converts the value of (to the user's units, or one the user picks); a
 # difference must never carry one: +1.5 °C of correction would be 34.7 °F
 CONVERTING = {"temperature", "voltage", "current", "power", "energy", "pressure",
               "distance", "duration", "volume", "volume_storage", "volume_flow_rate",
-              "power_factor", "volatile_organic_compounds_parts", "conductivity"}
+              "power_factor", "volatile_organic_compounds_parts", "conductivity", "speed",
+              "wind_speed"}
 
 PROFILES = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
 

@@ -85,7 +85,7 @@ UNITS: dict[str, tuple[str, float, float]] = {
     "mg/m3": ("grams_per_cubic_meter", 1e-3, 0.0),
     "Ah": ("coulombs", 3600.0, 0.0), "mAh": ("coulombs", 3.6, 0.0),
     "°": ("degrees", 1.0, 0.0),
-    "m/s": ("meters_per_second", 1.0, 0.0),
+    "m/s": ("meters_per_second", 1.0, 0.0), "km/h": ("meters_per_second", 1 / 3.6, 0.0),
     "Ω": ("ohms", 1.0, 0.0), "kΩ": ("ohms", 1e3, 0.0), "MΩ": ("ohms", 1e6, 0.0),
     "µS/cm": ("siemens_per_meter", 1e-4, 0.0), "uS/cm": ("siemens_per_meter", 1e-4, 0.0),
     "mS/cm": ("siemens_per_meter", 0.1, 0.0), "S/m": ("siemens_per_meter", 1.0, 0.0),
