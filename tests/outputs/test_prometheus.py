@@ -119,7 +119,9 @@ def test_promtool_passes_on_every_profile_the_gateway_and_slow_fields(
                 if up is not None and sum(s.value for s in up.samples) >= len(PROFILES) - 1:
                     break
             time.sleep(0.2)
-        # clients: mbpoll (one connection per run) and raw sockets, on both gateways
+        # clients: mbpoll (one connection per run) and raw sockets, on both gateways;
+        # mbpoll's timeout 5 s: line0 carries half the 9600 8N1 profiles polled every
+        # 0.5 s (Growatt's 850 ms idle gaps among them), a gateway request waits its turn
         fc, address = register(groups[0][0])
         for n in range(3):
             # (ANSWERED: the reply ends the wait; the gateway's turn may come after a
