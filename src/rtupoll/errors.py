@@ -39,6 +39,52 @@ class ProfileError(RtupollError):
         super().__init__(f"{where}{path + ': ' if path else ''}{message}")
 
 
+class MissingLibrary(UsageError):
+    """A feature whose optional library is not installed. The message is the one command
+    that installs it into the very Python that runs rtupoll (a venv, pipx's, the
+    system's), with the version range pyproject.toml gives its extra: it works as printed,
+    where ``pip install 'rtupoll[EXTRA]'`` would look for rtupoll on an index."""
+
+    def __init__(self, feature: str, extra: str) -> None:
+        self.extra = extra
+        names, command = install_command(extra)
+        super().__init__(f"{feature} needs {names}: {command}")
+
+
+def install_command(extra: str) -> tuple[str, str]:
+    """The libraries of an extra (``aiomqtt``) and the command that installs them."""
+    import os
+    import shlex
+    import sys
+    from importlib import metadata
+
+    try:
+        requires = metadata.requires("rtupoll") or []
+    except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        requires = []
+
+    def of(extra: str) -> list[str]:  # ``rtupoll[a,b]`` (edge) stands for a's and b's
+        out = []
+        for r in requires:
+            spec, _, marker = r.partition(";")
+            if marker.replace("'", '"').strip() != f'extra == "{extra}"':
+                continue
+            if spec.startswith("rtupoll["):
+                out += [w for e in spec.strip()[8:-1].split(",") for w in of(e.strip())]
+            else:
+                out.append(spec.strip())
+        return out
+
+    wanted = of(extra)
+    if not wanted:
+        return f"the {extra!r} extra", f"pip install -e '.[{extra}]' (in rtupoll's clone)"
+    names = ", ".join(w.split("<")[0].split(">")[0].split("=")[0].strip() for w in wanted)
+    words = [sys.executable, "-m", "pip", "install", *wanted]
+    if os.name == "nt":  # cmd and PowerShell both take double quotes
+        return names, " ".join(f'"{w}"' if set(w) & set(' <>&|') else w for w in words)
+    return names, shlex.join(words)
+
+
 class FaultSpecError(UsageError):
     """A simulator fault spec that does not parse; the message says what was expected."""
 

@@ -1,6 +1,7 @@
 """Small pure helpers for the figures every layer reports: time stamps as records write
-them, and percentiles. A neutral home below the poller (``jobs``), the sniffer, the
-gateway and the outputs, which all use them."""
+them, percentiles, and a count with its noun (``count(1, "device")``). A neutral home
+below the poller (``jobs``), the sniffer, the gateway and the outputs, which all use
+them."""
 
 from __future__ import annotations
 
@@ -48,3 +49,9 @@ def quantile(data: Collection[float], q: float) -> float | None:
 def nearest_rank(n: int, q: float) -> int:
     """The nearest rank (1-based, in ascending order) of the q-th percentile of n values."""
     return int(max(1, -(-n * q // 100)))
+
+
+def count(n: int, noun: str, plural: str = "") -> str:
+    """``n`` and its noun, singular for exactly one: "1 device", "0 devices", "3 devices"
+    (``plural`` where adding "s" is not the plural)."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"

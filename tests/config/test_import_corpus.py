@@ -386,3 +386,58 @@ def test_a_name_in_any_script_keeps_its_spelling(tmp_path: Path, name: str) -> N
     fields = yaml.safe_load((out / "ha-hub-1.yaml").read_text(encoding="utf-8"))["fields"]
     assert [f["description"] for f in fields] == [name, f"{name} 2"]
     assert len({f["name"] for f in fields}) == 2
+
+
+SHADOW = "root:$y$j9T$Qm1Mv3hashhashhash:19000:0:99999:7:::\ndaemon:*:19000:0:99999:7:::\n"
+
+
+@pytest.mark.parametrize("how", ["relative", "absolute", "link in a folder", "secrets link"])
+def test_an_include_outside_the_configurations_folder_is_one_line_and_never_read(
+        tmp_path: Path, how: str) -> None:
+    """An HA configuration from a forum is untrusted: its includes stay in its folder."""
+    outside = tmp_path / "etc" / "shadow"
+    outside.parent.mkdir()
+    outside.write_text(SHADOW, encoding="utf-8")
+    conf = tmp_path / "ha"
+    (conf / "room").mkdir(parents=True)
+    hub = "modbus:\n  - name: hub\n    port: /dev/ttyUSB0\n"
+    sensors = "    sensors: [{name: x, slave: 1, address: 0}]\n"
+    line, tag = 4, {"relative": "!include ../etc/shadow",
+                    "absolute": f"!include {outside}",
+                    "link in a folder": "!include_dir_merge_list room: evil.yaml links",
+                    "secrets link": "!secret rs485: secrets.yaml links"}[how]
+    if how in ("relative", "absolute"):
+        text = hub + f"    sensors: {tag.split(' ', 1)[0]} {tag.split(' ', 1)[1]}\n"
+    elif how == "link in a folder":
+        (conf / "room" / "evil.yaml").symlink_to(outside)
+        text = hub + "    sensors: !include_dir_merge_list room\n"
+    else:
+        (conf / "secrets.yaml").symlink_to(outside)
+        text = "modbus:\n  - name: hub\n    port: !secret rs485\n" + sensors
+        line = 3
+    config = conf / "configuration.yaml"
+    config.write_text(text, encoding="utf-8")
+    done = rtupoll("profiles", "import", str(config), "-o", str(tmp_path / "o"), cwd=tmp_path)
+    assert done.returncode == 2
+    (message,) = done.stderr.splitlines()
+    assert message.startswith(f"rtupoll: {config}:{line}: modbus[0].")
+    assert f"{tag}" in message and "outside the configuration's folder" in message, message
+    assert "19000" not in done.stderr + done.stdout and "daemon" not in done.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_no_line_of_a_file_is_echoed_as_a_key(tmp_path: Path) -> None:
+    """A file in the folder that is not YAML settings (a copy of some other file) is
+    named by file:line in the notes, its lines never shown."""
+    (tmp_path / "meter.yaml").write_text(SHADOW, encoding="utf-8")
+    config = tmp_path / "configuration.yaml"
+    config.write_text("modbus:\n  - name: hub\n    port: /dev/ttyUSB0\n"
+                      "    extra: !include meter.yaml\n"
+                      '    "root:$y$j9T$Qm1Mv3hash:19000:0:99999:7:::": 1\n'
+                      "    sensors: [{name: x, slave: 1, address: 0}]\n", encoding="utf-8")
+    done = rtupoll("profiles", "import", str(config), "-o", str(tmp_path / "o"), cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "$y$" not in done.stderr and "19000" not in done.stderr, done.stderr
+    assert f"{tmp_path / 'meter.yaml'}:1: not carried over: extra (" in done.stderr
+    assert (f"{config}:5: modbus[0].?: not carried over: a key that is no "
+            "setting's name (") in done.stderr

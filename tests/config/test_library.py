@@ -112,12 +112,26 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("eastron-sdm630", Table.INPUT, 70, _reply(1, 4, [0x4248, 0x0000]), {"frequency": 50.0}),
     ("eastron-sdm72dm", Table.INPUT, 342, _reply(1, 4, [0x447A, 0x0000]),
      {"total_active_energy": 1000.0}),
+    ("eastron-sdm72dm-v2", Table.INPUT, 0x0500, _reply(1, 4, _f32(1500.0) + _f32(0.0)),
+     {"import_power": 1500.0, "export_power": 0.0}),
+    # Janitza UMG 96RM: big-endian floats at their decimal register numbers
+    ("janitza-umg96rm", Table.HOLDING, 19050, _reply(1, 3, _f32(50.0)), {"frequency": 50.0}),
+    # ORNO OR-WE-514: u16 x0.01 Hz and V at 0x0130/0x0131; current u32 x0.001 A
+    ("orno-or-we-514", Table.HOLDING, 0x0130, _reply(1, 3, [5001, 23012]),
+     {"frequency": 50.01, "voltage": 230.12}),
     # ABB: u32 voltage x0.1 (2310 = 231.0 V); the u32 "NaN" 0xFFFFFFFF is not a reading
     ("abb-b23", Table.HOLDING, 0x5B00, _reply(1, 3, [0, 2310, 0xFFFF, 0xFFFF]),
      {"voltage_l1": 231.0, "voltage_l2": "NOT_AVAILABLE"}),
     ("abb-b23", Table.HOLDING, 0x5B2C, _reply(1, 3, [5000]), {"frequency": 50.0}),
     # EM24: INT32 low word first, x0.1: 2302 = 230.2 V
     ("carlo-gavazzi-em24", Table.HOLDING, 0, _reply(1, 3, [2302, 0]), {"voltage_l1": 230.2}),
+    # EM111/EM340: INT32 low word first, x0.1 (2302 = 230.2 V); Hz INT16 x0.1
+    ("carlo-gavazzi-em111", Table.HOLDING, 0, _reply(1, 3, [2302, 0]), {"voltage": 230.2}),
+    ("carlo-gavazzi-em111", Table.HOLDING, 0x0F, _reply(1, 3, [500]), {"frequency": 50.0}),
+    ("carlo-gavazzi-em340", Table.HOLDING, 0x0028, _reply(1, 3, [0xFFFF, 0x7FFF]),
+     {"total_power": "OVERFLOW"}),
+    ("carlo-gavazzi-em340", Table.HOLDING, 0x1105, _reply(1, 3, [0x0003]),
+     {"wiring_errors": ["WRONG_VOLTAGE_SEQUENCE", "PHASE_1_INVERTED"]}),
     # EPEVER 0x3200 = 0x0102: under-voltage (D3-D0 = 2), resistance abnormal (D8);
     # 0x3201 = 0x0009: running (D0), boost charging (D3-D2 = 2)
     ("epever-tracer", Table.INPUT, 0x3200, _reply(1, 4, [0x0102, 0x0009]),
@@ -130,6 +144,7 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     ("growatt-inverter", Table.INPUT, 0, _reply(1, 4, [1]), {"status": "NORMAL"}),
     # DDS238-2: total 7133 = 71.33 kWh; 0x0015 = 0x0101: address 1, baud code 1 (9600)
     ("hiking-dds238", Table.HOLDING, 0, _reply(1, 3, [0, 7133]), {"total_energy": 71.33}),
+    # DDS238-2 reactive power 0x000F is read signed, as Tasmota's driver reads it (int16_t)
     ("hiking-dds238", Table.HOLDING, 0x0F, _reply(1, 3, [65534]), {"reactive_power": -2}),
     ("hiking-dds238-v1", Table.HOLDING, 4, _reply(1, 3, [0, 1267, 0, 6024]),
      {"export_energy": 12.67, "import_energy": 60.24}),
@@ -157,6 +172,34 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
      {"status_word": ["READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED",
                       "VOLTAGE_ENABLED", "QUICK_STOP_OFF", "REMOTE", "TARGET_REACHED"],
       "output_frequency": 48.5}),
+    # SINAMICS V20: 40024 FREQ OUTPUT x100 (5000 = 50.00 Hz), 40025 SPEED in rpm
+    ("siemens-sinamics-v20", Table.HOLDING, 23, _reply(1, 3, [5000, 1455]),
+     {"output_frequency": 50.0, "motor_speed": 1455}),
+    # Optidrive E3: register 7 (wire 6) output frequency 1dp: 100 = 10.0 Hz
+    ("invertek-optidrive-e3", Table.HOLDING, 6, _reply(1, 3, [100]), {"output_frequency": 10.0}),
+    # SenseCAP soil probe, the manual's FC04 sample: 21.92 °C, 37.31 %, 590 µS/cm
+    ("sensecap-soil-ec02", Table.INPUT, 0, _reply(1, 4, [0x0890, 0x0E93, 0x024E]),
+     {"temperature": 21.92, "moisture": 37.31, "conductivity": 590}),
+    # Renke RS-FX-N01, the guide's example: step 2 (east), 90°
+    ("renke-rs-fx-n01", Table.HOLDING, 0, _reply(1, 3, [2, 90]),
+     {"wind_direction_step": "E", "wind_direction": 90}),
+    # Senseair S8, TDE2067's CO2 read: IR4 = 0x190 = 400 ppm
+    ("senseair-s8", Table.INPUT, 3, _reply(254, 4, [0x190]), {"co2": 400}),
+    # Growatt MIN (V1.20): Fac 3025 x0.01 Hz, Vac1 3026 x0.1 V
+    ("growatt-min", Table.INPUT, 3025, _reply(1, 4, [5000, 2300]),
+     {"grid_frequency": 50.0, "grid_voltage": 230.0}),
+    # Growatt SPH (V1.20): SOC 1014 in 1 %, Fac 37 x0.01 Hz
+    ("growatt-sph", Table.INPUT, 1013, _reply(1, 4, [523, 76]),
+     {"battery_voltage": 52.3, "battery_soc": 76}),
+    # Waveshare relay: holding 0x8000 software version, 100 = v1.00
+    ("waveshare-modbus-rtu-relay", Table.HOLDING, 0x8000, _reply(1, 3, [100]),
+     {"software_version": 1.0}),
+    # Huawei SUN2000: 32085 grid frequency gain 100 (5000 = 50.00 Hz), 32087 temperature gain 10
+    ("huawei-sun2000", Table.HOLDING, 32085, _reply(1, 3, [5000, 9757, 269]),
+     {"grid_frequency": 50.0, "efficiency": 97.57, "internal_temperature": 26.9}),
+    # R4DCB08, the sheet's examples: 00DB = 21.9 °C, FF90 = -11.2 °C, 8000 = no sensor
+    ("r4dcb08", Table.HOLDING, 0, _reply(1, 3, [0x00DB, 0xFF90, 0x8000]),
+     {"temperature_1": 21.9, "temperature_2": -11.2, "temperature_3": "NO_SENSOR"}),
 ]
 
 
@@ -180,7 +223,9 @@ def test_the_family_shares_registers_through_extends() -> None:
     assert sdm230.extends == "eastron-sdm120"
     assert sdm230.field("voltage") == sdm120.field("voltage")
     assert sdm230.addressing is sdm120.addressing and sdm230.kind == "energy meter"
-    assert "total_power_demand" in sdm230.names() and "total_power_demand" not in sdm120.names()
+    assert "resettable_active_energy" in sdm230.names()
+    assert "resettable_active_energy" not in sdm120.names()
+    assert "meter_code" in sdm120.names() and "meter_code" not in sdm230.names()
     sdm72 = load_one("eastron-sdm72dm")
     assert "voltage_l1" not in sdm72.names() and "total_power" in sdm72.names()
     assert sdm72.limits.max_registers == 60
@@ -208,12 +253,14 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
 
 
 @pytest.mark.parametrize(("text", "found", "why"), [
-    ("EASTRON", {"eastron-sdm120", "eastron-sdm230", "eastron-sdm630", "eastron-sdm72dm"},
+    ("EASTRON", {"eastron-sdm120", "eastron-sdm230", "eastron-sdm630", "eastron-sdm72dm",
+                 "eastron-sdm72dm-v2"},
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter"}, "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover"}, "field battery_soc"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000"},
+     "kind"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:
@@ -230,11 +277,80 @@ def test_profiles_search_without_a_match_is_a_usage_error() -> None:
     assert "no profile matches 'no-such-device-anywhere'" in result.stderr
 
 
-def test_readme_lists_every_bundled_profile() -> None:
-    text = README.read_text(encoding="utf-8")
-    section = text.split("## Device profiles", 1)[1].split("\n## ", 1)[0]
+def test_the_docs_list_every_bundled_profile_and_the_readme_points_there() -> None:
+    """One home for the list (docs/profiles.md), no count to go stale in the README."""
+    text = (README.parent / "docs" / "profiles.md").read_text(encoding="utf-8")
+    section = text.split("\n## The bundled profiles", 1)[1].split("\n## ", 1)[0]
     listed = set(re.findall(r"^\| `([a-z0-9-]+)` \|", section, re.M))
     assert listed == set(BUNDLED)
+    readme = README.read_text(encoding="utf-8")
+    assert "(docs/profiles.md)" in readme.split("## Device profiles", 1)[1]
+    assert not re.search(r"\b\d+ profiles\b|[Tt]wenty", readme)
+
+
+# every register each SDM120 document lists, as (table, wire address, registers): the
+# SDM120M protocol V2.5 and the older Eastron (Metering) Europe "SDM120 Protocol"
+_FLOAT = 2
+SDM120_V25 = [(Table.INPUT, a, _FLOAT) for a in (
+    0x00, 0x06, 0x0C, 0x12, 0x18, 0x1E, 0x46, 0x48, 0x4A, 0x4C, 0x4E,
+    0x54, 0x56, 0x58, 0x5A, 0x5C, 0x5E, 0x102, 0x108, 0x156, 0x158)] + [
+    (Table.HOLDING, a, _FLOAT) for a in (0x0C, 0x12, 0x14, 0x1C, 0x56)] + [
+    (Table.HOLDING, 0xF900, 1), (Table.HOLDING, 0xF910, 1), (Table.HOLDING, 0xF920, 1),
+    (Table.HOLDING, 0xFC00, 2), (Table.HOLDING, 0xFC02, 1), (Table.HOLDING, 0xFC03, 1)]
+SDM120_EUROPE = [(Table.INPUT, a, _FLOAT) for a in (
+    0x00, 0x06, 0x0C, 0x12, 0x18, 0x1E, 0x24, 0x46, 0x48, 0x4A, 0x4C, 0x4E, 0x156, 0x158)] + [
+    (Table.HOLDING, a, _FLOAT) for a in (0x0C, 0x12, 0x14, 0x1C)] + [
+    (Table.HOLDING, 0xF910, 1), (Table.HOLDING, 0xF920, 1)]
+
+
+@pytest.mark.parametrize("document", [SDM120_V25, SDM120_EUROPE], ids=["V2.5", "Europe"])
+def test_scan_names_an_sdm120_that_answers_every_register_of_its_document(
+        document: list[tuple[Table, int, int]]) -> None:
+    """Issue 49: an SDM120 answering its whole document (demand registers included) was
+    named an SDM230. The simulated SDM120 answers every register each document lists;
+    scan still names it an SDM120, and an SDM230 next to it an SDM230 (30385, which only
+    the SDM230's document lists)."""
+    from rtupoll.rtu.messages import ReadRequest
+    from rtupoll.sim.device import SimDevice, SimDeviceConfig
+
+    sdm120 = SimDevice(SimDeviceConfig(load_one("eastron-sdm120"), 5), tick=None)
+    for table, wire, count in document:
+        fc = 4 if table is Table.INPUT else 3
+        reply = sdm120.handle(ReadRequest(5, fc, wire, count))
+        assert reply is not None and reply[1] == fc, f"{table.value} {wire:#06x}: {reply!r}"
+    sdm230 = SimDevice(SimDeviceConfig(load_one("eastron-sdm230"), 6), tick=None)
+    assert sdm120.handle(ReadRequest(5, 4, 0x0180, 2)) == rtu.exception_response(5, 4, 2)
+    assert sdm230.handle(ReadRequest(6, 4, 0x0180, 2))[1] == 4  # type: ignore[index]
+    with simulated_bus(["eastron-sdm120@5", "eastron-sdm230@6", "eastron-sdm630@7"],
+                       tcp=True, tick=None) as bus:
+        result = run("scan", "--port", bus.port, "--baudrate", "9600", "--addresses", "5-7")
+    assert result.exit_code == 0, result.stderr
+    found = dict(re.findall(r"^ +(\d+) +9600 8N1 +([a-z0-9-]+)", result.stdout, re.M))
+    assert found == {"5": "eastron-sdm120", "6": "eastron-sdm230", "7": "eastron-sdm630"}
+
+
+def test_growatt_waits_the_850_ms_its_document_asks_for_between_commands() -> None:
+    """Growatt's V1.20: "wait for minimum 850 ms to send a new CMD after last CMD". The
+    profile says so (limits.idle_gap), and in a real poll cycle (three blocks of input
+    registers) each request reaches the simulated inverter at least 0.85 s after the
+    inverter's previous reply ended (the line keeps the gap from its last byte)."""
+    from rtupoll.config.site import from_specs
+    from rtupoll.sim.server import WireFrame
+
+    assert load_one("growatt-inverter").limits.idle_gap == 0.85
+    assert [d.gap for d in from_specs("/dev/ttyUSB0", [("growatt-inverter", 1)]).buses[0]
+            .devices] == [0.85]
+    wire: list[WireFrame] = []
+    with simulated_bus(["growatt-inverter@1"], tcp=True, tick=None,
+                       on_wire=wire.append) as bus:
+        result = run("poll", "--port", bus.port, "--once", "--format", "json",
+                     "growatt-inverter@1")
+    assert result.exit_code == 0, result.stderr
+    frames = [f for f in wire if f.direction in ("in", "out")]
+    assert len(frames) >= 4 and [f.direction for f in frames] == ["in", "out"] * (
+        len(frames) // 2)
+    gaps = [frames[i + 1].time - frames[i].time for i in range(1, len(frames) - 1, 2)]
+    assert min(gaps) >= 0.85, gaps
 
 
 def test_scan_tells_every_new_profile_apart() -> None:

@@ -155,3 +155,27 @@ def test_a_gateway_url_is_read_as_the_bus_reads_it() -> None:
     # the scheme is case-insensitive for the bus, so it must be for the site checks too
     with pytest.raises(UsageError, match=r"'TCP://gw': expected tcp://HOST:PORT"):
         from_specs("TCP://gw", [("huiwen-aq", 1)])
+
+
+def test_idle_gap_per_device_and_per_bus_over_the_profiles(tmp_path: Path) -> None:
+    mine = tmp_path / "slow-meter.yaml"
+    base = (Path(__file__).parents[2] / "profiles" / "radar-level.yaml").read_text()
+    mine.write_text(base.replace("id: radar-level", "id: slow-meter").replace(
+        "limits:", "limits:\n  idle_gap: 0.85", 1))
+    site = tmp_path / "site.yaml"
+    site.write_text("buses:\n  - port: /dev/ttyUSB0\n    idle_gap: 0.01\n    devices:\n"
+                    "      - {profile: slow-meter.yaml, address: 1}\n"
+                    "      - {profile: slow-meter.yaml, address: 2, idle_gap: 0.05}\n"
+                    "      - {profile: huiwen-aq, address: 3}\n")
+    (bus,) = load_site(site).buses
+    assert bus.idle_gap == 0.01
+    assert [d.gap for d in bus.devices] == [0.85, 0.05, 0.0]  # profile, own, none
+    site.write_text(site.read_text().replace("idle_gap: 0.05", "idle_gap: 12"))
+    with pytest.raises(ConfigError, match=r"site.yaml:6: buses\[0\].devices\[1\].idle_gap: "
+                                          r"12 s is outside 0..10 s"):
+        load_site(site)
+
+
+def test_ad_hoc_idle_gap_replaces_the_profiles() -> None:
+    site = from_specs("/dev/ttyUSB0", [("huiwen-aq", 3), ("huiwen-aq", 4)], idle_gap=0.05)
+    assert [d.gap for d in site.buses[0].devices] == [0.05, 0.05]

@@ -184,12 +184,18 @@ def test_site_file_serve_and_a_bus_without_devices(tmp_path: Path) -> None:
         "  - name: b\n    port: /dev/ttyUSB1\n"
         "    serve:\n      listen: rtu+tcp://0.0.0.0:4001\n      allow: [10.0.0.0/8]\n"
         "      read_only: true\n      cache: 2\n      setup_writes: [4]\n"
+        "      client_queue: 2\n      max_clients: 5\n      max_per_address: 1\n"
         "    devices:\n      - {profile: radar-level, address: 4}\n")
     a, b = load_site(site).buses
     assert a.devices == () and a.serve is not None and (a.serve.host, a.serve.port) == \
         ("127.0.0.1", 5020)
     assert b.serve is not None and b.serve.framing == "rtu" and b.serve.read_only
     assert b.serve.cache == 2 and b.serve.setup_writes == {4} and len(b.serve.allow) == 1
+    assert (b.serve.client_queue, b.serve.max_clients, b.serve.max_per_address) == (2, 5, 1)
+    assert (a.serve.client_queue, a.serve.max_clients, a.serve.max_per_address) == (4, 32, 8)
+    site.write_text("buses:\n  - port: /dev/ttyUSB0\n    serve: {listen: 5020, max_clients: 0}\n")
+    with pytest.raises(ConfigError, match=r"site.yaml:3: .*0"):
+        load_site(site)
     site.write_text("buses:\n  - port: /dev/ttyUSB0\n    serve: {listen: 5020, cahce: 2}\n")
     with pytest.raises(ConfigError, match=r"site.yaml:3: .*cahce.*did you mean 'cache'"):
         load_site(site)

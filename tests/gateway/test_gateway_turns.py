@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 
-from rtupoll.gateway.turns import POLLER, Turns
+from rtupoll.gateway.turns import POLLER, Places, Turns
 
 
 async def _hammer(turns: Turns, who: object, log: list[object], n: int) -> None:
@@ -64,3 +64,32 @@ def test_an_idle_poller_leaves_the_line_to_clients_and_cancel_is_clean() -> None
 
     log, waiting = asyncio.run(main())
     assert log == ["b"] * 5 and waiting == 0
+
+
+def test_a_clients_first_place_is_its_own_and_the_rest_are_shared() -> None:
+    places = Places(shared=2)
+    assert [places.take("hog") for _ in range(4)] == [True, True, True, False]
+    assert places.used == 2 and places.held("hog") == 3
+    # the shared places are gone, yet a client with nothing waiting gets its own
+    assert places.take("a") and places.take("b")
+    assert not places.take("a")  # a second one would be shared: none left
+    places.give_back("hog")  # one of the hog's answered: a shared place comes free
+    assert places.used == 1 and places.take("a") and places.held("a") == 2
+    for who, n in (("hog", 2), ("a", 2), ("b", 1)):
+        for _ in range(n):
+            places.give_back(who)
+    assert places.used == 0 and places.total == 0
+    places.give_back("nobody")  # (a client holding nothing gives back nothing)
+    assert places.used == 0 and places.take("nobody")
+
+
+def test_fewer_shared_places_after_a_reload_admit_nothing_shared_until_below() -> None:
+    places = Places(shared=3)
+    assert all(places.take("a") for _ in range(4))  # its own and three shared
+    places.shared = 1  # a SIGHUP's smaller queue:
+    assert not places.take("a") and places.take("b")  # b's own place is still there
+    places.give_back("a")
+    places.give_back("a")
+    assert not places.take("a")  # one shared still held: the one allowed
+    places.give_back("a")
+    assert places.take("a")

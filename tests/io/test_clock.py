@@ -10,21 +10,31 @@ frame over) when the device's turnaround has passed. Time passes only in the vir
 clock: the port's waits and the bus's sleeps move it, and so does the bus's own work
 between two readings of its clock (``COST``: a few microseconds of Python, which is all
 a coarse clock needs to tick in between).
+
+The async ``Bus`` is run for real on an event loop whose clock ticks every 15.6 ms, as
+asyncio's does there: its timers, set by delays and set again when one runs early,
+never end an attempt before its deadline, and the loop does not spin.
 """
 
 from __future__ import annotations
 
+import asyncio
 import io
 import math
 import time
+from collections.abc import Callable
 
+import pytest
 from virtual import START
 
+from rtupoll.errors import DeviceTimeout
 from rtupoll.io import clock, waits
+from rtupoll.io.bus import Bus
 from rtupoll.io.serialport import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.engine import Engine
+from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
 
 TICK = 0.015625  # GetTickCount64's 15.6 ms: time.monotonic on Windows before Python 3.13
@@ -140,3 +150,63 @@ def test_the_chosen_clock_keeps_the_silence() -> None:
     got = gaps("chosen")
     assert len(got) == 2
     assert min(got) >= SILENCE
+
+
+class CoarseLoop(asyncio.SelectorEventLoop):
+    """An event loop whose clock ticks every 15.6 ms, as asyncio's is on Windows before
+    Python 3.13 (``loop.time()`` is ``time.monotonic``, its resolution the loop's
+    ``_clock_resolution``): it runs a timer up to a tick early when it wakes for
+    something else. ``turns``: how often it went round (a spin would be thousands)."""
+
+    turns = 0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._clock_resolution = TICK
+
+    def time(self) -> float:
+        return math.floor(time.monotonic() / TICK) * TICK
+
+    def _run_once(self) -> None:
+        self.turns += 1
+        super()._run_once()  # type: ignore[misc]
+
+
+def test_the_bus_on_a_coarse_event_loop_keeps_its_deadlines_and_does_not_spin(
+        sim: Callable[..., SimulatedBus]) -> None:
+    """The line's times are not the loop's: the async ``Bus`` sets its timers by delays
+    and sets them again when one runs early, so on a loop that ticks every 15.6 ms an
+    attempt to a dead device lasts its whole timeout (never cut short by an early
+    timer), the live one answers each time, and the loop does not spin meanwhile."""
+    bus = sim("huiwen-aq@3", baudrate=BAUD)
+    timeout = 0.1
+    dead: list[float] = []
+    took: list[float] = []
+    # the attempt's own limit: the timeout plus both frames' wire time (8 + 7 bytes)
+    limit = timeout + Framing(BAUD).wire_time(8 + 7)
+
+    async def ticker() -> None:  # other work on the loop (another bus, the live table)
+        while True:
+            await asyncio.sleep(0.004)
+
+    async def main() -> None:
+        began = time.perf_counter()
+        other = asyncio.create_task(ticker())
+        async with Bus(PortSettings(bus.port, baudrate=BAUD)) as b:
+            for _ in range(5):
+                assert await b.read(3, Table.INPUT, 30008, 1, timeout=0.5)
+                start = time.perf_counter()
+                with pytest.raises(DeviceTimeout):
+                    await b.read(9, Table.INPUT, 30008, 1, timeout=timeout)
+                dead.append(time.perf_counter() - start)
+        other.cancel()
+        took.append(time.perf_counter() - began)
+
+    loop = CoarseLoop()
+    try:
+        loop.run_until_complete(main())
+    finally:
+        loop.close()
+    assert min(dead) >= limit  # never expired early
+    # the ticker's 250 turns a second, and a handful a transaction: no spin
+    assert loop.turns < 250 * took[0] * 2 + 10 * 20

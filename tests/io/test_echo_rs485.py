@@ -17,10 +17,11 @@ from conftest import ANSWERED, PATIENT
 from forked_cli import rtupoll_popen
 
 from rtupoll.cli import cli
-from rtupoll.config.site import load_site
+from rtupoll.config.site import from_specs, load_site
 from rtupoll.errors import ConfigError, DeviceTimeout, FrameError
 from rtupoll.io import serialport
 from rtupoll.io.bus import Bus, PortSettings
+from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus, simulated_bus
 
@@ -86,6 +87,70 @@ def test_a_write_to_a_dead_device_is_never_confirmed_by_its_echo(
     assert with_echo[1] != "DeviceTimeout"  # the radar's own answer (echo or exception)
     without = asyncio.run(go(False))
     assert without[0] == "FrameError"  # the echo is named, not taken for the reply
+
+
+@pytest.fixture
+def echoing_at_9600() -> Iterator[SimulatedBus]:
+    """The same behind an echoing adapter at the wire timing of 9600 baud: each byte of a
+    request comes back as it leaves the wire, one character time after the one before."""
+    bus = simulated_bus(["huiwen-aq@3", "radar-level@2"], tick=None, baudrate=9600)
+    bus.echo = True
+    bus.start()
+    yield bus
+    bus.stop()
+
+
+def requests_seen(bus: SimulatedBus) -> int:
+    return sum(1 for w in bus.wire if w.direction == "in" and w.note.startswith("unit "))
+
+
+def test_a_byte_paced_echo_is_named_on_the_first_request(echoing_at_9600: SimulatedBus
+                                                          ) -> None:
+    result = CliRunner().invoke(cli, ["read", "-p", echoing_at_9600.port, "--baudrate",
+                                      "9600", "radar-level@2"])  # the profile's retries
+    assert result.exit_code == 7, result.output  # garbled, never a value
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "adapter echoes" in lines[0] and "add --echo" in lines[0]
+    assert "tries" not in lines[0] and requests_seen(echoing_at_9600) == 1  # no retry
+
+
+def test_poll_carries_on_with_a_byte_paced_echo_and_says_so_once(
+        echoing_at_9600: SimulatedBus) -> None:
+    devices = ["huiwen-aq@3", "radar-level@2"]
+    result = CliRunner().invoke(cli, ["poll", "-p", echoing_at_9600.port, "--baudrate",
+                                      "9600", *PATIENT, *devices, "--once", "--format",
+                                      "json"])
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in result.stdout.splitlines()]
+    assert records and all(r["status"] == "ok" for r in records)
+    assert result.stderr.count("adapter echoes") == 1 and "--echo" in result.stderr
+    blind = requests_seen(echoing_at_9600)
+    result = CliRunner().invoke(cli, ["poll", "-p", echoing_at_9600.port, "--baudrate",
+                                      "9600", *PATIENT, *devices, "--once", "--echo"])
+    assert result.exit_code == 0 and "adapter echoes" not in result.stderr
+    assert blind == requests_seen(echoing_at_9600) - blind  # no request more than with --echo
+
+
+def test_polled_with_a_byte_paced_echo_nothing_is_late_and_no_timeout_climbs(
+        echoing_at_9600: SimulatedBus) -> None:
+    site = from_specs(echoing_at_9600.port, [("huiwen-aq", 3), ("radar-level", 2)],
+                      baudrate=9600)
+    scheduler = Scheduler(site)
+
+    async def go() -> None:
+        await scheduler.open()
+        try:
+            for _ in range(5):
+                await scheduler.scan_once(lambda dev, rs: None)
+        finally:
+            await scheduler.close()
+
+    asyncio.run(go())
+    for dev in scheduler.pollers():
+        st = dev.stats
+        assert st.ok == st.requests and st.late == 0 and st.timed_out == 0, st
+        # learned from the device's reply times: at most its profile's, never climbing
+        assert st.timeout is not None and st.timeout <= dev.config.profile.limits.timeout
 
 
 def test_poll_simulate_with_echo_reads_every_field() -> None:

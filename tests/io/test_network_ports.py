@@ -25,6 +25,8 @@ from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
+# pyserial's RFC 2217 client names its reader thread the old way (Python 3.10's warning)
+pytestmark = pytest.mark.filterwarnings(r"ignore:set(Daemon|Name)\(\) is deprecated")
 DEVICES = ("huiwen-aq@3", "radar-level@4")
 
 
@@ -111,3 +113,12 @@ def test_sniff_listens_on_a_network_serial_port(sim: Sim, tmp_path: Path) -> Non
     got = [r for r in records(lines) if r.get("field") == "co2"]
     assert got, lines
     assert got[0]["value"] == 901
+
+
+def test_set_address_is_verified_at_the_new_address(line: tuple[str, SimulatedBus]) -> None:
+    port, bus = line
+    ran = rtupoll("set-address", "-p", port, "-b", "9600", "--timeout", "0.5", "--yes",
+                  "radar-level@4", "11")
+    assert ran.returncode == 0, ran.stderr
+    assert "changed: answers at 11, silent at 4" in ran.stdout
+    assert bus.addresses() == {"huiwen-aq@3": 3, "radar-level@4": 11}

@@ -69,8 +69,8 @@ def test_a_windows_name_elsewhere_says_the_local_form(platform: str, form: str, 
 def test_a_gateway_address_without_tcp_says_to_write_tcp(platform: str, name: str) -> None:
     exc = WIN_MISSING if platform == "win32" else missing(name)
     said = open_error(name, exc, platform=platform, present=ADAPTERS)
-    assert said == (f"{name} does not exist (an RTU-over-TCP gateway is written tcp://{name}; "
-                    f"a serial port over the network rfc2217://{name} or socket://{name})")
+    assert said == (f"{name} does not exist (a gateway is written tcp://{name}; a serial "
+                    f"server rfc2217://{name})")
     assert "plugged in" not in said
 
 
@@ -165,7 +165,7 @@ def test_the_latency_advice_is_the_platforms() -> None:
 
 def test_the_installed_command_says_it_in_one_line(tmp_path: Path) -> None:
     """As a user meets it on Linux: a gateway's address without tcp://, a Windows name."""
-    for port, words in [("127.0.0.1:502", "is written tcp://127.0.0.1:502"),
+    for port, words in [("127.0.0.1:502", "a gateway is written tcp://127.0.0.1:502"),
                         ("COM3", "that is a Windows name: here a serial port is")]:
         ran = rtupoll("read", "-p", port, "huiwen-aq@3", "co2")
         assert ran.returncode == 3, ran.stderr

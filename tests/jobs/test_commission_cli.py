@@ -171,3 +171,59 @@ def test_interrupting_the_interactive_session_prints_the_summary(sim: Sim) -> No
         term.expect("So far: 1 sensor readdressed (2).")
         term.expect("rtupoll: interrupted")
         assert term.close() == 130
+
+
+FACTORY = PLAN.with_name("factory.csv")  # three sensors, all at address 1 from the factory
+
+
+def test_a_plan_of_factory_fresh_sensors_is_run_again_for_each_one(sim: Sim) -> None:
+    bus = sim("radar-level@1", tick=None)  # the first sensor is connected
+    first = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
+    assert first.exit_code == 4, first.output
+    lines = first.stdout.splitlines()
+    assert lines[0].startswith("ok   radar-level@1 -> 10: changed")
+    assert lines[1].startswith("FAIL radar-level@1 -> 11: no sensor answers at 1: connect "
+                               "the next one (alone at 1) and run the plan again")
+    assert lines[2].startswith("---- radar-level@1 -> 12: not attempted")
+
+    connect_new_sensor(bus, "radar-level@1")  # the first stays on the bus, at 10
+    second = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
+    assert second.exit_code == 4, second.output
+    assert [line[:4] for line in second.stdout.splitlines()[:3]] == ["skip", "ok  ", "FAIL"]
+    assert "already done: answers at 10" in second.stdout.splitlines()[0]
+
+    connect_new_sensor(bus, "radar-level@1")
+    third = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
+    assert third.exit_code == 0, third.output
+    assert third.stdout.splitlines()[3] == "1 changed, 2 already done (3 rows)"
+    assert sorted(d.address for d in bus.device_list()) == [10, 11, 12]
+
+
+def test_on_a_terminal_the_plan_asks_for_each_factory_fresh_sensor(sim: Sim) -> None:
+    bus = sim("radar-level@1", tick=None)
+    with Terminal([sys.executable, "-m", "rtupoll", "set-address", "-p", bus.port, *FAST,
+                   "--plan", str(FACTORY)]) as term:
+        term.expect("Change 3 address(es)")
+        term.type("y\n")
+        term.expect("ok   radar-level@1 -> 10: changed")
+        term.expect("Connect the sensor for row 2 (radar-level, to become 11) alone at "
+                    "address 1, then press Enter (q to stop): ")
+        connect_new_sensor(bus, "radar-level@1")
+        term.type("\n")
+        term.expect("ok   radar-level@1 -> 11: changed")
+        term.expect("Connect the sensor for row 3")
+        term.type("\n")  # nothing connected this time
+        term.expect("No sensor answers at 1: check its wiring and power.")
+        term.expect("Connect the sensor for row 3")
+        term.type("q\n")
+        term.expect("---- radar-level@1 -> 12: not attempted (stopped)")
+        term.expect("2 changed, 1 not run (3 rows)")
+        assert term.close() == 0
+    assert sorted(d.address for d in bus.device_list()) == [10, 11]
+
+
+def test_a_dry_run_of_factory_fresh_sensors_says_to_connect_them_one_at_a_time() -> None:
+    result = run("set-address", "-p", "/dev/null", "--dry-run", "--plan", str(FACTORY))
+    assert result.exit_code == 0, result.output
+    assert ("Rows 1, 2, 3 each expect a device at 1: connect them one at a time."
+            in result.stdout)

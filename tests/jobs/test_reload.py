@@ -136,7 +136,7 @@ def test_buses_come_and_go_while_the_others_poll(sim: Callable[..., SimulatedBus
             first = scheduler.buses[0]
             changes = await scheduler.reload(load_site(site_file(
                 path, (one.port, [AIR]), (two.port, [TANK]))))
-            assert changes == [f"opened bus {two.port} ({two.port}, 9600 8N1): 1 devices"]
+            assert changes == [f"opened bus {two.port} ({two.port}, 9600 8N1): 1 device"]
             await run.more("tank", 3)
             await run.more("air", 3)
             assert scheduler.buses[0] is first

@@ -1,8 +1,8 @@
 """Home Assistant's view: the discovery rendered against the state messages, as HA reads them.
 
 A multi-device run of the real CLI on the simulator, with a block that fails (an
-exception reply), a dead device, fields on a slow interval (the SDM120's energy,
-``interval: 60``), undocumented enum codes (the IRNET's ``error`` enum, a Banner mode
+exception reply), a dead device, fields on a slow interval (the SDM120's and the
+EM24's energy, ``interval: 60``), undocumented enum codes (the IRNET's ``error`` enum, a Banner mode
 behind a select) and writable numbers, publishing to a real mosquitto. Every
 ``value_template`` and ``json_attributes_template`` of every discovered entity is
 rendered with Jinja2 the way Home Assistant renders it (``value`` the payload,
@@ -49,12 +49,13 @@ buses:
       - {{name: room, profile: xy-md02, address: 8, interval: 0.3,
           fields: [temperature, humidity, temperature_correction]}}
       - {{name: tank, profile: radar-level, address: 2, interval: 0.3}}
+      - {{name: grid, profile: carlo-gavazzi-em24, address: 9, interval: 0.3}}
 mqtt:
   url: {url}/plant
   gateway_id: north
   allow_writes: true
 """
-DEVICES = ("air", "gas", "curtain", "meter", "room", "tank")
+DEVICES = ("air", "gas", "curtain", "meter", "room", "tank", "grid")
 
 
 def environment() -> Any:
@@ -79,7 +80,7 @@ def run(tmp_path_factory: pytest.TempPathFactory
     try:
         with simulated_bus(
                 ["huiwen-aq@3", "net-irnet-pro@1", "banner-ez-array@5", "eastron-sdm120@7",
-                 "xy-md02@8", "radar-level@2"], tcp=True,
+                 "xy-md02@8", "radar-level@2", "carlo-gavazzi-em24@9"], tcp=True,
                 faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's PM2.5 failure code; the radar
                 sets=["net-irnet-pro@1.error=48",  # undocumented codes
                       "banner-ez-array@5.measurement_1_mode=200"]) as bus:
@@ -211,6 +212,17 @@ def test_names_ids_and_origin(run: tuple[dict[str, Any], dict[str, list[str]]]) 
     assert (number["min"], number["max"], number["step"], number["mode"]) == \
         (-10, 10, 0.1, "box")
     assert configs["room"]["cmps"]["temperature"]["suggested_display_precision"] == 1
+    # the energy totals named for what they measure, told apart (HA's Energy dashboard)
+    grid = configs["grid"]["cmps"]
+    assert [grid[n]["name"] for n in ("import_active_energy", "export_active_energy")] == \
+        ["Import energy total", "Export energy total"]
+    assert grid["total_power_factor"]["device_class"] == "power_factor"
+    # a correction is no temperature: its unit, no class HA would convert by
+    corr = configs["room"]["cmps"]["temperature_correction"]
+    assert corr["unit_of_measurement"] == "°C" and "device_class" not in corr
+    # Last seen changes with every message: disabled until a user enables it
+    assert all(c["cmps"]["_last_seen"]["enabled_by_default"] is False
+               for c in configs.values())
 
 
 def profile_values(field: Any) -> list[float]:

@@ -30,6 +30,7 @@ from virtual import simulated
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
+from rtupoll.errors import install_command
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.outputs.metrics import SchedulerCollector, field_metric, parse_listen
@@ -253,8 +254,8 @@ def test_without_prometheus_client_it_says_what_to_install(
     monkeypatch.setitem(sys.modules, "prometheus_client", None)  # import fails
     result = poll("-p", bus.port, "--once", "--metrics", "127.0.0.1:0", "huiwen-aq@3")
     assert result.exit_code == 2
-    assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: pip install "
-                                     "'rtupoll[metrics]'")
+    assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: "
+                                     + install_command("metrics")[1])
 
 
 def test_metrics_in_the_site_file(tmp_path: Path) -> None:
@@ -370,3 +371,40 @@ def test_where_metrics_listen() -> None:
             await svc.stop()
 
     asyncio.run(main())
+
+
+def test_the_docs_metrics_table_lists_every_family_the_collector_has() -> None:
+    """docs/service.md's table against a scrape of a polling scheduler: every family
+    that is not a field's is there, and every family it names is one rtupoll has (the
+    gateway's three come from ``gateway.metrics``, with ``--serve``)."""
+    import re
+
+    from rtupoll.gateway import metrics as gateway_metrics
+
+    bus, clock = simulated(["radar-level@4"])
+    scheduler = Scheduler(from_specs("virtual", [("radar-level", 4)], check_serial=False),
+                          open_bus=lambda _: bus, clock=clock)
+    collector = SchedulerCollector(scheduler)
+    asyncio.run(_cycles(scheduler, 1, collector))
+    fields = {field_metric(f).name for f in scheduler.buses[0].devices[0].config.fields}
+    counters = {m.name: m.type for m in collector.collect()}
+    emitted = {n + ("_total" if t == "counter" else "") for n, t in counters.items()
+               if not any(n == f or n.startswith(f"{f}_") for f in fields)}
+    assert {"rtupoll_late_replies_total", "rtupoll_device_timeout_seconds"} <= emitted
+    text = (Path(__file__).parents[2] / "docs" / "service.md").read_text()
+    table = set(re.findall(r"^\| `(rtupoll_[a-z_]+)` \|", text, re.M))
+    gateway = set(re.findall(r'"(rtupoll_gateway_[a-z_]+)"',
+                             Path(gateway_metrics.__file__).read_text()))
+    gateway = {n + "_total" if n.endswith("requests") else n for n in gateway}
+    assert emitted <= table, sorted(emitted - table)
+    assert table <= emitted | gateway, sorted(table - emitted - gateway)
+
+
+def test_a_difference_in_kelvin_is_the_same_number_in_celsius() -> None:
+    import dataclasses
+
+    f = load_one("net-irnet-pro", []).field("temperature")
+    assert field_metric(f).convert(296.67) == pytest.approx(23.52)
+    offset = dataclasses.replace(f, name="temperature_offset")
+    m = field_metric(offset)
+    assert m.name == "rtupoll_temperature_offset_celsius" and m.convert(1.5) == 1.5

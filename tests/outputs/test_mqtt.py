@@ -328,12 +328,13 @@ def test_the_live_table_footer_says_where_and_how(tmp_path: Path) -> None:
 def test_a_missing_aiomqtt_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
     import sys
 
+    from rtupoll.errors import install_command
     from rtupoll.outputs.mqtt import from_options
 
     monkeypatch.setitem(sys.modules, "aiomqtt", None)  # import aiomqtt -> ImportError
     site = from_specs("/dev/null", [("radar-level", 4)])
     with pytest.raises(UsageError) as err:
         from_options(site, "mqtt://broker", allow_writes=False)
-    assert str(err.value) == ("MQTT (--mqtt, or mqtt: in the site file) needs the aiomqtt "
-                              "library: pip install 'rtupoll[mqtt]'")
+    assert str(err.value) == ("MQTT (--mqtt, or mqtt: in the site file) needs aiomqtt: "
+                              + install_command("mqtt")[1])
     assert err.value.exit_code == 2

@@ -345,9 +345,12 @@ def test_discovery_follows_the_site_file_and_can_be_removed(
     # --mqtt-remove-discovery: every config of this gateway goes, nothing is polled
     done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr
-    assert "removed 3 Home Assistant discovery configs" in done.stderr
+    assert "removed 3 Home Assistant discovery configs (homeassistant/device/...) and 4 " \
+        "retained topics under plant" in done.stderr
     assert broker.retained(air) is None
     assert broker.retained("homeassistant/device/rtupoll_plant_bus_plant/config") is None
+    assert broker.retained("plant/bridge/state") is None
+    assert broker.retained("plant/air/availability") is None
 
 
 def test_on_change_with_a_maximum_silence_get_and_field_topics(

@@ -74,6 +74,9 @@ def test_every_command_gets_one_result_whatever_it_carries(
         ("set", '{"calibration_gas_level": "1_0"}', "is not a number"),
         ("set", '{"calibration_gas_level": "\uff11"}', "is not a number"),
         ("set", '{"calibration_gas_level": true}', "is not a value for it"),
+        ("set", '{"calibration_gas_level": "1e1"}', "is not a number"),
+        ("set", '{"calibration_gas_level": 5, "calibration_gas_level": 50}',
+         'the key "calibration_gas_level" twice'),
         ("set", "not json", "not JSON"),
         ("set", '{"calibration_gas_level": 1' + "0" * 5000 + "}", "not JSON"),
     ]
@@ -87,6 +90,8 @@ def test_every_command_gets_one_result_whatever_it_carries(
         assert len(results) == n, [m.payload[:80] for m in results]  # one each, no more
     assert run.stop() == 0
     assert "Traceback" not in run.stderr and "Error" not in run.stderr.replace("error", "")
+    for why in ('"1e1" is not a number', "twice"):  # each refusal one log line too
+        assert len([x for x in run.stderr.splitlines() if why in x]) == 1, run.stderr
 
 
 def test_a_retained_command_is_not_run(broker: Broker, plant: SimulatedBus,

@@ -84,6 +84,31 @@ def test_every_polled_field_is_in_every_state_with_its_last_value() -> None:
     assert fourth["_rtupoll"] == {"status": "failed", "error": "timeout: no reply"}
 
 
+def test_the_status_is_never_ok_while_a_field_is_null_for_a_failed_read() -> None:
+    """A slow field whose last read failed (the port went away) stays null in the scans
+    that do not read it: those say partial, with its failure, until it has a value."""
+    dev = meter()
+    pub, _ = publisher()
+    pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230),
+                                    ok(dev, "import_active_energy", F32_12)])
+    lost = states(pub.readings(dev, True, 1.7e9, [
+        bad(dev, "voltage", Status.PORT, "/dev/ttyUSB0: gone"),
+        bad(dev, "import_active_energy", Status.PORT, "/dev/ttyUSB0: gone")]))[0]
+    assert lost["_rtupoll"] == {"status": "failed", "error": "port: /dev/ttyUSB0: gone"}
+    back = states(pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230)]))[0]
+    assert back["voltage"] == 230.0 and back["import_active_energy"] is None
+    assert back["_rtupoll"] == {"status": "partial", "error": "port: /dev/ttyUSB0: gone"}
+    read = states(pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", F32_230),
+                                                  ok(dev, "import_active_energy", F32_12)]))
+    assert read[0]["import_active_energy"] == 12.0
+    assert read[0]["_rtupoll"] == {"status": "ok", "error": None}
+    # a field this generation lacks is null and no failure
+    absent = states(pub.readings(dev, True, 1.7e9, [
+        ok(dev, "voltage", F32_230),
+        bad(dev, "frequency", Status.ABSENT, "not in map version 0")]))[0]
+    assert absent["frequency"] is None and absent["_rtupoll"]["status"] == "ok"
+
+
 def test_availability_when_it_changes_and_again_after_a_reconnect() -> None:
     dev = meter()
     pub, _ = publisher()
@@ -193,6 +218,11 @@ def irnet() -> DeviceConfig:
     ('{"calibration_gas_level": "\uff11"}'.encode(), UsageError, "is not a number"),
     (b'{"calibration_gas_level": "0x10"}', UsageError, "is not a number"),
     (b'{"calibration_gas_level": " 5"}', UsageError, "is not a number"),
+    (b'{"calibration_gas_level": "1e1"}', UsageError, "is not a number"),
+    (b'{"calibration_gas_level": "1E3"}', UsageError, "is not a number"),
+    (b'{"calibration_gas_level": 1, "calibration_gas_level": 2}', UsageError,
+     'the key "calibration_gas_level" twice'),
+    (b'{"fields": {"a": 1, "a": 1}}', UsageError, 'the key "a" twice'),
     (b'{"calibration_gas_level": true}', UsageError, "is not a value for it"),
     (b'{"calibration_gas_level": [1]}', UsageError, "is not a value for it"),
     (b'{"calibration_gas_level": 1' + b"0" * 5000 + b"}", UsageError, "not JSON"),
@@ -209,7 +239,8 @@ def test_a_set_takes_json_numbers_and_plain_decimals_only(payload: bytes,
 
 
 @pytest.mark.parametrize("value, expect", [("12.5", 12.5), ("150", 150), (150, 150),
-                                           (-0.5, -0.5), ("+2", 2), ("1e3", 1000)])
+                                           (-0.5, -0.5), ("+2", 2), (1e3, 1000),
+                                           ("2.", 2), (".5", 0.5)])
 def test_numbers_that_are_numbers(value: Any, expect: float) -> None:
     (op,) = plan_set(irnet(), json.dumps({"calibration_gas_level": value}).encode(),
                      writes_on=True)
@@ -221,6 +252,8 @@ def test_get_payloads_are_bounded_too() -> None:
         plan_get(irnet(), b"[" * 10 + b"]" * 10)
     with pytest.raises(UsageError, match="at most"):
         plan_get(irnet(), b"[" * (MAX_PAYLOAD + 1))
+    with pytest.raises(UsageError, match='the key "fields" twice'):
+        plan_get(irnet(), b'{"fields": ["co2"], "fields": []}')
 
 
 def test_depth_ignores_brackets_in_strings() -> None:

@@ -359,7 +359,8 @@ def test_setup_says_what_it_does_one_line_per_step_and_keeps_pip_quiet(
     assert first.stdout == ""
     assert first.stderr.splitlines() == [
         "setup: creating the virtualenv .venv (python3 -m venv)",
-        "setup: installing rtupoll into .venv (pip, about 15 s the first time)",
+        "setup: installing rtupoll into .venv (pip: the first time 15-60 s, by the network "
+        "and the machine)",
         "setup: done: .venv/bin/rtupoll is ready (the installers' output: .venv/setup.log)"]
     assert "Collecting pymodbus" in (where / ".venv" / "setup.log").read_text()
     again = subprocess.run(["bash", "scripts/setup"], cwd=where, env=env,
@@ -379,11 +380,15 @@ def test_setup_shows_the_installers_output_when_a_step_fails(tmp_path: Path) -> 
 
 # -- issue 28: examples and hints that work as printed ----------------------------------
 
-def test_scan_takes_its_port_from_rtupoll_port_and_says_so() -> None:
-    run = rtupoll("scan", env={"RTUPOLL_PORT": None})
+@pytest.mark.parametrize("command", [
+    ["scan"], ["read", "huiwen-aq@3"], ["set-address", "huiwen-aq@3", "4", "--yes"],
+    ["write", "net-irnet-pro@1", "calibration_gas_level=50", "--yes"]])
+def test_every_command_takes_its_port_from_rtupoll_port_and_says_so(command: list[str]
+                                                                   ) -> None:
+    run = rtupoll(*command, env={"RTUPOLL_PORT": None})
     assert run.returncode == 2
     assert run.stderr.strip().endswith("or set $RTUPOLL_PORT")
-    helped = rtupoll("scan", "--help").stdout
+    helped = rtupoll(command[0], "--help").stdout
     assert "$RTUPOLL_PORT" in helped and "[required]" not in helped
 
 
@@ -408,3 +413,30 @@ def test_the_closing_hint_of_a_simulated_poll_names_a_device_that_exists() -> No
     assert proc.returncode == 0
     dead = re.search(r"Try --fault (\d+):dead", err)
     assert dead and int(dead.group(1)) in (1, 2), err
+
+
+@pytest.mark.parametrize("extra", ["mqtt", "metrics", "web", "edge"])
+def test_a_missing_librarys_hint_is_a_command_that_works_as_printed(extra: str) -> None:
+    """The hint installs into the Python that runs rtupoll, from the index a user has
+    (rtupoll itself is on none): run as printed (plus --dry-run, --no-index: this venv
+    has the libraries), pip finds every requirement already satisfied."""
+    import shlex
+
+    from packaging.requirements import Requirement
+
+    from rtupoll.errors import MissingLibrary, install_command
+
+    names, command = install_command(extra)
+    words = shlex.split(command)
+    assert words[:4] == [sys.executable, "-m", "pip", "install"]
+    wanted = [Requirement(w) for w in words[4:]]
+    assert wanted and names == ", ".join(r.name for r in wanted)
+    from importlib.metadata import version
+    assert all(r.specifier.contains(version(r.name)) for r in wanted)
+    ran = subprocess.run([*words, "--dry-run", "--no-index", "--disable-pip-version-check"],
+                         capture_output=True, text=True, timeout=120, check=False)
+    assert ran.returncode == 0, ran.stderr
+    assert all(f"Requirement already satisfied: {w} " in ran.stdout for w in words[4:]), \
+        ran.stdout
+    assert "Would install" not in ran.stdout, ran.stdout
+    assert str(MissingLibrary("the feature", extra)) == f"the feature needs {names}: {command}"

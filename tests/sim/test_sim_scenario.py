@@ -118,6 +118,8 @@ def test_bad_device_specs() -> None:
      ":3: devices[0].variant: huiwen-aq has no variants"),
     ("devices:\n  - {device: huiwen-aq@3}\n  - {device: radar-level@3}\n",
      ":3: devices[1].device: address 3 is taken"),
+    ("devices:\n  - {device: radar-level@3}\n  - {device: radar-level@3}\n",
+     ":3: devices[1].device: address 3 is taken by radar-level@3 (listed twice)"),
     ("faults: ['7:crc']\n", ":1: faults: fault 7:crc: no device at 7"),
     ("seeed: 3\n", ":1: seeed: unknown key (did you mean 'seed'?)"),
     ("devices: [\n", ":2: YAML syntax"),
@@ -151,3 +153,17 @@ def test_the_readme_scenario_loads_and_does_what_it_says(tmp_path: Path) -> None
         assert sim.get(1, "warning").value == ["WARMUP_WARNING"]
         assert sim.device(1).variant == 0
         assert sim.framing is not None and sim.framing.baudrate == 9600
+
+
+@pytest.mark.parametrize("devices", [["radar-level@1", "radar-level@1"],
+                                     ["huiwen-aq@3", "radar-level@3"]])
+def test_two_devices_at_one_address_are_refused_as_the_collision_they_are(
+        devices: list[str]) -> None:
+    from cli_runner import rtupoll
+
+    for command in (["simulate", *devices], ["poll", "--simulate", "--once", *devices]):
+        run = rtupoll(*command)
+        assert run.returncode == 2, run
+        line, = run.stderr.splitlines()
+        assert line.startswith(f"rtupoll: address {devices[0].split('@')[1]} is taken by "
+                               f"{devices[0]}") and "collide on a real bus" in line

@@ -55,6 +55,16 @@ def test_a_room_temperature_in_kelvin_drifts_by_tenths_of_a_degree(sim: Sim) -> 
     assert len(set(seen)) > 10  # and it is alive
 
 
+def test_a_charging_epever_says_it_is_charging(sim: Sim) -> None:
+    bus = sim("epever-tracer@2", tick=None)
+    for _ in range(60):  # ten minutes, every 10 s: the states' own episodes come and go
+        bus.advance(10)
+        if number(bus, 2, "charging_current") > 0 and bus.get(2, "charging_fault").text \
+                == "NORMAL":
+            assert bus.get(2, "running").text == "RUNNING"
+            assert bus.get(2, "charging_state").text in ("FLOAT", "BOOST", "EQUALIZATION")
+
+
 def test_energy_counters_integrate_the_power(sim: Sim) -> None:
     bus = sim("eastron-sdm630@1", tick=None)
     start = {f: number(bus, 1, f) for f in ("import_active_energy", "export_active_energy",

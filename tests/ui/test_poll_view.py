@@ -57,10 +57,11 @@ def test_a_small_terminal_gets_one_line_per_device_and_the_footer_still_shows(
     # the footer: the bus, then each device's health
     footer = lines.index(next(line for line in lines if line.startswith("bus ")))
     assert lines[footer].endswith("transactions/s") and "115200 8N1" in lines[footer]
-    # at 80 columns, counters that are 0 everywhere (late, garbled) make room
+    # at 80 columns, counters that are 0 everywhere (retried, late, garbled) make room
     assert lines[footer + 1].split()[:5] == ["device", "state", "ok", "timeout", "except"]
     health = {line.split()[0]: line.split()[1:] for line in lines[footer + 2:]}
-    assert health["huiwen-aq@3"][:4] == ["retrying", "0", "1", "0"]
+    # every attempt counted: the Huiwen's read and its retry both timed out
+    assert health["huiwen-aq@3"][:4] == ["retrying", "0", "2", "0"]
     assert health["radar-level@2"][:4] == ["online", "5", "0", "0"]
 
 

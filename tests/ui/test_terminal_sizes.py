@@ -160,3 +160,23 @@ def test_a_piped_poll_prints_records_as_they_come_and_says_so() -> None:
     said = [x for x in err.splitlines() if x.strip()]
     assert said[0] == ("rtupoll: stdout is not a terminal: readings go out as JSON lines as "
                        "they come (--format json; or csv, influx; --once for one table)")
+
+
+def test_profiles_list_and_search_keep_one_line_a_profile_at_80_columns() -> None:
+    from rtupoll.config.library import load_library
+
+    ids = sorted(load_library().profiles)
+    for command, want in (
+            ([RTUPOLL, "profiles", "list", "|", "tail", "-n", "22"], ids[-8:]),
+            ([RTUPOLL, "profiles", "search", "battery_soc"], ["epever-tracer", "renogy-rover"])):
+        with terminal(80, 24, command) as screen:
+            last = want[-1]
+            lines = wait_for(screen, lambda s, last=last: any(last in x for x in s))
+        text = "\n".join(lines)
+        assert all(len(x) <= 80 for x in lines), text
+        for pid in want:  # each profile one line, its verification level and match whole
+            row = next((x for x in lines if x.split()[:1] == [pid]), None)
+            assert row is not None, text
+            assert re.search(r"(vendor doc|2 impls|UNVERIFIED)", row), text
+            if "search" in command:
+                assert row.rstrip().endswith("field battery_soc"), text

@@ -370,7 +370,7 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
                  name="web") as p:
         browser.get(p.url)
         page = until(lambda: len(s := shown(browser)) == 2 and s, "two gateways' devices")
-        a, b = page["rtupoll/building-a/huiwen-aq@3"], page["rtupoll/building-b/huiwen-aq@3"]
+        a, b = page["rtupoll/building-a/huiwen-aq_3"], page["rtupoll/building-b/huiwen-aq_3"]
         assert (a["gateway"], b["gateway"]) == ("building-a", "building-b")
         assert a["fields"] == {"co2": "612ppm", "co2_level": "GOOD", "temperature": "21.5°C"}
         assert b["fields"]["co2"] == "1480ppm" and b["fields"]["temperature"] == "23.4°C"
@@ -379,21 +379,52 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
         # live: a new reading of one building, that building's card only
         publish(broker, "rtupoll/building-b/huiwen-aq_3", json.dumps(
             {"co2": 990, "co2_level": "GOOD", "temperature": 23.0, "last_seen": now}))
-        until(lambda: shown(browser)["rtupoll/building-b/huiwen-aq@3"]["fields"]["co2"]
+        until(lambda: shown(browser)["rtupoll/building-b/huiwen-aq_3"]["fields"]["co2"]
               == "990ppm", "building b's new co2")
-        assert shown(browser)["rtupoll/building-a/huiwen-aq@3"]["fields"]["co2"] == "612ppm"
+        assert shown(browser)["rtupoll/building-a/huiwen-aq_3"]["fields"]["co2"] == "612ppm"
         # one gateway goes away (its last will): its section greys out, the other stays
         publish(broker, "rtupoll/building-a/bridge/state", "offline")
         publish(broker, "rtupoll/building-a/huiwen-aq_3/availability", "offline")
-        gone = until(lambda: (s := shown(browser))["rtupoll/building-a/huiwen-aq@3"][
+        gone = until(lambda: (s := shown(browser))["rtupoll/building-a/huiwen-aq_3"][
             "gatewayDown"] and s, "building a greyed out")
-        assert gone["rtupoll/building-a/huiwen-aq@3"]["down"]
+        assert gone["rtupoll/building-a/huiwen-aq_3"]["down"]
         # its retained values are no readings now: the last ones, dated, not as fresh
-        assert gone["rtupoll/building-a/huiwen-aq@3"]["fields"]["co2"].startswith(
+        assert gone["rtupoll/building-a/huiwen-aq_3"]["fields"]["co2"].startswith(
             "offline (last 612 ppm at ")
-        assert not gone["rtupoll/building-b/huiwen-aq@3"]["gatewayDown"]
+        assert not gone["rtupoll/building-b/huiwen-aq_3"]["gatewayDown"]
         assert "1 of 2 devices online" in browser.find_element("id", "summary").text
         screenshots(browser, tmp_path, "web-fleet")
         state = get_json(p.url + "api/state")
         assert state["mode"] == "fleet" and state["broker"] == "connected"
         assert [g["id"] for g in state["gateways"]] == ["building-a", "building-b"]
+
+
+def test_the_fleet_keys_devices_by_their_topics(browser: Any, broker: Broker,
+                                                tmp_path: Path) -> None:
+    """Device ``x/y`` of the gateway at ``rtupoll/site`` (its topic level ``x_y``) and
+    device ``y`` of the one at ``rtupoll/site/x``: one name joined to a base would be
+    one key for both; each card shows its own reading."""
+    probe = {"profile": "probe", "address": 1, "bus": "line1", "fields": {
+        "temperature": {"label": "temperature", "unit": "°C", "kind": "number",
+                        "precision": 1}}}
+    publish(broker, "rtupoll/site/bridge/info", json.dumps(
+        {"gateway": "site", "version": "0.1.0", "devices": {"x_y": {**probe, "name": "x/y"}}}))
+    publish(broker, "rtupoll/site/x/bridge/info", json.dumps(
+        {"gateway": "x", "version": "0.1.0", "devices": {"y": {**probe, "name": "y"}}}))
+    publish(broker, "rtupoll/site/x_y", json.dumps({"temperature": 23.5}))
+    publish(broker, "rtupoll/site/x/y", json.dumps({"temperature": 88.8}))
+    with running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                 name="web") as p:
+        browser.get(p.url)
+        page = until(lambda: len(s := shown(browser)) == 2 and all(
+            d["fields"]["temperature"] != "" for d in s.values()) and s, "both probes")
+        assert page["rtupoll/site/x_y"]["fields"] == {"temperature": "23.5°C"}
+        assert page["rtupoll/site/x/y"]["fields"] == {"temperature": "88.8°C"}
+        assert (page["rtupoll/site/x_y"]["gateway"], page["rtupoll/site/x/y"]["gateway"]) == (
+            "site", "x")
+        # live: a new reading of one is that card's only
+        publish(broker, "rtupoll/site/x/y", json.dumps({"temperature": 90.1}))
+        until(lambda: shown(browser)["rtupoll/site/x/y"]["fields"]["temperature"] == "90.1°C",
+              "the new reading of y")
+        assert shown(browser)["rtupoll/site/x_y"]["fields"] == {"temperature": "23.5°C"}
+        browser.save_screenshot(str(tmp_path / "fleet-keys.png"))

@@ -218,7 +218,16 @@ def run_cli(*args: str) -> Any:
      "--http-token is shorter than 8 characters"),
     (["--http", "8080", "--http-user", "tech"], "--http-user 'tech': expected USER:PASSWORD"),
     (["--http-token", "long-enough-token"],
-     "--http-token and --http-user need --http HOST:PORT (or http: in the site file)"),
+     "--http-token, --http-user and the --http-... limits need --http HOST:PORT (or http: "
+     "in the site file)"),
+    (["--http", "8080", "--http-header-timeout", "0"],
+     "--http-header-timeout 0 is not a number of seconds in (0, 3600]"),
+    (["--http", "8080", "--http-idle-timeout", "nan"],
+     "--http-idle-timeout nan is not a number of seconds in (0, 3600]"),
+    (["--http", "8080", "--http-max-connections", "0"],
+     "--http-max-connections 0 is outside 1..100000"),
+    (["--http", "8080", "--http-host", "evil.com:80"],
+     "--http-host 'evil.com:80' is not a host name (a name or an address, no port)"),
 ])
 def test_bad_http_options_are_one_line_exit_2(sim: Callable[..., SimulatedBus],
                                               args: list[str], message: str) -> None:

@@ -108,3 +108,24 @@ def test_sighup_applies_http_authentication_and_address_and_refuses_a_busy_one(
                 f"http://127.0.0.1:{second}/") in lines, lines
         assert not listening(second)
         assert p.proc.poll() is None
+
+
+def test_sighup_applies_new_limits_to_new_connections(sim: Callable[..., SimulatedBus],
+                                                      tmp_path: Path) -> None:
+    bus = sim("huiwen-aq@3")
+    path = tmp_path / "site.yaml"
+    port = free_port()
+    site(path, bus.port, f"  listen: 127.0.0.1:{port}\n  max_connections: 2\n")
+    with running(["poll", "-c", str(path), "--format", "json", "--log-format", "text"],
+                 tmp_path) as p:
+        held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(2)]
+        until(lambda: get(p.url + "api/state")[0] == 503, "the third refused at the cap")
+        site(path, bus.port, f"  listen: 127.0.0.1:{port}\n  max_connections: 5\n"
+                             "  hosts: [dash.example]\n")
+        p.proc.send_signal(signal.SIGHUP)
+        until(lambda: "reload: http: limits now header_timeout 10 s, idle_timeout 60 s, "
+              "max_connections 5, hosts dash.example" in p.stderr(), "the reload's line")
+        assert get(p.url + "api/state")[0] == 200
+        assert get(p.url + "api/state", {"Host": "dash.example"})[0] == 200
+        for s in held:
+            s.close()

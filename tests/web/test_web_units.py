@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -150,6 +151,47 @@ def test_the_site_files_http_section(tmp_path: Path) -> None:
         assert message.split(": ", 1)[1].split("'")[0] in str(bad.value), str(bad.value)
 
 
+def test_the_listeners_limits_in_the_site_file_and_on_the_command_line(tmp_path: Path
+                                                                       ) -> None:
+    from rtupoll.config import http_settings as hs
+    assert (hs.HttpSettings("127.0.0.1", 1).header_timeout, hs.IDLE_TIMEOUT,
+            hs.MAX_CONNECTIONS) == (10.0, 60.0, 256)
+    path = tmp_path / "site.yaml"
+    body = ("buses:\n  - port: /dev/ttyUSB0\n    baudrate: 9600\n    devices:\n"
+            "      - {profile: huiwen-aq, address: 3}\n")
+    path.write_text("http:\n  listen: 8080\n  header_timeout: 2.5\n  idle_timeout: 30\n"
+                    "  max_connections: 40\n  hosts: [Dash.Example, '[::1]', 10.0.0.1]\n" + body)
+    site = load_site(path).http
+    assert site is not None
+    assert (site.header_timeout, site.idle_timeout, site.max_connections, site.hosts) == (
+        2.5, 30.0, 40, ("dash.example", "::1", "10.0.0.1"))
+    # the command line's, where given, over the file's
+    cli = from_options(None, None, (), {"idle_timeout": 5.0, "max_connections": None,
+                                         "hosts": ()})
+    got = merge(cli, site)
+    assert got is not None
+    assert (got.header_timeout, got.idle_timeout, got.max_connections, got.hosts) == (
+        2.5, 5.0, 40, ("dash.example", "::1", "10.0.0.1"))
+    for text, message in (("header_timeout: 0", "0 is not a number of seconds"),
+                          ("idle_timeout: 4000", "4000 is not a number of seconds"),
+                          ("max_connections: 1.5", "expected a whole number"),
+                          ("hosts: [a b]", "'a b' is not a host name")):
+        path.write_text(f"http:\n  listen: 8080\n  {text}\n" + body)
+        with pytest.raises(ConfigError, match=message) as bad:
+            load_site(path)
+        assert str(bad.value).startswith(f"{path}:3: "), str(bad.value)
+
+
+def test_the_host_names_a_loopback_listener_answers_to() -> None:
+    s = HttpSettings("127.0.0.1", 8080, hosts=("dash.example",))
+    for ok in ("localhost", "LOCALHOST.", "app.localhost", "127.0.0.1", "127.1.2.3", "[::1]",
+               "::1", "dash.example"):
+        assert s.allows_host(ok), ok
+    for foreign in ("evil.com", "localhost.evil.com", "10.0.0.1", "", "dash.example.evil",
+                    "127.0.0.1.nip.io"):
+        assert not s.allows_host(foreign), foreign
+
+
 # -- authentication ----------------------------------------------------------------------
 
 
@@ -172,6 +214,12 @@ def test_authorised() -> None:
     assert authorised(s, basic("tech:correct-horse"), none, none)
     assert not authorised(s, basic("tech:correct-horsE"), none, none)
     assert not authorised(s, basic("nobody:correct-horse"), none, none)
+    # bytes that are not ASCII (aiohttp keeps undecodable ones as surrogates): refused,
+    # never an error
+    for bad in ("Bearer th\udcffe-token", "Basic \udcff\udcfe", "Basic t\u00e9st",
+                "Basic " + base64.b64encode(b"tech:\xff").decode()):
+        assert not authorised(s, {"Authorization": bad}, none, none), bad
+    assert not authorised(s, none, {COOKIE: "\udcff"}, {"token": "\u00e9\udcff"})
     assert not authorised(s, {"Authorization": "Basic %%%"}, none, none)
     assert not authorised(s, {"Authorization": "Basic " + base64.b64encode(b"\xff").decode()},
                           none, none)
@@ -243,9 +291,10 @@ INFO = {"gateway": "a", "version": "0.1.0", "base": "rtupoll/a", "devices": {
                         "precision": 1}}}}}
 
 
-def feed(fleet: Fleet, topic: str, payload: Any) -> None:
-    fleet.on_message(topic, (payload if isinstance(payload, str) else json.dumps(payload))
-                     .encode())
+def feed(fleet: Fleet, topic: str, payload: Any) -> bool:
+    """One message, handled as ``rtupoll web`` handles it; False: dropped."""
+    return fleet.handle(topic, (payload if isinstance(payload, str) else json.dumps(payload))
+                        .encode())
 
 
 def test_the_fleet_reads_a_gateways_topics() -> None:
@@ -269,7 +318,7 @@ def test_the_fleet_reads_a_gateways_topics() -> None:
     (bus,) = gw["buses"]
     (dev,) = bus["devices"]
     assert bus["name"] == "line1"
-    assert (dev["key"], dev["state"], dev["address"]) == ("rtupoll/a/huiwen-aq@3", "online", 3)
+    assert (dev["key"], dev["state"], dev["address"]) == ("rtupoll/a/huiwen-aq_3", "online", 3)
     fields = {f["name"]: f for f in dev["fields"]}
     assert (fields["co2"]["text"], fields["co2"]["unit"], fields["co2"]["label"]) == (
         "612", "ppm", "CO2")
@@ -278,7 +327,7 @@ def test_the_fleet_reads_a_gateways_topics() -> None:
     assert fields["alarms"]["badges"] == [] and fields["alarms"]["text"] == "none"
     # a trend point at the reading's own time (last_seen), from the state message
     now[0] += 30
-    assert fleet.trend("rtupoll/a/huiwen-aq@3", "co2") == {"t": [1_800_000_000.0],
+    assert fleet.trend("rtupoll/a/huiwen-aq_3", "co2") == {"t": [1_800_000_000.0],
                                                             "v": [612.0]}
     # a failed field: no value, the gateway's own error
     feed(fleet, "rtupoll/a/huiwen-aq_3", {"co2": None, "co2_level": "GOOD", "alarms": ["fan"],
@@ -313,8 +362,8 @@ def test_two_gateways_and_their_devices_never_mix() -> None:
         feed(fleet, f"rtupoll/{gw}/huiwen-aq_3", {"co2": 600 if gw == "a" else 1400})
     keys = {d["key"]: d for g in fleet.snapshot()["gateways"] for b in g["buses"]
             for d in b["devices"]}
-    assert set(keys) == {"rtupoll/a/huiwen-aq@3", "rtupoll/b/huiwen-aq@3"}
-    assert keys["rtupoll/b/huiwen-aq@3"]["fields"][0]["value"] == 1400
+    assert set(keys) == {"rtupoll/a/huiwen-aq_3", "rtupoll/b/huiwen-aq_3"}
+    assert keys["rtupoll/b/huiwen-aq_3"]["fields"][0]["value"] == 1400
 
 
 def test_what_the_fleet_ignores() -> None:
@@ -333,3 +382,98 @@ def test_what_the_fleet_ignores() -> None:
     for i in range(MAX_WAITING + 10):  # topics of gateways never seen: bounded
         fleet.on_message(f"elsewhere/{i}", b"x")
     assert len(fleet.waiting) == MAX_WAITING
+
+
+def test_a_bad_message_is_dropped_on_its_own(caplog: pytest.LogCaptureFixture) -> None:
+    from rtupoll.web.fleet import Fleet
+    fleet = Fleet("rtupoll", "mqtt://broker:1883/rtupoll")
+    assert feed(fleet, "rtupoll/a/bridge/info", INFO)
+    huge = "9" * 400
+    with caplog.at_level(logging.WARNING, "rtupoll.web"):
+        # a 400-digit number (float() of it: OverflowError), bad JSON, wrong types, an
+        # integer too long for Python's parser, nesting too deep
+        assert feed(fleet, "rtupoll/c/bridge/info", '{"devices": {"x": {"fields": {"v": '
+                    f'{{"precision": {huge}}}}}, "address": {huge}}}}}, "gateway": {huge}}}')
+        assert feed(fleet, "rtupoll/a/huiwen-aq_3", f'{{"co2": {huge}, "temperature": 1e999}}')
+        assert not feed(fleet, "rtupoll/a/huiwen-aq_3", "{not json")
+        assert not feed(fleet, "rtupoll/a/huiwen-aq_3", "9" * 5000)
+        assert not feed(fleet, "rtupoll/a/huiwen-aq_3", "[" * 100_000)
+        assert not feed(fleet, "rtupoll/a/bridge/info", '{"devices": []}')
+        assert not feed(fleet, "rtupoll/b/bridge/info", b"\xff\xfe".decode("latin-1"))
+        assert feed(fleet, "rtupoll/a/huiwen-aq_3", {"co2": {"a": [1]}, "temperature": "hot",
+                                                     "co2_level": 5, "alarms": "fan"})
+        # and the next good message is shown
+        assert feed(fleet, "rtupoll/a/huiwen-aq_3", {"co2": 640, "temperature": 22.5})
+    (gw,) = (g for g in fleet.snapshot()["gateways"] if g["id"] == "a")
+    dev = gw["buses"][0]["devices"][0]
+    assert {f["name"]: f["text"] for f in dev["fields"]}["co2"] == "640"
+    # one line for the first, the rest counted in the next line a minute later
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and lines[0].startswith("--mqtt mqtt://broker:1883/rtupoll: "
+                                                   "dropped 1 message: 1 ")
+    assert all(r.exc_info is None for r in caplog.records)
+    assert fleet.dropped.total >= 5
+
+
+def test_device_keys_are_their_state_topics_unique_by_construction() -> None:
+    from rtupoll.web.fleet import Fleet
+    fleet = Fleet("rtupoll")
+    one = {"profile": "p", "address": 1, "bus": "b", "fields": {
+        "temperature": {"label": "T", "unit": "°C", "kind": "number", "precision": 1}}}
+    # device "x/y" of the gateway at rtupoll/site, device "y" of the one at rtupoll/site/x
+    feed(fleet, "rtupoll/site/bridge/info", {"gateway": "site", "devices": {
+        "x_y": {**one, "name": "x/y"}}})
+    feed(fleet, "rtupoll/site/x/bridge/info", {"gateway": "x", "devices": {
+        "y": {**one, "name": "y"}}})
+    feed(fleet, "rtupoll/site/x_y", {"temperature": 23.5})
+    feed(fleet, "rtupoll/site/x/y", {"temperature": 88.8})
+    shown = {d["key"]: (d["name"], d["fields"][0]["text"])
+             for g in fleet.snapshot()["gateways"] for b in g["buses"] for d in b["devices"]}
+    assert shown == {"rtupoll/site/x_y": ("x/y", "23.5"), "rtupoll/site/x/y": ("y", "88.8")}
+    assert fleet.trend("rtupoll/site/x_y", "temperature")["v"] == [23.5]
+    assert fleet.trend("rtupoll/site/x/y", "temperature")["v"] == [pytest.approx(88.8, 1e-6)]
+
+
+def test_every_size_in_the_fleet_is_bounded() -> None:
+    from rtupoll.web import fleet as f
+    fleet = f.Fleet("rtupoll")
+    # precision: at most MAX_PRECISION decimals, whatever bridge/info says
+    info = {"gateway": "a", "devices": {"d": {"fields": {
+        "v": {"label": "v", "kind": "number", "precision": 100_000_000},
+        "w": {"label": "w" * 10_000, "kind": "number", "precision": -5}}}}}
+    feed(fleet, "rtupoll/a/bridge/info", info)
+    feed(fleet, "rtupoll/a/d", {"v": 1.5, "w": 2.25, "junk": "x" * 100_000})
+    state = json.dumps(fleet.snapshot())
+    assert len(state) < 2_000
+    fields = fleet.snapshot()["gateways"][0]["buses"][0]["devices"][0]["fields"]
+    assert [x["text"] for x in fields] == ["1.500000", "2"]
+    assert len(fields[1]["label"]) == f.MAX_TEXT
+    # fields per gateway
+    many = {"gateway": "b", "devices": {f"d{i}": {"fields": {
+        f"x{j}": {"kind": "number"} for j in range(100)}} for i in range(50)}}
+    feed(fleet, "rtupoll/b/bridge/info", many)
+    shown = sum(len(d["fields"]) for g in fleet.snapshot()["gateways"] if g["id"] == "b"
+                for b in g["buses"] for d in b["devices"])
+    assert shown == f.MAX_FIELDS
+    # messages of unknown gateways: bounded in bytes, not only in count
+    for i in range(100):
+        fleet.handle(f"elsewhere/{i}", b"x" * 500_000)
+    assert fleet.waiting_bytes <= f.MAX_WAITING_BYTES
+    assert sum(len(t) + len(p) for t, p in fleet.waiting.items()) == fleet.waiting_bytes
+    assert not fleet.handle("elsewhere/big", b"x" * (f.MAX_MESSAGE + 1))
+    # gateways
+    for i in range(f.MAX_GATEWAYS + 5):
+        fleet.handle(f"rtupoll/g{i}/bridge/info", json.dumps({"devices": {}}).encode())
+    assert len(fleet.gateways) == f.MAX_GATEWAYS
+
+
+def test_the_fleet_shows_kelvin_as_celsius_as_a_polling_process_does() -> None:
+    """A gateway publishes its device's unit (the IRNET's K, bridge/info says so); the
+    fleet's page shows it as every screen does (``model.interpret.shown_number``)."""
+    from rtupoll.web.fleet import field_json, shown_value
+    meta = {"label": "Sensor temperature", "unit": "K", "kind": "number", "precision": 2}
+    got = field_json("temperature", meta, {"temperature": 296.67}, 1.8e9, "")
+    assert (got["value"], got["text"], got["unit"]) == (23.52, "23.52", "°C")
+    offset = {**meta, "label": "Temperature offset"}  # a difference moves by no 273.15
+    assert shown_value("temperature_offset", offset, 1.5) == 1.5
+    assert shown_value("co2", {"unit": "ppm"}, 612) == 612

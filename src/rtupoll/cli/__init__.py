@@ -63,6 +63,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "set-address": ("rtupoll.cli.address:set_address", "Give a device a new address, verified."),
     "scan": ("rtupoll.cli.scan:scan", "Find and identify the devices on a bus."),
     "guess": ("rtupoll.cli.guess:guess", "Rank interpretations of an unknown device's registers."),
+    "send": ("rtupoll.cli.send:send", "Send one request of any function, decoded and raw."),
     "decode": ("rtupoll.cli.decode:decode", "Decode captured RTU frames."),
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
     "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -63,7 +63,7 @@ if TYPE_CHECKING:
                    "for CO2Meter boards) when none of them is on this bus.")
 @format_option("text", "json")
 @profiles_option
-def set_address(device: str | None, new: str | None, port: str, baudrate: int | None,
+def set_address(device: str | None, new: str | None, port: str | None, baudrate: int | None,
                 parity: str | None, stopbits: str | None, timeout: float | None,
                 retries: int | None, plan_file: Path | None, interactive: bool, dry_run: bool,
                 yes: bool, allow_reserved: bool, fmt: str, profile_dirs: tuple[Path, ...]
@@ -129,8 +129,10 @@ def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Co
           fmt: str) -> None:
     """Run the rows, reporting each as it ends; then fail with the first failure's code."""
     report = _reporter(fmt)
+    asks = _next_sensor(changes) if sys.stdin.isatty() else None
     try:
-        results = run_on_bus(settings, lambda bus: run_plan(commissioner(bus), changes, report))
+        results = run_on_bus(settings,
+                             lambda bus: run_plan(commissioner(bus), changes, report, asks))
     except PlanInterrupted as exc:  # every row was reported; the summary, then exit 130
         _summary(exc.results, fmt)
         raise
@@ -138,6 +140,23 @@ def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Co
     for row, result in enumerate(results, 1):
         if result.error is not None:
             raise PlanFailed(row, result.error)
+
+
+def _next_sensor(changes: list[Change]) -> Callable[[Change, bool], Awaitable[bool]]:
+    """On a terminal, a shared row whose sensor is not there yet asks for it."""
+    rows = {id(c): n for n, c in enumerate(changes, 1)}
+
+    async def ask(change: Change, again: bool) -> bool:
+        if again:
+            click.echo(f"No sensor answers at {change.old}: check its wiring and power.",
+                       err=True)
+        click.echo(f"Connect the sensor for row {rows[id(change)]} ({change.profile.id}, to "
+                   f"become {change.new}) alone at address {change.old}, then press Enter "
+                   "(q to stop): ", nl=False, err=True)
+        line = sys.stdin.readline()  # the bus is idle: nothing else runs meanwhile
+        return bool(line) and line.strip().lower() not in ("q", "quit", "exit")
+
+    return ask
 
 
 def _address(text: str) -> int:
@@ -150,6 +169,13 @@ def _address(text: str) -> int:
 def _dry_run(changes: list[Change]) -> None:
     frames = [dry_run(change) for change in changes]  # refusals first, before any output
     click.echo("Dry run: nothing is sent. '??' marks bytes that depend on a value read first.")
+    shared = sorted({c.old for c in changes if c.shared})
+    for old in shared:
+        rows = [n for n, c in enumerate(changes, 1) if c.old == old]
+        click.echo(f"Rows {', '.join(map(str, rows))} each expect a device at {old}: connect "
+                   "them one at a time. On a terminal the plan asks for each in turn; "
+                   "otherwise run it again after connecting the next (the rows done are "
+                   "verified and skipped).")
     for change, steps in zip(changes, frames, strict=True):
         click.echo(f"{change.label}" + (f" ({change.where})" if change.where else ""))
         for frame, why in steps:

@@ -245,7 +245,8 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
         if served is not None:
             raise UsageError("with --config, set serve: per bus in the site file")
         if given_line_options() != LineOptions():
-            raise UsageError("with --config, set echo: and rs485: per bus in the site file")
+            raise UsageError("with --config, set echo:, rs485: and idle_gap: per bus in the "
+                             "site file")
         site = load_site(config, profile_dirs)
     else:
         if not port and devices:
@@ -318,8 +319,18 @@ def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: b
     assert settings is not None
     if remove:
         gone = mqtt_out.remove_discovery_now(settings, site)
-        click.echo(f"rtupoll: removed {len(gone)} Home Assistant discovery configs from "
-                   f"{settings.where} ({settings.discovery_prefix}/device/...)", err=True)
+        if not gone.configs and not gone.topics:
+            click.echo(f"rtupoll: nothing to remove: {settings.where} holds no Home "
+                       f"Assistant discovery config of gateway {settings.gateway_id!r} and "
+                       f"no retained topic under {settings.base}", err=True)
+        else:
+            from rtupoll.figures import count
+
+            configs = count(len(gone.configs), "Home Assistant discovery config")
+            click.echo(f"rtupoll: removed {configs} ({settings.discovery_prefix}/device/...)"
+                       f" and {count(len(gone.topics), 'retained topic')} under "
+                       f"{settings.base} (bridge state and info, availability) from "
+                       f"{settings.where}", err=True)
         return True
     # under the live table its news is a footer line rather than log lines
     services.append(mqtt_out.MqttService(settings, site, once=once,
@@ -362,10 +373,11 @@ def _split(fields: str | None) -> list[str]:
 
 
 def _with_line_options(site: Site) -> Site:
-    """--echo and --rs485 on every bus of a site made from the command line."""
+    """--echo, --rs485 and --idle-gap on every bus of a site made from the command line."""
     given = given_line_options()
     return dataclasses.replace(site, buses=tuple(
-        dataclasses.replace(b, echo=given.echo, rs485=given.rs485) for b in site.buses))
+        dataclasses.replace(b, echo=given.echo, rs485=given.rs485, idle_gap=given.idle_gap)
+        for b in site.buses))
 
 
 @contextlib.contextmanager
@@ -414,6 +426,7 @@ def _run(site: Site, *, once: bool, fmt: str, output: Path | None, title: str,
             readings = aio.run(_once(scheduler, writer, services))
             if view is not None and console is not None:
                 console.print(view.render(width=console.width))
+            _echo_found(scheduler)
             _report_failures(site, readings)
         else:
             aio.run(_forever(scheduler, writer, view, console, services))
@@ -546,6 +559,15 @@ async def _paint(live: Live, stop: asyncio.Event) -> None:
         if stop.is_set():
             return
         live.refresh()
+
+
+def _echo_found(scheduler: Scheduler) -> None:
+    """``--once``: one stderr line per bus whose adapter's echo was found (and consumed)."""
+    from rtupoll.rtu.line import ECHO_FOUND
+
+    for bp in scheduler.buses:
+        if getattr(bp.transport, "echo_found", False):
+            click.echo(f"rtupoll: {bp.config.name}: {ECHO_FOUND}", err=True)
 
 
 def _report_failures(site: Site, readings: Sequence[Reading]) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -126,7 +126,8 @@ def matches(p: Profile, text: str) -> str:
                         ("source", " ".join(d.title for d in p.provenance.sources))):
         if needle in value.lower():
             return what
-    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()]
+    names = [f.name for f in p.fields if needle in f.name or needle in f.description.lower()
+             or needle in f.label.lower()]
     return f"field {', '.join(names[:3])}" + (" ..." if len(names) > 3 else "") if names else ""
 
 
@@ -147,30 +148,47 @@ def _print_profiles(rows: list[Profile], fmt: str, title: str,
     from rich.console import Console
     from rich.table import Table as RichTable
     from rich.text import Text
-    t = RichTable(title=title, box=box.SIMPLE_HEAD, pad_edge=False)
-    t.add_column("kind / id", no_wrap=True, style="bold")
-    t.add_column("device", ratio=1)
-    t.add_column("serial", no_wrap=True)
-    t.add_column("fields", justify="right")
-    t.add_column("verified", no_wrap=True)
+    console = Console()
     user = [p for p in rows if Path(p.path).parent != bundled_dir()]
-    if why is not None or user:
-        t.add_column("matches" if why is not None else "from", ratio=1 if why else None)
+    extra = "matches" if why is not None else "from" if user else ""
+    # one line a profile at 80 columns: the id, what a search matched and the short
+    # columns keep their width, the device's name gives way ('profiles show' has it
+    # whole), and a narrow search leaves out serial settings and field counts
+    wide = not extra or console.width >= 100
+    kinds = {p.kind or "other" for p in rows}
+    columns: list[tuple[str, int, dict[str, Any]]] = [
+        ("kind / id", max(*(len(p.id) + 2 for p in rows), *map(len, kinds)),
+         {"style": "bold"})]
+    if wide:
+        columns += [("serial", 10, {}), ("fields", 6, {"justify": "right"})]
+    columns.append(("verified", 10, {}))
+    if extra:
+        columns.append((extra, max(len(why[p.id] if why is not None else "bundled"
+                                       if p not in user else p.path) for p in rows), {}))
+    t = RichTable(title=title, box=box.SIMPLE_HEAD, pad_edge=False)
+    for n, (name, width, style) in enumerate(columns):
+        t.add_column(name, no_wrap=True, min_width=width, **style)
+        if not n:
+            t.add_column("device", no_wrap=True, overflow="ellipsis")
     kind = None
     for p in rows:
         if p.kind != kind:
             kind = p.kind
             t.add_row(Text(kind or "other", style="bold underline"))
         s = p.serial
-        cells: list[str | Text] = ["  " + p.id, f"{p.vendor} {p.model}",
-                 f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}", str(len(p.fields)),
-                 level_text(p)]
+        cells: list[str | Text] = ["  " + p.id, f"{p.vendor} {p.model}"]
+        if wide:
+            cells += [f"{s.baudrate} {s.bytesize}{s.parity}{s.stopbits}", str(len(p.fields))]
+        cells.append(level_text(p))
         if why is not None:
             cells.append(why[p.id])
         elif user:
             cells.append("bundled" if p not in user else p.path)
         t.add_row(*cells)
-    Console().print(t)
+    device = t.columns[1]
+    device.width = 0  # what the other columns, their padding and the edges leave
+    device.width = max(console.width - console.measure(t).maximum, 10)
+    console.print(t)
 
 
 @profiles.command("show")
@@ -228,7 +246,9 @@ _TABLE = {"coil": "co", "discrete": "di", "input": "ir", "holding": "hr"}
 @click.argument("files", nargs=-1, required=True, type=click.Path(path_type=Path))
 def check(files: tuple[Path, ...]) -> None:
     """Validate profile files (a directory: its *.yaml); print file:line: field: error for
-    each bad one. Each file is checked on its own: one that fails never hides another's."""
+    each bad one, and file:line: field: warning: for what loads but is doubtful (two
+    fields with one title, a title that is only a unit). Each file is checked on its own:
+    one that fails never hides another's."""
     bad = 0
     paths = [q for f in files for q in (sorted(f.glob("*.yaml")) if f.is_dir() else [f])]
     for path in paths:
@@ -243,7 +263,11 @@ def check(files: tuple[Path, ...]) -> None:
                 if where and Path(where) != path else ""
             click.echo(f"{parent}{exc}", err=True)
         else:
-            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields)")
+            for warning in p.warnings:  # doubtful, not wrong: the profile still loads
+                click.echo(warning, err=True)
+            n = len(p.warnings)
+            click.echo(f"{path}: ok ({p.id}, {len(p.fields)} fields"
+                       + (f", {n} warning{'s' if n != 1 else ''}" if n else "") + ")")
     if bad:
         raise ProfileError(f"{bad} of {len(paths)} profile(s) have errors")
 
@@ -330,7 +354,10 @@ def _describe(f: Field) -> str:
                  f"every {f.interval:g} s"]
     tags += [f"{f.precision} decimals"] if f.precision is not None else []
     tags += [f"{_code(k, f)} = {c.name}" for k, c in f.sentinels.items()]
-    return " ".join([f.description] + [f"[{t}]" for t in tags]).strip()
+    # a label (the name people see in Home Assistant and on the dashboard) leads
+    text = f"{f.label}: {f.description}" if f.label and f.description else f.label \
+        or f.description
+    return " ".join([text] + [f"[{t}]" for t in tags]).strip()
 
 
 def _code(k: int | float, f: Field) -> str:

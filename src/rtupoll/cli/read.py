@@ -19,7 +19,6 @@ from rtupoll.cli.target import (
     Target,
     load_target,
     need_port,
-    port_optional,
     port_settings,
     run_on_bus,
     speed_note,
@@ -29,7 +28,7 @@ from rtupoll.errors import FrameError, RefusedError, UsageError
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.device import timing as device_timing
 from rtupoll.model.codec import ByteOrder, words_to_hex
-from rtupoll.model.interpret import FieldValue, interpret
+from rtupoll.model.interpret import FieldValue, display, display_unit, interpret
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
 from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import READ_KEYS, record
@@ -97,7 +96,6 @@ def fields_of(profile: Profile, names: Sequence[str], force: bool) -> list[Field
     return fields
 
 
-@port_optional
 @click.command()
 @click.argument("device", metavar="DEVICE")
 @click.argument("items", nargs=-1, metavar="[FIELD|SPEC]...")
@@ -270,13 +268,14 @@ def table(target: Target, rows: list[Row], hex_: bool, title: str = "") -> None:
         elif f.layout.type.value in ("u8", "i8"):
             address += f" {f.layout.byte} byte"
         if fv is None:
-            cells = [f.name, f"[dim]{why}[/]", f.unit, address]
+            cells = [f.name, f"[dim]{why}[/]", display_unit(f), address]
             if hex_:
                 cells.append("")
         else:
             style = SEVERITY_STYLE[fv.severity.value]
-            value = f"[{style}]{_esc(fv.text)}[/]" if style else _esc(fv.text)
-            cells = [f.name, value, f.unit, address]
+            text, unit = display(fv)  # kelvin as °C, as the live table shows it
+            value = f"[{style}]{_esc(text)}[/]" if style else _esc(text)
+            cells = [f.name, value, unit, address]
             if hex_:
                 cells.append(words_to_hex(fv.raw) if f.table.is_register
                              else " ".join(str(b) for b in fv.raw))

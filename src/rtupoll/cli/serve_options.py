@@ -10,6 +10,9 @@ from click.core import ParameterSource
 
 from rtupoll.cli.params import Seconds
 from rtupoll.config.gateway_settings import (
+    DEFAULT_CLIENT_QUEUE,
+    DEFAULT_MAX_CLIENTS,
+    DEFAULT_MAX_PER_ADDRESS,
     DEFAULT_QUEUE,
     DEFAULT_TIMEOUT,
     ServeConfig,
@@ -43,7 +46,20 @@ def serve_options(f: F) -> F:
                           "registers and send it state-changing diagnostics (repeatable)."),
         click.option("--serve-queue", "serve_queue", type=click.IntRange(1, 1000),
                      default=DEFAULT_QUEUE, show_default=True,
-                     help="--serve: requests that may wait for the line; more get 0x0A."),
+                     help="--serve: requests beyond each client's first that may wait for "
+                          "the line (all clients together); more get 0x0A."),
+        click.option("--serve-client-queue", "serve_client_queue", type=click.IntRange(1, 100),
+                     default=DEFAULT_CLIENT_QUEUE, show_default=True,
+                     help="--serve: one client's requests that may wait; beyond, rtupoll "
+                          "stops reading from it until its replies are read."),
+        click.option("--serve-max-clients", "serve_max_clients",
+                     type=click.IntRange(1, 10000), default=DEFAULT_MAX_CLIENTS,
+                     show_default=True,
+                     help="--serve: connections at once; more are closed as they come."),
+        click.option("--serve-max-per-address", "serve_max_per_address",
+                     type=click.IntRange(1, 10000), default=DEFAULT_MAX_PER_ADDRESS,
+                     show_default=True,
+                     help="--serve: connections at once from one client address."),
         click.option("--serve-timeout", "serve_timeout", type=Seconds(0.01, 30),
                      default=DEFAULT_TIMEOUT, show_default=True,
                      help="--serve: response timeout for units rtupoll does not poll."),
@@ -64,4 +80,6 @@ def from_options(opts: Mapping[str, Any]) -> ServeConfig | None:
     return serve_config(listen, allow=opts["serve_allow"], read_only=opts["serve_read_only"],
                         cache=opts["serve_cache"], broadcast=opts["serve_broadcast"],
                         setup_writes=opts["serve_setup_writes"], queue=opts["serve_queue"],
-                        timeout=opts["serve_timeout"])
+                        timeout=opts["serve_timeout"], client_queue=opts["serve_client_queue"],
+                        max_clients=opts["serve_max_clients"],
+                        max_per_address=opts["serve_max_per_address"])

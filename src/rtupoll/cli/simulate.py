@@ -93,7 +93,9 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
     if tcp is not None and (":" not in tcp or not tcp.rpartition(":")[2].isdigit()
                             or int(tcp.rpartition(":")[2]) > 65535):
         raise UsageError(f"--tcp {tcp!r} is not HOST:PORT, PORT 0..65535 (e.g. 127.0.0.1:5020)")
-    t0 = time.monotonic()
+    from rtupoll.io import clock as line_clock
+
+    t0 = line_clock.now()  # (the wire log's clock)
     if replay is not None:
         from rtupoll.sim.replay import replay_lines
 

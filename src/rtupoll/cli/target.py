@@ -57,15 +57,6 @@ def load_target(text: str, profile_dirs: Iterable[Path] = (), *, bare_ok: bool =
     return Target(note_use(load_one(pid, profile_dirs)) if pid else None, unit)
 
 
-def port_optional(command: click.Command) -> click.Command:
-    """Make ``--port`` optional in click, so ``need_port`` can say where a port comes from
-    (click's own message does not mention $RTUPOLL_PORT)."""
-    for p in command.params:
-        if p.name == "port":
-            p.required = False
-    return command
-
-
 def need_port(port: str | None) -> str:
     if not port:
         from rtupoll.io.port_errors import example_port
@@ -75,14 +66,15 @@ def need_port(port: str | None) -> str:
     return port
 
 
-def port_settings(profile: Profile | None, port: str, baudrate: int | None, parity: str | None,
-                  stopbits: str | None) -> PortSettings:
-    """The profile's serial settings (9600 8N1 without one), each overridable."""
+def port_settings(profile: Profile | None, port: str | None, baudrate: int | None,
+                  parity: str | None, stopbits: str | None) -> PortSettings:
+    """The profile's serial settings (9600 8N1 without one), each overridable; the port
+    from --port or $RTUPOLL_PORT (``need_port`` says so when neither is given)."""
     from rtupoll.io.serialport import PortSettings
 
     s = profile.serial if profile else None
     return PortSettings(
-        port=port,
+        port=need_port(port),
         baudrate=baudrate or (s.baudrate if s else 9600),
         parity=(parity or (s.parity if s else "N")).upper(),
         bytesize=s.bytesize if s else 8,
@@ -93,12 +85,14 @@ def port_settings(profile: Profile | None, port: str, baudrate: int | None, pari
 
 
 def line_settings() -> dict[str, Any]:
-    """``PortSettings``' echo and rs485 from --echo and --rs485 (``cli.options``)."""
+    """``PortSettings``' echo, rs485 and idle_gap from --echo, --rs485 and --idle-gap
+    (``cli.options``)."""
     from rtupoll.cli.options import given_line_options
     from rtupoll.io.serialport import Rs485
 
     given = given_line_options()
-    return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None}
+    return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None,
+            "idle_gap": given.idle_gap}
 
 
 def timing_options(f: F) -> F:

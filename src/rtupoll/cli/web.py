@@ -9,6 +9,7 @@ itself and says so on the page.
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote, urlsplit
 
@@ -56,8 +57,17 @@ def web(url: str, **opts: Any) -> None:
     if warning := http.warning():
         click.echo(f"rtupoll: {warning}", err=True)
     from rtupoll import aio
+    from rtupoll.ui import logs
 
-    aio.run(_main(settings, prefix, http))
+    root = logging.getLogger("rtupoll")
+    level = root.level
+    # the dropped messages and refused connections, one line a minute, as poll logs them
+    handler = logs.setup("text", level=logging.WARNING)
+    try:
+        aio.run(_main(settings, prefix, http))
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
 
 
 async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
@@ -84,6 +94,7 @@ async def _main(settings: MqttSettings, prefix: str, http: Any) -> None:
         reader.cancel()
         await asyncio.gather(reader, return_exceptions=True)
         await server.stop()
+        fleet.dropped.flush()
 
 
 async def _read(fleet: Fleet, settings: MqttSettings, prefix: str,
@@ -104,7 +115,7 @@ async def _read(fleet: Fleet, settings: MqttSettings, prefix: str,
                     payload = message.payload
                     if not isinstance(payload, bytes):
                         payload = str(payload if payload is not None else "").encode()
-                    fleet.on_message(str(message.topic), payload)
+                    fleet.handle(str(message.topic), payload)  # never raises
         except asyncio.CancelledError:
             raise
         except Exception as exc:  # aiomqtt.MqttError, OSError: the broker went away

@@ -89,7 +89,7 @@ def plan_fields(target: Target, assignments: tuple[str, ...]) -> list[WriteOp]:
 @click.option("--yes", "-y", is_flag=True, help="Do not ask for confirmation (scripts).")
 @format_option("table", "json", "csv")
 @profiles_option
-def write(device: str, assignments: tuple[str, ...], port: str, baudrate: int | None,
+def write(device: str, assignments: tuple[str, ...], port: str | None, baudrate: int | None,
           parity: str | None, stopbits: str | None, timeout: float | None,
           retries: int | None, raw: bool, addressing: str, type_name: str, order: str | None,
           function: str | None, yes: bool, fmt: str, profile_dirs: tuple[Path, ...]) -> None:

@@ -20,6 +20,8 @@ YAML (a list, or a mapping with ``changes:``)::
 from __future__ import annotations
 
 import csv
+import dataclasses
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -61,7 +63,8 @@ def load_plan(path: Path, profile_dirs: Iterable[Path] = (),
     if not changes:
         raise ConfigError("the plan has no rows", file=str(path), line=1)
     _no_clashes(path, changes)
-    return changes
+    olds = Counter(c.old for c in changes)
+    return [dataclasses.replace(c, shared=True) if olds[c.old] > 1 else c for c in changes]
 
 
 def _csv_rows(path: Path) -> list[tuple[int, dict[str, str]]]:

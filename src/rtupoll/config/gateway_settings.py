@@ -19,11 +19,16 @@ if TYPE_CHECKING:
 
 Network = ipaddress.IPv4Network | ipaddress.IPv6Network
 LOOPBACK = "127.0.0.1"
-DEFAULT_QUEUE = 16  # client requests waiting for the line, per bus; more: exception 0x0A
+DEFAULT_QUEUE = 16  # client requests waiting for the line beyond each client's first
+#                     (all clients together, per bus); more: exception 0x0A
+DEFAULT_CLIENT_QUEUE = 4  # one client's requests waiting; beyond: its replies are not
+#                            read, so rtupoll stops reading its requests (back-pressure)
+DEFAULT_MAX_CLIENTS = 32  # connections per listener; more are closed as they come
+DEFAULT_MAX_PER_ADDRESS = 8  # connections from one client address
 DEFAULT_TIMEOUT = 0.5  # seconds, for a unit rtupoll does not poll (a polled one: its own)
 SCHEMES = {"tcp": "mbap", "modbus": "mbap", "rtu+tcp": "rtu"}
 SERVE_KEYS = {"listen", "allow", "read_only", "cache", "broadcast", "setup_writes", "queue",
-              "timeout"}
+              "timeout", "client_queue", "max_clients", "max_per_address"}
 
 
 @frozen
@@ -39,6 +44,9 @@ class ServeConfig:
     #                                       and baud-rate registers clients may write
     queue: int = DEFAULT_QUEUE
     timeout: float = DEFAULT_TIMEOUT
+    client_queue: int = DEFAULT_CLIENT_QUEUE
+    max_clients: int = DEFAULT_MAX_CLIENTS
+    max_per_address: int = DEFAULT_MAX_PER_ADDRESS
 
     @property
     def url(self) -> str:
@@ -90,11 +98,15 @@ def parse_networks(texts: Sequence[str]) -> tuple[Network, ...]:
 
 def serve_config(listen: str, *, allow: Sequence[str] = (), read_only: bool = False,
                  cache: float = 0.0, broadcast: bool = False, setup_writes: Sequence[int] = (),
-                 queue: int = DEFAULT_QUEUE, timeout: float = DEFAULT_TIMEOUT) -> ServeConfig:
+                 queue: int = DEFAULT_QUEUE, timeout: float = DEFAULT_TIMEOUT,
+                 client_queue: int = DEFAULT_CLIENT_QUEUE,
+                 max_clients: int = DEFAULT_MAX_CLIENTS,
+                 max_per_address: int = DEFAULT_MAX_PER_ADDRESS) -> ServeConfig:
     """The numbers come checked: by click's ranges (``cli.serve_options``) or ``from_node``."""
     framing, host, port = parse_listen(listen)
     return ServeConfig(host, port, framing, parse_networks(allow), read_only, cache, broadcast,
-                       frozenset(setup_writes), queue, timeout)
+                       frozenset(setup_writes), queue, timeout, client_queue, max_clients,
+                       max_per_address)
 
 
 def from_node(node: Node) -> ServeConfig:
@@ -127,4 +139,10 @@ def from_node(node: Node) -> ServeConfig:
         listen, allow=allow, cache=cache, timeout=timeout, setup_writes=units,
         read_only=m["read_only"].flag() if "read_only" in m else False,
         broadcast=m["broadcast"].flag() if "broadcast" in m else False,
-        queue=m["queue"].integer(1, 1000) if "queue" in m else DEFAULT_QUEUE)
+        queue=m["queue"].integer(1, 1000) if "queue" in m else DEFAULT_QUEUE,
+        client_queue=m["client_queue"].integer(1, 100) if "client_queue" in m
+        else DEFAULT_CLIENT_QUEUE,
+        max_clients=m["max_clients"].integer(1, 10000) if "max_clients" in m
+        else DEFAULT_MAX_CLIENTS,
+        max_per_address=m["max_per_address"].integer(1, 10000) if "max_per_address" in m
+        else DEFAULT_MAX_PER_ADDRESS)

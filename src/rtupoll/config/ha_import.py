@@ -159,7 +159,8 @@ class Entry:
             if key not in self.used:
                 reason = why.get(key, "rtupoll has no such setting")
                 who = f"{name!r}: " if name else ""
-                report.append(_at(node, f"not carried over: {who}{key} ({reason})"))
+                shown = key if _NAME.fullmatch(key) else "a key that is no setting's name"
+                report.append(_at(node, f"not carried over: {who}{shown} ({reason})"))
 
 
 # why a hub or sensor setting has no rtupoll counterpart (anything else: a generic note)
@@ -180,8 +181,22 @@ _SENSOR_NOTES = {
 }
 
 
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_ -]{0,63}")  # a setting's or a hub's key
+
+
+def _shown(path: str) -> str:
+    """A node's dotted path as a message shows it: a key that is no plain name (a
+    line of some other file, a value put where a key goes) as ``?``, never echoed."""
+    parts = []
+    for part in path.split("."):
+        key, sep, index = part.partition("[")
+        parts.append((key if not key or _NAME.fullmatch(key) else "?") + sep + index)
+    return ".".join(parts)
+
+
 def _at(node: Node, message: str) -> str:
-    return f"{node.file}:{node.line}: {node.path}: {message}"
+    path = _shown(node.path)
+    return f"{node.file}:{node.line}: {path + ': ' if path else ''}{message}"
 
 
 def _hub(tree: HaYaml, node: Node, report: list[str]) -> Hub | None:

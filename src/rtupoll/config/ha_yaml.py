@@ -10,6 +10,11 @@ up to the configuration's own; ``!env_var NAME [DEFAULT]`` reads the environment
 Each resolved node keeps its own file and line, so a note about an included sensor
 names the included file. Secret values are returned to the caller, never put into a
 message. Bounded: at most ``MAX_FILES`` files and ``MAX_DEPTH`` nested includes.
+
+A configuration from a forum or a customer is untrusted: every file it includes must be
+in the configuration's own folder or below it, symbolic links resolved (``!include
+/etc/shadow``, ``../../secrets.yaml`` or a link out of the folder is a ``file:line``
+error naming the tag, and the file is never opened).
 """
 
 from __future__ import annotations
@@ -90,9 +95,23 @@ class HaYaml:
     def _target(self, node: Node) -> Path:
         if not isinstance(node.node.value, str) or not node.node.value.strip():
             raise node.fail(f"{tag(node)} needs a file or folder name")
-        return Path(node.file).parent / node.node.value.strip()
+        path = Path(node.file).parent / node.node.value.strip()
+        self._confined(node, path)
+        return path
+
+    def _confined(self, at: Node, path: Path, *, of_folder: bool = False) -> None:
+        """Refuse ``path`` outside the configuration's folder (links resolved)."""
+        what = f"{tag(at)} {at.node.value}: " + (f"{path.name} " if of_folder else "")
+        try:
+            real = path.resolve()
+        except (OSError, RuntimeError):  # a link loop
+            raise at.fail(f"{what}cannot be resolved") from None
+        if real != self.top and self.top not in real.parents:
+            raise at.fail(f"{what}{'links ' if of_folder else ''}outside the configuration's "
+                          f"folder ({self.top}); only files in it and below it are read")
 
     def _load(self, at: Node, path: Path) -> Node:
+        self._confined(at, path, of_folder=tag(at) != "!include")  # (a link out of it)
         if not path.is_file():
             raise at.fail(f"{tag(at)} {at.node.value}: no such file ({path})")
         self._files += 1
@@ -115,7 +134,7 @@ class HaYaml:
         name = str(node.node.value).strip()
         here = Path(node.file).parent.resolve()
         while True:
-            secrets = self._secrets_in(here)
+            secrets = self._secrets_in(here, node)
             if secrets is not None and name in secrets:
                 return self.text(secrets[name])
             if here == self.top or here.parent == here or self.top not in here.parents:
@@ -124,9 +143,11 @@ class HaYaml:
         raise node.fail(f"!secret {name}: not found in {SECRETS} beside the file "
                         f"or above it")
 
-    def _secrets_in(self, folder: Path) -> dict[str, Node] | None:
+    def _secrets_in(self, folder: Path, at: Node) -> dict[str, Node] | None:
         if folder not in self._secrets:
             path = folder / SECRETS
+            if path.is_file():
+                self._confined(at, path, of_folder=True)
             self._secrets[folder] = load(path, ConfigError).mapping() if path.is_file() \
                 else None
         return self._secrets[folder]

@@ -58,9 +58,9 @@ class Library:
     def get(self, pid: str) -> Profile:
         if pid in self.profiles:
             return self.profiles[pid]
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(pid, list(self.profiles), n=1)
+        hint = close_names(pid, self.profiles)
         raise UsageError(f"no profile {pid!r}" + (f" (did you mean {hint[0]!r}?)" if hint else "")
                          + "; see 'rtupoll profiles list'")
 

@@ -22,6 +22,7 @@ from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
 from rtupoll.errors import EncodeError
 from rtupoll.model.codec import ByteOrder, DataType, Layout, bits_range, encode
 from rtupoll.model.profile import (
+    MAX_LABEL,
     AddressChange,
     Addresses,
     Addressing,
@@ -37,7 +38,11 @@ from rtupoll.model.profile import (
     Severity,
     Variant,
     Verification,
+    idle_gap_error,
+    is_modicon_reference,
+    squashed,
 )
+from rtupoll.numbers import parse_int
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 
@@ -50,11 +55,11 @@ _ORDERS = [o.value for o in ByteOrder]
 _TOP_KEYS = {"id", "vendor", "model", "manual", "notes", "serial", "addressing", "addresses",
              "limits", "byte_order", "byteorder", "wordorder", "fields", "identify",
              "set_address", "variant", "kind", "extends", "without",
-             "provenance"}
+             "provenance", "identification", "server_id"}
 _FIELD_KEYS = {"name", "table", "address", "type", "length", "order", "byteorder", "wordorder",
                "byte", "scale", "offset", "unit", "description", "access", "enum", "flags",
                "range", "values", "poll", "alone", "since", "source", "sentinels", "precision",
-               "interval", "counter", "typical", "scale_by", "decode"}
+               "interval", "counter", "typical", "scale_by", "decode", "label"}
 
 
 def read_profile(path: Path) -> tuple[Profile, list[Source]]:
@@ -84,6 +89,7 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
     _check_fields(_Fields(anchor, [field_nodes[i] for i in plain]), [fields[i] for i in plain])
     _check_shared(field_nodes, fields)
     scale_by.check(field_nodes, fields)
+    warnings = _check_titles(field_nodes, fields)
     by_name = {f.name: f for f in fields}
 
     profile = Profile(
@@ -107,6 +113,10 @@ def read_profile(path: Path) -> tuple[Profile, list[Source]]:
         variant=_variant(top["variant"], by_name) if "variant" in top else None,
         provenance=_provenance(top["provenance"]) if "provenance" in top else Provenance(),
         path=str(path),
+        identification=_identification(top["identification"])
+        if "identification" in top else (),
+        server_id=_hex_bytes(top["server_id"]) if "server_id" in top else b"",
+        warnings=warnings,
     )
     if path.stem != pid:
         raise top["id"].fail(f"id {pid!r} must match the file name {path.name!r}")
@@ -248,7 +258,7 @@ def _serial(node: Node) -> Serial:
 
 def _limits(node: Node) -> Limits:
     m = node.mapping({"max_registers", "max_gap", "functions", "timeout", "retries",
-                      "turnaround", "silent_on_error", "lost_after_powerup"})
+                      "turnaround", "silent_on_error", "lost_after_powerup", "idle_gap"})
     d = Limits()
     timeout = m["timeout"].number() if "timeout" in m else d.timeout
     if not 0.01 <= timeout <= 30:
@@ -264,7 +274,18 @@ def _limits(node: Node) -> Limits:
         turnaround=_opt(m, "turnaround", Node.number, d.turnaround),
         silent_on_error=_opt(m, "silent_on_error", Node.flag, False),
         lost_after_powerup=_opt(m, "lost_after_powerup", lambda n: n.integer(0, 100), 0),
+        idle_gap=_opt(m, "idle_gap", idle_gap, 0.0),
     )
+
+
+
+def idle_gap(node: Node) -> float:
+    """An ``idle_gap:`` in seconds (a profile's ``limits``; a site file's device or bus)."""
+    gap = node.number()
+    why = idle_gap_error(gap)
+    if why:
+        raise node.fail(why)
+    return float(gap)
 
 
 def _addresses(node: Node) -> Addresses:
@@ -360,16 +381,69 @@ def _field(node: Node, addressing: Addressing, default_order: ByteOrder, limits:
         interval=_opt(m, "interval", _interval, None), counter=counter,
         typical=_typical(m["typical"], layout) if "typical" in m else None, line=node.line,
         scale_by=scale_by.names(m["scale_by"]) if "scale_by" in m else (), transform=transform,
+        label=_label(m["label"]) if "label" in m else "",
     )
+
+
+def _label(node: Node) -> str:
+    """``label``: the field's short name for people, one line of at most MAX_LABEL
+    characters (what else a label must be is checked with the other fields')."""
+    text = node.text()
+    if not text.strip():
+        raise node.fail("an empty label")
+    if text != text.strip() or any(c in text for c in "\n\r\t"):
+        raise node.fail(f"{text!r}: a label is one line, with no spaces at its ends")
+    if len(text) > MAX_LABEL:
+        raise node.fail(f"{len(text)} characters; a label has at most {MAX_LABEL}")
+    return text
+
+
+def _check_titles(nodes: list[Node], fields: list[Field]) -> tuple[str, ...]:
+    """Each field's title (``Field.title``: its label, else from its description) must say
+    what it measures and tell it from the profile's other fields: not only a unit (any
+    unit of the profile's fields), at most MAX_LABEL characters, and none equal to
+    another's (case and spaces aside). A ``label:`` that breaks this is an error; a title
+    from a description, a warning (returned, one per field, for ``profiles check``)."""
+    units = {squashed(f.unit) for f in fields if f.unit}
+    first: dict[str, int] = {}
+    problems: dict[int, str] = {}
+    for i, f in enumerate(fields):
+        key = squashed(f.title)
+        j = first.setdefault(key, i)
+        if j != i:
+            g = fields[j]
+            if g.label and not f.label:  # the label is the one to blame
+                i, f, j, g = j, g, i, f
+            where = f"line {g.line}" if nodes[j].file == nodes[i].file else \
+                f"{Path(nodes[j].file).name}:{g.line}"
+            problems.setdefault(i, f"the title of {g.name} ({where}) too")
+        if key in units:
+            problems.setdefault(i, "only a unit")
+        elif len(f.title) > MAX_LABEL:
+            problems.setdefault(i, f"{len(f.title)} characters (at most {MAX_LABEL})")
+    warnings: list[str] = []
+    for i, problem in sorted(problems.items()):
+        f, node = fields[i], nodes[i]
+        given = node.key("label") if f.label else None
+        if given is not None:
+            raise given.fail(f"{f.title!r} is {problem}: a label says what the field "
+                             "measures, and tells it from the profile's other fields")
+        at = node.key("description") or node.key("name") or node
+        warnings.append(str(at.fail(f"warning: {f.name} is titled {f.title!r}, {problem}; "
+                                    "give it a 'label:'")))
+    return tuple(warnings)
 
 
 def _wire_address(node: Node, addressing: Addressing, table: Table, written: int) -> int:
     """The address on the wire of an address as the profile writes it."""
     if addressing in (Addressing.DIRECT, Addressing.MODICON) and table.is_register:
         base = table.modicon_base
-        if not base < written <= base + (9999 if addressing is Addressing.DIRECT else 65536):
+        if not (base < written <= base + 9999 if addressing is Addressing.DIRECT
+                else is_modicon_reference(table, written)):
             raise node.fail(f"{written} is not a {table.value} register reference "
-                            f"({base + 1}..{base + 9999})")
+                            f"({base + 1}..{base + 9999}"
+                            + (")" if addressing is Addressing.DIRECT
+                               else f", or {base * 10 + 1}..{base * 10 + 65536})"))
     wire = addressing.to_wire(table, written)
     if not 0 <= wire <= 0xFFFF:
         raise node.fail(f"wire address {wire} is outside 0..65535")
@@ -473,12 +547,15 @@ def _typical(node: Node, layout: Layout) -> float | str:
     return _fitting(node, node.number(), layout)
 
 
+_MAX_WRITTEN = 465536  # the highest address a profile may write: the 6-digit 4xxxxx form
+
+
 def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
     """``address``: a register, or ``REGISTER:SHIFT:WIDTH`` for a bit field inside one
     (read as written: YAML would take an unquoted 12288:4:4 for a base-60 number)."""
     text = node.text() if not node.is_mapping and not node.is_list else ""
     if ":" not in text:
-        return node.integer(0, 0x1FFFF), 0, 0
+        return node.integer(0, _MAX_WRITTEN), 0, 0
     parts = text.split(":")
     try:
         reg, shift, width = (int(p.strip(), 0) for p in parts)
@@ -486,8 +563,8 @@ def _address(node: Node, dtype: DataType, table: Table) -> tuple[int, int, int]:
         raise node.fail(f"{text!r} is not REGISTER:SHIFT:WIDTH (e.g. 0x3200:4:4)") from None
     if dtype not in (DataType.U16, DataType.I16) or not table.is_register:
         raise node.fail(f"a bit field is u16 or i16 in a register, not {dtype.value}")
-    if not 0 <= reg <= 0x1FFFF:
-        raise node.fail(f"{reg} is outside 0..{0x1FFFF}")
+    if not 0 <= reg <= _MAX_WRITTEN:
+        raise node.fail(f"{reg} is outside 0..{_MAX_WRITTEN}")
     if not 0 <= shift <= 15 or not 1 <= width <= 16 - shift:
         raise node.fail(f"bits {shift}..{shift + width - 1} are not inside one 16-bit register")
     return reg, shift, width
@@ -614,6 +691,46 @@ def _variant(node: Node, by_name: Mapping[str, Field]) -> Variant:
         if "on_exception" in m else {}
     return Variant(name, m["name"].text(), on_exc)
 
+
+
+def _identification(node: Node) -> tuple[tuple[int, str], ...]:
+    """``identification``: the objects read device identification answers, by the
+    standard's name (``vendor_name`` ...) or a private id (``0x80``..``0xFF``)."""
+    from rtupoll.rtu.identification import OBJECT_KEYS
+
+    out = {}
+    for key, value in node.items():
+        name = key.text()
+        if name in OBJECT_KEYS:
+            obj = OBJECT_KEYS[name]
+        else:
+            try:
+                obj = parse_int(name)
+            except ValueError:
+                obj = -1
+            if not 0x80 <= obj <= 0xFF:
+                raise key.fail(f"not an identification object: {name!r} (one of "
+                               f"{', '.join(OBJECT_KEYS)}, or a private id 0x80..0xFF)")
+        text = value.text()
+        if not text.isascii() or not 0 < len(text) <= 240:
+            raise value.fail("an identification object is 1..240 ASCII characters")
+        out[obj] = text
+    missing = [k for k, o in OBJECT_KEYS.items() if o <= 2 and o not in out]
+    if missing:
+        raise node.fail(f"missing {missing[0]!r}: a device that identifies itself has the "
+                        "three basic objects (vendor_name, product_code, "
+                        "major_minor_revision)")
+    return tuple(sorted(out.items()))
+
+
+def _hex_bytes(node: Node) -> bytes:
+    try:
+        data = bytes.fromhex(node.text())
+    except ValueError:
+        raise node.fail("expected bytes in hex, e.g. '0A' or '01 02'") from None
+    if not 1 <= len(data) <= 240:
+        raise node.fail("1..240 bytes")
+    return data
 
 
 def _identity(text: str) -> str:

@@ -29,7 +29,7 @@ from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
 from rtupoll.frozen import frozen
 from rtupoll.io.serialport import gateway
 from rtupoll.model.planner import plan
-from rtupoll.model.profile import Addressing, Field, Poll, Profile
+from rtupoll.model.profile import Addressing, Field, Poll, Profile, idle_gap_error
 from rtupoll.rtu import Framing
 
 if TYPE_CHECKING:  # the YAML parser: only when a site file is read
@@ -57,6 +57,7 @@ class DeviceConfig:
     retries: int | None = None  # None: the profile's
     line: int = 0
     timeout_ceiling: float | None = None  # the longest timeout learned (None: the default)
+    idle_gap: float | None = None  # silence it needs before a request (None: the profile's)
 
     @property
     def spec(self) -> str:
@@ -69,6 +70,11 @@ class DeviceConfig:
     @property
     def retry_count(self) -> int:
         return self.profile.limits.retries if self.retries is None else self.retries
+
+    @property
+    def gap(self) -> float:
+        """The silence the device needs on the line before a request (``Line.set_idle_gap``)."""
+        return self.profile.limits.idle_gap if self.idle_gap is None else self.idle_gap
 
 
 @frozen
@@ -86,6 +92,7 @@ class BusConfig:
     serve: ServeConfig | None = None  # Modbus TCP served to other masters (rtupoll.gateway)
     echo: bool = False  # the adapter echoes each request (``echo: true``, --echo)
     rs485: tuple[float, float] | None = None  # RTS direction control: (before, after) s
+    idle_gap: float = 0.0  # silence every device on it gets before a request, seconds
 
     @property
     def deassert_dtr(self) -> bool:
@@ -120,10 +127,10 @@ class Site:
 
 _TOP_KEYS = {"profiles", "buses", "metrics", "mqtt", "http"}
 _BUS_KEYS = {"name", "port", "baudrate", "parity", "bytesize", "stopbits", "devices",
-             "echo", "rs485",
+             "echo", "rs485", "idle_gap",
              "serve"}
 _DEVICE_KEYS = {"name", "profile", "address", "interval", "fields", "timeout", "retries",
-                "timeout_ceiling"}
+                "timeout_ceiling", "idle_gap"}
 
 
 def load_site(path: Path, profile_dirs: Sequence[Path] = ()) -> Site:
@@ -204,7 +211,8 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
                     devices=devices, line=node.line,
                     serve=serve_from_node(m["serve"]) if "serve" in m else None,
                     echo=m["echo"].flag() if "echo" in m else False,
-                    rs485=_rs485(m["rs485"]) if "rs485" in m else None)
+                    rs485=_rs485(m["rs485"]) if "rs485" in m else None,
+                    idle_gap=idle_gap(m["idle_gap"]) if "idle_gap" in m else 0.0)
 
     def fail_at(dnode: Node) -> Fail:
         dm = dnode.mapping()
@@ -213,6 +221,15 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
     check_bus(bus, [fail_at(n) for n in dnodes],
               {k: f"at line {m[k].line}" for k in serial if k in m})
     return bus
+
+
+def idle_gap(node: Node) -> float:
+    """``idle_gap:`` on a device or a bus, as in a profile's ``limits`` (seconds)."""
+    gap = node.number()
+    why = idle_gap_error(gap)
+    if why:
+        raise node.fail(why)
+    return float(gap)
 
 
 def _rs485(node: Node) -> tuple[float, float] | None:
@@ -281,7 +298,7 @@ def _device(node: Node, extra: Sequence[Path]) -> DeviceConfig:
         raise m["name"].fail("the device name is empty: give it a name, or leave 'name' out "
                              "for PROFILE@ADDRESS")
     return DeviceConfig(name, profile, address, fields, interval, timeout, retries, node.line,
-                        ceiling)
+                        ceiling, idle_gap(m["idle_gap"]) if "idle_gap" in m else None)
 
 
 def _field(profile: Profile, name: str, fail: Callable[[str], RtupollError]) -> Field:
@@ -291,9 +308,9 @@ def _field(profile: Profile, name: str, fail: Callable[[str], RtupollError]) -> 
                 raise fail(f"{name} is never polled: reading it has side effects "
                            f"({f.description or 'see the profile'}); use 'rtupoll read'")
             return f
-    import difflib
+    from rtupoll.model.names import close_names
 
-    hint = difflib.get_close_matches(name, profile.names(), n=1)
+    hint = close_names(name, profile.names())
     raise fail(f"{profile.id} has no field {name!r}"
                + (f" (did you mean {hint[0]!r}?)" if hint else ""))
 
@@ -392,13 +409,14 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
                interval: float = DEFAULT_INTERVAL, fields: Sequence[str] = (),
                timeout: float | None = None, retries: int | None = None,
                profile_dirs: Sequence[Path] = (), check_serial: bool = True,
-               timeout_ceiling: float | None = None) -> Site:
+               timeout_ceiling: float | None = None, idle_gap: float | None = None) -> Site:
     """One bus from ``--port`` and ``PROFILE@ADDRESS`` arguments, checked like a site file.
 
     Serial settings not given come from the profiles when they agree. ``fields``
     (from ``--fields``) applies to every device that has such a field; each name
     must exist somewhere and each device must have at least one of them.
     ``check_serial=False`` is for the simulator, which serves any device at any speed.
+    ``idle_gap`` (``--idle-gap``) replaces every device's profile's ``limits.idle_gap``.
     """
     if not specs:
         raise UsageError("name at least one device, PROFILE@ADDRESS (e.g. net-irnet-pro@1)")
@@ -408,9 +426,9 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
     known = sorted({n for p in profiles for n in p.names()})
     for f in wanted:
         if f not in known:
-            import difflib
+            from rtupoll.model.names import close_names
 
-            hint = difflib.get_close_matches(f, known, n=1)
+            hint = close_names(f, known)
             raise UsageError(f"--fields: no device here has a field {f!r}"
                              + (f" (did you mean {hint[0]!r}?)" if hint else ""))
     chosen: list[tuple[Field, ...]] = []
@@ -437,7 +455,7 @@ def from_specs(port: str, specs: Sequence[tuple[str, int]], *, baudrate: int | N
         stopbits=stopbits or _common(profiles, "stop bits", lambda p: p.serial.stopbits,
                                      UsageError, "give --stopbits"),
         devices=tuple(DeviceConfig(name, p, a, fs, interval, timeout, retries,
-                                   timeout_ceiling=timeout_ceiling)
+                                   timeout_ceiling=timeout_ceiling, idle_gap=idle_gap)
                       for name, p, (_, a), fs in zip(names, profiles, specs, chosen,
                                                      strict=True)),
     )

@@ -4,14 +4,25 @@ Each connection has a reader (bytes -> frames through the sans-IO decoder) and a
 worker that answers its frames in order. Before a request may take a turn on the
 line (``turns``) it is checked (``pdu.parse``, ``access``); a request for a device
 the scheduler has backed off as offline is answered 0x0B at once, a read the cache
-covers from the cache. At most ``queue`` requests (all clients together) wait for
-the line; one more is answered 0x0A at once.
+covers from the cache. Waiting for the line, each client's first request has a place
+of its own and further ones share ``queue`` places (``turns.Places``); one more is
+answered 0x0A at once.
+
+Back-pressure: a client has at most ``client_queue`` requests in hand (waiting, on the
+line, or answered and being written). Its worker waits while more than ``HIGH_WATER``
+bytes of its replies are unread, so a client that does not read its replies soon
+has its ``client_queue`` in hand, and then nothing more is read from it: its requests
+stay in the kernel's buffers and its own, not in rtupoll's memory or the shared queue.
 
 A client that disconnects with a request on the line does not cut it short (a
 transaction abandoned half-way would leave its reply to collide with the next
-request): it completes, its reply is dropped, and the client's queued requests
-are dropped unanswered. A frame that cannot be trusted (``MbapError``) closes
+request): it completes, its reply is dropped. Its requests not yet on the line are
+dropped unsent, with one log line: at once when its end of the stream is read, and
+otherwise when one gets its turn and the socket shows the client gone (a hang-up
+behind requests not read yet). A frame that cannot be trusted (``MbapError``) closes
 that client's connection with one log line; nothing of it reaches the line.
+Connections beyond ``max_clients`` (or ``max_per_address`` from one address) are
+closed as they come, counted and logged once per interval.
 """
 
 from __future__ import annotations
@@ -19,11 +30,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import logging
+import select
 import socket
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rtupoll.backoff import after_failures
 from rtupoll.config.gateway_settings import ServeConfig
@@ -42,9 +55,10 @@ from rtupoll.gateway.pdu import (
     parse,
     read_reply,
 )
-from rtupoll.gateway.turns import Turns
+from rtupoll.gateway.turns import Places, Turns
 from rtupoll.jobs.stats import State
-from rtupoll.rtu.effects import writes
+from rtupoll.refusals import Refusals, watch
+from rtupoll.rtu.effects import Effect, effect, writes
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller
@@ -55,6 +69,10 @@ Clock = Callable[[], float]
 KEEP_CLIENTS = 32  # disconnected clients' counters kept for the footer and JSON
 EVENTS = 5  # log lines kept for the live table
 STOP_WAIT = 2.0  # seconds a stopping gateway lets a request on the line complete
+HIGH_WATER = 16 * 1024  # bytes of a client's replies unread before its worker waits
+READ_LIMIT = 8 * 1024  # bytes read ahead from a client (asyncio pauses reading beyond 2x)
+HANGUP = getattr(select, "POLLRDHUP", 0) | getattr(select, "POLLHUP", 0) | \
+    getattr(select, "POLLERR", 0)
 
 
 class SilentUnits:
@@ -82,7 +100,58 @@ class SilentUnits:
         self._until.pop(unit, None)
 
 
-RULES = ("allow", "read_only", "cache", "broadcast", "setup_writes", "queue", "timeout")
+RULES = ("allow", "read_only", "cache", "broadcast", "setup_writes", "queue", "timeout",
+         "client_queue", "max_clients", "max_per_address")
+
+
+class _Lines(logging.Logger):
+    """``Refusals``' log, as the gateway's own lines: its log (stderr) and the events
+    under its line in the live table."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        super().__init__("rtupoll.gateway")
+        self._gateway = gateway
+
+    def warning(self, msg: object, *args: object, **kwargs: Any) -> None:
+        self._gateway.say(str(msg) % args)
+
+
+class ClientGone(Exception):
+    """A request's client has gone before its turn: it is dropped unsent."""
+
+
+@dataclasses.dataclass(eq=False)
+class Connection:
+    """One client's requests in hand: waiting in ``queue``, on the line, or answered and
+    being written (``in_hand`` counts them all)."""
+
+    writer: asyncio.StreamWriter
+    stats: ClientStats
+    queue: asyncio.Queue[tuple[mbap.Frame, float, bytes | None] | None] = \
+        dataclasses.field(default_factory=asyncio.Queue)
+    room: asyncio.Event = dataclasses.field(default_factory=asyncio.Event)
+    in_hand: int = 0
+    on_line: bool = False  # its request is on the line now (it completes)
+    left: bool = False  # its end of the stream was read (or it must go)
+    dropped: int = 0  # requests dropped unsent, because the client had gone
+    dropped_writes: int = 0  # of those, writes
+
+    def gone(self) -> bool:
+        """Whether the client has gone: its end read, or the socket hung up (a hang-up
+        shows behind requests not read yet, where reading would not find it)."""
+        if self.left or self.writer.is_closing():
+            return True
+        sock = self.writer.get_extra_info("socket")
+        if sock is None or not HANGUP or not hasattr(select, "poll"):
+            return False
+        poll = select.poll()
+        poll.register(sock.fileno(), HANGUP)
+        return bool(poll.poll(0))
+
+    def drop(self, frame: mbap.Frame) -> None:
+        self.dropped += 1
+        if effect(frame.pdu) is Effect.WRITE:
+            self.dropped_writes += 1
 
 
 def _text(value: object) -> str:
@@ -105,8 +174,8 @@ async def listen(config: ServeConfig, handle: Callable[[asyncio.StreamReader,
             except BaseException:
                 sock.close()
                 raise
-            return await asyncio.start_server(handle, sock=sock)
-        return await asyncio.start_server(handle, config.host, config.port)
+            return await asyncio.start_server(handle, sock=sock, limit=READ_LIMIT)
+        return await asyncio.start_server(handle, config.host, config.port, limit=READ_LIMIT)
     except OSError as exc:
         raise PortError(f"cannot serve {config.url}: {exc.strerror or exc}") from None
 
@@ -127,6 +196,12 @@ class Gateway:
         self.clients: list[ClientStats] = []
         self.events: deque[str] = deque(maxlen=EVENTS)
         self.pending = 0  # requests queued or on the line, all clients
+        self.places = Places(config.queue)
+        # connections closed as they came (over max_clients or max_per_address) and
+        # accepts that failed (EMFILE ...): counted, one log line a minute at most
+        self.refusals = Refusals(f"gateway {config.url}", _Lines(self), clock=clock)
+        self._unwatch: Callable[[], None] | None = None
+        self._by_address: Counter[str] = Counter()  # connections open, by client address
         self._log, self._info, self._clock = log, info, clock
         self._server: asyncio.Server | None = None
         self._handlers: set[asyncio.Task[None]] = set()
@@ -145,6 +220,8 @@ class Gateway:
         self._server = server or await listen(self.config, self._handle)
         if self.config.port == 0:  # the port the system chose, in the log and the footer
             self.config = dataclasses.replace(self.config, port=self.address[1])
+        self.refusals.what = f"gateway {self.config.url}"
+        self._unwatch = watch(self._server.sockets, self.refusals)
 
     def reconfigure(self, config: ServeConfig) -> list[str]:
         """New rules on the same listener (a SIGHUP's ``serve:``): what changed. Clients
@@ -154,6 +231,7 @@ class Gateway:
         self._learn_devices()  # the devices the reload left, under the new rules
         if config.cache != was.cache:
             self.cache = ReadCache(config.cache) if config.cache > 0 else None
+        self.places.shared = config.queue
         changed = [f"{k} {_text(getattr(was, k))} -> {_text(getattr(config, k))}"
                    for k in RULES if getattr(was, k) != getattr(config, k)]
         for writer in list(self._writers):
@@ -170,7 +248,15 @@ class Gateway:
         host, port = self._server.sockets[0].getsockname()[:2]
         return str(host), int(port)
 
+    @property
+    def refused_connections(self) -> int:
+        return self.refusals.total
+
     async def stop(self) -> None:
+        if self._unwatch is not None:  # (before the sockets close: their fds are reused)
+            self._unwatch()
+            self._unwatch = None
+        self.refusals.flush()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
@@ -194,6 +280,12 @@ class Gateway:
                 self.cache.put(dev.config.address, r.field.table, r.field.address,
                                r.value.raw, now)
 
+    def say(self, line: str) -> None:
+        """A line of the gateway's own (``gateway URL: ...``): the log and the events."""
+        self.events.append(line.split(": ", 1)[-1])
+        if self._log is not None:
+            self._log(line)
+
     def log(self, stats: ClientStats, message: str, *, once: str | None = None) -> None:
         """A log line about a client; with ``once``, only the first time for that reason."""
         if once is not None:
@@ -206,13 +298,39 @@ class Gateway:
             self._log(line)
 
     # -- one connection -------------------------------------------------------------
+    def _over_cap(self, host: str) -> str | None:
+        """Why a new connection from ``host`` is refused (it is counted already), or None."""
+        if len(self._writers) > self.config.max_clients:
+            return f"over max_clients {self.config.max_clients}"
+        if self._by_address[host] > self.config.max_per_address:
+            return f"from {host} over max_per_address {self.config.max_per_address}"
+        return None
+
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
                       ) -> None:
         task = asyncio.current_task()
         assert task is not None
+        peer = writer.get_extra_info("peername") or ("?", 0)
+        host = str(peer[0])
         self._handlers.add(task)
         self._writers.add(writer)
-        peer = writer.get_extra_info("peername") or ("?", 0)
+        self._by_address[host] += 1
+        try:
+            reason = self._over_cap(host)
+            if reason is not None:
+                self.refusals.refused(reason)
+                writer.close()
+                return
+            await self._client(reader, writer, peer)
+        finally:
+            self._by_address[host] -= 1
+            if not self._by_address[host]:
+                del self._by_address[host]
+            self._handlers.discard(task)
+            self._writers.discard(writer)
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                      peer: tuple[str, int]) -> None:
         stats = ClientStats(f"{peer[0]}:{peer[1]}" if ":" not in str(peer[0])
                             else f"[{peer[0]}]:{peer[1]}")
         self.clients.append(stats)
@@ -223,7 +341,9 @@ class Gateway:
                 self.log(stats, "refused: not in the allowed networks "
                          f"({', '.join(map(str, self.config.allow))}); connection closed")
                 return
-            await self._converse(reader, writer, stats)
+            with contextlib.suppress(AttributeError, RuntimeError):
+                writer.transport.set_write_buffer_limits(high=HIGH_WATER)
+            await self._converse(reader, Connection(writer, stats))
         except asyncio.CancelledError:  # the gateway stops: the client is let go
             pass
         finally:
@@ -234,16 +354,13 @@ class Gateway:
             writer.close()
             with contextlib.suppress(Exception, asyncio.CancelledError):
                 await writer.wait_closed()
-            self._handlers.discard(task)
-            self._writers.discard(writer)
 
-    async def _converse(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                        stats: ClientStats) -> None:
+    async def _converse(self, reader: asyncio.StreamReader, conn: Connection) -> None:
         decoder = mbap.MbapDecoder() if self.config.framing == "mbap" else rtutcp.RtuDecoder()
-        queue: asyncio.Queue[tuple[mbap.Frame, float] | None] = asyncio.Queue()
-        worker = asyncio.create_task(self._work(queue, writer, stats))
+        stats = conn.stats
+        worker = asyncio.create_task(self._work(conn))
         try:
-            while not worker.done():
+            while not worker.done() and not conn.left:
                 try:
                     data = await reader.read(4096)
                 except (ConnectionError, OSError):
@@ -256,38 +373,84 @@ class Gateway:
                     self.log(stats, f"malformed frame, connection closed: {exc}")
                     break
                 for frame in frames:
+                    while conn.in_hand >= self.config.client_queue and not conn.left:
+                        conn.room.clear()  # back-pressure: nothing more is read meanwhile
+                        await conn.room.wait()
+                    if conn.left:
+                        conn.drop(frame)
+                        continue
                     stats.requests += 1
-                    if self.pending >= self.config.queue:
+                    conn.in_hand += 1
+                    if not self.places.take(id(conn)):
                         stats.busy += 1
                         self.log(stats, f"queue full ({self.config.queue} requests): "
                                  "answered 0x0A", once="queue")
-                        self._send(writer, frame, exception_pdu(frame.pdu[0], PATH_UNAVAILABLE))
+                        conn.queue.put_nowait(
+                            (frame, 0.0, exception_pdu(frame.pdu[0], PATH_UNAVAILABLE)))
                         continue
                     self.pending += 1
-                    queue.put_nowait((frame, self._clock()))
+                    conn.queue.put_nowait((frame, self._clock(), None))
         finally:
-            while not queue.empty():  # not started: dropped with the connection
-                if queue.get_nowait() is not None:
-                    self.pending -= 1
-            queue.put_nowait(None)
+            conn.left = True
+            self._drop_queued(conn)
+            if not conn.on_line:  # waiting for its turn (or writing to a client gone)
+                worker.cancel()
+            conn.queue.put_nowait(None)
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.shield(worker)  # a request on the line completes
+            if conn.dropped:
+                writes = f" ({conn.dropped_writes} write{'s' * (conn.dropped_writes != 1)})" \
+                    if conn.dropped_writes else ""
+                self.log(stats, f"gone before its turn: {conn.dropped} request"
+                         f"{'s' * (conn.dropped != 1)} dropped unsent{writes}")
 
-    async def _work(self, queue: asyncio.Queue[tuple[mbap.Frame, float] | None],
-                    writer: asyncio.StreamWriter, stats: ClientStats) -> None:
+    def _drop_queued(self, conn: Connection) -> None:
+        while not conn.queue.empty():  # not started: dropped with the connection
+            item = conn.queue.get_nowait()
+            if item is None:
+                continue
+            conn.in_hand -= 1
+            if item[2] is None:  # it held a place
+                self.pending -= 1
+                self.places.give_back(id(conn))
+                conn.drop(item[0])
+
+    async def _work(self, conn: Connection) -> None:
+        writer, stats = conn.writer, conn.stats
         while True:
-            item = await queue.get()
+            item = await conn.queue.get()
             if item is None:
                 return
-            frame, queued = item
+            frame, queued, reply = item
             try:
-                reply = await self.answer(frame.unit, frame.pdu, stats, queued)
+                if conn.left:  # gone: what is left is dropped unsent, or unanswered
+                    if reply is None:
+                        conn.drop(frame)
+                        self.pending -= 1
+                        self.places.give_back(id(conn))
+                    continue
+                if reply is None:
+                    try:
+                        reply = await self.answer(frame.unit, frame.pdu, stats, queued,
+                                                  conn=conn)
+                    except ClientGone:
+                        conn.drop(frame)
+                        conn.left = True  # the rest is dropped too, and reading ends
+                        writer.close()
+                        continue
+                    except asyncio.CancelledError:
+                        conn.drop(frame)
+                        raise
+                    finally:
+                        self.pending -= 1
+                        self.places.give_back(id(conn))
+                if reply is not None and not writer.is_closing():
+                    self._send(writer, frame, reply)
+                    with contextlib.suppress(ConnectionError, OSError):
+                        await writer.drain()  # waits while HIGH_WATER bytes are unread
             finally:
-                self.pending -= 1
-            if reply is not None and not writer.is_closing():
-                self._send(writer, frame, reply)
-                with contextlib.suppress(ConnectionError, OSError):
-                    await writer.drain()
+                conn.in_hand -= 1
+                conn.room.set()
 
     def _send(self, writer: asyncio.StreamWriter, frame: mbap.Frame, pdu: bytes) -> None:
         if writer.is_closing():
@@ -299,8 +462,10 @@ class Gateway:
 
     # -- one request ----------------------------------------------------------------
     async def answer(self, unit: int, pdu: bytes, stats: ClientStats,
-                     queued: float | None = None) -> bytes | None:
-        """The reply PDU for one request (None: a broadcast, which has no reply)."""
+                     queued: float | None = None, *, conn: Connection | None = None
+                     ) -> bytes | None:
+        """The reply PDU for one request (None: a broadcast, which has no reply).
+        ``ClientGone`` when ``conn``'s client has gone as the request gets its turn."""
         try:
             ask = parse(pdu)
         except BadRequest as exc:
@@ -323,43 +488,55 @@ class Gateway:
                 stats.answered += 1
                 stats.cached += 1
                 return read_reply(ask.function, got)
-        reply = await self._on_line(unit, ask, stats, queued, dev)
+        reply = await self._on_line(unit, ask, stats, queued, dev, conn)
         return None if unit == 0 else reply
 
     async def _on_line(self, unit: int, ask: Ask, stats: ClientStats, queued: float | None,
-                       dev: DevicePoller | None) -> bytes:
+                       dev: DevicePoller | None, conn: Connection | None) -> bytes:
         timeout = dev.config.response_timeout if dev is not None else self.config.timeout
         async with self.turns.turn(id(stats)):
-            start = self._clock()
-            if queued is not None:
-                stats.waits.append(start - queued)
-            failed = False
+            if conn is not None:
+                if conn.gone():
+                    raise ClientGone
+                conn.on_line = True
             try:
-                reply = await self.poller.transport.transact(unit, ask.pdu, timeout=timeout,
-                                                             retries=0)
-                self.silent.answered(unit)
-                if reply[:1] == bytes((ask.function | 0x80,)):
-                    stats.exceptions += 1
-                else:
-                    stats.answered += 1
-                return reply
-            except (DeviceTimeout, FrameError) as exc:
-                if isinstance(exc, DeviceTimeout) and dev is None and unit:
-                    self.silent.timed_out(unit, self._clock())
-                failed = True
-                stats.timeouts += 1
-                return exception_pdu(ask.function, TARGET_FAILED)
-            except RefusedError as exc:  # a function the bus cannot build
-                stats.refused += 1
-                self.log(stats, f"refused: {exc}", once=f"fc{ask.function}")
-                return exception_pdu(ask.function, ILLEGAL_FUNCTION)
-            except PortError as exc:
-                stats.busy += 1
-                self.log(stats, f"answered 0x0A: {exc}", once="port")
-                return exception_pdu(ask.function, PATH_UNAVAILABLE)
+                return await self._transact(unit, ask, stats, queued, dev, timeout)
             finally:
-                end = self._clock()
-                self.poller.load.add(end, end - start, failed_by=self if failed else None)
-                if ask.write and self.cache is not None:  # FC 22 and 23 too
-                    for run in writes(ask.pdu) or ():
-                        self.cache.forget(unit, run.table, run.address, run.count)
+                if conn is not None:
+                    conn.on_line = False
+
+    async def _transact(self, unit: int, ask: Ask, stats: ClientStats, queued: float | None,
+                        dev: DevicePoller | None, timeout: float) -> bytes:
+        start = self._clock()
+        if queued is not None:
+            stats.waits.append(start - queued)
+        failed = False
+        try:
+            reply = await self.poller.transport.transact(unit, ask.pdu, timeout=timeout,
+                                                         retries=0)
+            self.silent.answered(unit)
+            if reply[:1] == bytes((ask.function | 0x80,)):
+                stats.exceptions += 1
+            else:
+                stats.answered += 1
+            return reply
+        except (DeviceTimeout, FrameError) as exc:
+            if isinstance(exc, DeviceTimeout) and dev is None and unit:
+                self.silent.timed_out(unit, self._clock())
+            failed = True
+            stats.timeouts += 1
+            return exception_pdu(ask.function, TARGET_FAILED)
+        except RefusedError as exc:  # a function the bus cannot build
+            stats.refused += 1
+            self.log(stats, f"refused: {exc}", once=f"fc{ask.function}")
+            return exception_pdu(ask.function, ILLEGAL_FUNCTION)
+        except PortError as exc:
+            stats.busy += 1
+            self.log(stats, f"answered 0x0A: {exc}", once="port")
+            return exception_pdu(ask.function, PATH_UNAVAILABLE)
+        finally:
+            end = self._clock()
+            self.poller.load.add(end, end - start, failed_by=self if failed else None)
+            if ask.write and self.cache is not None:  # FC 22 and 23 too
+                for run in writes(ask.pdu) or ():
+                    self.cache.forget(unit, run.table, run.address, run.count)

@@ -94,3 +94,43 @@ class Turns:
         queue = self._poller if who is POLLER else self._clients.get(who)
         if queue is not None and fut in queue:
             queue.remove(fut)
+
+
+class Places:
+    """Who may wait for the line: each client's first request has a place of its own,
+    always given; a client's further requests take places from ``shared``, all clients
+    together, and when none is left the request is refused (the gateway answers 0x0A).
+    A client that stops reading its replies keeps what it holds (the gateway stops
+    reading from it before it holds more than its own share, ``Gateway``), so it cannot
+    take the places others need: a client with nothing waiting always gets its place.
+
+    Pure counting, keyed like ``Turns`` (any hashable): tested without a clock."""
+
+    def __init__(self, shared: int) -> None:
+        self.shared = shared
+        self.used = 0  # shared places held, all clients
+        self._held: dict[object, int] = {}  # places each client holds (its own included)
+
+    def held(self, who: object) -> int:
+        return self._held.get(who, 0)
+
+    def take(self, who: object) -> bool:
+        """A place for one more request of ``who``; False: none (0x0A)."""
+        n = self._held.get(who, 0)
+        if n and self.used >= self.shared:
+            return False
+        if n:
+            self.used += 1
+        self._held[who] = n + 1
+        return True
+
+    def give_back(self, who: object) -> None:
+        """One of ``who``'s requests left the queue (answered or dropped)."""
+        n = self._held.pop(who, 0)
+        if n > 1:
+            self.used -= 1
+            self._held[who] = n - 1
+
+    @property
+    def total(self) -> int:
+        return sum(self._held.values())

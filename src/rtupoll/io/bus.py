@@ -59,7 +59,7 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 from pymodbus.transport.serialtransport import SerialTransport
 
 from rtupoll.errors import PortError
-from rtupoll.io import clock, serialport
+from rtupoll.io import clock, serialport, taps
 from rtupoll.io.interface import LineBus, raise_failed
 from rtupoll.io.latency import latency_timer
 from rtupoll.io.port_errors import gateway_error
@@ -128,7 +128,9 @@ class Bus(LineBus):
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
         self._port: _Port | None = None
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         # a USB-serial adapter's latency timer (Linux sysfs), added to every reply's time
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._tx: Transaction | None = None  # the transaction whose attempt is in flight

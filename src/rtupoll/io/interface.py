@@ -75,6 +75,10 @@ class BusLike(Protocol):
         """Count ``unit``'s late window in ``seconds`` when its timeout is shorter."""
         ...
 
+    def set_idle_gap(self, unit: int, seconds: float) -> None:
+        """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""
+        ...
+
 
 class LineBus:
     """The one implementation of ``BusLike`` over ``rtu.transaction``: requests are
@@ -163,6 +167,11 @@ class LineBus:
     # -- what the line knows ---------------------------------------------------------
 
     @property
+    def echo_found(self) -> bool:
+        """An echo came back without ``echo`` set (``Line.adopt_echo``: now consumed)."""
+        return self.line.echo_found
+
+    @property
     def unsolicited(self) -> int:
         """Frames and bursts of bytes that answered nothing this bus asked."""
         return int(self.line.counts.unsolicited)
@@ -186,6 +195,10 @@ class LineBus:
         """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
         (``Line.patience``: a learned timeout does not shorten it)."""
         self.line.patience[unit] = seconds
+
+    def set_idle_gap(self, unit: int, seconds: float) -> None:
+        """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""
+        self.line.set_idle_gap(unit, seconds)
 
 
 def raise_failed(failed: Failed) -> NoReturn:

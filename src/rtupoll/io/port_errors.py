@@ -101,8 +101,7 @@ def _missing_hint(path: str, platform: str, present: Present | Callable[[], Pres
     """What to try instead of ``path``, which does not exist (with a leading space)."""
     m = _HOST_PORT.match(path)
     if m and not path.upper().startswith("COM"):
-        return (f" (an RTU-over-TCP gateway is written tcp://{path}; a serial port over "
-                f"the network rfc2217://{path} or socket://{path})")
+        return f" (a gateway is written tcp://{path}; a serial server rfc2217://{path})"
     ports = list(present() if callable(present) else present)
     listed = ", ".join(f"{d} ({desc})" if desc and desc != d else d for d, desc in ports)
     here = f"; serial ports present: {listed}" if listed else ""

@@ -128,6 +128,7 @@ class PortSettings:
     deassert_dtr: bool = False  # open with DTR/RTS deasserted (CO2Meter boards reset on DTR)
     echo: bool = False  # the adapter echoes each request: the line consumes the echo
     rs485: Rs485 | None = None  # drive the transceiver's direction (RTS)
+    idle_gap: float = 0.0  # silence every device gets before a request (``Line.idle_gap``)
 
     @property
     def framing(self) -> Framing:

@@ -35,10 +35,9 @@ from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
 from rtupoll.io import clock as line_clock
-from rtupoll.io import serialport, waits
+from rtupoll.io import serialport, taps, waits
 from rtupoll.io.interface import LineBus
 from rtupoll.io.latency import latency_timer
-from rtupoll.io.port_errors import gateway_error, open_error
 from rtupoll.io.serialport import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
@@ -78,7 +77,9 @@ class SyncBus(LineBus):
         self.framing = settings.framing
         self.stats = BusStats()
         self.broadcast_turnaround = broadcast_turnaround
-        self.line = Line(self.framing, drain=drain, echo=settings.echo)
+        self.line = Line(self.framing, drain=drain, echo=settings.echo,
+                         idle_gap=settings.idle_gap)
+        self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
@@ -136,6 +137,8 @@ class SyncBus(LineBus):
                 parity=serialport.line_parity(s.port, s.parity), stopbits=s.stopbits,
                 timeout=waits.SLICE)  # (PortWait's; FdWait reads the descriptor itself)
         except (OSError, ValueError) as exc:  # SerialException is an OSError
+            from rtupoll.io.port_errors import open_error
+
             if self._slot is not None and self._slot.error:
                 raise PortError(self._slot.error) from None  # opens, but not as asked
             raise PortError(open_error(serialport.device_path(self._url), exc)) from None
@@ -146,6 +149,8 @@ class SyncBus(LineBus):
         try:
             return socket.create_connection((host, port), timeout=self._connect_timeout)
         except OSError as exc:  # refused, unreachable, unresolved, timed out
+            from rtupoll.io.port_errors import gateway_error
+
             raise PortError(gateway_error(host, port, exc,
                                                      self._connect_timeout)) from None
 

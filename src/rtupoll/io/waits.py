@@ -27,9 +27,8 @@ from __future__ import annotations
 
 import os
 import select
-import socket
 import stat
-import threading
+import sys
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -64,7 +63,8 @@ def real_fd(port: Any) -> int | None:
 def wait_on(port: Any, *, sleep: Callable[[float], None] = time.sleep) -> Wait:
     """The wait for an open ``port``: a pyserial ``Serial`` or a plain socket (``sleep``:
     ``PortWait``'s, for tests in virtual time)."""
-    if isinstance(port, socket.socket):
+    sockets = sys.modules.get("socket")  # (not imported: the port is no socket; read's
+    if sockets is not None and isinstance(port, sockets.socket):  # start-up skips it)
         return SocketWait(port)
     fd = real_fd(port)
     return FdWait(fd) if fd is not None else PortWait(port, sleep=sleep)
@@ -162,6 +162,9 @@ class Pump:
     gone ends the thread and closes its end: the next ``read`` raises pyserial's error."""
 
     def __init__(self, wait: Wait) -> None:
+        import socket
+        import threading
+
         self._wait = wait
         self._r, self._w = socket.socketpair()
         self._r.setblocking(False)

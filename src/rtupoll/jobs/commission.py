@@ -23,7 +23,7 @@ or with a matching identity) is "already done", which makes plans safe to re-run
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Collection
+from collections.abc import Awaitable, Callable, Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -70,6 +70,11 @@ class Status(str, enum.Enum):
 
 
 INTERRUPTED = Interrupted.exit_code  # the exit code of a row an interruption cut short
+
+
+class Absent(DeviceTimeout):
+    """Nothing answers at a change's old address (for a shared one: the next sensor is
+    not connected yet)."""
 
 
 class PlanInterrupted(KeyboardInterrupt):
@@ -178,7 +183,7 @@ class Commissioner:
         p, old, new = change.profile, change.old, change.new
         at_new = await self.presence(p, new)
         if at_new is Presence.SAME and await self.identity(change, new) is None and (
-                change.check or old == p.addresses.any
+                change.check or old == p.addresses.any or change.shared
                 or await self.presence(p, old) is Presence.SILENT):
             return Result(change, Status.DONE, f"already done: answers at {new}"
                           + (f", {change.check[0]} matches" if change.check else "")
@@ -187,9 +192,13 @@ class Commissioner:
             raise RefusedError(f"{change.label}: address {new} is taken: a device already "
                                "answers there (pick another; 'rtupoll scan' lists the bus)")
         at_old = await self.presence(p, old)
+        if at_old is Presence.SILENT and change.shared:
+            raise Absent(f"{change.label}: no sensor answers at {old}: connect the next one "
+                         f"(alone at {old}) and run the plan again; the rows done are "
+                         "verified and skipped")
         if at_old is Presence.SILENT:
-            raise DeviceTimeout(f"{change.label}: no device answers at {old} "
-                                "(check wiring, power and serial settings)")
+            raise Absent(f"{change.label}: no device answers at {old} "
+                         "(check wiring, power and serial settings)")
         if at_old is Presence.OTHER:
             raise RefusedError(f"{change.label}: the device at {old} does not look like a "
                                f"{p.id} ({field.name} does not read {old})")
@@ -252,8 +261,15 @@ class Commissioner:
 
 
 async def run_plan(commissioner: Commissioner, changes: list[Change],
-                   on_result: Callable[[Result], None] | None = None) -> list[Result]:
+                   on_result: Callable[[Result], None] | None = None,
+                   next_sensor: Callable[[Change, bool], Awaitable[bool]] | None = None
+                   ) -> list[Result]:
     """Run changes in order; stop at the first failure; the rest are reported not run.
+
+    A shared row (sensors that all come at one address) whose device is not there yet
+    waits for ``next_sensor(change, again)`` (a person connecting it: True to try the row,
+    False to stop; ``again`` when it was tried already), or without one fails saying to
+    connect it and run the plan again.
 
     Interrupted (Ctrl-C, SIGTERM), every row is still reported: the one in progress as
     ``written, unverified`` if its write may have gone out, else ``not run``, like the
@@ -262,16 +278,19 @@ async def run_plan(commissioner: Commissioner, changes: list[Change],
     import asyncio  # loaded by then (a coroutine runs in a loop): a dry run never is
 
     results: list[Result] = []
-    failed = interrupted = False
+    failed = interrupted = stopped = False
     for change in changes:
         if interrupted:
             result = Result(change, Status.NOT_RUN, "not attempted (interrupted)")
         elif failed:
             result = Result(change, Status.NOT_RUN, "not attempted (an earlier row failed)")
+        elif stopped:
+            result = Result(change, Status.NOT_RUN, "not attempted (stopped)")
         else:
             commissioner.sent = None
             try:
-                result = await commissioner.apply(change)
+                result = await _apply(commissioner, change, next_sensor)
+                stopped = result.status is Status.NOT_RUN
             except RtupollError as exc:
                 failed = True
                 result = Result(change, Status.FAILED,
@@ -285,6 +304,20 @@ async def run_plan(commissioner: Commissioner, changes: list[Change],
     if interrupted:
         raise PlanInterrupted(results)
     return results
+
+
+async def _apply(commissioner: Commissioner, change: Change,
+                 next_sensor: Callable[[Change, bool], Awaitable[bool]] | None) -> Result:
+    again = False
+    while True:
+        try:
+            return await commissioner.apply(change)
+        except Absent:
+            if not (change.shared and next_sensor):
+                raise
+        if not await next_sensor(change, again):
+            return Result(change, Status.NOT_RUN, "not attempted (stopped)")
+        again = True
 
 
 def _interrupted(change: Change, sent: bool) -> Result:

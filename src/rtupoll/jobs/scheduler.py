@@ -44,6 +44,7 @@ from rtupoll.errors import (
     PortError,
     RtupollError,
 )
+from rtupoll.figures import count
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import probe_variant, read_block
@@ -189,11 +190,17 @@ class DevicePoller:
         return readings
 
     def _due(self, block: Block, now: float) -> bool:
-        """A block of fields with their own ``interval`` is read when that has passed."""
+        """A block of fields with their own ``interval`` is read when that has passed, or
+        at once while one of its fields has no value: its latest reading failed (a port
+        that went away fails every field, the ones read just before it too)."""
         if block.interval is None:
             return True
         last = self.block_read.get((block.table, block.address, block.count))
-        return last is None or now - last >= block.interval - 1e-3
+        if last is None or now - last >= block.interval - 1e-3:
+            return True
+        latest = self.stats.latest
+        return any((r := latest.get(f.name)) is not None and r.value is None
+                   and r.status is not Status.ABSENT for f in block.fields)
 
     async def _probe_variant(self, transport: BusLike, retries: int) -> str:
         """Learn the device's variant once (until it answers, plan for the newest map);
@@ -254,7 +261,7 @@ class DevicePoller:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
         cfg = self.config
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
-                                  ceiling=cfg.timeout_ceiling)
+                                  ceiling=cfg.timeout_ceiling, gap=cfg.gap)
 
     async def _transact(self, read: Awaitable[T], *, via: BusLike | None = None
                         ) -> tuple[Status, str, T | None]:
@@ -279,6 +286,7 @@ class DevicePoller:
         st.requests += 1
         self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
+        st.line = self.timing.seen
         culprit = self.load.add(now, now - start,
                                 failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
                                 else None)
@@ -477,17 +485,17 @@ class BusPoller:
 def _serial(bus: BusConfig) -> tuple[object, ...]:
     """What a bus's port is opened with: equal means the open port can stay open."""
     return (bus.port, bus.baudrate, bus.parity, bus.bytesize, bus.stopbits, bus.deassert_dtr,
-            bus.echo, bus.rs485)
+            bus.echo, bus.rs485, bus.idle_gap)
 
 
 def nominal_cycle(blocks: Sequence[Block], config: DeviceConfig, framing: Framing) -> float:
     """What one healthy cycle should cost: each read's frames and silences on the wire
-    (``rtu.transaction_wire_time``) plus the device's turnaround."""
+    (``rtu.transaction_wire_time``) plus the device's turnaround and idle gap."""
     total = 0.0
     for b in blocks:
         request, response = read_frame_sizes(b.count, coils=not b.table.is_register)
         total += transaction_wire_time(framing, request, response)
-        total += config.profile.limits.turnaround
+        total += config.profile.limits.turnaround + config.gap
     return max(total, 1e-3)
 
 
@@ -499,10 +507,13 @@ def open_real_bus(config: BusConfig) -> BusLike:
     from rtupoll.io.bus import Bus, PortSettings
     from rtupoll.io.serialport import Rs485
 
-    return Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
-                            bytesize=config.bytesize, stopbits=config.stopbits,
-                            deassert_dtr=config.deassert_dtr, echo=config.echo,
-                            rs485=Rs485(*config.rs485) if config.rs485 else None))
+    bus = Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
+                           bytesize=config.bytesize, stopbits=config.stopbits,
+                           deassert_dtr=config.deassert_dtr, echo=config.echo,
+                           rs485=Rs485(*config.rs485) if config.rs485 else None,
+                           idle_gap=config.idle_gap))
+    bus.line.adopt_echo = True  # an echo found without echo: carry on with it (ECHO_FOUND)
+    return bus
 
 
 class Scheduler:
@@ -605,7 +616,7 @@ class Scheduler:
             try:
                 await bp.transport.open()
                 changes.append(f"opened bus {bp.config.name} ({bp.config.port}, "
-                               f"{bp.config.serial_text}): {len(bp.devices)} devices")
+                               f"{bp.config.serial_text}): {count(len(bp.devices), 'device')}")
             except RtupollError as exc:
                 changes.append(f"bus {bp.config.name}: {exc} (retrying)")
             self._opened.append(bp)

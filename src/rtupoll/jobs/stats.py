@@ -12,11 +12,15 @@ import enum
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from rtupoll.config.site import DeviceConfig
 from rtupoll.figures import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
+
+if TYPE_CHECKING:
+    from rtupoll.rtu.transaction import Evidence
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured
@@ -72,6 +76,8 @@ class DeviceStats:
     late: int = 0  # replies that came after their request had timed out (never decoded)
     timeout: float | None = None  # the timeout used now, seconds beyond the wire time
     timeout_source: str = ""  # pinned (the user's) | profile (nothing learned yet) | learned
+    # the line's count of the device's attempts (each by how it ended), its idle gap
+    line: Evidence | None = None
     holes: list[str] = field(default_factory=list)  # registers learned never to bridge, why
     exceptions: Counter[int] = field(default_factory=Counter)
     latencies: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
@@ -94,6 +100,41 @@ class DeviceStats:
     @property
     def exception_count(self) -> int:
         return sum(self.exceptions.values())
+
+    # every attempt, by how it ended (docs/polling.md, "What the table shows"): the
+    # transaction counts above say what each read came to, these what the wire did
+    @property
+    def attempts(self) -> int:
+        """Requests put on the wire for the device, retries included."""
+        return self.line.attempts if self.line else 0
+
+    @property
+    def timed_out(self) -> int:
+        """Attempts that got no reply (a transaction retried and answered counts here too;
+        never fewer than the transactions that timed out, a bus that counts no attempts)."""
+        return max(self.line.timeouts if self.line else 0, self.timeouts)
+
+    @property
+    def garbled_attempts(self) -> int:
+        """Attempts ended by a garbled reply (CRC error, truncated, malformed)."""
+        return max(self.line.garbled if self.line else 0, self.garbled)
+
+    @property
+    def retried(self) -> int:
+        """Transactions answered only by a retry (each also counted ``ok``)."""
+        return self.line.retried if self.line else 0
+
+    @property
+    def idle_gap(self) -> float:
+        """The silence a request to the device waits for now, beyond the 3.5 characters."""
+        return self.line.gap if self.line else 0.0
+
+    @property
+    def gap_source(self) -> str:
+        """learned, set, or "" (none)."""
+        if not self.idle_gap or self.line is None:
+            return ""
+        return "learned" if self.line.gap_learned else "set"
 
     def p50(self) -> float | None:
         return quantile(self.latencies, 50)

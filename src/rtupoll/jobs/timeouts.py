@@ -140,6 +140,8 @@ class DeviceTiming:
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
+        self._gap = 0.0  # the idle gap last told to the bus
+        self.seen: Evidence | None = None  # the bus's evidence after the last transaction
 
     @property
     def timeout(self) -> float:
@@ -153,19 +155,23 @@ class DeviceTiming:
         return "learned" if self.estimator.learned else "profile"
 
     def before(self, bus: BusLike | None, unit: int, *, pinned: float | None = None,
-               ceiling: float | None = None) -> float:
+               ceiling: float | None = None, gap: float | None = None) -> float:
         """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
         ``ceiling``: the device's configuration now, which a reload may change). The
         bus's evidence (``BusLike.evidence``: a value) is read; the patience a late
         reply is still expected with is told back (``BusLike.set_patience``). The
         evidence itself (``after`` reads it once per transaction) is read here only when
-        the count of late replies moved: one read per transaction."""
+        the count of late replies moved: one read per transaction. ``gap``: the idle gap
+        the device needs (``BusLike.set_idle_gap``), told to the bus when it changes."""
         self.pinned = pinned
         est = self.estimator
         top = CEILING if ceiling is None else ceiling
         if bus is None:
             est.ceiling, self._bounds = top, None
             return self.timeout
+        if gap is not None and gap != self._gap:
+            bus.set_idle_gap(unit, gap)
+            self._gap = gap
         bounds = (FLOOR + self.silence + bus.adapter_latency, top)
         if bounds != self._bounds:  # the first time, a reload, the adapter's latency known
             est.ceiling = top
@@ -187,7 +193,7 @@ class DeviceTiming:
         """``answered``: the transaction got a reply (data or an exception reply)."""
         if bus is None:
             return
-        evidence = bus.evidence(unit)
+        evidence = self.seen = bus.evidence(unit)
         if answered and evidence.reply_time is not None:
             self.estimator.answered(evidence.reply_time)
         self._take_late(evidence)

@@ -26,6 +26,10 @@ class Change:
     where: str = ""  # plan file:line, for messages
     # addresses other device models keep for themselves on a shared bus -> why
     avoid: Mapping[int, str] = dataclasses.field(default_factory=dict)
+    # other rows of its plan expect a device at ``old`` too (sensors fresh from the
+    # factory): they are connected one at a time, and a row answering at ``new`` is done
+    # whatever answers at ``old`` (the next sensor)
+    shared: bool = False
 
     @property
     def label(self) -> str:

@@ -180,20 +180,39 @@ def display_unit(field: Field, *, celsius: bool = True) -> str:
     return shown[0] if celsius and shown is not None else field.unit
 
 
-def display(fv: FieldValue, *, celsius: bool = True) -> tuple[str, str]:
-    """A reading as a person reads it: (text, unit). A temperature in kelvin is shown in
-    °C (what Home Assistant and the Prometheus metrics show too) at the same decimals;
-    records and outputs keep the device's unit."""
+def shown_number(unit: str, value: float, places: int | None, *,
+                 difference: bool = False) -> float:
+    """A number of ``unit`` in the unit a person is shown it in (``DISPLAY_UNITS``: a
+    temperature in kelvin in °C), at ``places`` decimals (None: as it comes, to 6). A
+    difference moves by no offset: 1.5 K of correction is 1.5 °C. The one rule behind
+    the live table, ``read``'s table, the dashboard and ``/api/state``."""
+    shown = DISPLAY_UNITS.get(unit)
+    if shown is None or not math.isfinite(value):
+        return value
+    moved = value if difference else value + shown[1]
+    return round(moved, places if places is not None else 6)
+
+
+def display_value(fv: FieldValue, *, celsius: bool = True) -> tuple[Value, str, str]:
+    """A reading as a person reads it: (value, text, unit). A temperature in kelvin is
+    shown in °C (what Home Assistant and the Prometheus metrics show too) at the same
+    decimals; records and outputs keep the device's unit, and say it."""
     field = fv.field
-    shown = DISPLAY_UNITS.get(field.unit)
     value = fv.value
-    if celsius and shown is not None and fv.present and isinstance(value, (int, float)) \
-            and not isinstance(value, bool) and math.isfinite(value):
+    if celsius and field.unit in DISPLAY_UNITS and fv.present \
+            and isinstance(value, (int, float)) and not isinstance(value, bool) \
+            and math.isfinite(value):
         places = decimals(field)
-        moved = value + shown[1]
-        return (f"{moved:.{places}f}" if places is not None else f"{round(moved, 6):g}",
-                shown[0])
-    return fv.text, field.unit
+        moved = shown_number(field.unit, value, places, difference=field.difference)
+        return (moved, f"{moved:.{places}f}" if places is not None else f"{moved:g}",
+                DISPLAY_UNITS[field.unit][0])
+    return value, fv.text, field.unit
+
+
+def display(fv: FieldValue, *, celsius: bool = True) -> tuple[str, str]:
+    """A reading as a person reads it: (text, unit) (``display_value``)."""
+    _, text, unit = display_value(fv, celsius=celsius)
+    return text, unit
 
 
 def format_value(field: Field, value: Value) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import re
 from collections.abc import Mapping
 
 from rtupoll.errors import UsageError
@@ -19,6 +20,33 @@ from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 
 _LINE_SPEED_WORDS = ("baud", "uart", "bitrate")  # field names that set the line speed
+MAX_LABEL = 40  # characters in a field's label (docs/profiles.md, "Labels")
+_ASIDE = re.compile(r" \(|; ")
+# words that make a field's number a difference of its unit, never an absolute value:
+# +1.5 °C of correction is 2.7 °F, not 34.7 °F, and |-5 °C| is no temperature of 5 °C
+DIFFERENCE_WORDS = frozenset({"correction", "offset", "delta", "difference", "deviation",
+                              "hysteresis", "deadband", "magnitude", "adjustment",
+                              "compensation"})
+
+
+def first_clause(text: str) -> str:
+    """A description up to its first aside (`` (`` or ``; ``), without a trailing
+    ``.:,``, capitalised: ``"kWh (+) total"`` -> ``"KWh"``; "" for none."""
+    out = _ASIDE.split(text, maxsplit=1)[0].strip().rstrip(".:,")
+    return out[:1].upper() + out[1:]
+
+
+def is_difference(name: str, title: str) -> bool:
+    """Whether a field of this name and title is a difference of its unit (a word of
+    either is one of ``DIFFERENCE_WORDS``): ``Field.difference``, and the same rule for
+    a field known only by its name and label (a fleet viewer's ``bridge/info``)."""
+    words = set(name.split("_")) | set(re.findall(r"[a-z]+", title.lower()))
+    return not DIFFERENCE_WORDS.isdisjoint(words)
+
+
+def squashed(text: str) -> str:
+    """Text compared as a label or unit is: without spaces, case folded."""
+    return "".join(text.split()).casefold()
 
 
 class Addressing(str, enum.Enum):
@@ -26,7 +54,8 @@ class Addressing(str, enum.Enum):
 
     ``pdu``: the address as sent in the request (0-based, e.g. 0x0006).
     ``direct``: a Modicon-looking reference sent literally (30006 goes out as 0x7536).
-    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001.
+    ``modicon``: a 3xxxx/4xxxx reference; the wire address is the reference - 30001/40001
+    (or, past 9999, a 6-digit 3xxxxx/4xxxxx one: the reference - 300001/400001).
     ``one_based``: a register number N; the wire address is N - 1.
     """
 
@@ -37,14 +66,16 @@ class Addressing(str, enum.Enum):
 
     def to_wire(self, table: Table, written: int) -> int:
         if self is Addressing.MODICON:
-            return int(written - table.modicon_base - 1)
+            base = table.modicon_base
+            return int(written - (base * 10 if written > base + 9999 else base) - 1)
         if self is Addressing.ONE_BASED:
             return written - 1
         return written
 
     def to_written(self, table: Table, wire: int) -> int:
         if self is Addressing.MODICON:
-            return int(wire + table.modicon_base + 1)
+            base = table.modicon_base
+            return int(wire + (base if wire < 9999 else base * 10) + 1)
         if self is Addressing.ONE_BASED:
             return wire + 1
         return wire
@@ -53,6 +84,13 @@ class Addressing(str, enum.Enum):
         """The address as the manual writes it."""
         written = self.to_written(table, wire)
         return f"0x{written:04X}" if self is Addressing.PDU else str(written)
+
+
+def is_modicon_reference(table: Table, reference: int) -> bool:
+    """A 5-digit (30001..39999) or 6-digit (300001..365536) reference into ``table``."""
+    base = table.modicon_base
+    six = base * 10
+    return base < reference <= base + 9999 or six < reference <= six + 65536
 
 
 class Severity(str, enum.Enum):
@@ -118,7 +156,26 @@ class Field:
     scale_by: tuple[str, ...] = ()
     # a documented encoding the stored number is unfolded by (``decode:``, model.transforms)
     transform: Transform | None = None
+    label: str = ""  # the profile's ``label:`` ("" when it gives none: see ``title``)
     line: int = 0
+
+    @property
+    def title(self) -> str:
+        """The field's short name for people (Home Assistant's entity name, the
+        dashboard's column): its ``label``, else its description up to the first aside,
+        else its name in words (``import_active_energy`` -> ``"Import active energy"``)."""
+        if self.label:
+            return self.label
+        text = first_clause(self.description) or self.name.replace("_", " ")
+        return text[:1].upper() + text[1:]
+
+    @property
+    def difference(self) -> bool:
+        """Whether the value is a difference of its unit (a correction, an offset, a
+        delta, a hysteresis, a magnitude without its sign), by a word of its name or
+        title (``DIFFERENCE_WORDS``): shown and announced in its unit as it is, never
+        converted as an absolute value (kelvin to °C, HA's °C to °F) would be."""
+        return is_difference(self.name, self.title)
 
     @property
     def words(self) -> int:
@@ -153,6 +210,14 @@ class Serial:
     deassert_dtr: bool = False  # open the port with DTR and RTS deasserted (DTR resets some boards)
 
 
+IDLE_GAP_MAX = 10.0  # seconds: the longest ``idle_gap`` a device may be given
+
+
+def idle_gap_error(gap: float) -> str | None:
+    """Why ``gap`` (seconds) cannot be an idle gap (profile, site file, --idle-gap)."""
+    return None if 0 <= gap <= IDLE_GAP_MAX else f"{gap:g} s is outside 0..{IDLE_GAP_MAX:g} s"
+
+
 @frozen
 class Limits:
     max_registers: int = MAX_REGISTERS  # per read request
@@ -163,6 +228,7 @@ class Limits:
     turnaround: float = 0.005  # typical time from request end to reply start, seconds
     silent_on_error: bool = False  # malformed/unsupported requests get no reply at all
     lost_after_powerup: int = 0  # requests a freshly powered device may drop
+    idle_gap: float = 0.0  # silence on the line the device needs before a request, seconds
 
 
 @frozen
@@ -282,6 +348,14 @@ class Profile:
     extends: str = ""  # the id of the profile this one was built on
     provenance: Provenance = dataclasses.field(default_factory=Provenance)
     path: str = ""
+    # what the device says of itself: read device identification's objects (FC 43/14:
+    # object id -> text) and report server id's server id bytes (FC 17), as documented
+    identification: tuple[tuple[int, str], ...] = ()
+    server_id: bytes = b""
+    # what the loader found doubtful but not wrong (``file:line: path: warning``): two
+    # fields with one title, a title that is only a unit or too long, in a profile that
+    # gives those fields no ``label:``; ``rtupoll profiles check`` prints them
+    warnings: tuple[str, ...] = ()
 
     def line_setting(self, field: Field) -> str:
         """What writing ``field`` changes about how the device is reached: "address"
@@ -299,9 +373,9 @@ class Profile:
         for f in self.fields:
             if f.name == name:
                 return f
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(name, self.names(), n=3)
+        hint = close_names(name, self.names(), n=3)
         raise UsageError(f"{self.id} has no field {name!r}"
                          + (f" (did you mean {' or '.join(map(repr, hint))}?)" if hint else "")
                          + f"; 'rtupoll profiles show {self.id}' lists them")

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from rtupoll.errors import UsageError
 from rtupoll.frozen import frozen
 from rtupoll.model.codec import ByteOrder, DataType, Layout
-from rtupoll.model.profile import Addressing, Field
+from rtupoll.model.profile import Addressing, Field, is_modicon_reference
 from rtupoll.numbers import parse_int
 from rtupoll.rtu import Table
 from rtupoll.rtu.functions import MAX_BITS
@@ -144,18 +144,15 @@ def modicon_table(reference: int, text: str) -> Table:
 
 
 def _check_modicon(table: Table, reference: int, text: str) -> None:
-    base = table.modicon_base
-    six = base * 10  # 6-digit form: 300001..365536
-    if base < reference <= base + 9999 or six < reference <= six + 65536:
-        return
-    raise UsageError(f"{text!r}: {reference} is not a {table.value} reference "
-                     f"({base + 1}..{base + 9999})")
+    if not is_modicon_reference(table, reference):
+        base = table.modicon_base
+        raise UsageError(f"{text!r}: {reference} is not a {table.value} reference "
+                         f"({base + 1}..{base + 9999})")
 
 
 def modicon_wire(spec_table: Table, reference: int) -> int:
     """Wire address of a 5- or 6-digit Modicon reference (already checked)."""
-    base = spec_table.modicon_base
-    return reference - (base * 10 if reference > base + 9999 else base) - 1
+    return Addressing.MODICON.to_wire(spec_table, reference)
 
 
 def split_reads(spec: RegisterSpec, max_registers: int) -> list[tuple[int, int]]:

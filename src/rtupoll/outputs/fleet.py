@@ -13,12 +13,12 @@ Pure: no MQTT library, no I/O but the host name.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import number_decimals
+from rtupoll.model.profile import first_clause
 
 if TYPE_CHECKING:
     from rtupoll.config.site import BusConfig, DeviceConfig
@@ -31,22 +31,9 @@ LAST_SEEN = "last_seen"
 RESERVED = (STATUS_KEY, LAST_SEEN)  # keys of a state message that are not fields
 
 
-def label(field: Field) -> str:
-    """The field's name for people: the profile's description up to its first aside
-    (``"Target gas concentration (ppm or %vol, ...)"`` -> ``"Target gas concentration"``),
-    else the field name in words (``import_active_energy`` -> ``"Import active energy"``)."""
-    text = re.split(r" \(|; ", field.description, maxsplit=1)[0].strip().rstrip(".:,")
-    if not text:
-        text = field.name.replace("_", " ")
-    return text[:1].upper() + text[1:]
-
-
 def choice_label(choice: Choice) -> str:
     """A flag's or enum value's name for people: its description, else its name."""
-    text = re.split(r" \(|; ", choice.description, maxsplit=1)[0].strip().rstrip(".:,")
-    if not text:
-        return choice.name
-    return text[:1].upper() + text[1:]
+    return first_clause(choice.description) or choice.name
 
 
 def kind(field: Field) -> str:
@@ -67,7 +54,7 @@ def precision(field: Field) -> int | None:
 
 
 def field_info(field: Field) -> dict[str, Any]:
-    return {"label": label(field), "unit": field.unit, "kind": kind(field),
+    return {"label": field.title, "unit": field.unit, "kind": kind(field),
             "precision": precision(field)}
 
 

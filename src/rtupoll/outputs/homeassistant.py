@@ -6,7 +6,8 @@ One retained message per Modbus device in HA's device-based form
 retained payload. Per polled field:
 
 - a number: a ``sensor`` with its unit, and ``device_class``/``state_class`` where the
-  unit implies one (°C, %RH, ppm of CO2, µg/m³ of PM2.5, V, A, W, kWh, ...);
+  unit implies one (°C, %RH, ppm of CO2, µg/m³ of PM2.5, V, A, W, kWh, ...), none for a
+  difference (a correction, an offset), ``power_factor`` for a power factor;
 - an enum: an ``enum`` sensor whose options are the profile's names (plus the
   catch-all name and ``unknown`` for codes the manual does not list);
 - a flag set: one ``binary_sensor`` per flag (``problem`` when its severity is a
@@ -20,7 +21,7 @@ shows as unknown; every polled field is in every message, ``outputs.mqtt_state``
 is available only when both ``BASE/bridge/state`` and ``BASE/DEVICE/availability`` say
 ``online``. Identifiers are ``rtupoll_<gateway_id>_<device>[_<entity>]``: the same on
 every run, and distinct between gateways on one broker. Names are the profile's labels
-(``outputs.fleet.label``); an enum code the manual does not list is ``unknown`` in the
+(``Field.title``); an enum code the manual does not list is ``unknown`` in the
 enum sensor and no option in a select; a number box spans what the profile allows.
 Each device also has two diagnostic entities from ``_rtupoll`` and ``last_seen``.
 """
@@ -39,7 +40,6 @@ from rtupoll.outputs.fleet import (
     LAST_SEEN,
     STATUS_KEY,
     choice_label,
-    label,
     precision,
     version,
 )
@@ -102,10 +102,17 @@ def config_topic(prefix: str, oid: str) -> str:
 
 
 def classify(field: Field) -> tuple[str, str | None, str | None]:
-    """(HA unit, device class, state class) of a numeric field."""
+    """(HA unit, device class, state class) of a numeric field. A device class only where
+    Home Assistant's handling of it is right for the field: a difference (a correction,
+    an offset: ``Field.difference``) has none, since HA would convert +1.5 °C as a
+    temperature, 34.7 °F; a power factor, unitless or in %, is ``power_factor``."""
     unit, cls = _UNITS.get(field.unit, (field.unit, None))
     name = field.name.lower()
-    if field.unit == "ppm":
+    if field.difference:
+        cls = None
+    elif field.unit in ("", "%") and re.search(r"power_?factor|cos_?phi", name):
+        cls = "power_factor"
+    elif field.unit == "ppm":
         cls = "carbon_dioxide" if "co2" in name else (
             "volatile_organic_compounds_parts" if "voc" in name else None)
     elif field.unit in ("µg/m³", "ug/m3", "μg/m³"):
@@ -113,6 +120,8 @@ def classify(field: Field) -> tuple[str, str | None, str | None]:
         cls = ("pm25" if re.search(r"pm_?2[._]?5", name) else "pm10" if "pm10" in name
                else "pm1" if re.search(r"pm_?1(?!\d)", name)
                else "volatile_organic_compounds" if "voc" in name else None)
+    if cls == "volume" and not field.counter:
+        cls = "volume_storage"  # HA's volume is a total (a meter); what a tank holds is this
     if cls in _ENERGY:
         return unit, cls, "total_increasing" if field.counter else "total"
     return unit, cls, "total_increasing" if field.counter else "measurement"
@@ -164,7 +173,7 @@ def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
     v = _value(field)
     out: dict[str, dict[str, Any]] = {}
     t = field.layout.type
-    name = label(field)
+    name = field.title
     if field.enum:
         documented = [c.name for c in field.enum.values()]
         options = list(documented)
@@ -228,7 +237,9 @@ def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
 
 def status_components(state_topic: str) -> dict[str, dict[str, Any]]:
     """rtupoll's own view of the device (``_rtupoll`` and ``last_seen`` in each state
-    message), as two diagnostic entities; ids that no field can have (``_``)."""
+    message), as two diagnostic entities; ids that no field can have (``_``). The status
+    changes only when it means something; *Last seen* changes with every message, so it
+    is disabled until a user enables it (``enabled_by_default``)."""
     key = STATUS_KEY
     return {
         "_status": {"p": "sensor", "name": "Polling status", "entity_category": "diagnostic",
@@ -236,8 +247,10 @@ def status_components(state_topic: str) -> dict[str, dict[str, Any]]:
                     "value_template": f"{{{{ value_json[{key!r}].status }}}}",
                     "json_attributes_topic": state_topic,
                     "json_attributes_template": f"{{{{ value_json[{key!r}] | tojson }}}}"},
+        # a new state with every message: 86,400 rows a day in HA's recorder at a 1 s
+        # interval, on a device whose values never changed; off until a person wants it
         "_last_seen": {"p": "sensor", "name": "Last seen", "entity_category": "diagnostic",
-                       "device_class": "timestamp",
+                       "device_class": "timestamp", "enabled_by_default": False,
                        "value_template": f"{{{{ value_json[{LAST_SEEN!r}] }}}}"},
     }
 

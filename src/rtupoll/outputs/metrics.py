@@ -45,7 +45,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.gateway_settings import host_port
-from rtupoll.errors import UsageError
+from rtupoll.errors import MissingLibrary, UsageError
 from rtupoll.jobs.histogram import Histogram
 from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
@@ -99,8 +99,9 @@ SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): 
 RESERVED = frozenset({
     f"rtupoll_{n}{suffix}" for n in (
         "device_up", "device_state", "device_info", "requests", "exceptions", "cycles",
-        "last_good_reading_age_seconds", "request_duration_seconds", "bus_utilisation_ratio",
-        "bus_transactions", "bus_busy_seconds", "bus_port_up", "bus_port_losses")
+        "late_replies", "device_timeout_seconds", "last_good_reading_age_seconds",
+        "request_duration_seconds", "bus_utilisation_ratio", "bus_transactions",
+        "bus_busy_seconds", "bus_port_up", "bus_port_losses")
     for suffix in ("", "_total", "_bucket", "_count", "_sum", "_created")})
 
 
@@ -158,6 +159,8 @@ def field_metric(f: Field) -> FieldMetric:
     if unit and base.endswith("_" + _word(unit)):  # level_cm: the name says the unit
         return FieldMetric(PREFIX + base, kind, f"{what}, in {unit}", decimals=known)
     word, scale, offset = UNITS.get(unit, (_word(unit), 1.0, 0.0))
+    if f.difference:  # a correction of 1.5 K is one of 1.5 °C: scaled, never offset
+        offset = 0.0
     spelled = SPELLED.get(unit)
     if spelled and (scale, offset) != (1, 0) and f"_{spelled}_" in f"_{base}_":
         base = f"_{base}_".replace(f"_{spelled}_", "_").strip("_") or "field"
@@ -227,6 +230,15 @@ class SchedulerCollector:
                                          labels=[*dev_labels, "code"])
         cycles = CounterMetricFamily("rtupoll_cycles", "Device cycles (scans)",
                                      labels=dev_labels)
+        attempts = CounterMetricFamily("rtupoll_attempts", "Requests put on the wire, retries "
+                                       "included, by how each ended (answered, timeout, "
+                                       "garbled)", labels=[*dev_labels, "outcome"])
+        retried = CounterMetricFamily("rtupoll_retried", "Transactions answered only by a "
+                                      "retry (also counted in rtupoll_requests outcome ok)",
+                                      labels=dev_labels)
+        gap = GaugeMetricFamily("rtupoll_device_idle_gap_seconds", "The silence on the line "
+                                "a request to the device waits for (set or learned; absent: "
+                                "the 3.5 characters only)", labels=[*dev_labels, "source"])
         late = CounterMetricFamily("rtupoll_late_replies", "Replies that came after their "
                                    "request had timed out (counted, never decoded)",
                                    labels=dev_labels)
@@ -276,6 +288,13 @@ class SchedulerCollector:
                 for code, n in sorted(st.exceptions.items()):
                     exceptions.add_metric([*labels, f"{code:02d}"], n)
                 cycles.add_metric(labels, st.cycles)
+                ended = st.timed_out + st.garbled_attempts
+                for outcome, n in (("answered", max(0, st.attempts - ended)),
+                                   ("timeout", st.timed_out), ("garbled", st.garbled_attempts)):
+                    attempts.add_metric([*labels, outcome], n)
+                retried.add_metric(labels, st.retried)
+                if st.idle_gap:
+                    gap.add_metric([*labels, st.gap_source], st.idle_gap)
                 late.add_metric(labels, st.late)
                 if st.timeout is not None:
                     waits.add_metric(labels, st.timeout)
@@ -287,8 +306,8 @@ class SchedulerCollector:
                 for r in st.latest.values():
                     if r.value is not None:
                         self._reading(families, labels, dev, r)
-        yield from (up, state, info, requests, exceptions, cycles, late, waits, age, latency,
-                    util, btx, busy, port_up, losses)
+        yield from (up, state, info, requests, exceptions, cycles, attempts, retried, late,
+                    waits, gap, age, latency, util, btx, busy, port_up, losses)
         yield from families.values()
 
     def _metric(self, dev: DevicePoller, f: Field) -> FieldMetric:
@@ -381,8 +400,7 @@ class MetricsService(Service):
         try:
             import prometheus_client  # noqa: F401
         except ImportError:
-            raise UsageError("--metrics needs prometheus_client: pip install "
-                             "'rtupoll[metrics]'") from None
+            raise MissingLibrary("--metrics", "metrics") from None
         self.collector: SchedulerCollector | None = None
         self.others: list[Any] = list(others)
         self.registry: CollectorRegistry | None = None

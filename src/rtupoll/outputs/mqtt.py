@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 from rtupoll.backoff import after_failures
 from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.errors import BrokerError, RtupollError, UsageError
+from rtupoll.figures import count
 from rtupoll.jobs.services import Follow, Service
 from rtupoll.jobs.stats import State
 from rtupoll.outputs import homeassistant as ha
@@ -68,8 +69,8 @@ if TYPE_CHECKING:
     from rtupoll.jobs.services import Reload
     from rtupoll.jobs.stats import Reading
 
-__all__ = ["MqttService", "Outbox", "backoff", "describe", "device_topics", "from_options",
-           "plain", "remove_discovery_now", "topic_name"]
+__all__ = ["MqttService", "Outbox", "Removed", "backoff", "describe", "device_topics",
+           "from_options", "plain", "remove_discovery_now", "topic_name"]
 
 log = logging.getLogger("rtupoll.mqtt")
 STOP_FLUSH = 5.0  # seconds a clean stop waits for the last messages to go out
@@ -281,9 +282,9 @@ class MqttService(Service):
                 gone = time.monotonic() - (lost_at or time.monotonic())
                 self.lost_at = None
                 self._log(logging.WARNING, "mqtt: back on %s after %.0f s: republishing the "
-                          "latest state of %d devices (%d older messages were replaced "
-                          "meanwhile)", self.settings.where, gone, len(self.publisher.state),
-                          self.outbox.dropped)
+                          "latest state of %s (%s replaced meanwhile)", self.settings.where, gone,
+                          count(len(self.publisher.state), "device"),
+                          count(self.outbox.dropped, "older message"))
             attempts = 0
             reason = "disconnected"
             try:
@@ -591,34 +592,68 @@ async def retained(client: aiomqtt.Client, base: str, topics: list[str]) -> dict
     return got
 
 
-async def remove_discovery(settings: MqttSettings, site: Site) -> list[str]:
-    """``--mqtt-remove-discovery``: empty retained payloads for every Home Assistant config
-    this gateway (this id and base topic) published, the site's devices and any it had
-    before; returns the object ids removed."""
+@dataclass(frozen=True)
+class Removed:
+    """What ``--mqtt-remove-discovery`` cleared: Home Assistant configs, and this gateway's
+    other retained topics (bridge state and info, availability, retained states)."""
+
+    configs: tuple[str, ...]
+    topics: tuple[str, ...]
+
+
+async def remove_discovery(settings: MqttSettings, site: Site) -> Removed:
+    """``--mqtt-remove-discovery``: of what the broker holds retained, clear every Home
+    Assistant config of this gateway (the site's devices and buses, and any other it
+    published before: ``homeassistant.is_ours``), then under the base topic every topic
+    of this gateway's layout: ``bridge/info``, each device's level (``availability``, a
+    retained state, field topics) and ``bridge/state`` last. A topic the broker does not
+    hold is not touched (an empty message there would make Home Assistant log a warning),
+    and nothing else under the base is."""
     lib = aiomqtt_module()
     s = settings
     client = make_client(s, will=False)
     await connect(client, s)
-    removed: list[str] = []
+    base = s.base
     try:
         service = MqttService(s, site)
-        for topic in service._discovery():
+        site_configs = set(service._discovery())
+        held = await retained(client, base, [f"{s.discovery_prefix}/device/+/config",
+                                             f"{base}/#"])
+        configs = [t for t, body in held.items()
+                   if t.startswith(f"{s.discovery_prefix}/device/")
+                   and (t in site_configs or _ours(body, s))]
+        info, state = f"{base}/bridge/info", f"{base}/bridge/state"
+        levels = set(service.topics.values()) | _info_levels(held.get(info, b""))
+        levels |= {t[len(base) + 1:-len("/availability")] for t in held
+                   if t.startswith(f"{base}/") and t.endswith("/availability")}
+        levels.discard("bridge")
+        mine = [t for t in held if t.startswith(f"{base}/")
+                and t[len(base) + 1:].split("/")[0] in levels]
+        topics = [*sorted(mine), *(t for t in (info, state) if t in held)]
+        for topic in [*configs, *topics]:
             await client.publish(topic, b"", qos=1, retain=True)
-            removed.append(topic.split("/")[-2])
-        configs = await retained(client, s.base, [f"{s.discovery_prefix}/device/+/config"])
-        for topic, body in configs.items():
-            with contextlib.suppress(ValueError, RecursionError):
-                obj = json.loads(body)
-                if isinstance(obj, dict) and ha.is_ours(obj, s.gateway_id, s.base) and \
-                        topic.split("/")[-2] not in removed:
-                    await client.publish(topic, b"", qos=1, retain=True)
-                    removed.append(topic.split("/")[-2])
     except lib.MqttError as exc:
         raise BrokerError(f"{s.where}: {describe(exc, s)}") from None
     finally:
         with contextlib.suppress(Exception):
             await client.__aexit__(None, None, None)
-    return removed
+    return Removed(tuple(configs), tuple(topics))
+
+
+def _ours(body: bytes, s: MqttSettings) -> bool:
+    with contextlib.suppress(ValueError, RecursionError):
+        obj = json.loads(body)
+        return isinstance(obj, dict) and ha.is_ours(obj, s.gateway_id, s.base)
+    return False
+
+
+def _info_levels(body: bytes) -> set[str]:
+    """The device levels a retained ``bridge/info`` names (its ``devices`` keys)."""
+    with contextlib.suppress(ValueError, RecursionError, AttributeError):
+        devices = json.loads(body or b"{}").get("devices", {})
+        if isinstance(devices, dict):
+            return {str(k) for k in devices}
+    return set()
 
 
 def from_options(site: Site, url: str | None, *, allow_writes: bool,
@@ -646,7 +681,7 @@ def from_options(site: Site, url: str | None, *, allow_writes: bool,
     return settings
 
 
-def remove_discovery_now(settings: MqttSettings, site: Site) -> list[str]:
+def remove_discovery_now(settings: MqttSettings, site: Site) -> Removed:
     """``--mqtt-remove-discovery``, from synchronous code."""
     from rtupoll import aio
 

@@ -28,7 +28,7 @@ import uuid
 from functools import cache
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.errors import UsageError
+from rtupoll.errors import MissingLibrary
 
 if TYPE_CHECKING:
     import aiomqtt
@@ -49,8 +49,7 @@ def aiomqtt_module() -> Any:
     try:
         import aiomqtt
     except ImportError:
-        raise UsageError("MQTT (--mqtt, or mqtt: in the site file) needs the aiomqtt "
-                         "library: pip install 'rtupoll[mqtt]'") from None
+        raise MissingLibrary("MQTT (--mqtt, or mqtt: in the site file)", "mqtt") from None
     return aiomqtt
 
 

@@ -15,9 +15,10 @@ schedule; a list of field names (or ``{"fields": [...]}``) reads those fields, p
 or not, and answers on ``BASE/DEVICE/get/result`` like ``set``.
 
 Whatever a payload holds, it is bounded before it is parsed (``MAX_PAYLOAD`` bytes,
-``MAX_DEPTH`` levels of nesting), and a number is a JSON number or a plain decimal
-string (``"12.5"``): not ``true``, ``"1_0"``, ``"0x10"`` or full-width digits. A number
-the field cannot hold (``1e39`` for an f32) is refused like any value out of range.
+``MAX_DEPTH`` levels of nesting), a key given twice is refused (JSON would silently keep
+the last), and a number is a JSON number or a plain decimal string (``"12.5"``): not
+``true``, ``"1_0"``, ``"0x10"``, ``"1e1"`` or full-width digits. A number the field cannot
+hold (``1e39`` for an f32) is refused like any value out of range.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ _STATUS: tuple[tuple[type[RtupollError], str], ...] = (
 
 MAX_PAYLOAD = 16_384  # bytes of a command's payload
 MAX_DEPTH = 4  # nesting of a command's JSON ({"fields": [...]} is 2)
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)", re.ASCII)  # no exponent
 _F32_MAX = 3.4028234663852886e38
 _PROTECTED = {"address": "the device's own address", "baud": "the device's baud rate"}
 
@@ -79,9 +80,27 @@ def _object(payload: bytes, what: str) -> Any:
     if depth(payload) > MAX_DEPTH:
         raise UsageError(f"{what}: the payload nests deeper than {MAX_DEPTH} levels")
     try:
-        return json.loads(payload.decode("utf-8"))
+        return json.loads(payload.decode("utf-8"), object_pairs_hook=_once)
+    except _Twice as exc:
+        raise UsageError(f"{what}: the payload has the key {exc.key} twice (each key once: "
+                         "which value was meant cannot be known)") from None
     except (UnicodeDecodeError, ValueError, RecursionError):
         raise UsageError(f"{what}: the payload is not JSON") from None
+
+
+class _Twice(Exception):
+    def __init__(self, key: str) -> None:
+        self.key = json.dumps(key)[:40]
+
+
+def _once(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object whose keys are all different (``json.loads`` keeps the last)."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _Twice(key)
+        out[key] = value
+    return out
 
 
 def depth(payload: bytes) -> int:

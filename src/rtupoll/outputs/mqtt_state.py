@@ -9,8 +9,10 @@ no profile field can take:
 
     {"co2": 800, ..., "last_seen": "2026-...Z", "_rtupoll": {"status": "ok", "error": null}}
 
-``status`` is ``ok`` (every field read this scan), ``partial`` (some failed) or
-``failed`` (none read); ``error`` is the first failure's line (null when ``ok``).
+``status`` is ``ok`` (every field has its value: none is null for a failed read, this
+scan's or, for a slow field not read in this one, its last), ``partial`` (some failed)
+or ``failed`` (none read this scan); ``error`` is the first failure's line (null when
+``ok``).
 ``BASE/DEVICE/availability`` is published when it changes; ``BASE/DEVICE/FIELD``
 plain values when ``field_topics`` is on.
 """
@@ -63,6 +65,7 @@ class StatePublisher:
         self.state: dict[str, str] = {}  # topic level -> its latest state payload
         self.avail: dict[str, str] = {}  # topic level -> online/offline
         self._values: dict[str, dict[str, Any]] = {}  # topic level -> field -> latest value
+        self._failed: dict[str, dict[str, str]] = {}  # topic level -> field -> why it is null
         self._compared: dict[str, Any] = {}  # on_change: what was last published
         self._sent_at: dict[str, float] = {}
         self.forced: set[str] = set()  # a get asked for the next state, changed or not
@@ -83,18 +86,28 @@ class StatePublisher:
             out.append(Out(f"{base}/{t}/availability", avail, True))
         known = self._values.get(t, {})
         values: dict[str, Any] = {f.name: known.get(f.name) for f in cfg.fields}
+        # fields whose latest read failed, with why: null until a read gives them a value
+        was = self._failed.get(t, {})
+        failed = {f.name: was[f.name] for f in cfg.fields if f.name in was}
         read: dict[str, Any] = {}
         failures: list[str] = []
         good = 0
         for r in readings:
+            name = r.field.name
             if r.value is not None:
-                read[r.field.name] = values[r.field.name] = value_of(r.value)
+                read[name] = values[name] = value_of(r.value)
+                failed.pop(name, None)
                 good += 1
                 continue
-            values[r.field.name] = None
-            if r.status is not Status.ABSENT:
-                failures.append(f"{r.status.value}: {r.error}")
-        self._values[t] = values
+            values[name] = None
+            if r.status is Status.ABSENT:
+                failed.pop(name, None)
+            else:
+                failed[name] = f"{r.status.value}: {r.error}"
+                failures.append(failed[name])
+        self._values[t], self._failed[t] = values, failed
+        # a field not read this scan whose last read failed is null too: never "ok" then
+        failures += [e for e in failed.values() if e not in failures]
         # the first failure that says why (a "skipped" only follows an earlier one)
         error = next((e for e in failures if not e.startswith("skipped")),
                      failures[0] if failures else None)
@@ -136,7 +149,8 @@ class StatePublisher:
         out = [Out(f"{base}/{t}/availability", "", True)]
         if self.settings.retain:
             out.append(Out(f"{base}/{t}", "", True))
-        for d in (self.avail, self.state, self._values, self._compared, self._sent_at):
+        for d in (self.avail, self.state, self._values, self._failed, self._compared,
+                  self._sent_at):
             d.pop(t, None)
         return out
 

@@ -133,22 +133,47 @@ def request_length(head: bytes) -> int | None:
 
 
 def reply_length(head: bytes) -> int | None:
-    """Length of the reply (normal or exception) that starts with ``head``."""
+    """Length of the reply (normal or exception) that starts with ``head`` (the bytes
+    from its start on: most replies need 3, a device identification its objects')."""
     if len(head) < 2:
         return None
     if head[1] & 0x80:
         return EXCEPTION_LENGTH
+    if head[1] == 43 and len(head) > 2 and head[2] == 0x0E:
+        return _device_id_length(head)
     fn = FUNCTIONS.get(head[1])
     return fn.reply.of(head) if fn else None
 
 
+def _device_id_length(head: bytes) -> int | None:
+    """A read device identification reply: 8 header bytes (unit, 2B, 0E, code,
+    conformity, more follows, next object, count), then each object's id, length and
+    bytes, then the CRC; None until the bytes that say are in."""
+    if len(head) < 8:
+        return None
+    at = 8
+    for _ in range(head[7]):
+        if len(head) < at + 2:
+            return None
+        at += 2 + head[at + 1]
+    return at + 2
+
+
 def answer_length(request: bytes) -> int | None:
-    """Length of the normal reply to ``request`` (a complete request frame)."""
+    """Length of the normal reply to ``request`` (a complete request frame); None where
+    the reply's own bytes say (report server id, device identification, ...)."""
     fc = request[1]
     if fc in READ_FUNCTIONS:
         return 5 + data_bytes(fc, int.from_bytes(request[4:6], "big"))
     fn = FUNCTIONS.get(fc)
     return fn.reply.fixed or None if fn else None
+
+
+def echoed_by_design(request: bytes) -> bool:
+    """Whether the normal reply to ``request`` is the request itself, byte for byte (a
+    write of one coil or register; diagnostics' return query data): an adapter's echo
+    and the device's answer then look the same."""
+    return request[1] in (5, 6) or (request[1] == 8 and request[2:4] == b"\x00\x00")
 
 
 def data_bytes(function: int, count: int) -> int:

@@ -12,6 +12,29 @@ must also have been quiet for the drain period (by default the timeout that expi
 but never longer than ``drain_limit`` drain periods: a line that never goes quiet
 must not hold the master for ever.
 
+**Idle gap.** Some devices hear a request only after a longer silence than 3.5
+characters (the "T delay" of their manuals: Growatt asks for 850 ms between commands).
+``set_idle_gap`` gives a unit its gap (``idle_gap`` on the line: every unit's), and a
+request to that unit may go only once the line has been silent that long: counted, as
+the silence is, from the last byte on the line, whoever sent it (``ready_at(unit=)``).
+A unit without one costs one dictionary look-up.
+
+**Learned idle gap.** A device that needs a gap nobody set looks slow: its first
+attempt, sent right after another device's reply, is not heard; the retry, after a
+whole timeout of silence, is answered. Taken for a late answer to the first attempt,
+that would raise the learned timeout to its ceiling and starve the device. So when an
+attempt that heard nothing at all was sent after a shorter silence than the retry
+that was answered, the answer is the retry's (its reply time counted from the retry,
+never counted late) and the unit's gap is raised: to twice the silence that was not
+enough (at least ``GAP_STEP``), never beyond the silence that was (or ``GAP_MAX``).
+The unanswered attempts stay outstanding, *suspect*: should one still be answered,
+the device heard it and is slow, not deaf: the reply is counted late as ever (so the
+timeout learns), the learned gap is dropped and not learned again for that unit for
+``GAP_REFUTED`` seconds. At ``GAP_MAX`` the evidence no longer counts as a gap. A
+learned gap halves every ``GAP_HALF_LIFE`` seconds (a device that needed a pause for
+a while is not slowed for ever; one that still needs it raises it again after one
+unheard attempt) and is gone below the silence (``learned_gap``).
+
 **Which reply answers which request.** RTU has no transaction id: a read reply carries
 only the unit, the function and a byte count, so a late reply to one request looks
 exactly like the answer to the next request of the same shape. A timer alone cannot
@@ -51,10 +74,15 @@ device that answers one request twice, and frames from a second master.
 before the device's reply. With ``echo`` on, the line consumes that echo as part of
 each attempt: the first bytes received after a request must be the request, byte for
 byte; anything else ends the attempt as garbled (a collision on the wire, or an
-adapter that does not echo). With ``echo`` off, a request coming back is detected:
-the attempt ends garbled with ``ECHO_HINT`` (reads and FC15/16, whose echo is no
-reply; FC05/06, whose echo is byte for byte the device's reply, once an echo has been
-seen on the line), never taken for the answer.
+adapter that does not echo). With ``echo`` off, a request coming back is detected on
+the first request, whether its bytes come one by one as they leave the wire or all
+at once (reads and FC15/16, whose echo is no reply; FC05/06, whose echo is byte for
+byte the device's reply, once an echo has been seen on the line): never taken for the
+answer, never counted late. Then either the attempt ends garbled with ``ECHO_HINT``
+(``Garbled.final``: a retry would come back the same; a one-shot command says to add
+--echo), or, with ``adopt_echo`` (``poll``), the echo is consumed and the line goes on
+with ``echo`` on (``echo_found``; ``ECHO_FOUND`` says so): the device's reply that
+follows is the first attempt's answer.
 
 **Reply time.** For every frame it explains, the line records the device's reply
 time: from the end of the request on the wire (its first byte's time plus its wire
@@ -77,12 +105,14 @@ plain silence (``DeviceTimeout``).
 
 from __future__ import annotations
 
+import math
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
-from rtupoll.rtu.functions import MAX_FRAME, reply_length
+from rtupoll.rtu.functions import MAX_FRAME, echoed_by_design, reply_length
 from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
 from rtupoll.rtu.timing import Framing
 
@@ -90,8 +120,15 @@ HORIZON = 60.0  # seconds after which no late reply is expected, whatever the ev
 LATE_FACTOR = 12  # a request that timed out may still be answered this many timeouts late
 SETTLE_FACTOR = 3  # an answered-looking request may still be answered this many latencies late
 DRAIN_LIMIT = 3  # at most this many drain periods after a timeout, even on a busy line
+GAP_STEP = 0.01  # seconds: the least idle gap learned
+GAP_MAX = 1.0  # seconds: the longest idle gap learned; beyond, a device is slow, not deaf
+GAP_HALF_LIFE = 600.0  # seconds in which a learned idle gap halves
+GAP_REFUTED = 600.0  # seconds a unit whose unheard attempt was answered after all learns none
 ECHO_HINT = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
              "always on): add --echo (echo: true on the bus in a site file)")
+ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose receiver is "
+              "always on): each echo is consumed from the first one on, as with --echo; say "
+              "so with --echo (echo: true on the bus in a site file)")
 
 
 @dataclass
@@ -102,6 +139,10 @@ class Outstanding:
     expect: Expect
     sent: float  # when its first byte went out
     expires: float  # after this no answer to it is expected any more
+    idle: float = 0.0  # the silence on the line before it went
+    retry: bool = False  # a retry of the same request within one transaction
+    silent: bool = False  # its attempt ended with nothing received at all
+    suspect: bool = False  # taken for not heard by the device (``Line._unheard``)
 
 
 @frozen
@@ -115,6 +156,7 @@ class Answer:
 @frozen
 class Garbled:
     why: str
+    final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
 @dataclass
@@ -127,9 +169,18 @@ class Attempt:
 
 @dataclass
 class LineCounts:
+    """What the line saw, per unit where it is a unit's: every attempt is counted once,
+    by how it ended (answered, ``garbled`` or ``timeouts``; an echo seen with echo off
+    counts in ``echoes`` only)."""
+
     late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
     echoes: int = 0  # requests that came back with echo off (the adapter echoes)
+    gap_raised: Counter[int] = field(default_factory=Counter)  # learned idle gap raises
+    sent: Counter[int] = field(default_factory=Counter)  # attempts (requests put on the wire)
+    garbled: Counter[int] = field(default_factory=Counter)  # attempts ended by a garbled reply
+    timeouts: Counter[int] = field(default_factory=Counter)  # attempts that got no reply
+    retried: Counter[int] = field(default_factory=Counter)  # answered only by a retry
 
 
 class Line:
@@ -137,9 +188,13 @@ class Line:
 
     def __init__(self, framing: Framing, *, drain: float | None = None,
                  horizon: float = HORIZON, drain_limit: int = DRAIN_LIMIT,
-                 echo: bool = False) -> None:
+                 echo: bool = False, idle_gap: float = 0.0) -> None:
         self.framing = framing
         self.echo = echo  # the adapter echoes each request: consume it
+        # echo off and a request comes back: consume it and turn echo on (``poll``),
+        # rather than end the transaction (a one-shot command says to add --echo)
+        self.adopt_echo = False
+        self.echo_found = False  # an echo came back with echo off (``adopt_echo``: adopted)
         self._echo = b""  # the echo still expected (echo on)
         self.counts = LineCounts()
         self._drain, self._horizon, self._drain_limit = drain, horizon, drain_limit
@@ -158,12 +213,56 @@ class Line:
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
+        # who looks at the line's bytes (--traffic, --capture): (sent?, bytes), as they go
+        # out and come in; None: nobody, and nothing is called
+        self.tap: Callable[[bool, bytes], None] | None = None
+        # the silence before a request: the line's (every unit's) and per unit, as set
+        self.idle_gap = idle_gap
+        self._gap_set: dict[int, float] = {}
+        # the gap each unit gets (set, the line's), only where above the 3.5 characters
+        self._gap: dict[int, float] = {}
+        self._quiet = max(framing.silence, idle_gap)  # any other unit's
+        # per unit, a learned idle gap: (seconds, since when); refuted: until when none is
+        self._learned: dict[int, tuple[float, float]] = {}
+        self._refuted: dict[int, float] = {}
+        self._suspected: set[int] = set()  # units with suspects outstanding
 
     # -- when the next frame may go ------------------------------------------
 
-    def ready_at(self, *, drain: bool = True) -> float:
-        """The earliest time the next request may start (``drain``: honour a drain)."""
-        ready = max(self.last_rx, self.tx_end) + self.framing.silence
+    def set_idle_gap(self, unit: int, seconds: float) -> None:
+        """The silence ``unit`` needs on the line before a request to it (0: none beyond
+        the line's ``idle_gap`` and the 3.5 characters)."""
+        if self._gap_set.get(unit, 0.0) == seconds:
+            return
+        self._gap_set[unit] = seconds
+        self._regap(unit)
+
+    def gap(self, unit: int) -> float:
+        """The silence a request to ``unit`` waits for (the 3.5 characters at least)."""
+        return self._gap.get(unit, self._quiet)
+
+    def gap_learned(self, unit: int) -> bool:
+        """Whether ``unit``'s gap is (also) learned."""
+        return unit in self._learned
+
+    @property
+    def learned_gap(self) -> dict[int, float]:
+        """Per unit, the idle gap learned (as of its last request), where one is."""
+        return {unit: gap for unit, (gap, _) in self._learned.items()}
+
+    def _regap(self, unit: int) -> None:
+        learned = self._learned.get(unit)
+        gap = max(self._gap_set.get(unit, 0.0), self.idle_gap, learned[0] if learned else 0.0)
+        if gap > self.framing.silence:
+            self._gap[unit] = gap
+        else:
+            self._gap.pop(unit, None)
+
+    def ready_at(self, *, drain: bool = True, unit: int | None = None) -> float:
+        """The earliest time the next request (to ``unit``: its idle gap) may start
+        (``drain``: honour a drain)."""
+        gap = self._quiet if unit is None else self._gap.get(unit, self._quiet)
+        ready = max(self.last_rx, self.tx_end) + gap
         if drain and self.drain_for:
             quiet = max(self.last_rx, self.timeout_at) + self.drain_for
             ready = max(ready, min(quiet, self.timeout_at + self._drain_limit * self.drain_for))
@@ -175,8 +274,14 @@ class Line:
 
     # -- sending ---------------------------------------------------------------
 
-    def send(self, request: bytes, now: float) -> None:
-        """``request`` starts on the wire at ``now``; its answer is awaited (not a broadcast)."""
+    def send(self, request: bytes, now: float, *, retry: bool = False) -> None:
+        """``request`` starts on the wire at ``now``; its answer is awaited (not a
+        broadcast). ``retry``: a retry of the same request (``Transaction``)."""
+        if self.tap is not None:
+            self.tap(True, request)
+        idle = now - max(self.last_rx, self.tx_end)
+        if self._learned and request[0] in self._learned:
+            self._decay(request[0], now)
         self.tx_end = now + self.framing.wire_time(len(request))
         self.drain_for = 0.0
         if self._idle_burst:
@@ -190,7 +295,8 @@ class Line:
         if exp is None:  # a broadcast: nobody answers
             self.attempt = None
             return
-        entry = Outstanding(request, exp, now, now + self._settle(exp.unit))
+        entry = Outstanding(request, exp, now, now + self._settle(exp.unit), idle, retry)
+        self.counts.sent[exp.unit] += 1
         self._outstanding.setdefault(exp.unit, deque()).append(entry)
         self.attempt = Attempt(entry)
 
@@ -205,6 +311,8 @@ class Line:
         reply that ends the attempt, or None (keep waiting)."""
         if not data:
             return None
+        if self.tap is not None:
+            self.tap(False, data)
         self.last_rx = now
         if self._echo:
             data, garbled = self._take_echo(data)
@@ -225,8 +333,13 @@ class Line:
                     return None  # the request coming back, perhaps: wait for the rest
                 if self._buf.startswith(request) and self._is_echo(request):
                     self.counts.echoes += 1
-                    self.attempt = None
-                    return Garbled(ECHO_HINT)
+                    self.echo_found = True
+                    if not self.adopt_echo:
+                        self.attempt = None
+                        return Garbled(ECHO_HINT, final=True)
+                    self.echo = True  # from now on each echo is consumed, as with --echo
+                    self._consume(len(request))
+                    del att.rx[:len(request)]
         while True:
             found = self._next_frame()
             if found is None:
@@ -236,6 +349,8 @@ class Line:
             self._consume(start + len(frame))
             if self._explain(frame, began) and att is not None:
                 self.attempt = None
+                if att.entry.retry:
+                    self.counts.retried[frame[0]] += 1
                 return Answer(frame, self.reply_time[frame[0]])
         if len(self._buf) > 2 * MAX_FRAME:
             self._consume(len(self._buf) - MAX_FRAME)
@@ -244,6 +359,7 @@ class Line:
             if why:  # the request got its reply, garbled: it is settled, not outstanding
                 self.attempt = None
                 self._settle_garbled(att.entry)
+                self.counts.garbled[att.entry.expect.unit] += 1
                 return Garbled(why)
         return None
 
@@ -273,14 +389,16 @@ class Line:
         if att is None:  # a broadcast's echo: nothing waits for it
             self.counts.unsolicited += 1
             return b"", None
+        self.counts.garbled[att.entry.expect.unit] += 1
         return b"", Garbled(f"the adapter's echo differs from the request sent (expected "
                             f"{sent[:n].hex(' ')}, got {data[:n].hex(' ')}): a collision, or "
                             "an adapter that does not echo (then drop --echo)")
 
     def _is_echo(self, request: bytes) -> bool:
         """Echo off, ``request`` came back: an echo, unless it is byte for byte a normal
-        reply (FC05/06) and no echo has been seen on this line yet."""
-        return self.counts.echoes > 0 or request[1] not in (5, 6)
+        reply (FC05/06, FC08's return query data) and no echo has been seen on this line
+        yet."""
+        return self.counts.echoes > 0 or not echoed_by_design(request)
 
     def _consume(self, n: int) -> None:
         """Drop the first ``n`` buffered bytes (explained, or too old to matter)."""
@@ -299,7 +417,7 @@ class Line:
         """The first CRC-valid reply frame in the buffer, wherever it starts."""
         buf = bytes(self._buf)
         for i in range(max(0, len(buf) - 3)):
-            n = reply_length(buf[i : i + 3])
+            n = reply_length(buf[i : i + MAX_FRAME])
             if n is not None and i + n <= len(buf) and crc_ok(buf[i : i + n]):
                 return i, buf[i : i + n]
         return None
@@ -317,8 +435,21 @@ class Line:
         if not fits:
             self.counts.unsolicited += 1
             return False
-        gone = min(fits, key=lambda e: e.expires)
+        in_flight = att.entry if att is not None else None
         queue = self._outstanding[unit]
+        if len(fits) > 1 and in_flight in fits and self._unheard(unit, fits, in_flight, began):
+            for e in fits:  # answered; the attempts that were not heard: see _unheard
+                if e is in_flight or (e.silent and not e.suspect):
+                    queue.remove(e)
+            if not queue:
+                del self._outstanding[unit]
+            self._latency[unit] = max(began - in_flight.sent, 0.95 * self._latency.get(unit, 0.0))
+            self.reply_time[unit] = max(
+                0.0, began - in_flight.sent - self.framing.wire_time(len(in_flight.request)))
+            return True
+        if unit in self._suspected and any(e.suspect for e in fits):
+            self._refute(unit, began)  # one taken for not heard may be answered: it was heard
+        gone = min(fits, key=lambda e: e.expires)
         queue.remove(gone)
         if not queue:  # nothing unanswered: the next request's hazard check is quick
             del self._outstanding[unit]
@@ -327,7 +458,6 @@ class Line:
         self._latency[unit] = max(began - oldest, 0.95 * self._latency.get(unit, 0.0))
         took = self.reply_time[unit] = max(
             0.0, began - oldest - self.framing.wire_time(len(first.request)))
-        in_flight = att.entry if att is not None else None
         taken = in_flight is not None and all(e.request == in_flight.request for e in fits)
         # late: another request's reply, or (in order) an earlier attempt's of this one
         if not taken or first is not in_flight:
@@ -335,13 +465,76 @@ class Line:
             self.late_reply_time[unit] = took
         return taken
 
+    # -- the learned idle gap ---------------------------------------------------
+
+    def _unheard(self, unit: int, fits: list[Outstanding], in_flight: Outstanding | None,
+                 began: float) -> bool:
+        """Whether one frame that fits ``fits`` (the attempt in flight among them) is the
+        answer in flight's, the others not heard by the device (module docstring):
+
+        - a retry answered after a longer silence than every earlier attempt of it, none
+          of which heard anything: they were not heard. The first time (for the unit)
+          they stay outstanding as *suspects*, so that an answer to one is still seen;
+          the second time (a suspect among them, or a gap learned already) the unit's
+          gap is raised and they are forgotten;
+        - suspects, and an attempt in flight sent after a longer silence than any of
+          them: its answer (the suspects stay).
+
+        Anything else, a suspect among them, refutes (``_refute``)."""
+        assert in_flight is not None
+        older = [e for e in fits if e is not in_flight]
+        if any(e.request != in_flight.request or not _longer(in_flight.idle, e.idle)
+               for e in older) or self._refuted.get(unit, -math.inf) > began:
+            return False
+        fresh = [e for e in older if not e.suspect]
+        if not fresh:
+            return True  # suspects only: the answer in flight's
+        if not in_flight.retry or not all(e.silent for e in fresh):
+            return False
+        short = max(e.idle for e in fresh)
+        if short >= GAP_MAX:  # that long a silence was not enough: no gap explains it
+            return False
+        if len(fresh) == len(older) and unit not in self._learned:  # the first time
+            for e in fresh:
+                e.suspect = True
+            self._suspected.add(unit)
+            return True
+        was = self._learned.get(unit, (0.0, began))[0]
+        gap = min(GAP_MAX, in_flight.idle, max(GAP_STEP, 2 * short))
+        self._learned[unit] = (max(gap, was), began)
+        self._regap(unit)
+        self.counts.gap_raised[unit] += 1
+        for e in older:
+            e.suspect = False
+        return True
+
+    def _refute(self, unit: int, now: float) -> None:
+        """An attempt taken for unheard may have been answered: ``unit`` is slow, not deaf.
+        Its learned gap goes, and it learns none for ``GAP_REFUTED`` seconds."""
+        self._refuted[unit] = now + GAP_REFUTED
+        self._suspected.discard(unit)
+        for e in self._outstanding.get(unit, ()):
+            e.suspect = False
+        if self._learned.pop(unit, None) is not None:
+            self._regap(unit)
+
+    def _decay(self, unit: int, now: float) -> None:
+        """A learned gap halves every ``GAP_HALF_LIFE`` seconds; below the silence it is gone."""
+        gap, since = self._learned[unit]
+        left = gap * 0.5 ** ((now - since) / GAP_HALF_LIFE)
+        if left <= self.framing.silence:
+            del self._learned[unit]
+        else:
+            self._learned[unit] = (left, now)
+        self._regap(unit)
+
     def _garbled(self, att: Attempt) -> str | None:
         """A complete frame from the unit with the request's function and a bad CRC."""
         exp, buf = att.entry.expect, bytes(self._buf)
         for head in (bytes((exp.unit, exp.function)), bytes((exp.unit, exp.function | 0x80))):
             i = buf.find(head)
             if i >= 0:
-                n = reply_length(buf[i : i + 3])
+                n = reply_length(buf[i : i + MAX_FRAME])
                 if n is not None and i + n <= len(buf):
                     return f"CRC error in reply: {buf[i : i + n][:24].hex(' ')}"
         return None
@@ -359,10 +552,13 @@ class Line:
         if att is None:
             return None
         unit = att.entry.expect.unit
+        att.entry.silent = not att.rx
         late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
                    SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
-        return diagnose(bytes(att.rx), att.entry.expect)
+        why = diagnose(bytes(att.rx), att.entry.expect)
+        (self.counts.garbled if why else self.counts.timeouts)[unit] += 1
+        return why
 
     def hazard_until(self, request: bytes, now: float) -> float:
         """Until when ``request`` must not be sent: while an earlier, different request
@@ -398,3 +594,8 @@ class Line:
                 queue.remove(e)
             if not queue:
                 del self._outstanding[unit]
+
+
+def _longer(idle: float, than: float) -> bool:
+    """A silence that tells apart from ``than``: twice as long, and ``GAP_STEP`` longer."""
+    return idle >= max(2 * than, than + GAP_STEP)

@@ -21,7 +21,13 @@ from __future__ import annotations
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
-from rtupoll.rtu.functions import EXCEPTION_LENGTH, READ_FUNCTIONS, answer_length, reply_length
+from rtupoll.rtu.functions import (
+    EXCEPTION_LENGTH,
+    MAX_FRAME,
+    READ_FUNCTIONS,
+    answer_length,
+    reply_length,
+)
 
 
 @frozen
@@ -31,7 +37,11 @@ class Expect:
     unit: int
     function: int
     prefix: bytes  # a normal reply starts with these: unit, function, byte count / echo
-    length: int  # of a normal reply, CRC included
+    length: int  # of a normal reply, CRC included; 0: as the reply's own bytes say
+
+    def size(self, head: bytes) -> int | None:
+        """How long the normal reply starting with ``head`` is (None: not known yet)."""
+        return self.length or reply_length(head)
 
 
 def expect_for(request: bytes) -> Expect | None:
@@ -39,10 +49,18 @@ def expect_for(request: bytes) -> Expect | None:
     unit, fn = request[0], request[1]
     if unit == 0:
         return None
-    length = answer_length(request) or EXCEPTION_LENGTH
+    length = answer_length(request)
     if fn in READ_FUNCTIONS:
+        assert length is not None
         return Expect(unit, fn, bytes((unit, fn, length - 5)), length)
-    return Expect(unit, fn, request[:6], length)  # 5/6/15/16 echo address and value
+    if fn in (5, 6, 15, 16, 22):  # they echo the address and the value, quantity or masks
+        return Expect(unit, fn, request[:6], length or 8)
+    if fn == 8:  # the sub-function comes back; its data only for some (an echo)
+        return Expect(unit, fn, request[:4], length or 8)
+    if fn == 43:  # the MEI type and, for device identification, the code come back
+        return Expect(unit, fn, request[:4] if request[2:3] == b"\x0e" else request[:3],
+                      0)
+    return Expect(unit, fn, request[:2], length or 0)  # its length in its own bytes
 
 
 def answers(frame: bytes, exp: Expect) -> bool:
@@ -52,16 +70,17 @@ def answers(frame: bytes, exp: Expect) -> bool:
         return False
     if frame[1] == exp.function | 0x80:
         return len(frame) == EXCEPTION_LENGTH
-    return len(frame) == exp.length and frame.startswith(exp.prefix)
+    return len(frame) == exp.size(frame) and frame.startswith(exp.prefix)
 
 
 def find_reply(buf: bytes, exp: Expect) -> bytes | None:
     """The first CRC-valid frame in ``buf`` that answers ``exp``, wherever it starts."""
-    heads = ((exp.prefix, exp.length), (bytes((exp.unit, exp.function | 0x80)), EXCEPTION_LENGTH))
+    error = bytes((exp.unit, exp.function | 0x80))
     i = buf.find(exp.prefix[:1])
     while 0 <= i <= len(buf) - 5:
-        for head, size in heads:
-            frame = buf[i : i + size]
+        rest = buf[i : i + MAX_FRAME]
+        for head, size in ((exp.prefix, exp.size(rest)), (error, EXCEPTION_LENGTH)):
+            frame = rest[:size] if size else b""
             if len(frame) == size and frame.startswith(head) and crc_ok(frame):
                 return frame
         i = buf.find(exp.prefix[:1], i + 1)
@@ -75,12 +94,13 @@ def diagnose(buf: bytes, exp: Expect | None) -> str | None:
         return None
     junk, i = bytearray(), 0
     while i < len(buf):
-        size = reply_length(buf[i : i + 3])
+        size = reply_length(buf[i : i + MAX_FRAME])
         if size and i + size <= len(buf) and crc_ok(buf[i : i + size]):
             frame = buf[i : i + size]
             if frame[0] == exp.unit and frame[1] & 0x7F == exp.function:
-                return (f"reply does not match the request (expected {exp.length} bytes "
-                        f"starting {exp.prefix.hex(' ')}): {_hex(frame)}")
+                expected = f"{exp.length} bytes starting" if exp.length else "starting"
+                return (f"reply does not match the request (expected {expected} "
+                        f"{exp.prefix.hex(' ')}): {_hex(frame)}")
             i += size  # a whole frame from another unit: not ours, and not garbage
             continue
         junk.append(buf[i])
@@ -89,7 +109,9 @@ def diagnose(buf: bytes, exp: Expect | None) -> str | None:
         at = junk.find(bytes((exp.unit, fn)))
         if at >= 0:
             rest = bytes(junk[at:])
-            size = reply_length(rest[:3]) or exp.length
+            size = reply_length(rest[:MAX_FRAME]) or exp.length
+            if not size:
+                return f"garbled reply: {_hex(rest)}"
             if len(rest) < size:
                 return f"truncated reply ({len(rest)} of {size} bytes): {_hex(rest)}"
             return f"CRC error in reply: {_hex(rest[:size])}"

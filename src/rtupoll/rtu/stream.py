@@ -223,7 +223,7 @@ class Stream:
                 return [Transaction("exception", req.start, req, frame,
                                     f"exception {data[2]:02d} {exception_name(data[2])}")]
             free = not FUNCTIONS[exp.function].reply.known
-            if data[1] == exp.function and (free or (len(data) == exp.length
+            if data[1] == exp.function and (free or (len(data) == exp.size(data)
                                                      and data.startswith(exp.prefix))):
                 self._clear()
                 return [Transaction("ok", req.start, req, frame)]

@@ -148,8 +148,8 @@ class Transaction:
 
     def ready_at(self) -> float:
         """When the next attempt may go: the first honours the drain, a retry only the
-        silence."""
-        return self.line.ready_at(drain=self.attempts == 0)
+        silence (the unit's idle gap, ``Line.set_idle_gap``, for both)."""
+        return self.line.ready_at(drain=self.attempts == 0, unit=self.request[0])
 
     def next(self) -> Step:
         """What the driver does now."""
@@ -163,6 +163,8 @@ class Transaction:
             if isinstance(event, Answer):
                 return self._answered(event)
             self._failed("frame", event.why)
+            if event.final:  # (an echo: a retry would come back the same)
+                return self._give_up()
         if self.attempts > self.retries:
             return self._give_up()
         return Send(self.request, self.ready_at())
@@ -170,7 +172,7 @@ class Transaction:
     def sent(self, now: float) -> None:
         """The request started on the wire at ``now``."""
         framing = self.line.framing
-        self.line.send(self.request, now)
+        self.line.send(self.request, now, retry=self.attempts > 0)
         self.attempts += 1
         self.wire += framing.wire_time(len(self.request))
         if self.request[0] == 0:  # a broadcast: nobody answers
@@ -262,16 +264,26 @@ class BusStats:
 
 @frozen
 class Evidence:
-    """What the line knows of one unit's reply times (``rtupoll.jobs.timeouts``)."""
+    """What the line knows of one unit (``rtupoll.jobs.timeouts``, the device's health):
+    its reply times, and each attempt counted by how it ended (``LineCounts``)."""
 
     late: int = 0  # replies that came after their request had timed out
     reply_time: float | None = None  # the last answer's
     late_reply_time: float | None = None  # the last late reply's
+    attempts: int = 0  # requests put on the wire, retries included
+    timeouts: int = 0  # attempts that got no reply
+    garbled: int = 0  # attempts ended by a garbled reply
+    retried: int = 0  # transactions answered only by a retry
+    gap: float = 0.0  # the idle gap a request to it waits for (0: the 3.5 characters)
+    gap_learned: bool = False  # learned (``Line.learned_gap``), not (only) set
 
 
 def evidence(line: Line, unit: int) -> Evidence:
-    return Evidence(int(line.counts.late[unit]), line.reply_time.get(unit),
-                    line.late_reply_time.get(unit))
+    c = line.counts
+    gap = line.gap(unit)
+    return Evidence(int(c.late[unit]), line.reply_time.get(unit), line.late_reply_time.get(unit),
+                    c.sent[unit], c.timeouts[unit], c.garbled[unit], c.retried[unit],
+                    gap if gap > line.framing.silence else 0.0, line.gap_learned(unit))
 
 
 # -- requests, checked before anything is sent -----------------------------------------

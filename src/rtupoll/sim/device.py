@@ -51,6 +51,7 @@ from rtupoll.rtu.messages import (
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
     Malformed,
+    OtherRequest,
     ReadRequest,
     Request,
     WriteMultiple,
@@ -95,6 +96,9 @@ class SimDevice:
                                if f.kind == "hole" and f.arg is not None)
         self.shifts = frozenset(int(f.arg) for f in config.faults
                                 if f.kind == "shift" and f.arg is not None)
+        # the silence it needs on the line before it hears a request (fault ``gap=S``)
+        self.gap = max((f.arg for f in config.faults if f.kind == "gap" and f.arg is not None),
+                       default=0.0)
         self.requests = 0  # requests this device received (its faults count these)
         self.tick, self.start, self.ticks = tick, start, 0
         self.variant, self._exception_at = self._variant(config.variant)
@@ -227,6 +231,13 @@ class SimDevice:
         for silence. A malformed request of a function the device supports is answered
         with the parser's exception code, as a device's firmware would."""
         unit, fc = request.unit or 0, request.function or 0
+        if isinstance(request, OtherRequest) and (
+                (fc == 43 and self.profile.identification) or (fc == 17 and
+                                                              self.profile.server_id)):
+            return self._identify(request)
+        if isinstance(request, OtherRequest) and fc == 8 and 8 in self.profile.limits.functions \
+                and request.data[:2] == b"\x00\x00":  # return query data: the request back
+            return with_crc(bytes((unit,)) + request.pdu())
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
             return self._refuse(unit, fc, ILLEGAL_FUNCTION)
         if isinstance(request, Malformed):
@@ -238,6 +249,23 @@ class SimDevice:
         if isinstance(request, WriteSingle | WriteMultiple):
             return self._write(request)
         return self._refuse(unit, fc, ILLEGAL_FUNCTION)  # (not reached: fc is 1-6 or 16)
+
+    def _identify(self, req: OtherRequest) -> bytes | None:
+        """Read device identification (FC 43/14) and report server id (FC 17), as the
+        profile documents them."""
+        from rtupoll.rtu import identification as ident
+
+        if req.function == 17:
+            return with_crc(bytes((req.unit,)) + ident.server_id_reply(self.profile.server_id))
+        if len(req.data) != 3 or req.data[0] != ident.MEI_DEVICE_ID:
+            return self._refuse(req.unit, 43, ILLEGAL_FUNCTION if req.data[:1] != b"\x0e"
+                                else ILLEGAL_VALUE)
+        objects = {o: t.encode("ascii") for o, t in self.profile.identification}
+        try:
+            pdu = ident.device_id_reply(req.data[1], req.data[2], objects)
+        except ValueError:  # an unknown code (3: value), an object it lacks (2: address)
+            return self._refuse(req.unit, 43, 2 if req.data[1] == 4 else ILLEGAL_VALUE)
+        return with_crc(bytes((req.unit,)) + pdu)
 
     def _refuse(self, unit: int, fc: int, code: int) -> bytes | None:
         if self.profile.limits.silent_on_error and code in (1, 3):

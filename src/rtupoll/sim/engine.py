@@ -17,6 +17,7 @@ answer), and applies the faults due for that request.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -109,8 +110,10 @@ class Engine:
         have = ", ".join(d.name for d in self.devices)
         raise KeyError(f"no simulated device at {unit} (devices: {have})")
 
-    def handle(self, frame: bytes, now: float = 0.0) -> list[Transmission]:
-        """One CRC-valid request -> what goes back on the wire (maybe nothing)."""
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
+               ) -> list[Transmission]:
+        """One CRC-valid request -> what goes back on the wire (maybe nothing). ``idle``:
+        the silence on the line before it began (a device with a ``gap`` fault needs it)."""
         self.requests += 1
         unit, fc = frame[0], frame[1]
         broadcast = unit == 0
@@ -127,6 +130,10 @@ class Engine:
         except Malformed as bad:
             request = bad
         for d in targets:
+            if idle + 1e-9 < d.gap:  # the device's receiver was not ready: it never heard it
+                self.why_silent = (f"{d.name}: gap: the request came {idle * 1000:.1f} ms after "
+                                   f"the last byte on the line; it needs {d.gap * 1000:g} ms")
+                continue
             d.requests += 1
             d.catch_up(now)
             lose = d.profile.limits.lost_after_powerup or 3

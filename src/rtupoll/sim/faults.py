@@ -12,6 +12,7 @@ line (``--fault``), in a scenario file and in tests::
     3:dead              device 3 never answers
     slow=1.5@2,5-7      every device answers 1.5 s late to bus requests 2 and 5..7
     0xFE:crc@10%        one in ten replies of the device at 0xFE has a bad CRC
+    3:gap=0.05          device 3 hears a request only after 50 ms of silence on the line
     lose-first          every device drops its first limits.lost_after_powerup requests
 
 WHEN is a rate (``0.1`` or ``10%``: drawn from the seeded generator, so a seed replays the
@@ -48,10 +49,13 @@ KINDS: dict[str, str] = {
             "exception 02, even inside a gap the profile bridges",
     "shift": "register ARG is an undocumented hole the device silently skips: a block read "
              "over it returns the following registers shifted down, padded with 0",
+    "gap": "the device needs ARG seconds of silence on the line before a request (an idle "
+           "gap, the 'T delay' of some meters): a request sooner after the last byte on the "
+           "line, any device's, is not heard",
 }
-QUIRKS = ("hole", "shift")  # properties of the device's map, not of one request
+QUIRKS = ("hole", "shift", "gap")  # properties of the device, not of one request
 SILENT = ("dead", "lose-first")
-_FLOAT_ARG = {"slow"}
+_FLOAT_ARG = {"slow", "gap"}
 _INT_ARG = {"stray": (0, 255), "truncate": (1, 255), "wrong-id": (0, 255),
             "wrong-id-first": (0, 255), "exception": (1, 255), "lose-first": (0, 1000),
             "hole": (0, 0xFFFF), "shift": (0, 0xFFFF)}
@@ -125,8 +129,9 @@ def parse_fault(spec: str) -> Fault:
             raise FaultSpecError(f"fault {spec!r}: {kind} takes no argument")
     rate, schedule = _when(when, spec) if when else (None, ())
     if kind in QUIRKS and (target is None or arg is None or when):
-        raise FaultSpecError(f"fault {spec!r}: {kind} is a register of one device: "
-                             f"ADDRESS:{kind}=REGISTER, without @WHEN")
+        what = "seconds" if kind == "gap" else "REGISTER"
+        raise FaultSpecError(f"fault {spec!r}: {kind} is a property of one device: "
+                             f"ADDRESS:{kind}={what}, without @WHEN")
     if kind == "lose-first" and when:
         raise FaultSpecError(f"fault {spec!r}: lose-first has its own schedule "
                              "(the first N requests); give N as lose-first=N")

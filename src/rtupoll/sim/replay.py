@@ -20,6 +20,7 @@ of one of minutes.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -108,7 +109,9 @@ class ReplayEngine(Engine):
             self._cursor = _answers(self.capture, self.line)
         raise RuntimeError(f"the capture changed while replayed: {frame.hex(' ')} is gone")
 
-    def handle(self, frame: bytes, now: float = 0.0) -> list[Transmission]:
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
+               ) -> list[Transmission]:
+        """What the capture answered ``frame`` (``idle``: as ``Engine.handle``'s, unused)."""
         self.requests += 1
         self.why_silent = ""
         unit = frame[0]

@@ -24,6 +24,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import TypeVar
 
+from rtupoll.io import clock as line_clock
 from rtupoll.model.codec import Value
 from rtupoll.model.interpret import FieldValue
 from rtupoll.rtu import Framing, Table
@@ -106,7 +107,7 @@ class SimulatedBus:
             raise RuntimeError("this simulated bus was already started")
         c = self.config
         self.engine = self._given or Engine(c.devices, c.faults, seed=c.seed, tick=c.tick,
-                                            start=time.monotonic())
+                                            start=line_clock.now())
         for d in self.engine.devices:
             _consistent(d, c.line_speed)
         self._thread = threading.Thread(target=self._run, name=f"rtupoll-sim-{id(self):x}",
@@ -209,7 +210,7 @@ class SimulatedBus:
         """What the device at ``unit`` would answer for ``field`` now."""
         def read() -> FieldValue:
             d = self.device(unit)
-            d.catch_up(time.monotonic())
+            d.catch_up(line_clock.now())
             return d.value(field)
         return self._call(read)
 
@@ -234,7 +235,7 @@ class SimulatedBus:
         def add() -> SimDevice:
             assert self.engine is not None, "start the bus first"
             new = SimDevice(config, seed=self.config.seed, tick=self.config.tick,
-                            start=time.monotonic())
+                            start=line_clock.now())
             _consistent(new, self.config.line_speed)
             self.engine.devices.append(new)
             return new

@@ -201,14 +201,21 @@ class _Builder:
     def __init__(self, dirs: Iterable[Path]) -> None:
         self.dirs = tuple(dirs)
         self.devices: dict[int, SimDeviceConfig] = {}
+        self.listed: set[int] = set()  # the addresses of the list being read
 
     def add(self, spec: str, node: Node | None = None) -> SimDeviceConfig:
         pid, address = parse_device(spec)
         p = profile(pid, self.dirs)
         have = self.devices.get(address)
-        if have is not None and have.profile.id != p.id:
-            msg = f"address {address} is taken by {have.name}"
+        # the same device named again (the command line adds to a scenario) is that device;
+        # another at its address, or one listed twice in one list, would collide
+        if have is not None and (have.profile.id != p.id or address in self.listed):
+            msg = (f"address {address} is taken by {have.name}"
+                   + (" (listed twice)" if have.profile.id == p.id else "")
+                   + ": two devices at one address collide on a real bus (both reply, "
+                   "the master hears garbage); give each its own address")
             raise node.fail(msg) if node else UsageError(msg)
+        self.listed.add(address)
         if have is None:
             self.devices[address] = SimDeviceConfig(p, address)
         return self.devices[address]
@@ -256,6 +263,7 @@ def build(devices: Sequence[str] = (), *, scenario: str | Path | None = None,
             {"seed", "baudrate", "turnaround", "tick", "devices", "faults"})
         for dnode in top["devices"].sequence() if "devices" in top else []:
             _scenario_device(b, dnode)
+    b.listed.clear()  # the command line may name the scenario's devices again
     for spec in devices:
         b.add(str(spec))
     if not b.devices:

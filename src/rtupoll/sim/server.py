@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import math
 import os
 import struct
 import threading
@@ -25,11 +26,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
+from rtupoll.io import clock as line_clock
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
+T = TypeVar("T")
 QUIET = 0.1  # seconds without bytes after which an unfinished frame is garbage
 # frames kept in the wire log: a window of the latest, so a simulator left running for days
 # holds the same memory as after its first minute (every frame ever seen is counted in
@@ -48,7 +52,7 @@ NO_PTY = ("a simulated serial port is a pseudo-terminal, which only POSIX system
 class WireFrame:
     """Bytes seen on the simulated wire: ``in`` from the master, ``out`` from devices."""
 
-    time: float  # time.monotonic() (the event loop's clock)
+    time: float  # the line's clock (rtupoll.io.clock), as every time on a bus
     direction: str  # "in" or "out" ("none": a request got no reply; only to on_wire)
     data: bytes
     note: str = ""  # what it is: a request summary, "garbage", or the faults applied
@@ -79,34 +83,61 @@ class _Link:
         self.server, self.write, self.hang_up = server, write, hang_up
         self.deframer = Deframer()
         self.free_at = 0.0  # when the wire is free for the next reply
+        self.last_byte = -math.inf  # when the last byte on the line ended (either way)
+        self._idle = math.inf  # the silence before the frame being received began
+        self._echo_at = 0.0  # when the last byte echoed (with wire timing) comes back
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
     def received(self, data: bytes) -> None:
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
-            self.write(data)
-        srv.to_tap(data, now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0))
+            self._echo(data, now)
+        ends = now + (srv.framing.wire_time(len(data)) if srv.framing else 0.0)
+        srv.to_tap(data, ends)
+        if not self.deframer.buffer:  # a frame may begin here: the silence before it
+            self._idle = now - self.last_byte
+        self.last_byte = max(self.last_byte, ends)
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now)
+                self._respond(chunk, now, self._idle)
+            self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
         self._flush = srv.loop.call_later(QUIET, self._quiet) if self.deframer.buffer else None
+
+    def _echo(self, data: bytes, now: float) -> None:
+        """Hand the master's bytes back as a 2-wire adapter does: with wire timing each
+        byte as it leaves the wire (one character time after the one before, from the
+        last one still going out); without, all at once."""
+        srv, fr = self.server, self.server.framing
+        if fr is None:
+            self.write(data)
+            return
+        at = max(now, self._echo_at)
+        for i in range(len(data)):
+            at += fr.char_time
+            srv.later(at, self._echo_byte, data[i : i + 1])
+        self._echo_at = at
+
+    def _echo_byte(self, byte: bytes) -> None:
+        if not self.closed:
+            with contextlib.suppress(OSError):  # nobody reading: lost, as on a wire
+                self.write(byte)
 
     def _quiet(self) -> None:
         self._flush = None
         left = self.deframer.flush()
         if left:
-            self.server.log(self.server.loop.time(), "in", left, "garbage")
+            self.server.log(line_clock.now(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now)
+        replies = srv.engine.handle(frame, now, idle)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -123,7 +154,8 @@ class _Link:
         if self.closed:
             return
         srv = self.server
-        now = srv.loop.time()
+        now = line_clock.now()
+        self.last_byte = max(self.last_byte, now)  # its last byte leaves the wire now
         # logged first: whoever reads the reply can already find it in the wire log
         srv.log(now, "out", tx.data, ", ".join(tx.notes))
         srv.to_tap(tx.data)
@@ -167,7 +199,7 @@ class Server:
         if self.on_wire:
             self.on_wire(frame)
 
-    def later(self, when: float, fn: Callable[[Transmission], None], tx: Transmission) -> None:
+    def later(self, when: float, fn: Callable[[T], None], tx: T) -> None:
         """Run ``fn(tx)`` at ``when``, to well under a millisecond.
 
         asyncio rounds its selector timeouts up to whole milliseconds, which at 115200
@@ -177,12 +209,12 @@ class Server:
 
         def run() -> None:
             self._pending.discard(box.pop())
-            rest = when - self.loop.time()
+            rest = when - line_clock.now()
             if rest > 0:
                 time.sleep(rest)
             fn(tx)
 
-        box.append(self.loop.call_at(when - TIMER_SLACK, run))
+        box.append(self.loop.call_later(when - TIMER_SLACK - line_clock.now(), run))
         self._pending.add(box[0])
 
     # -- transports ---------------------------------------------------------
@@ -211,7 +243,7 @@ class Server:
                 return
             mismatch = self._line_mismatch(slave)
             if mismatch:  # a real device sees framing errors at the wrong speed: silence
-                self.log(self.loop.time(), "in", data, f"garbage: {mismatch}")
+                self.log(line_clock.now(), "in", data, f"garbage: {mismatch}")
                 return
             pty_link.received(data)
 
@@ -241,14 +273,14 @@ class Server:
         """Copy bytes on the line to the tap: now, or at ``at`` (when they end on the wire)."""
         if self._tap is None:
             return
-        if at is not None and at > self.loop.time():
+        if at is not None and at > line_clock.now():
             box: list[asyncio.TimerHandle] = []
 
             def copy() -> None:
                 self._pending.discard(box.pop())
                 self.to_tap(data)
 
-            box.append(self.loop.call_at(at, copy))
+            box.append(self.loop.call_later(at - line_clock.now(), copy))
             self._pending.add(box[0])
             return
         with contextlib.suppress(OSError):  # nobody listening, the pty buffer full: lost

@@ -181,7 +181,11 @@ class Peak(Motion):
 
 
 def _abnormal_codes(field: Field) -> tuple[int, list[int]]:
+    """The code an enum shows as a rule (the profile's ``typical``, else its first ok
+    code) and the codes of its abnormal episodes."""
     normal = min((c for c, ch in field.enum.items() if ch.severity is Severity.OK), default=0)
+    if isinstance(field.typical, (int, float)) and field.typical in field.enum:
+        normal = int(field.typical)
     others = [c for c, ch in field.enum.items() if ch.severity is not Severity.OK]
     if not others and field.other is not None and field.other.severity is not Severity.OK:
         top = max(field.enum, default=0)

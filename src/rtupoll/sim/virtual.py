@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import heapq
+import math
 import time
 from collections.abc import Awaitable, Callable
 
@@ -45,11 +46,12 @@ class VirtualBus(LineBus):
     def __init__(self, engine: Engine, framing: Framing | None = None, *,
                  clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
-                 echo: bool = False) -> None:
-        """``echo``: behind an adapter that echoes each request (and the line expects it)."""
+                 echo: bool = False, idle_gap: float = 0.0) -> None:
+        """``echo``: behind an adapter that echoes each request (and the line expects it);
+        ``idle_gap``: the line's (``Line.idle_gap``)."""
         self.engine = engine
         self.framing = framing or Framing(115200)
-        self.line = Line(self.framing, echo=echo)
+        self.line = Line(self.framing, echo=echo, idle_gap=idle_gap)
         self.echo = echo
         self.stats = BusStats()
         self.sent: list[bytes] = []  # every request put on the line, for tests
@@ -57,6 +59,7 @@ class VirtualBus(LineBus):
         self._pending: list[tuple[float, int, bytes]] = []  # (arrival, seq, bytes)
         self._seq = 0
         self._lock = asyncio.Lock()
+        self._last_byte = -math.inf  # when the last byte on the line ended (either way)
 
     async def open(self) -> None:
         return None
@@ -88,10 +91,11 @@ class VirtualBus(LineBus):
         tx.sent(now)
         self.sent.append(tx.request)
         sending = self.framing.wire_time(len(tx.request))
+        idle, self._last_byte = now - self._last_byte, max(self._last_byte, now + sending)
         if self.echo:  # the adapter hands the request back as it goes out
             self._seq += 1
             heapq.heappush(self._pending, (now + sending, self._seq, tx.request))
-        for reply in self.engine.handle(tx.request, now):
+        for reply in self.engine.handle(tx.request, now, idle):
             at = now + sending + reply.turnaround + reply.delay + \
                 self.framing.wire_time(len(reply.data))
             self._seq += 1
@@ -101,6 +105,7 @@ class VirtualBus(LineBus):
         """Deliver what arrives until the attempt is over or ``until`` passes."""
         while self._pending and self._pending[0][0] <= until:
             at, _, data = heapq.heappop(self._pending)
+            self._last_byte = max(self._last_byte, at)
             await self._advance(at)
             if tx.received(data, at):
                 return
@@ -119,6 +124,7 @@ class VirtualBus(LineBus):
     def _deliver_due(self) -> None:
         while self._pending and self._pending[0][0] <= self._clock():
             when, _, data = heapq.heappop(self._pending)
+            self._last_byte = max(self._last_byte, when)
             self.line.receive(data, when)
 
     async def _advance(self, to: float) -> None:

@@ -31,7 +31,7 @@ from rtupoll.rtu.timing import Framing
 LINKTYPE_RTAC_SERIAL = 250
 USER_LINKTYPES = range(147, 163)  # LINKTYPE_USER0..15
 RTAC_HEADER = 12
-RTAC_DATA_RX = 0x02
+RTAC_DATA_TX, RTAC_DATA_RX = 0x01, 0x02  # event types: DATA_TX_START, DATA_RX_START
 FLUSH_EVERY = 0.25  # seconds of capture time between flushes to disk
 
 _SHB, _IDB, _EPB, _SPB = 0x0A0D0D0A, 1, 6, 3
@@ -66,6 +66,14 @@ def _block(kind: int, body: bytes) -> bytes:
     return struct.pack("<II", kind, total) + body + struct.pack("<I", total)
 
 
+def _interface(framing: Framing, port: str) -> bytes:
+    """An interface block: the line's port, settings and speed."""
+    desc = f"rtupoll {describe_framing(framing)} {port}".strip().encode()
+    opts = (_option(2, port.encode()) if port else b"") + _option(3, desc) \
+        + _option(8, struct.pack("<Q", framing.baudrate)) + _option(0, b"")
+    return _block(_IDB, struct.pack("<HHI", LINKTYPE_RTAC_SERIAL, 0, 0) + opts)
+
+
 def describe_framing(framing: Framing) -> str:
     stop = f"{framing.stopbits:g}"
     return f"{framing.baudrate} {framing.bytesize}{framing.parity}{stop}"
@@ -75,7 +83,8 @@ class CaptureWriter:
     """Writes a pcapng capture as chunks arrive; flushed now and then, and on close."""
 
     def __init__(self, path: Path, framing: Framing, port: str = "", *,
-                 say: Callable[[str], None] | None = None) -> None:
+                 say: Callable[[str], None] | None = None,
+                 application: str = "rtupoll sniff") -> None:
         self.path, self.say = path, say
         self.error = ""  # why capturing stopped (a full disk): listening goes on
         self.packets = 0
@@ -83,13 +92,10 @@ class CaptureWriter:
         self._good = 0  # bytes of whole blocks known on disk
         self._ends: list[int] = []  # block ends written since
         self._size = 0
-        opts = _option(4, b"rtupoll sniff") + _option(0, b"")
+        opts = _option(4, application.encode()) + _option(0, b"")
         shb = struct.pack("<IHHq", _BOM, 1, 0, -1) + opts
-        desc = f"rtupoll {describe_framing(framing)} {port}".strip().encode()
-        idb_opts = (_option(2, port.encode()) if port else b"") + _option(3, desc) \
-            + _option(8, struct.pack("<Q", framing.baudrate)) + _option(0, b"")
-        idb = struct.pack("<HHI", LINKTYPE_RTAC_SERIAL, 0, 0) + idb_opts
-        head = _block(_SHB, shb) + _block(_IDB, idb)
+        head = _block(_SHB, shb) + _interface(framing, port)
+        self.interfaces = 1
         try:
             self.fh: BinaryIO = path.open("wb")
             self.fh.write(head)
@@ -98,28 +104,43 @@ class CaptureWriter:
             raise UsageError(f"cannot write {path}: {exc.strerror or exc}") from None
         self._good = self._size = len(head)
 
-    def write(self, data: bytes, t: float) -> None:
-        """One chunk; ``t``: its arrival, seconds since the epoch. A write that fails (a
-        full disk) ends the capture, with whole blocks only, and says so once."""
-        if self.error:
-            return
+    def add_interface(self, framing: Framing, port: str) -> int:
+        """Another line (one capture of several buses): its interface id for ``write``."""
+        self._put(_interface(framing, port))
+        self.interfaces += 1
+        return self.interfaces - 1
+
+    def write(self, data: bytes, t: float, *, interface: int = 0, sent: bool = False) -> None:
+        """One chunk; ``t``: its arrival (or for ``sent`` bytes, the time they went out),
+        seconds since the epoch. A write that fails (a full disk) ends the capture, with
+        whole blocks only, and says so once."""
         micros = round(t * 1_000_000)
         seconds, fraction = divmod(micros, 1_000_000)
-        payload = struct.pack(">IIBBH", seconds, fraction, RTAC_DATA_RX, 0, 0) + data
+        event = RTAC_DATA_TX if sent else RTAC_DATA_RX
+        payload = struct.pack(">IIBBH", seconds, fraction, event, 0, 0) + data
         pad = b"\0" * (-len(payload) % 4)
-        body = struct.pack("<IIIII", 0, micros >> 32, micros & 0xFFFFFFFF, len(payload),
-                           len(payload)) + payload + pad
-        block = _block(_EPB, body)
-        try:
-            self.fh.write(block)
-            self._size += len(block)
-            self._ends.append(self._size)
+        body = struct.pack("<IIIII", interface, micros >> 32, micros & 0xFFFFFFFF,
+                           len(payload), len(payload)) + payload + pad
+        if self._put(_block(_EPB, body)):
             self.packets += 1
             if t - self._flushed >= FLUSH_EVERY:
-                self._flush()
+                try:
+                    self._flush()
+                except OSError as exc:
+                    self._fail(exc)
                 self._flushed = t
+
+    def _put(self, block: bytes) -> bool:
+        if self.error:
+            return False
+        try:
+            self.fh.write(block)
         except OSError as exc:
             self._fail(exc)
+            return False
+        self._size += len(block)
+        self._ends.append(self._size)
+        return True
 
     def _flush(self) -> None:
         self.fh.flush()

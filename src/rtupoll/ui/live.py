@@ -303,22 +303,28 @@ class PollView:
                 line.append(f" · {bus.load.rate(now):.0f} transactions/s")
             if bus.port_error:
                 line.append(f" · {bus.port_error}", style="bold red")
+            if getattr(bus.transport, "echo_found", False):  # (Line.adopt_echo)
+                line.append(" · the adapter echoes: add --echo", style="bold yellow")
             parts.append(line)
-            heads = ("  device", "state", "ok", "timeout", "late", "garbled", "except", "p50",
-                     "p95", "waits", "last ok")
+            heads = ("  device", "state", "ok", "retried", "timeout", "late", "garbled",
+                     "except", "p50", "p95", "waits", "gap", "last ok")
             rows: list[list[Text | str]] = []
             for dev in bus.devices:
                 st = dev.stats
                 rows.append([
                     Text("  " + dev.config.name),
                     Text(st.state.value, style=STATE_STYLE[st.state]),
-                    str(st.ok), _count(st.timeouts), _count(st.late), _count(st.garbled),
+                    str(st.ok), _count(st.retried, style="yellow"), _count(st.timed_out),
+                    _count(st.late), _count(st.garbled_attempts),
                     _count(st.exception_count, _codes(st.exceptions.items())),
                     _ms(st.p50()), _ms(st.p95()), _wait(st.timeout, st.timeout_source),
+                    _gap(st.idle_gap, st.gap_source),
                     _age(wall - st.last_good_time) if st.last_good_time else "never",
                 ])
-            keep = [i for i, h in enumerate(heads) if width is None or width >= 90
-                    or h not in ("late", "garbled") or any(str(r[i]) != "0" for r in rows)]
+            keep = [i for i, h in enumerate(heads)
+                    if (h != "gap" or any(str(r[i]) != "—" for r in rows))
+                    and (width is None or width >= 90 or h not in ("retried", "late", "garbled")
+                         or any(str(r[i]) != "0" for r in rows))]
             natural = sum(max([len(heads[i]), *(len(str(r[i])) for r in rows)]) + 1
                           for i in keep)
             short = width is not None and natural > width
@@ -332,8 +338,10 @@ class PollView:
                 grid.add_row(*(r[i] for i in keep))
             parts.append(grid)
             if short:
-                parts.append(Text("  t/o timeout, bad garbled, exc exception; times in ms",
-                                  style="dim"))
+                told = [f"{names[heads[i]]} {heads[i]}" for i in keep
+                        if heads[i] in ("retried", "timeout", "garbled", "except")]
+                parts.append(Text(f"  {', '.join(told).replace('except', 'exception')}; "
+                                  "times in ms", style="dim"))
             for dev in bus.devices:  # registers learned never to bridge (jobs.holes)
                 for note in dev.stats.holes:
                     parts.append(Text(f"  {dev.config.name}: not bridged: {note}",
@@ -396,8 +404,8 @@ def _why(r: Reading) -> str:
     return SHORT.get(r.status, r.status)
 
 
-SHORT_HEADS = ("  device", "state", "ok", "t/o", "late", "bad", "exc", "p50", "p95", "wait",
-               "last ok")
+SHORT_HEADS = ("  device", "state", "ok", "rtr", "t/o", "late", "bad", "exc", "p50", "p95",
+               "wait", "gap", "last ok")
 
 
 def _bare_ms(cell: Text | str) -> Text | str:
@@ -413,8 +421,16 @@ def _codes(items: Iterable[tuple[int, int]]) -> str:
     return " ".join(f"{n}×{code:02d}" for code, n in sorted(items))  # noqa: RUF001
 
 
-def _count(n: int, detail: str = "") -> Text:
-    return Text(detail or str(n), style="red" if n else "dim")
+def _count(n: int, detail: str = "", style: str = "red") -> Text:
+    return Text(detail or str(n), style=style if n else "dim")
+
+
+def _gap(seconds: float, source: str) -> Text:
+    """The idle gap a device waits for: set (plain), learned (``~``); none: —."""
+    if not seconds:
+        return Text("—", style="dim")
+    return Text(f"{'~' if source == 'learned' else ''}{seconds * 1000:.0f} ms",
+                style="yellow" if source == "learned" else "")
 
 
 def _ms(seconds: float | None) -> str:

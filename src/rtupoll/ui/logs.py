@@ -18,8 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.figures import iso_time
+from rtupoll.figures import count, iso_time
 from rtupoll.jobs.services import Service
+from rtupoll.rtu.line import ECHO_FOUND
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
@@ -28,7 +29,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rtupoll")
 _EXTRA = ("event", "bus", "device", "profile", "address", "state", "status", "error", "file",
-          "ok", "timeouts", "late", "garbled", "exceptions")
+          "ok", "timeouts", "late", "garbled", "exceptions", "attempts", "timed_out_attempts",
+          "garbled_attempts", "retried", "idle_gap")
 
 
 class JsonFormatter(logging.Formatter):
@@ -100,6 +102,7 @@ class StateLog(Service):
         self._seen: dict[str, _Seen] = {}
         self._ports: dict[str, str] = {}  # bus name -> the port error while it is gone
         self._late: set[str] = set()  # devices whose late replies were logged
+        self._echoed: set[str] = set()  # buses whose adapter's echo was logged
         self._bus_of: dict[str, str] = {}
         self._scheduler: Scheduler | None = None
 
@@ -107,8 +110,8 @@ class StateLog(Service):
         self._scheduler = scheduler
         self._index()
         for bp in scheduler.buses:
-            log.info("polling %s (%s, %s): %d devices", bp.config.name, bp.config.port,
-                     bp.config.serial_text, len(bp.devices),
+            log.info("polling %s (%s, %s): %s", bp.config.name, bp.config.port,
+                     bp.config.serial_text, count(len(bp.devices), "device"),
                      extra={"event": "bus", "bus": bp.config.name})
 
     def _index(self) -> None:
@@ -122,6 +125,11 @@ class StateLog(Service):
             self._index()
         bus = self._bus_of.get(name, "")
         now = self._wall()
+        if bus not in self._echoed and self._scheduler is not None and any(
+                getattr(bp.transport, "echo_found", False) for bp in self._scheduler.buses
+                if bp.config.name == bus):  # once per bus (rtu.line: Line.adopt_echo)
+            self._echoed.add(bus)
+            log.warning("%s: %s", bus, ECHO_FOUND, extra={"event": "echo", "bus": bus})
         if readings and all(r.status == "port" for r in readings):
             if bus not in self._ports:
                 self._ports[bus] = readings[0].error
@@ -140,7 +148,10 @@ class StateLog(Service):
         extra = {"event": "device", "bus": bus, "device": name,
                  "profile": dev.config.profile.id, "address": dev.config.address,
                  "state": st.state.value, "ok": st.ok, "timeouts": st.timeouts,
-                 "late": st.late, "garbled": st.garbled, "exceptions": st.exception_count}
+                 "late": st.late, "garbled": st.garbled, "exceptions": st.exception_count,
+                 "attempts": st.attempts, "timed_out_attempts": st.timed_out,
+                 "garbled_attempts": st.garbled_attempts, "retried": st.retried,
+                 "idle_gap": st.idle_gap}
         if st.late and name not in self._late:  # the first late reply: once per device
             self._late.add(name)
             log.warning("%s on %s: a reply came after its timeout (counted late, never "

@@ -17,6 +17,7 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
+from rtupoll.figures import count
 from rtupoll.jobs.services import Service
 
 if TYPE_CHECKING:
@@ -59,7 +60,7 @@ class Notifier(Service):
         if not self.enabled:
             return
         notify(f"READY=1\nMAINPID={os.getpid()}\nSTATUS=polling "
-               f"{sum(len(b.devices) for b in scheduler.buses)} devices")
+               f"{count(sum(len(b.devices) for b in scheduler.buses), 'device')}")
         period = watchdog_period()
         if period:
             self._pinger = asyncio.create_task(self._ping(period))

@@ -10,11 +10,20 @@ precision). Under each known BASE it reads::
     BASE/DEVICE                 {"FIELD": value, ..., "last_seen": "...",
                                  "_rtupoll": {"status": ..., "error": ...}}
 
-Messages that arrive before their gateway's ``bridge/info`` wait (bounded) until it
-comes. The page and its events have the shape of ``poll --http``'s
-(``rtupoll.web.state``), with one section per gateway; a device's key is
-``BASE/DEVICE``, so two buildings' devices at the same address never mix. Numeric
-fields get the same trend rings, from the state messages as they arrive.
+Messages that arrive before their gateway's ``bridge/info`` wait (bounded in count
+and bytes) until it comes. The page and its events have the shape of ``poll --http``'s
+(``rtupoll.web.state``), with one section per gateway; a device's key is its state
+topic, ``BASE/LEVEL`` (LEVEL: its one topic level, no ``/``), unique by construction:
+two buildings' devices at the same address never mix, nor a device ``x/y`` of base
+``site`` (level ``x_y``) and a device ``y`` of base ``site/x``. Numeric fields get the
+same trend rings, from the state messages as they arrive.
+
+Every message is handled on its own (``handle``): one that cannot be (not JSON, a
+number too large, the wrong types, too big) is dropped, counted in one log line a
+minute, and the session goes on. Every size is bounded (docs/web.md, "Limits"):
+``MAX_MESSAGE`` bytes a message, ``MAX_GATEWAYS``, ``MAX_DEVICES`` and ``MAX_FIELDS``
+a gateway, ``MAX_FLEET_FIELDS`` in all, ``MAX_PRECISION`` decimals, ``MAX_TEXT``
+characters of a name, label, unit or text value.
 """
 
 from __future__ import annotations
@@ -29,6 +38,9 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
+from rtupoll.model.interpret import DISPLAY_UNITS, shown_number
+from rtupoll.model.profile import is_difference
+from rtupoll.refusals import Refusals
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub
 from rtupoll.web.state import json_value, number
@@ -36,15 +48,34 @@ from rtupoll.web.trend import SPAN, STEP, TrendStore
 
 log = logging.getLogger("rtupoll.web")
 MAX_WAITING = 10_000  # messages held for gateways whose bridge/info has not come yet
+MAX_WAITING_BYTES = 4 << 20  # and their bytes (topics and payloads)
+MAX_MESSAGE = 1 << 20  # bytes a message may have (a bridge/info of 100 devices: ~300 kB)
+MAX_GATEWAYS = 100
+MAX_DEVICES = 1_000  # per gateway
+MAX_FIELDS = 2_000  # per gateway (each numeric one has a trend ring, 15 kB at most)
+MAX_FLEET_FIELDS = 10_000  # in all: trends of 152 MB at most
+MAX_PRECISION = 6  # decimals a number is shown with at most
+MAX_TEXT = 200  # characters of a name, label, unit, error or text value shown
 INFO, BRIDGE, AVAIL = "/bridge/info", "/bridge/state", "/availability"
 STATUS_KEY = "_rtupoll"  # rtupoll's own status in a state message (never a field)
 _UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")  # as outputs.mqtt.topic_name
+
+
+class Dropped(ValueError):
+    """A message the viewer cannot use: dropped, counted, the session goes on."""
+
+
+def short(value: object) -> str:
+    """A text from the broker, at most ``MAX_TEXT`` characters."""
+    text = str(value)
+    return text if len(text) <= MAX_TEXT else text[:MAX_TEXT - 1] + "…"
 
 
 @dataclass
 class Device:
     name: str
     info: dict[str, Any]
+    level: str = ""  # its topic level: BASE/LEVEL is its state, and its key
     availability: str = ""  # "" until the retained availability came
     values: dict[str, Any] = field(default_factory=dict)  # the latest state message
     time: float | None = None  # when it came (wall clock)
@@ -69,9 +100,43 @@ class Fleet:
         self.trends = TrendStore(clock())
         self.gateways: dict[str, Gateway] = {}  # base -> gateway
         self.waiting: OrderedDict[str, bytes] = OrderedDict()  # topic -> payload
+        self.waiting_bytes = 0
+        self.fields = 0  # fields of every gateway
         self.broker = "connecting"
+        self.dropped = Refusals(f"--mqtt {where}" if where else "--mqtt", log,
+                                noun="message", verb="dropped")
 
     # -- the MQTT side ------------------------------------------------------------
+
+    def handle(self, topic: str, payload: bytes) -> bool:
+        """One message from the broker, on its own: False when it was dropped (one log
+        line a minute counts those), never an exception."""
+        try:
+            if len(payload) > MAX_MESSAGE:
+                raise Dropped("larger than 1 MiB")
+            self.on_message(topic, payload)
+        except Dropped as exc:
+            self.dropped.refused(str(exc))
+            return False
+        except Exception as exc:
+            self.dropped.refused(f"{type(exc).__name__} (rtupoll's error: please report)")
+            log.debug("%s: %s", topic, exc, exc_info=exc)
+            return False
+        return True
+
+    def _hold(self, topic: str, payload: bytes) -> None:
+        """A message of no known gateway (yet), held, bounded in count and bytes."""
+        old = self.waiting.pop(topic, None)
+        if old is not None:
+            self.waiting_bytes -= len(topic) + len(old)
+        if not payload:
+            return
+        self.waiting[topic] = payload
+        self.waiting_bytes += len(topic) + len(payload)
+        while self.waiting and (len(self.waiting) > MAX_WAITING or
+                                self.waiting_bytes > MAX_WAITING_BYTES):
+            t, p = self.waiting.popitem(last=False)
+            self.waiting_bytes -= len(t) + len(p)
 
     def on_message(self, topic: str, payload: bytes) -> None:
         if topic.endswith(INFO):
@@ -79,15 +144,9 @@ class Fleet:
             return
         gw, rest = self._place(topic)
         if gw is None:
-            if payload:
-                self.waiting[topic] = payload
-                self.waiting.move_to_end(topic)
-                while len(self.waiting) > MAX_WAITING:
-                    self.waiting.popitem(last=False)
-            else:
-                self.waiting.pop(topic, None)
+            self._hold(topic, payload)
             return
-        text = payload.decode("utf-8", "replace").strip()
+        text = short(payload[:MAX_TEXT * 4].decode("utf-8", "replace").strip())
         if rest == BRIDGE[1:]:
             online = text == "online" if text else None
             if online != gw.online:
@@ -117,58 +176,85 @@ class Fleet:
                 best = gw
         return (best, topic[len(best.base) + 1:]) if best is not None else (None, "")
 
+    def _forget(self, base: str) -> None:
+        gone = self.gateways.pop(base, None)
+        if gone is not None:
+            self.fields -= sum(len(d.info["fields"]) for d in gone.devices.values())
+            self.trends.forget({k[0] for k in self.trends.rings
+                                if not k[0].startswith(base + "/")})
+
     def _info(self, base: str, payload: bytes) -> None:
         if not payload.strip():  # a gateway that was removed for good
-            if self.gateways.pop(base, None) is not None:
-                self.trends.forget({k[0] for k in self.trends.rings
-                                    if not k[0].startswith(base + "/")})
+            if base in self.gateways:
+                self._forget(base)
                 self.hub.publish("state", "state", self._snapshot_json)
             return
-        try:
-            info = json.loads(payload)
-            devices = info.get("devices", {})
-            assert isinstance(devices, dict)
-        except (ValueError, AttributeError, AssertionError):
-            log.warning("%s%s: not a bridge/info object", base, INFO)
-            return
+        info = _loads(payload, "bridge/info")
+        devices = info.get("devices", {}) if isinstance(info, dict) else None
+        if not isinstance(devices, dict):
+            raise Dropped("bridge/info not an object of devices")
+        if base not in self.gateways and len(self.gateways) >= MAX_GATEWAYS:
+            raise Dropped(f"bridge/info past {MAX_GATEWAYS} gateways")
         old = self.gateways.get(base)
-        gw = Gateway(base, str(info.get("gateway") or base.rsplit("/", 1)[-1]),
-                     str(info.get("version") or ""), old.online if old else None)
+        gw = Gateway(base, short(info.get("gateway") or base.rsplit("/", 1)[-1]),
+                     short(info.get("version") or ""), old.online if old else None)
+        room = min(MAX_FIELDS, MAX_FLEET_FIELDS - self.fields + (sum(
+            len(d.info["fields"]) for d in old.devices.values()) if old else 0))
+        cut = 0
         for name, d in devices.items():
             if not isinstance(d, dict):
                 continue
-            # keyed by the device's topic level (``BASE/<key>`` is its state), with the
-            # site's name for it under "name"
-            level = _UNSAFE.sub("_", str(name))
-            shown = str(d.get("name") or name)
+            if len(gw.devices) >= MAX_DEVICES:
+                cut += 1
+                continue
+            fields = _field_infos(d.get("fields"), room)
+            cut += max(0, (len(d["fields"]) if isinstance(d.get("fields"), dict) else 0)
+                       - len(fields))
+            room -= len(fields)
+            # keyed by the device's topic level (``BASE/<level>`` is its state), with
+            # the site's name for it under "name"
+            level = _UNSAFE.sub("_", str(name))[:MAX_TEXT]
+            meta = {"profile": short(d.get("profile") or ""), "bus": short(d.get("bus") or ""),
+                    "address": d.get("address") if isinstance(d.get("address"), int) and
+                    not isinstance(d.get("address"), bool) and 0 <= d["address"] <= 255 else "",
+                    "fields": fields}
+            shown = short(d.get("name") or name)
             prev = old.devices.get(level) if old else None
-            gw.devices[level] = Device(shown, d) if prev is None else \
-                Device(shown, d, prev.availability, prev.values, prev.time, prev.at)
+            gw.devices[level] = Device(shown, meta, level) if prev is None else \
+                Device(shown, meta, level, prev.availability, prev.values, prev.time, prev.at)
+        if cut:
+            self.dropped.refused(f"devices or fields past the limits ({MAX_DEVICES} devices, "
+                                 f"{MAX_FIELDS} fields a gateway, {MAX_FLEET_FIELDS} in all)")
+        self._forget(base)
         self.gateways[base] = gw
+        self.fields += sum(len(d.info["fields"]) for d in gw.devices.values())
         for topic in [t for t in self.waiting if t.startswith(base + "/")]:
-            self.on_message(topic, self.waiting.pop(topic))
+            held = self.waiting.pop(topic)
+            self.waiting_bytes -= len(topic) + len(held)
+            self.handle(topic, held)
         self.hub.publish("state", "state", self._snapshot_json)
 
     def _state(self, gw: Gateway, dev: Device, payload: bytes) -> None:
-        try:
-            values = json.loads(payload) if payload.strip() else {}
-        except ValueError:
-            return
+        values = _loads(payload, "state") if payload.strip() else {}
         if not isinstance(values, dict):
-            return
+            raise Dropped("state not a JSON object")
+        fields = _fields(dev)
+        # only what is shown is kept: the device's fields, its status and time
+        values = {k: _value(v) for k, v in values.items()
+                  if k in fields or k in (STATUS_KEY, "last_seen", "error")}
         now = self.clock()
         seen = _epoch(values.get("last_seen"))
         at = seen if seen is not None and now - SPAN < seen <= now + 1 else now
         dev.values, dev.time, dev.at = values, now, at
-        key = f"{gw.base}/{dev.name}"
-        for name, meta in _fields(dev).items():
+        key = f"{gw.base}/{dev.level}"
+        for name, meta in fields.items():
             if meta.get("kind", "number") == "number" and (v := number(values.get(name))) \
                     is not None:
-                self.trends.add(key, name, at, v)
+                self.trends.add(key, name, at, shown_value(name, meta, v))
         self._publish(gw, dev)
 
     def _publish(self, gw: Gateway, dev: Device) -> None:
-        self.hub.publish(f"d:{gw.base}/{dev.name}", "device", lambda: to_json(
+        self.hub.publish(f"d:{gw.base}/{dev.level}", "device", lambda: to_json(
             {"gateway": gw.id, "device": device_json(gw, dev)}))
 
     # -- the Source the server shows ---------------------------------------------------
@@ -189,10 +275,59 @@ class Fleet:
         return None
 
 
+def _loads(payload: bytes, what: str) -> Any:
+    try:
+        return json.loads(payload)
+    except RecursionError:
+        raise Dropped(f"{what} nested too deep") from None
+    except ValueError as exc:  # not UTF-8, not JSON, an integer of more than 4,300 digits
+        raise Dropped(f"{what} not JSON ({type(exc).__name__})") from None
+
+
+def _value(v: object) -> object:
+    """A state message's value as kept: a number (a float's range: a larger integer is
+    no reading), a short text, a list of short texts (flags), or None."""
+    if isinstance(v, bool) or v is None:
+        return v
+    if isinstance(v, int):
+        return v if abs(v) < 1 << 63 else None
+    if isinstance(v, float):
+        return v
+    if isinstance(v, str):
+        return short(v)
+    if isinstance(v, list):
+        return [short(x) for x in v[:64] if isinstance(x, (str, int)) and
+                not isinstance(x, bool)]
+    if isinstance(v, dict):  # rtupoll's own status
+        return {short(k)[:40]: short(x) for k, x in list(v.items())[:8]
+                if isinstance(x, (str, int, float)) or x is None}
+    return None
+
+
+def _field_infos(got: object, room: int) -> dict[str, dict[str, Any]]:
+    """A device's fields from its bridge/info, at most ``room``, each with its label,
+    unit, kind and precision checked and bounded."""
+    out: dict[str, dict[str, Any]] = {}
+    if not isinstance(got, dict):
+        return out
+    for k, v in got.items():
+        if len(out) >= room:
+            break
+        if not isinstance(v, dict):
+            continue
+        p = v.get("precision")
+        precision = min(max(p, 0), MAX_PRECISION) if isinstance(p, int) and \
+            not isinstance(p, bool) else None
+        kind = v.get("kind") if v.get("kind") in ("number", "enum", "flags", "text") \
+            else "number"
+        out[short(k)] = {"label": short(v.get("label") or ""), "unit": short(v.get("unit") or ""),
+                         "kind": kind, "precision": precision}
+    return out
+
+
 def _fields(dev: Device) -> dict[str, dict[str, Any]]:
-    f = dev.info.get("fields")
-    return {str(k): v for k, v in f.items() if isinstance(v, dict)} if isinstance(f, dict) \
-        else {}
+    f: dict[str, dict[str, Any]] = dev.info["fields"]
+    return f
 
 
 def _epoch(text: object) -> float | None:
@@ -230,7 +365,7 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
                 f["last"] = {"text": f["text"], "time": dev.at}
                 f.update(value=None, text="offline", status="offline", badges=[])
     info = dev.info
-    return {"key": f"{gw.base}/{dev.name}", "name": dev.name,
+    return {"key": f"{gw.base}/{dev.level}", "name": dev.name,
             "profile": str(info.get("profile") or ""), "model": "",
             "address": info.get("address", ""), "bus": str(info.get("bus") or ""),
             "state": state, "error": error if state != "online" or not fields else "",
@@ -238,13 +373,28 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
             "fields": fields}
 
 
+def shown_value(name: str, meta: dict[str, Any], value: Any) -> Any:
+    """A number as a person is shown it (``model.interpret.shown_number``): what the
+    gateway published in its device's unit (``meta``: the field's ``bridge/info``)."""
+    unit = str(meta.get("unit") or "")
+    if unit not in DISPLAY_UNITS or isinstance(value, bool) \
+            or not isinstance(value, (int, float)):
+        return value
+    precision = meta.get("precision") if isinstance(meta.get("precision"), int) else None
+    label = str(meta.get("label") or "")
+    return shown_number(unit, value, precision, difference=is_difference(name, label))
+
+
 def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: float | None,
                error: str) -> dict[str, Any]:
     kind = str(meta.get("kind") or "number")
-    precision = meta.get("precision") if isinstance(meta.get("precision"), int) else None
+    precision = meta.get("precision")
+    label = str(meta.get("label") or name.replace("_", " "))
+    unit = str(meta.get("unit") or "")
+    shown = DISPLAY_UNITS.get(unit)  # kelvin as °C, as a polling process's page shows it
     out: dict[str, Any] = {
-        "name": name, "label": str(meta.get("label") or name.replace("_", " ")),
-        "description": "", "unit": str(meta.get("unit") or ""), "kind": kind,
+        "name": name, "label": label,
+        "description": "", "unit": shown[0] if shown else unit, "kind": kind,
         "precision": precision, "value": None, "text": "", "severity": "ok", "status": "",
         "error": "", "badges": [], "last": None}
     if at is None:
@@ -258,6 +408,7 @@ def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: floa
     if value is None:
         out["status"], out["text"], out["error"] = "failed", "no reading", error
         return out
+    value = shown_value(name, meta, value)
     out["status"], out["value"] = "ok", json_value(value)
     if kind == "flags" and isinstance(value, list):
         out["badges"] = [{"name": str(n), "severity": "info"} for n in value]

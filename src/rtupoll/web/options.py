@@ -7,7 +7,15 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
-from rtupoll.config.http_settings import HttpSettings, from_options, merge, require_aiohttp
+from rtupoll.config.http_settings import (
+    HEADER_TIMEOUT,
+    IDLE_TIMEOUT,
+    MAX_CONNECTIONS,
+    HttpSettings,
+    from_options,
+    merge,
+    require_aiohttp,
+)
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site
@@ -15,10 +23,29 @@ if TYPE_CHECKING:
 
 F = TypeVar("F", bound=Callable[..., object])
 KEYS = ("http", "http_token", "http_users")
+LIMIT_KEYS = {"http_header_timeout": "header_timeout", "http_idle_timeout": "idle_timeout",
+              "http_max_connections": "max_connections", "http_hosts": "hosts"}
 
 
 def http_options(*, default: str | None = None) -> Callable[[F], F]:
     def add(f: F) -> F:
+        f = click.option("--http-host", "http_hosts", multiple=True, metavar="NAME",
+                         help="--http on loopback: also answer requests for this host name "
+                              "(a reverse proxy's; repeatable). Other names get 421: the "
+                              "guard against DNS rebinding.")(f)
+        f = click.option("--http-max-connections", "http_max_connections", type=int,
+                         metavar="N", default=None,
+                         help=f"--http: connections open at once; more are refused "
+                              f"[default: {MAX_CONNECTIONS}].")(f)
+        f = click.option("--http-idle-timeout", "http_idle_timeout", type=float,
+                         metavar="SECONDS", default=None,
+                         help=f"--http: close a connection with no request under way after "
+                              f"this long [default: {IDLE_TIMEOUT:g}].")(f)
+        f = click.option("--http-header-timeout", "http_header_timeout", type=float,
+                         metavar="SECONDS", default=None,
+                         help=f"--http: close a connection whose request's headers are not "
+                              f"all in this long after its first byte [default: "
+                              f"{HEADER_TIMEOUT:g}].")(f)
         f = click.option("--http-user", "http_users", multiple=True, metavar="USER:PASSWORD",
                          envvar="RTUPOLL_HTTP_USER",
                          help="--http: basic authentication for this user (repeatable; "
@@ -39,7 +66,9 @@ def http_options(*, default: str | None = None) -> Callable[[F], F]:
 def pop_http(opts: MutableMapping[str, Any]) -> HttpSettings | None:
     """Take the --http options out of a command's keyword arguments, parsed."""
     listen, token, users = (opts.pop(k, None) for k in KEYS)
-    return from_options(listen, token, tuple(users or ()))
+    limits = {key: opts.pop(k, None) for k, key in LIMIT_KEYS.items()}
+    limits["hosts"] = tuple(limits["hosts"] or ())
+    return from_options(listen, token, tuple(users or ()), limits)
 
 
 def http_service(site: Site, cli: HttpSettings | None, *,

@@ -10,7 +10,15 @@
 
 Read-only: every other method is 405. Optional authentication (``HttpSettings``): a
 bearer token (``Authorization: Bearer TOKEN``; a browser opens ``/?token=TOKEN`` once
-and keeps a cookie) and/or users for basic authentication.
+and keeps a cookie) and/or users for basic authentication. On a loopback bind, a
+request for another host name is 421 and one from another origin 403 (DNS rebinding).
+
+Each connection goes through a ``Conn`` (the listener's ``Gate``): more than
+``max_connections`` open at once are refused (503, closed), a request's headers must
+all be in ``header_timeout`` seconds after its first byte, and a connection with no
+request under way is closed after ``idle_timeout``. Refused connections and bad
+requests (aiohttp's parser errors) are counted and logged once a minute
+(``rtupoll.refusals``), never a traceback each.
 
 An event stream never holds up polling: a reading only marks its device's event due;
 every ``BATCH`` seconds the due events are made once (a device's event carries only
@@ -30,12 +38,17 @@ import hmac
 import importlib.resources
 import logging
 import os
+import socket
+import struct
+import sys
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, Protocol
+from urllib.parse import urlsplit
 
 from aiohttp import web
 
 from rtupoll.errors import UsageError
+from rtupoll.refusals import Refusals, watch
 from rtupoll.ui.records import to_json
 
 if TYPE_CHECKING:
@@ -177,6 +190,12 @@ def cookie_value(token: str) -> str:
     return hashlib.sha256(f"rtupoll-web:{token}".encode()).hexdigest()
 
 
+def _bytes(text: str) -> bytes:
+    """A header's text as the bytes that came (aiohttp keeps undecodable bytes as
+    surrogates): compared as bytes, never an error."""
+    return text.encode("utf-8", "surrogateescape")
+
+
 def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -> bool:
     if not settings.guarded:
         return True
@@ -184,23 +203,219 @@ def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -
     scheme, _, cred = auth.partition(" ")
     if settings.token:
         token = settings.token
-        if scheme.lower() == "bearer" and hmac.compare_digest(cred.strip().encode(),
+        if scheme.lower() == "bearer" and hmac.compare_digest(_bytes(cred.strip()),
                                                               token.encode()):
             return True
-        if hmac.compare_digest(cookies.get(COOKIE, "").encode(), cookie_value(token).encode()):
+        if hmac.compare_digest(_bytes(cookies.get(COOKIE, "")), cookie_value(token).encode()):
             return True
-        if hmac.compare_digest(query.get("token", "").encode(), token.encode()):
+        if hmac.compare_digest(_bytes(query.get("token", "")), token.encode()):
             return True
     if settings.users and scheme.lower() == "basic":
         try:
-            user, _, password = base64.b64decode(cred.strip(), validate=True).decode(
+            user, _, password = base64.b64decode(_bytes(cred.strip()), validate=True).decode(
                 "utf-8").partition(":")
-        except (binascii.Error, UnicodeError):
+        except (binascii.Error, ValueError):  # not base64, not UTF-8
             return False
         want = settings.users.get(user)
-        if want is not None and hmac.compare_digest(password.encode(), want.encode()):
+        if want is not None and hmac.compare_digest(_bytes(password), want.encode()):
             return True
     return False
+
+
+LINGER = 1.0  # seconds a refused connection is given to read its 503
+REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\n"
+           b"Content-Length: 39\r\nConnection: close\r\nRetry-After: 10\r\n\r\n"
+           b"rtupoll: too many connections, retry\r\n\r\n")
+
+
+class Gate:
+    """One listener's connections: how many are open (its cap), the refusals, and the
+    ``Conn`` of each open one's transport (for the middleware)."""
+
+    def __init__(self, server: Server, where: str) -> None:
+        self.server = server
+        self.open = 0
+        self.lingering = 0  # refused ones whose 503 is being read
+        self.refusals = Refusals(f"{server.what} {where}", log)
+        self.closed = {"header_timeout": 0, "idle_timeout": 0}  # connections, by deadline
+
+    def __call__(self) -> Conn:
+        return Conn(self)
+
+
+class Conn(asyncio.Protocol):
+    """A connection: refused (503, closed) when its listener has ``max_connections`` open,
+    else aiohttp's handler inside, under two deadlines: ``header_timeout`` from the
+    first byte of a request until its headers are in (the middleware ``begin``s it), and
+    ``idle_timeout`` while no request is under way (from the start and from each
+    request's ``end``), and ``idle_timeout`` too while what it was sent waits for it to
+    read (its transport paused our writing). A connection past its deadline is closed."""
+
+    __slots__ = ("busy", "gate", "inner", "phase", "stall", "timer", "transport")
+
+    def __init__(self, gate: Gate) -> None:
+        self.gate = gate
+        self.inner: asyncio.Protocol | None = None
+        self.transport: asyncio.Transport | None = None
+        self.timer: asyncio.TimerHandle | None = None
+        self.busy = False
+        self.phase = ""  # "idle_timeout", "header_timeout" or "" (a request is handled)
+        self.stall: asyncio.TimerHandle | None = None  # while its writes wait for it
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        gate, server = self.gate, self.gate.server
+        runner = server.runner
+        if gate.open >= server.settings.max_connections or runner is None or \
+                runner.server is None:
+            # a 503, the end of the stream, and what the client sends read until it
+            # closes (closed with unread bytes, the socket would reset: the client might
+            # never read the 503), at most LINGER seconds, at most ``max_connections`` so
+            gate.refusals.refused("cap")
+            transport.write(REFUSED)
+            if gate.lingering >= server.settings.max_connections:
+                transport.abort()
+                return
+            gate.lingering += 1
+            self.phase = "refused"
+            transport.write_eof()
+            self.timer = asyncio.get_running_loop().call_later(LINGER, transport.abort)
+            return
+        gate.open += 1
+        server.conns[transport] = self
+        self.inner = runner.server()
+        self.inner.connection_made(transport)
+        self._wait("idle_timeout")
+
+    def data_received(self, data: bytes) -> None:
+        if self.inner is None:
+            return
+        if not self.busy and self.phase != "header_timeout":
+            self._wait("header_timeout")
+        self.inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self.inner.eof_received() if self.inner is not None else None
+
+    def pause_writing(self) -> None:
+        """Its buffer is full: a client that reads nothing of it for ``idle_timeout``
+        (an event stream or an answer it never reads) is closed, its buffer freed."""
+        if self.inner is not None:
+            self.inner.pause_writing()
+            if self.stall is None:
+                self.stall = asyncio.get_running_loop().call_later(
+                    self.gate.server.settings.idle_timeout, self._stalled)
+
+    def resume_writing(self) -> None:
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+        if self.inner is not None:
+            self.inner.resume_writing()
+
+    def _stalled(self) -> None:
+        self.stall = None
+        if self.transport is not None and self.inner is not None:
+            self.gate.closed["unread"] = self.gate.closed.get("unread", 0) + 1
+            reset(self.transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+        if self.phase == "refused":
+            self.gate.lingering -= 1
+            self.phase = ""
+        if self.inner is None:
+            return
+        self.gate.open -= 1
+        if self.transport is not None:
+            self.gate.server.conns.pop(self.transport, None)
+        inner, self.inner = self.inner, None
+        inner.connection_lost(exc)
+
+    def begin(self) -> None:
+        """A request's headers are in: no deadline while it is handled."""
+        self.busy = True
+        self._cancel()
+        self.phase = ""
+
+    def end(self) -> None:
+        """The request was answered: idle until the next one's first byte."""
+        self.busy = False
+        if self.inner is not None:
+            self._wait("idle_timeout")
+
+    def _wait(self, phase: str) -> None:
+        self._cancel()
+        self.phase = phase
+        self.timer = asyncio.get_running_loop().call_later(
+            getattr(self.gate.server.settings, phase), self._expire)
+
+    def _cancel(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+
+    def _expire(self) -> None:
+        self.timer = None
+        t = self.transport
+        if t is None or self.inner is None or t.is_closing():
+            return
+        self.gate.closed[self.phase] = self.gate.closed.get(self.phase, 0) + 1
+        if t.get_write_buffer_size():  # it does not read what it was sent either
+            reset(t)
+        else:
+            t.close()
+
+
+def reset(transport: asyncio.Transport) -> None:
+    """Close a connection whose client does not read: a reset (SO_LINGER 0), so that
+    neither the transport's buffer nor the kernel's queue of it outlives the close."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    transport.abort()
+
+
+class RequestLog:
+    """aiohttp's logger for the listener's connections (``logger=``): a request it could
+    not parse (no Host, a NUL in the path, huge headers, a bad chunk, HTTP/2's preface
+    ...) is a count in ``refusals``' one line a minute, never a traceback; an error in a
+    handler (a 500) too, its traceback only at debug level."""
+
+    def __init__(self, refusals: Refusals) -> None:
+        self.refusals = refusals
+
+    def _count(self, args: tuple[Any, ...], kw: dict[str, Any]) -> None:
+        exc = kw.get("exc_info")
+        if not isinstance(exc, BaseException):
+            exc = sys.exc_info()[1]
+        if exc is None:
+            return
+        from aiohttp.http_exceptions import HttpProcessingError
+
+        status = exc.code if isinstance(exc, HttpProcessingError) else 500
+        self.refusals.refused(f"{type(exc).__name__} (HTTP {status})")
+        if status == 500:
+            log.debug("%s", args[0] if args else "error", exc_info=exc)
+
+    def debug(self, *args: Any, **kw: Any) -> None:
+        from aiohttp.http_exceptions import HttpProcessingError
+
+        if isinstance(kw.get("exc_info"), HttpProcessingError):  # the first, not HTTP
+            self._count(args, kw)
+
+    def exception(self, *args: Any, **kw: Any) -> None:
+        self._count(args, kw)
+
+    error = warning = exception
+
+    def info(self, *args: Any, **kw: Any) -> None:
+        pass
 
 
 class Server:
@@ -211,12 +426,14 @@ class Server:
         self.settings, self.source, self.what = settings, source, what
         self.assets = load_assets()
         self._runner: web.AppRunner | None = None
-        self._listener: web.TCPSite | None = None
+        self._listener: Listener | None = None
+        self.conns: dict[asyncio.BaseTransport, Conn] = {}  # the open ones, every listener
+        self.bad = Refusals(what, log, noun="request")
         self._pinger: asyncio.Task[None] | None = None
         self.address = ""  # http://HOST:PORT/ once listening
 
     def app(self) -> web.Application:
-        app = web.Application(middlewares=[self._guard])
+        app = web.Application(middlewares=[self._deadline, self._guard])
         app.router.add_get("/", self._index)
         app.router.add_get("/static/{name}", self._static)
         app.router.add_get("/api/state", self._state)
@@ -227,7 +444,7 @@ class Server:
 
     async def start(self) -> None:
         self._runner = web.AppRunner(self.app(), access_log=None, handle_signals=False,
-                                     shutdown_timeout=1.0)
+                                     shutdown_timeout=1.0, logger=RequestLog(self.bad))
         await self._runner.setup()
         try:
             await self.serve(self.settings, await self.bind(self.settings))
@@ -237,11 +454,15 @@ class Server:
             raise
         self._pinger = asyncio.create_task(self._ping())
 
-    async def bind(self, settings: HttpSettings) -> web.TCPSite:
+    @property
+    def runner(self) -> web.AppRunner | None:
+        return self._runner
+
+    async def bind(self, settings: HttpSettings) -> Listener:
         """A listener on ``settings``' address for these pages (``UsageError`` when it
         cannot be bound); ``serve`` makes it the one."""
         assert self._runner is not None
-        listener = web.TCPSite(self._runner, settings.host, settings.port)
+        listener = Listener(self._runner, settings.host, settings.port, self)
         try:
             await listener.start()
         except OSError as exc:
@@ -252,10 +473,10 @@ class Server:
         return listener
 
     @property
-    def listener(self) -> web.TCPSite | None:
+    def listener(self) -> Listener | None:
         return self._listener
 
-    async def serve(self, settings: HttpSettings, listener: web.TCPSite | None) -> None:
+    async def serve(self, settings: HttpSettings, listener: Listener | None) -> None:
         """From now on: ``settings``' authentication, on ``listener`` (from ``bind``; None:
         none). The listener before closes; connections it took, event streams among
         them, stay open, unless the authentication changed: then they are closed (a page
@@ -272,9 +493,11 @@ class Server:
             host, port = self._runner.addresses[0][:2]
             host = f"[{host}]" if ":" in host else host
             self.address = f"http://{host}:{port}/"
+            self.bad.what = f"{self.what} {host}:{port}"
 
     async def stop(self) -> None:
         self.source.hub.close()
+        self.bad.flush()
         if self._pinger is not None:
             self._pinger.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -294,13 +517,49 @@ class Server:
     # -- handlers -------------------------------------------------------------
 
     @web.middleware
+    async def _deadline(self, request: web.Request, handler: Callable[[web.Request],
+                        Awaitable[web.StreamResponse]]) -> web.StreamResponse:
+        """A request's headers are in: its connection's header deadline is over, and its
+        idle one starts again when it is answered."""
+        conn = self.conns.get(request.transport) if request.transport is not None else None
+        if conn is not None:
+            conn.begin()
+        try:
+            return await handler(request)
+        finally:
+            if conn is not None:
+                conn.end()
+
+    def _misdirected(self, request: web.Request) -> web.StreamResponse | None:
+        """On a loopback bind: 421 for a request to another host name (a page whose name
+        was rebound to 127.0.0.1), 403 for one from another origin; None: it is ours."""
+        s = self.settings
+        if not s.loopback:
+            return None
+        host = request.headers.get("Host")
+        if host is not None and not s.allows_host(_hostname("//" + host)):
+            return web.Response(status=421, text="rtupoll: not this dashboard's host name "
+                                "(--http-host, docs/web.md)\n", headers=SECURITY_HEADERS)
+        origin = request.headers.get("Origin")
+        if origin is not None and not s.allows_host(_hostname(origin)):
+            return web.Response(status=403, text="rtupoll: a page of another origin "
+                                "(docs/web.md)\n", headers=SECURITY_HEADERS)
+        return None
+
+    @web.middleware
     async def _guard(self, request: web.Request, handler: Callable[[web.Request], Awaitable[
             web.StreamResponse]]) -> web.StreamResponse:
         if request.method not in ("GET", "HEAD"):
             raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD"],
                                            text="read-only: GET only\n")
+        if (refused := self._misdirected(request)) is not None:
+            return refused
         s = self.settings
-        if not authorised(s, request.headers, request.cookies, request.query):
+        try:
+            ok = authorised(s, request.headers, request.cookies, request.query)
+        except (ValueError, UnicodeError, KeyError):  # a header that is not one
+            raise web.HTTPBadRequest(text="rtupoll: a malformed header\n") from None
+        if not ok:
             challenge = ", ".join((['Bearer realm="rtupoll"'] if s.token else []) +
                                   (['Basic realm="rtupoll"'] if s.users else []))
             return web.Response(status=401, text="rtupoll: authentication required "
@@ -377,3 +636,45 @@ class Server:
         finally:
             hub.clients.discard(box)
         return resp
+
+
+def _hostname(url: str) -> str:
+    """The host name of an Origin or ``//`` + Host (lower-case, no port; "" if none)."""
+    try:
+        return urlsplit(url).hostname or ""
+    except ValueError:
+        return ""
+
+
+class Listener(web.BaseSite):
+    """A TCP listener whose connections each go through a ``Conn`` of its ``Gate``;
+    asyncio's accept errors (out of descriptors) counted there, never a traceback."""
+
+    def __init__(self, runner: web.AppRunner, host: str, port: int, server: Server) -> None:
+        super().__init__(runner)
+        self.host, self.wanted = host, port
+        self.gate = Gate(server, f"{host}:{port}")
+        self._unwatch: Callable[[], None] | None = None
+
+    @property
+    def name(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.wanted}"
+
+    async def start(self) -> None:
+        await super().start()
+        self._server = server = await asyncio.get_running_loop().create_server(
+            self.gate, self.host, self.wanted, backlog=self._backlog, reuse_address=True)
+        sockets = server.sockets
+        if sockets:
+            port = sockets[0].getsockname()[1]
+            host = f"[{self.host}]" if ":" in self.host else self.host
+            self.gate.refusals.what = f"{self.gate.server.what} {host}:{port}"
+        self._unwatch = watch(sockets, self.gate.refusals)
+
+    async def stop(self) -> None:
+        if self._unwatch is not None:
+            self._unwatch()
+            self._unwatch = None
+        self.gate.refusals.flush()
+        await super().stop()

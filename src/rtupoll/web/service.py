@@ -20,19 +20,19 @@ from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.http_settings import merge
 from rtupoll.jobs.services import Service
+from rtupoll.model.interpret import DISPLAY_UNITS, display_value
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub, Server
 from rtupoll.web.state import Clocks, buses_event, device_delta, gateway_id, number, poll_state
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
-    from aiohttp import web
-
     from rtupoll.config.http_settings import HttpSettings
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
     from rtupoll.outputs.metrics import MetricsService
+    from rtupoll.web.server import Listener
 
 log = logging.getLogger("rtupoll.web")
 BUS_EVERY = 2.0  # seconds between ``buses`` events
@@ -82,6 +82,9 @@ class WebService(Service):
         name = dev.config.name
         for r in readings:
             if r.value is not None and (v := number(r.value.output)) is not None:
+                if r.field.unit in DISPLAY_UNITS:  # drawn in the unit it is shown in
+                    shown = number(display_value(r.value)[0])
+                    v = v if shown is None else shown
                 self.trends.add(name, r.field.name, r.time, v)
         if self._prom is not None:
             self._prom.on_readings(dev, readings)
@@ -177,7 +180,7 @@ class WebReload:
     ``commit``."""
 
     def __init__(self, service: WebService, settings: HttpSettings | None,
-                 bound: web.TCPSite | None) -> None:
+                 bound: Listener | None) -> None:
         self.service, self.settings, self.bound = service, settings, bound
 
     @classmethod
@@ -206,6 +209,9 @@ class WebReload:
                                (f" (no longer {was})" if was else ""))
             if (new.token, dict(new.users)) != (old.token, dict(old.users)):
                 changes.append("http: authentication changed")
+            if (limits := _limits(new)) != _limits(old):
+                changes.append("http: limits now " + ", ".join(
+                    f"{k} {v}" for k, v in limits.items()))
             if self.bound is not None and (warning := new.warning()):
                 log.warning("%s", warning, extra={"event": "http"})
         self.bound = None
@@ -216,6 +222,15 @@ class WebReload:
         if self.bound is not None:
             await self.bound.stop()
             self.bound = None
+
+
+def _limits(settings: HttpSettings) -> dict[str, str]:
+    """The listener's limits as a reload's line shows them."""
+    from rtupoll.config.http_settings import LIMITS
+
+    return {k: (f"{v:g} s" if isinstance(v, float) else
+                ", ".join(v) or "none" if isinstance(v, tuple) else str(v))
+            for k in LIMITS for v in (getattr(settings, k),)}
 
 
 def _where(settings: HttpSettings) -> tuple[str, int]:

@@ -12,9 +12,11 @@ One shape for both sources, so the page has one code path::
               "severity", "status", "error", "badges": [{"name", "severity"}],
               "last": {"text", "time"} | null}
 
-``kind`` is number, enum, flags or text; only numbers have a trend. A field whose
-latest read failed has no ``value`` (never a stale one): ``status`` says why, and
-``last`` is its last good reading, with its time, for the page to show as such.
+``kind`` is number, enum, flags or text; only numbers have a trend. Values, texts and
+units are as every screen shows them (``model.interpret.display_value``: a temperature
+in kelvin in °C, as in the live table and ``read``'s table); records keep the device's.
+A field whose latest read failed has no ``value`` (never a stale one): ``status`` says
+why, and ``last`` is its last good reading, with its time, for the page to show as such.
 Times are wall-clock seconds since the epoch.
 """
 
@@ -28,6 +30,7 @@ from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.jobs.stats import State, Status
+from rtupoll.model.interpret import display, display_unit, display_value
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
@@ -63,10 +66,6 @@ def kind_of(f: Field) -> str:
     return "number"
 
 
-def label_of(f: Field) -> str:
-    return f.name.replace("_", " ")
-
-
 _META: dict[int, tuple[Field, dict[str, Any]]] = {}  # id(field) -> (field, its meta)
 
 
@@ -76,9 +75,9 @@ def field_meta(f: Field) -> dict[str, Any]:
     if got is None or got[0] is not f:
         text = (f.description or "").strip()
         got = _META[id(f)] = (f, {
-            "name": f.name, "label": label_of(f),
+            "name": f.name, "label": f.title,
             "description": text.splitlines()[0] if text else "",
-            "unit": f.unit, "kind": kind_of(f), "precision": f.precision})
+            "unit": display_unit(f), "kind": kind_of(f), "precision": f.precision})
         if len(_META) > 100_000:  # profiles reloaded again and again: start afresh
             _META.clear()
     return dict(got[1])
@@ -88,7 +87,11 @@ def number(value: object) -> float | None:
     """The value a trend draws: a finite int or float (no bool, enum or text)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    return float(value) if math.isfinite(value) else None
+    try:
+        f = float(value)
+    except OverflowError:  # an integer beyond a float's range
+        return None
+    return f if math.isfinite(f) else None
 
 
 def json_value(value: object) -> object:
@@ -116,15 +119,15 @@ def field_state(f: Field, latest: Reading | None, last_good: Reading | None, *,
         if latest.status is Status.ABSENT:
             out["severity"] = "info"
         if last_good is not None and last_good.value is not None:
-            out["last"] = {"text": last_good.value.text, "time": last_good.time}
+            out["last"] = {"text": display(last_good.value)[0], "time": last_good.time}
         return out
     out["status"] = "ok"
     out["severity"] = fv.severity.value
-    out["text"] = fv.text
+    value, out["text"], _ = display_value(fv)  # kelvin as °C, as every screen shows it
     if fv.sentinel is not None:  # the device says there is no reading: no value
         out["badges"] = [{"name": fv.sentinel.name, "severity": fv.sentinel.severity.value}]
         return out
-    out["value"] = json_value(fv.value)
+    out["value"] = json_value(value)
     if f.flags and isinstance(fv.value, list):
         sev = {c.name: c.severity.value for c in f.flags.values()}
         out["badges"] = [{"name": n, "severity": sev.get(n, "warning")} for n in fv.value]
@@ -152,6 +155,9 @@ def health_state(dev: DevicePoller, clocks: Clocks, *, latency: bool = True
     waiting = st.state in (State.RETRYING, State.OFFLINE)
     out = {"ok": st.ok, "timeouts": st.timeouts, "garbled": st.garbled, "late": st.late,
            "exceptions": st.exception_count, "requests": st.requests, "cycles": st.cycles,
+           "attempts": st.attempts, "timed_out_attempts": st.timed_out,
+           "garbled_attempts": st.garbled_attempts, "retried": st.retried,
+           "idle_gap": st.idle_gap, "idle_gap_source": st.gap_source,
            "failures": st.failures, "timeout": st.timeout,
            "timeout_source": st.timeout_source, "last_seen": st.last_good_time,
            "next_try": round(clocks.to_wall(dev.next_due), 2) if waiting else None,

@@ -210,7 +210,7 @@
     row.dataset.field = f.name;
     if (f.kind === "number") row.tabIndex = 0;
     const th = el("th", "", f.label || f.name);
-    if (f.description) th.title = f.description;
+    th.title = f.name + (f.description ? ": " + f.description : "");  // the name scripts use
     row.appendChild(th);
     const td = el("td", "val");
     if (f.status === "ok" || f.status === "") {

@@ -1,0 +1,97 @@
+"""A device that needs an idle gap, polled beside a busy neighbour (issue 47: a Huiwen
+module that ignores any request less than 50 ms after the last byte on the line, beside
+a radar at --interval 0): in virtual time through the real scheduler, line and the
+simulator's engine (tests/virtual.py), then on a pty through the real command."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from typing import Any
+
+from test_poll_faults import PollProcess
+from virtual import simulated
+
+from rtupoll.config.site import from_specs
+from rtupoll.jobs.scheduler import Backoff, BusPoller
+from rtupoll.jobs.timeouts import CEILING
+from rtupoll.rtu import Table, read_request
+from rtupoll.sim.engine import Engine
+from rtupoll.sim.scenario import build
+
+NEEDS = 0.05  # the Huiwen's gap, seconds
+SECONDS = 15.0
+
+
+def poll_15s(gap: float | None) -> tuple[BusPoller, dict[str, int]]:
+    """15 virtual seconds of both at --interval 0, at 9600 baud; ``gap``: the Huiwen's
+    idle_gap as set (None: none set, learned)."""
+    bus, clock = simulated(["huiwen-aq@3", "radar-level@7"], [f"3:gap={NEEDS}"],
+                           baudrate=9600, turnaround=0.005)
+    site = from_specs("virtual", [("huiwen-aq", 3), ("radar-level", 7)], baudrate=9600,
+                      interval=0, check_serial=False)
+    b = site.buses[0]
+    if gap is not None:
+        b = dataclasses.replace(b, devices=(dataclasses.replace(b.devices[0], idle_gap=gap),
+                                            b.devices[1]))
+    bp = BusPoller(b, bus, backoff=Backoff(), clock=clock, wall=clock)
+
+    async def go() -> None:
+        end = clock.now + SECONDS
+        while clock.now < end:
+            dev = bp.next_device()
+            clock.now = max(clock.now, dev.next_due)
+            await bp.run_one(dev, lambda d, rs: None)
+
+    asyncio.run(go())
+    return bp, {d.config.name: d.stats.ok for d in bp.devices}
+
+
+def test_the_simulated_device_ignores_a_request_sooner_than_its_gap() -> None:
+    config = build(["huiwen-aq@3"], faults=(f"3:gap={NEEDS}",), tick=None)
+    engine = Engine(config.devices, config.faults, tick=None)
+    request = read_request(3, Table.INPUT, 30009, 1)
+    assert engine.handle(request, 1.0, idle=0.049) == []
+    assert "gap" in engine.why_silent and "50 ms" in engine.why_silent
+    assert len(engine.handle(request, 2.0, idle=0.05)) == 1
+    assert len(engine.handle(request, 3.0)) == 1  # (no idle given: a quiet line)
+
+
+def test_a_gap_needing_device_beside_a_busy_one_gets_its_gap_learned() -> None:
+    bp, ok = poll_15s(None)
+    huiwen = bp.devices[0]
+    assert isinstance(bp.transport, type(bp.transport))
+    line = bp.transport.line  # type: ignore[attr-defined]
+    assert NEEDS <= line.learned_gap[3] <= 4 * NEEDS
+    # the learned timeout is the device's own (a few tens of ms), not the ceiling
+    assert huiwen.timing.timeout < 0.2 < CEILING
+    assert line.counts.late[3] == 0
+    # before: 6 reads of the Huiwen against 130 of the radar (its timeout at 3 s)
+    assert ok["huiwen-aq@3"] >= 30 and ok["radar-level@7"] >= 250, ok
+
+
+def test_a_gap_set_costs_no_attempt_and_no_learning() -> None:
+    bp, ok = poll_15s(NEEDS)
+    line = bp.transport.line  # type: ignore[attr-defined]
+    stats = bp.transport.stats  # type: ignore[attr-defined]
+    assert stats.attempts == stats.transactions  # no request went unheard
+    assert line.learned_gap == {} and line.counts.gap_raised[3] == 0
+    assert ok["huiwen-aq@3"] >= 100, ok
+
+
+def scans(records: list[dict[str, Any]], device: str) -> int:
+    field = {"huiwen-aq@3": "co2", "radar-level@7": "air_gap_cm"}[device]
+    return sum(1 for r in records if r["device"] == device and r["field"] == field
+               and r["status"] == "ok")
+
+
+def test_on_a_pty_the_gap_needing_device_keeps_being_read_beside_a_busy_one() -> None:
+    """The real command on the simulator, at the wire timing of 9600 baud. Before: one
+    scan of the Huiwen against 17 of the radar in 15 s (its timeout at 3 s)."""
+    p = PollProcess("--simulate", "huiwen-aq@3", "radar-level@7", "--fault",
+                    f"3:gap={NEEDS}", "--baud", "9600", "--interval", "0")
+    done = p.until(lambda rs: scans(rs, "radar-level@7") >= 40, limit=120)
+    stderr, code = p.stop()
+    assert done and code == 0, stderr
+    huiwen, radar = scans(p.records, "huiwen-aq@3"), scans(p.records, "radar-level@7")
+    assert huiwen * 8 >= radar, (huiwen, radar)  # measured: 12 against 43
