@@ -1,4 +1,5 @@
-"""The commands that run until stopped, on Windows (CPython 3.13 under Wine): ``poll``
+"""The commands that run until stopped, on Windows (CPython 3.13 under Wine), and the one
+that needs a console (``set-address --interactive``): ``poll``
 (until Ctrl-C, -o, the live table, --http, --metrics, --serve, MQTT), ``sniff`` with
 ``--capture`` on a COM port that is the simulator's tap, ``simulate --tcp`` read from
 Linux, and the demo (``poll --simulate``). A Ctrl-C is a SIGINT to the Windows process's
@@ -8,6 +9,9 @@ Unix one, which Wine turns into its CTRL_C_EVENT (tests/windows/wine.py, ``Runni
 from __future__ import annotations
 
 import json
+import os
+import re
+import select
 import shutil
 import subprocess
 import time
@@ -20,7 +24,7 @@ import pytest
 from brokers import Broker, free_port, listening
 from cli_runner import rtupoll as linux_rtupoll
 from conftest import ANSWERED, PATIENT
-from wine import Wine, setup, winpath
+from wine import Wine, environment, setup, winpath
 
 from rtupoll.sim.runner import SimulatedBus
 
@@ -67,6 +71,7 @@ def test_poll_runs_until_ctrl_c_and_ends_0_with_its_file_written(
         until(lambda: out.exists() and out.read_text().count("\n") >= 3, "3 records in -o")
         code, err = poll.interrupt()
     assert code == 0, err
+    assert b"\r" not in out.read_bytes()  # a record's line ends "\n", as on Linux
     recs = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(recs) >= 3 and {(r["field"], r["value"], r["status"]) for r in recs} == {
         ("co2", 777, "ok")}
@@ -209,3 +214,55 @@ def test_the_demo_runs_on_windows(wine: tuple[Wine, dict[str, Path]]) -> None:
     assert ran.returncode == 2 and "--tcp" in ran.stderr, ran
     assert len(ran.stderr.strip().splitlines()) == 1, ran
 
+
+
+def screen(raw: bytes) -> str:
+    """What a terminal shows, as text: Wine's console escapes out, lines joined again
+    where it wrapped them at 80 columns."""
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", raw.decode(errors="replace"))
+    return text.replace("\r\r\n", "\n").replace("\r", "")
+
+
+def test_set_address_interactive_on_a_console(wine: tuple[Wine, dict[str, Path]],
+                                              sim: Sim) -> None:
+    # a Unix pty as the standard streams: Wine's console on it, what a person types
+    w, links = wine
+    bus = sim("radar-level@1", link=str(links["COM5"]), tick=None)
+    master, slave = os.openpty()
+    proc = subprocess.Popen(w.argv("-m", "rtupoll", "set-address", "-p", "COM5",
+                                   "--interactive", "radar-level@1", "10"),
+                            stdin=slave, stdout=slave, stderr=slave, env=environment(),
+                            close_fds=True)
+    os.close(slave)
+    seen = b""
+
+    def expect(text: str) -> str:
+        nonlocal seen
+        deadline = time.monotonic() + 60
+        while text not in screen(seen).replace("\n", ""):
+            assert time.monotonic() < deadline, screen(seen)
+            if select.select([master], [], [], 0.5)[0]:
+                try:
+                    seen += os.read(master, 4096)
+                except OSError:  # it ended
+                    break
+        shown = screen(seen).replace("\n", "")
+        assert text in shown, screen(seen)
+        seen = b""
+        return shown
+
+    try:
+        expect("gets the next free address from 10.")
+        expect("press Enter (q to finish):")
+        os.write(master, b"\r")
+        step = expect("So far: 1 sensor readdressed (10).")
+        assert "ok   radar-level@1 -> 10: changed" in step, step
+        assert bus.addresses() == {"radar-level@1": 10}
+        expect("press Enter (q to finish):")
+        os.write(master, b"q\r")
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
