@@ -186,6 +186,10 @@ def test_profiles_list_show_and_check(windows: Windows, tmp_path: Path) -> None:
     assert listed.returncode == 0, listed
     ids = {json.loads(line)["id"] for line in listed.stdout.splitlines() if line.strip()}
     assert ids == set(load_library().profiles), listed.stdout
+    assert "\u25a1" not in listed.stdout and "?" in listed.stdout  # (the code page lacks it)
+    utf8 = windows.rtupoll("profiles", "list", "--format", "json", env={"PYTHONUTF8": "1"},
+                           encoding="utf-8")  # as README says: UTF-8, every character
+    assert utf8.returncode == 0 and "\u25a1" in utf8.stdout, utf8
     shown = windows.rtupoll("profiles", "show", "huiwen-aq")
     assert shown.returncode == 0 and "co2" in shown.stdout and "30009" in shown.stdout, shown
     mine = tmp_path / "xy-md02.yaml"

@@ -54,11 +54,11 @@ def winpath(path: str | PurePath) -> str:
     return "Z:" + str(path).replace("/", "\\")
 
 
-def environment(extra: Mapping[str, str | None] = ()) -> dict[str, str]:  # type: ignore[assignment]
+def environment(extra: Mapping[str, str | None] | None = None) -> dict[str, str]:
     """The environment of a Windows process: Wine's settings, then ``extra`` (None unsets)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV"))}
     env.update(WINEPREFIX=str(PREFIX), WINEDEBUG="-all", WINEDLLOVERRIDES="mscoree,mshtml=")
-    for key, value in dict(extra).items():
+    for key, value in (extra or {}).items():
         if value is None:
             env.pop(key, None)
         else:
@@ -75,8 +75,8 @@ def setup() -> None:
 class Wine:
     """A Wine prefix's server with these COM ports, and commands run under it."""
 
-    def __init__(self, ports: Mapping[str, str | PurePath] = ()) -> None:  # type: ignore[assignment]
-        self.ports = {name: str(path) for name, path in dict(ports).items()}
+    def __init__(self, ports: Mapping[str, str | PurePath] | None = None) -> None:
+        self.ports = {name: str(path) for name, path in (ports or {}).items()}
         self.server: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Wine:
@@ -117,7 +117,7 @@ class Wine:
     def argv(self, *args: str) -> list[str]:
         return [WINE, str(PYTHON), *args]
 
-    def popen(self, *args: str, env: Mapping[str, str | None] = (),  # type: ignore[assignment]
+    def popen(self, *args: str, env: Mapping[str, str | None] | None = None,
               stdin: Any = subprocess.DEVNULL, **kwargs: Any) -> subprocess.Popen[str]:
         """``python.exe ARGS`` under Wine; stdout and stderr are pipes unless given."""
         kwargs.setdefault("stdout", subprocess.PIPE)
@@ -126,12 +126,13 @@ class Wine:
                                 env=environment(env), **kwargs)
 
     def run(self, *args: str, input: str | None = None, timeout: float = 120,
-            env: Mapping[str, str | None] = (),  # type: ignore[assignment]
-            cwd: str | Path | None = None) -> Ran:
-        """``python.exe ARGS`` under Wine, to its end."""
+            env: Mapping[str, str | None] | None = None, cwd: str | Path | None = None,
+            encoding: str = ENCODING) -> Ran:
+        """``python.exe ARGS`` under Wine, to its end (its output decoded as ``encoding``:
+        the code page's, unless the command was told otherwise, e.g. ``PYTHONUTF8=1``)."""
         start = time.monotonic()
-        proc = subprocess.run(self.argv(*args), input=input, capture_output=True, encoding=ENCODING,
-                              timeout=timeout, env=environment(env), cwd=cwd,
+        proc = subprocess.run(self.argv(*args), input=input, capture_output=True,
+                              encoding=encoding, timeout=timeout, env=environment(env), cwd=cwd,
                               stdin=None if input is not None else subprocess.DEVNULL)
         return Ran(proc.returncode, proc.stdout, proc.stderr, time.monotonic() - start)
 
