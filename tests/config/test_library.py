@@ -119,6 +119,8 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # ORNO OR-WE-514: u16 x0.01 Hz and V at 0x0130/0x0131; current u32 x0.001 A
     ("orno-or-we-514", Table.HOLDING, 0x0130, _reply(1, 3, [5001, 23012]),
      {"frequency": 50.01, "voltage": 230.12}),
+    # TAC4300-CT: the frequency is the float at input 0x0030 (an SDM630 has it at 0x0046)
+    ("taiye-tac4300ct", Table.INPUT, 0x0030, _reply(1, 4, _f32(50.0)), {"frequency": 50.0}),
     # ABB: u32 voltage x0.1 (2310 = 231.0 V); the u32 "NaN" 0xFFFFFFFF is not a reading
     ("abb-b23", Table.HOLDING, 0x5B00, _reply(1, 3, [0, 2310, 0xFFFF, 0xFFFF]),
      {"voltage_l1": 231.0, "voltage_l2": "NOT_AVAILABLE"}),
@@ -200,6 +202,20 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # R4DCB08, the sheet's examples: 00DB = 21.9 °C, FF90 = -11.2 °C, 8000 = no sensor
     ("r4dcb08", Table.HOLDING, 0, _reply(1, 3, [0x00DB, 0xFF90, 0x8000]),
      {"temperature_1": 21.9, "temperature_2": -11.2, "temperature_3": "NO_SENSOR"}),
+    # Deye V118: 182 battery temperature +1000 offset x0.1 (1200 = 20.0 °C), 183 x0.01 V
+    ("deye-sg-lp1", Table.HOLDING, 182, _reply(1, 3, [1200, 4100, 76]),
+     {"battery_temperature": 20.0, "battery_voltage": 41.0, "battery_soc": 76}),
+    # DFRobot SEN0483, the wiki's read: 0x0025 = 37 = 3.7 m/s
+    ("dfrobot-sen0483", Table.HOLDING, 0, _reply(2, 3, [0x0025]), {"wind_speed": 3.7}),
+    # Growatt MAX (V1.20): Vac2 42 and Vac3 46 in 0.1 V
+    ("growatt-max", Table.INPUT, 42, _reply(1, 4, [2315, 141]),
+     {"grid_voltage_l2": 231.5, "grid_current_l2": 14.1}),
+    # DFRobot SEN0482 V2, the wiki's values: 028F = 65.5°, 0004 = east
+    ("dfrobot-sen0482", Table.HOLDING, 0, _reply(2, 3, [0x028F, 4]),
+     {"wind_direction": 65.5, "wind_direction_16": "E"}),
+    # Deye V104 (three-phase LV): 586 battery temperature +1000 offset x0.1, 587 x0.01 V
+    ("deye-sg-lp3", Table.HOLDING, 586, _reply(1, 3, [1000, 5280, 81]),
+     {"battery_temperature": 0.0, "battery_voltage": 52.8, "battery_soc": 81}),
 ]
 
 
@@ -258,9 +274,11 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
      "id"),
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
-    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "huawei-sun2000"},
-     "kind"),
-    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph"}, "field battery_soc"),
+    ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "growatt-max",
+                     "huawei-sun2000", "deye-sg-lp1", "deye-sg-lp3"}, "kind"),
+    ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1",
+                     "deye-sg-lp3"},
+     "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:

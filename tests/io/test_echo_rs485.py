@@ -342,3 +342,15 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
     assert json.loads(read.stdout.splitlines()[0])["raw"] == [level]
     seen = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     assert [(r["field"], r["status"], r["raw"]) for r in seen] == [("level_cm", "ok", [level])]
+
+
+def test_scan_without_echo_finds_the_devices_behind_an_echoing_adapter(
+        echoing_at_9600: SimulatedBus) -> None:
+    result = CliRunner().invoke(cli, ["scan", "-p", echoing_at_9600.port, "--baudrate", "9600",
+                                      "--addresses", "2-3", "--turnaround", "0.15",
+                                      "--format", "json"])
+    assert result.exit_code == 0, result.output
+    found = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [(f["address"], f["profile"]) for f in found] == [(2, "radar-level"),
+                                                            (3, "huiwen-aq")]
+    assert result.stderr.count("adapter echoes") == 1 and "--echo" in result.stderr

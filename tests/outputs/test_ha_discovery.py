@@ -113,6 +113,8 @@ def test_device_classes_are_ones_home_assistant_handles_right(pid: str) -> None:
             assert "device_class" not in c, f"{pid}.{f.name}"
         if "power_factor" in f.name:
             assert c["device_class"] == "power_factor", f"{pid}.{f.name}"
+        if f.name.endswith("_today"):  # from 0 each day: HA's new cycle, never a return
+            assert c["state_class"] == "total_increasing", f"{pid}.{f.name}"
 
 
 def test_corrections_offsets_and_magnitudes_are_no_temperatures() -> None:

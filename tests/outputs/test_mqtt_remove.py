@@ -6,11 +6,14 @@ retained message on a config topic Home Assistant never saw makes it log a warni
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from cli_runner import rtupoll
 
 from rtupoll.sim.runner import SimulatedBus
@@ -35,25 +38,55 @@ def retain(broker: Broker, topic: str, payload: str) -> None:
                     "-r", "-t", topic, "-m", payload], check=True, timeout=10)
 
 
+def subscribed(broker: Broker, sub: Subscriber) -> None:
+    """Wait until ``sub`` hears the broker: a marker published again and again until one
+    comes back (mosquitto_sub does not say when its subscription is made)."""
+    deadline = time.monotonic() + 60  # a hang guard; the first marker heard ends it
+    while time.monotonic() < deadline:
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q",
+                        "1", "-t", "test/marker", "-m", "x"], check=True, timeout=10)
+        with contextlib.suppress(pytest.fail.Exception):  # not yet: publish again
+            sub.wait(lambda m: m.topic == "test/marker", timeout=0.2)
+            return
+    raise AssertionError("mosquitto_sub never heard the broker")
+
+
 def settled(broker: Broker, sub: Subscriber, after: int = 0) -> list[tuple[str, str]]:
     """Every message ``sub`` saw (from index ``after``) until a marker published now
     comes back (markers, the remover's own ``BASE/bridge/sync/...`` too, left out)."""
-    subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
-                    "-t", "test/marker", "-m", "x"], check=True, timeout=10)
+    # published until it comes back: one published before the broker has ``sub``'s
+    # subscription (a fresh one, on a busy machine) reaches nobody
+    for _ in range(120):
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q",
+                        "1", "-t", "test/marker", "-m", "x"], check=True, timeout=10)
+        if _came(sub, after):
+            break
     sub.wait(lambda m: m.topic == "test/marker", after=after)
     return [(m.topic, m.payload) for m in sub.messages[after:]
             if m.topic != "test/marker" and "/bridge/sync/" not in m.topic]
 
 
+def _came(sub: Subscriber, after: int) -> bool:
+    """The marker arrived within half a second."""
+    deadline = time.monotonic() + 0.5
+    while time.monotonic() < deadline:
+        if any(m.topic == "test/marker" for m in sub.messages[after:]):
+            return True
+        time.sleep(0.02)
+    return False
+
+
 def test_on_an_empty_broker_nothing_is_sent(broker: Broker, tmp_path: Path) -> None:
     site = site_yaml(tmp_path, "tcp://127.0.0.1:9", broker.url)
     sub = broker.subscribe("#")
+    subscribed(broker, sub)
+    before = len(sub.messages)
     done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr
     assert done.stderr.startswith("rtupoll: nothing to remove: ")
     assert "holds no Home Assistant discovery config of gateway 'plant' and no retained " \
         "topic under plant" in done.stderr
-    assert settled(broker, sub) == []  # not one message: HA would log a warning for each
+    assert settled(broker, sub, before) == []  # not one message: HA would log a warning for each
 
 
 def test_on_a_populated_broker_exactly_this_gateways_topics_go(
@@ -72,7 +105,8 @@ def test_on_a_populated_broker_exactly_this_gateways_topics_go(
     for t in configs + topics:
         assert broker.retained(t) is not None, t
     sub = broker.subscribe("#")
-    settled(broker, sub)
+    subscribed(broker, sub)
+    settled(broker, sub)  # the retained messages, delivered on subscribing, come first
     before = len(sub.messages)
     done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr

@@ -102,6 +102,11 @@ def test_the_status_is_never_ok_while_a_field_is_null_for_a_failed_read() -> Non
                                                   ok(dev, "import_active_energy", F32_12)]))
     assert read[0]["import_active_energy"] == 12.0
     assert read[0]["_rtupoll"] == {"status": "ok", "error": None}
+    # read, but no value from the device (a NaN float, a sentinel): null, so partial
+    nan = states(pub.readings(dev, True, 1.7e9, [ok(dev, "voltage", (0x7FC0, 0)),
+                                                 ok(dev, "import_active_energy", F32_12)]))[0]
+    assert nan["voltage"] is None
+    assert nan["_rtupoll"] == {"status": "partial", "error": "no value: voltage is nan"}
     # a field this generation lacks is null and no failure
     absent = states(pub.readings(dev, True, 1.7e9, [
         ok(dev, "voltage", F32_230),

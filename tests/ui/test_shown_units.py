@@ -77,3 +77,20 @@ def test_read_and_the_dashboard_show_it_so_and_the_records_keep_kelvin(
         trend = until(lambda: get_json(p.url + "api/trend?device=net-irnet-pro%401"
                                        "&field=temperature") or None, "a trend")
         assert trend["v"] and all(abs(v - 23.52) < 0.01 for v in trend["v"])
+
+
+def test_decode_shows_it_so_too_and_its_records_keep_kelvin() -> None:
+    """``decode --profile``: the line a person reads in °C, the JSON record in K."""
+    from rtupoll.rtu.crc import with_crc
+
+    words = field_words(load_one("net-irnet-pro", []).field("temperature"), KELVIN)
+    reply = with_crc(bytes([1, 4, 4]) + b"".join(w.to_bytes(2, "big") for w in words))
+    request = with_crc(bytes([1, 4, 0, 4, 0, 2]))
+    text = rtupoll("decode", "--profile", "net-irnet-pro", request.hex(), reply.hex())
+    assert text.returncode == 0, text.stderr
+    assert "temperature (0x0004) = 23.52 °C" in text.stdout, text.stdout
+    got = rtupoll("decode", "--profile", "net-irnet-pro", "--format", "json", request.hex(),
+                  reply.hex())
+    carried = [c for line in got.stdout.splitlines() for c in json.loads(line)["fields"]]
+    assert [(c["value"], c["unit"]) for c in carried if c["value"] is not None] == [
+        (KELVIN, "K")]

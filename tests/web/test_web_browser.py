@@ -428,3 +428,36 @@ def test_the_fleet_keys_devices_by_their_topics(browser: Any, broker: Broker,
               "the new reading of y")
         assert shown(browser)["rtupoll/site/x_y"]["fields"] == {"temperature": "23.5°C"}
         browser.save_screenshot(str(tmp_path / "fleet-keys.png"))
+
+
+def test_the_fleet_page_with_hostile_retained_messages(browser: Any, broker: Broker,
+                                                       tmp_path: Path) -> None:
+    """A precision of 10^8, a 400-digit number, labels of 10,000 characters, a state
+    that is not JSON: the page shows what it can, bounded, with no error in the
+    console, and a good gateway's readings as they come."""
+    huge = "9" * 400
+    probe = {"profile": "probe", "address": 1, "bus": "line1", "fields": {
+        "temperature": {"label": "temperature", "unit": "°C", "kind": "number",
+                        "precision": 1}}}
+    publish(broker, "rtupoll/good/bridge/info", json.dumps(
+        {"gateway": "good", "version": "0.1.0", "devices": {"probe": probe}}))
+    publish(broker, "rtupoll/good/probe", json.dumps({"temperature": 21.5}))
+    publish(broker, "rtupoll/bad/bridge/info", json.dumps({"gateway": "bad", "devices": {
+        "d": {"name": "n" * 10_000, "fields": {
+            "v": {"label": "L" * 10_000, "kind": "number", "precision": 100_000_000},
+            "w": {"kind": "number", "precision": -3}}}}}))
+    publish(broker, "rtupoll/bad/d", f'{{"v": 1.25, "w": {huge}}}')
+    publish(broker, "rtupoll/bad/d/availability", "x" * 5000)
+    with running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                 name="web") as p:
+        browser.get(p.url)
+        page = until(lambda: len(s := shown(browser)) == 2 and
+                     s["rtupoll/good/probe"]["fields"]["temperature"] and s, "both gateways")
+        assert page["rtupoll/good/probe"]["fields"] == {"temperature": "21.5°C"}
+        bad = page["rtupoll/bad/d"]["fields"]
+        assert bad["v"] == "1.250000"
+        publish(broker, "rtupoll/bad/d", "{not json", retain=False)
+        publish(broker, "rtupoll/good/probe", json.dumps({"temperature": 22.5}), retain=False)
+        until(lambda: shown(browser)["rtupoll/good/probe"]["fields"]["temperature"] ==
+              "22.5°C", "the good gateway's next reading")
+        browser.save_screenshot(str(tmp_path / "fleet-hostile.png"))

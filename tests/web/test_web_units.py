@@ -264,17 +264,41 @@ def test_a_stream_that_stops_reading_gets_a_snapshot_not_a_backlog() -> None:
             hub.publish("d:a", "device", chunk)
             hub.flush()
             live.take()  # this one reads
-        assert slow.behind and slow.queue == [] and slow.wake.is_set()
+        assert slow.behind and not slow.queue and slow.wake.is_set()
         assert not live.behind
         hub.publish("d:a", "device", "y")
         hub.flush()
-        assert slow.queue == [] and live.take() == b"event: device\ndata: y\n\n"
+        assert not slow.queue and live.take() == b"event: device\ndata: y\n\n"
         epoch = hub.epoch
         hub.rejoin(slow)
         assert not slow.behind and hub.epoch == epoch + 1
         hub.publish("d:a", "device", "z")
         hub.flush()
         assert slow.take() == live.take() == b"event: device\ndata: z\n\n"
+        hub.close()
+
+    asyncio.run(run())
+
+
+def test_what_waits_for_all_the_slow_streams_is_bounded_together() -> None:
+    """Each of 20 streams reads a little (never BEHIND): together they never hold more
+    than BUDGET bytes; the furthest behind start afresh. A take is at most CHUNK bytes
+    (or one event), so a slow reader's backlog stays in the hub, counted."""
+    from rtupoll.web.server import BEHIND, BUDGET, CHUNK, Hub
+    async def run() -> None:
+        hub = Hub()
+        streams = [hub.join() for _ in range(20)]
+        chunk = "x" * 100_000
+        most = 0
+        for i in range(400):
+            hub.publish("d:a", "device", chunk)
+            hub.flush()
+            for s in streams[:i % 20]:  # each reads now and then
+                got = s.take()
+                assert len(got) <= max(CHUNK, len(chunk) + 30)
+            most = max(most, sum(s.size for s in hub.clients))
+        assert most <= BUDGET < 20 * BEHIND
+        assert any(s.behind for s in streams)  # dropped, a snapshot next
         hub.close()
 
     asyncio.run(run())
@@ -477,3 +501,23 @@ def test_the_fleet_shows_kelvin_as_celsius_as_a_polling_process_does() -> None:
     offset = {**meta, "label": "Temperature offset"}  # a difference moves by no 273.15
     assert shown_value("temperature_offset", offset, 1.5) == 1.5
     assert shown_value("co2", {"unit": "ppm"}, 612) == 612
+
+
+def test_a_gateways_trends_outlive_its_info_again_but_not_its_devices() -> None:
+    from rtupoll.web.fleet import Fleet
+    now = [1_800_000_000.0]
+    fleet = Fleet("rtupoll", clock=lambda: now[0])
+    one = {"fields": {"t": {"kind": "number", "precision": 1}}}
+    feed(fleet, "rtupoll/site/bridge/info", {"devices": {"a": one, "b": one}})
+    feed(fleet, "rtupoll/site/x/bridge/info", {"devices": {"y": one}})
+    for topic in ("rtupoll/site/a", "rtupoll/site/b", "rtupoll/site/x/y"):
+        feed(fleet, topic, {"t": 1.5})
+    now[0] += 10
+    feed(fleet, "rtupoll/site/bridge/info", {"devices": {"a": one}})  # again, without b
+    assert fleet.trend("rtupoll/site/a", "t")["v"] == [1.5]
+    assert fleet.trend("rtupoll/site/b", "t")["v"] == []
+    assert fleet.fields == 2
+    feed(fleet, "rtupoll/site/bridge/info", "")  # gone for good: not the one under it
+    assert fleet.trend("rtupoll/site/a", "t")["v"] == []
+    assert fleet.trend("rtupoll/site/x/y", "t")["v"] == [1.5]
+    assert fleet.fields == 1

@@ -38,10 +38,42 @@ def _interrupted_early(signum: int, frame: FrameType | None) -> None:
 # rtupoll's own process (the console script, ``python -m rtupoll``): another program that
 # imports rtupoll (``python -m pytest``) keeps its own Ctrl-C.
 _ARGV0 = sys.argv[0] if sys.argv else ""
-if os.path.basename(_ARGV0) == "rtupoll" or \
-        _ARGV0.endswith(os.path.join("rtupoll", "__main__.py")):
+_CONSOLE = os.path.basename(_ARGV0) == "rtupoll" or \
+    _ARGV0.endswith(os.path.join("rtupoll", "__main__.py"))
+if _CONSOLE:
     for _sig in (_signal.SIGINT, _signal.SIGTERM):
         _signal.signal(_sig, _interrupted_early)
+
+
+def _interrupted_late(code: int) -> None:
+    """SIGINT/SIGTERM once the command has ended: it changes nothing, so say so and
+    leave with the command's own status."""
+    def handler(signum: int, frame: FrameType | None) -> None:
+        with contextlib.suppress(OSError):
+            os.write(2, f"rtupoll: interrupted after the command had ended (exit {code}): "
+                        "what it printed is complete\n".encode())
+        os._exit(code)
+
+    for sig in (_signal.SIGINT, _signal.SIGTERM):
+        _signal.signal(sig, handler)
+
+
+def _leave(code: int) -> None:
+    """The console process's end, once the command is done and its output flushed:
+    straight out, without the interpreter's teardown (tens of milliseconds, during
+    which Python runs no signal handler: a Ctrl-C there killed the process silently,
+    after a write's table, as if the write had been cut short)."""
+    import logging
+
+    _interrupted_late(code)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            if stream is not None:
+                stream.flush()
+    logging.shutdown()
+    if hasattr(_signal, "pthread_sigmask"):  # one held by _hold runs its handler now
+        _signal.pthread_sigmask(_signal.SIG_UNBLOCK, {_signal.SIGINT, _signal.SIGTERM})
+    os._exit(code)
 
 import importlib  # noqa: E402
 import signal  # noqa: E402
@@ -64,6 +96,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scan": ("rtupoll.cli.scan:scan", "Find and identify the devices on a bus."),
     "guess": ("rtupoll.cli.guess:guess", "Rank interpretations of an unknown device's registers."),
     "send": ("rtupoll.cli.send:send", "Send one request of any function, decoded and raw."),
+    "doctor": ("rtupoll.cli.doctor:doctor", "Check the adapter and a device: findings, fixes."),
     "decode": ("rtupoll.cli.decode:decode", "Decode captured RTU frames."),
     "simulate": ("rtupoll.cli.simulate:simulate", "Serve simulated devices on a pty or TCP."),
     "sniff": ("rtupoll.cli.sniff:sniff", "Listen to a bus another master owns, decoded."),
@@ -110,9 +143,9 @@ class LazyGroup(click.Group):
                         ) -> tuple[str | None, click.Command | None, list[str]]:
         name = args[0] if args else ""
         if name and not name.startswith("-") and name not in COMMANDS:
-            import difflib
+            from rtupoll.model.names import close_names
 
-            hint = difflib.get_close_matches(name, COMMANDS, n=1)
+            hint = close_names(name, COMMANDS)
             raise click.UsageError(f"no command {name!r}"
                                    + (f" (did you mean {hint[0]!r}?)" if hint else ""), ctx)
         return super().resolve_command(ctx, args)
@@ -151,35 +184,55 @@ def main(argv: list[str] | None = None) -> Any:
     args = sys.argv[1:] if argv is None else argv
     if args and args[0] in COMMANDS:  # imported while a signal still just ends the process
         cli.get_command(click.Context(cli), args[0])
+    ending = _CONSOLE and argv is None  # rtupoll's own process, not a caller's main([...])
     with contextlib.ExitStack() as process:
         try:  # (a Ctrl-C in the instant _process sets up is "interrupted" too)
             process.enter_context(_process())
             code = cli.main(args=argv, prog_name="rtupoll", standalone_mode=False)
             sys.stdout.flush()  # a full disk shows here, not as "Exception ignored" at exit
+            _hold(ending)
         except click.exceptions.NoArgsIsHelpError as exc:  # plain 'rtupoll': the help
+            _hold(ending)
             click.echo(exc.ctx.get_help() if exc.ctx else str(exc))
             code = 0
         except click.exceptions.UsageError as exc:
+            _hold(ending)
             where = exc.ctx.command_path if exc.ctx else "rtupoll"
             click.echo(f"rtupoll: {exc.format_message()} (see '{where} --help')", err=True)
             code = exc.exit_code
         except click.ClickException as exc:
+            _hold(ending)
             exc.show()
             code = exc.exit_code
         except (click.exceptions.Abort, KeyboardInterrupt):
+            _hold(ending)
             click.echo("rtupoll: interrupted", err=True)
             code = Interrupted.exit_code
         except BrokenPipeError:  # `rtupoll read ... | head -1`: the reader is done
+            _hold(ending)
             code = 0
         except RtupollError as exc:  # an output error outside a command
+            _hold(ending)
             click.echo(f"rtupoll: {exc}", err=True)
             code = exc.exit_code
         except Exception as exc:  # Ctrl-C inside an import comes out as importlib's error
+            _hold(ending)
             if not _from_interrupt(exc):
                 raise
             click.echo("rtupoll: interrupted", err=True)
             code = Interrupted.exit_code
-    sys.exit(code if isinstance(code, int) else 0)
+    code = code if isinstance(code, int) else 0
+    if ending:
+        _leave(code)
+    sys.exit(code)
+
+
+def _hold(ending: bool) -> None:
+    """In rtupoll's own process, once the command is over (its outcome known): SIGINT
+    and SIGTERM wait (blocked) for ``_leave``'s handler, which says the command had
+    ended, instead of a KeyboardInterrupt raised where nothing catches it any more."""
+    if ending and hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
 def _from_interrupt(exc: BaseException | None) -> bool:
@@ -310,11 +363,11 @@ def _process() -> Iterator[None]:
     try:
         yield
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         sys.unraisablehook = hook
         _LOST.clear()
         sys.stdout = real
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
 
 
 class _GuardedOutput:

@@ -27,13 +27,15 @@ from rtupoll.cli.target import (
     timing_options,
 )
 from rtupoll.config.library import load_library
-from rtupoll.errors import PlanFailed, RtupollError, UsageError
+from rtupoll.errors import PlanFailed, PortError, RtupollError, UsageError
 from rtupoll.jobs.commission import (
     Commissioner,
     PlanInterrupted,
     Presence,
     Result,
     Status,
+    cut_off,
+    cut_short,
     dry_run,
     run_plan,
 )
@@ -117,12 +119,36 @@ def set_address(device: str | None, new: str | None, port: str | None, baudrate:
     refuse(change)
     confirm(f"Change the address of {target.name} to {change.new}?", yes)
     on = settings(target.profile)
-    result = run_on_bus(on, lambda bus: commissioner(bus).apply(change),
-                        on_timeout=speed_note(on, target.profile, baudrate))
+    ran: list[Commissioner] = []
+
+    def job(bus: Any) -> Awaitable[Result]:
+        ran.append(commissioner(bus))
+        return ran[-1].apply(change)
+
+    # cut short once the write may be out, the device may be at either address: say so
+    again = f"run 'rtupoll set-address -p {port} {change.profile.id}@{change.old} " \
+        f"{change.new}' again"
+    try:
+        result = run_on_bus(on, job, on_timeout=speed_note(on, target.profile, baudrate))
+    except KeyboardInterrupt:
+        _one(cut_short(change, bool(ran) and ran[-1].sent is change, again), fmt)
+        raise
+    except PortError as exc:
+        if not (ran and ran[-1].sent is change):
+            raise
+        lost = PortError(cut_off(change, exc, again))
+        if fmt == "json":  # the record too, as for an interruption
+            _one(Result(change, Status.FAILED, str(lost), lost), fmt)
+        raise lost from None
+    _one(result, fmt)
+
+
+def _one(result: Result, fmt: str) -> None:
+    """A single change's outcome: its line, or its JSON record (as a plan's row)."""
     if fmt == "json":
         _reporter(fmt)(result)
     else:
-        click.echo(f"{change.label}: {result.detail}")
+        click.echo(f"{result.change.label}: {result.detail}")
 
 
 def _plan(changes: list[Change], settings: Any, commissioner: Callable[[Any], Commissioner],

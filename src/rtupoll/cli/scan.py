@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -41,6 +41,9 @@ from rtupoll.jobs.scan import (
 from rtupoll.model.profile import Profile
 from rtupoll.model.raw import parse_spec
 from rtupoll.ui.records import to_json
+
+if TYPE_CHECKING:
+    from rtupoll.io.bus import Bus
 
 EPILOG = """\b
 Examples:
@@ -121,14 +124,19 @@ def scan(port: str | None, addresses: str, baudrates: str | None, parities: str,
                "if nothing answers", err=True)
 
     found: list[Found] = []
+    echoed: list[bool] = []  # a bus found the adapter echoing (and consumed the echoes)
     try:
         from rtupoll import aio
 
-        aio.run(_run(port, settings, units, library, probes, margin, found, first))
+        aio.run(_run(port, settings, units, library, probes, margin, found, first, echoed))
     except KeyboardInterrupt:
         click.echo("interrupted: the results so far", err=True)
         _report(merged(found), fmt)
         raise
+    if any(echoed):
+        from rtupoll.rtu.line import ECHO_FOUND
+
+        click.echo(f"rtupoll: {port}: {ECHO_FOUND}", err=True)
     results = merged(found)
     if every_speed(results, settings):
         tried = ", ".join(str(r) for r in dict.fromkeys(s.baudrate for s in settings))
@@ -138,7 +146,7 @@ def scan(port: str | None, addresses: str, baudrates: str | None, parities: str,
         results = once_each(results)
     _report(results, fmt)
     if not results:
-        raise DeviceTimeout("no device answered at any address and setting scanned")
+        raise DeviceTimeout(nothing_found(settings, library))
     ids = sum(f.profile is not None for f in results)
     click.echo(f"{ids} identified, {len(results) - ids} unknown or garbled", err=True)
     if write_config is not None:
@@ -150,17 +158,33 @@ def scan(port: str | None, addresses: str, baudrates: str | None, parities: str,
 
 async def _run(port: str, settings: Sequence[Setting], units: Sequence[int],
                library: Sequence[Profile], probes: Sequence[Read], margin: float,
-               found: list[Found], first: bool) -> None:
+               found: list[Found], first: bool, echoed: list[bool]) -> None:
     from rtupoll.cli.target import line_settings
     from rtupoll.io.bus import Bus, PortSettings
+
+    buses: list[Bus] = []
 
     def open_bus(s: Setting) -> Bus:
         # DTR/RTS deasserted: a CO2Meter board is held in reset while DTR is asserted.
         # No drain after a timeout beyond the inter-frame silence: the bus never takes
         # a late reply from one unit for another's, and a drain per empty address
-        # would double the time of a sweep.
-        return Bus(PortSettings(port=port, baudrate=s.baudrate, parity=s.parity,
-                                deassert_dtr=True, **line_settings()), drain=0.0)
+        # would double the time of a sweep. An adapter's echo found without --echo is
+        # consumed from then on, as poll does (said once, after the sweep).
+        bus = Bus(PortSettings(port=port, baudrate=s.baudrate, parity=s.parity,
+                               deassert_dtr=True, **line_settings()), drain=0.0)
+        bus.line.adopt_echo = True
+        buses.append(bus)
+        return bus
+
+    try:
+        await _sweep(open_bus, settings, units, library, probes, margin, found, first)
+    finally:
+        echoed.extend(b.echo_found for b in buses)
+
+
+async def _sweep(open_bus: Callable[[Setting], Bus], settings: Sequence[Setting],
+                 units: Sequence[int], library: Sequence[Profile], probes: Sequence[Read],
+                 margin: float, found: list[Found], first: bool) -> None:
 
     if not sys.stderr.isatty():
         await sweep(open_bus, settings, units, library, margin=margin, probes=probes,
@@ -249,6 +273,27 @@ def _write(path: Path, port: str, results: Sequence[Found], dirs: Sequence[Path]
 def _probe(text: str) -> Read:
     spec = parse_spec(text)
     return (spec.table, spec.address, spec.words)
+
+
+def nothing_found(settings: Sequence[Setting], library: Sequence[Profile]) -> str:
+    """Why a scan found nothing, in one line: the speeds and parities tried, and the
+    settings not tried that the library's devices run at (parity first: many meters
+    run 8E1, and a scan at N never hears them)."""
+    rates = list(dict.fromkeys(s.baudrate for s in settings))
+    pars = list(dict.fromkeys(s.parity for s in settings))
+    text = (f"no device answered at any address at {', '.join(map(str, rates))} baud, "
+            f"parity {', '.join(pars)}")
+    others = [p for p in ("N", "E", "O") if p not in pars]
+    if not others:
+        return text
+    runs: dict[str, list[str]] = {}
+    for prof in library:
+        if prof.serial.parity not in pars:
+            runs.setdefault(prof.serial.parity, []).append(prof.id)
+    said = "; ".join(f"{', '.join(ids[:3])}{' ...' if len(ids) > 3 else ''} run at "
+                     f"parity {p}" for p, ids in runs.items())
+    return (f"{text}; not tried: parity {', '.join(others)}"
+            + (f" ({said}: add --parity {','.join([*pars, *runs])})" if runs else ""))
 
 
 def _parity(text: str) -> str:

@@ -67,7 +67,8 @@ FAULT_HELP = (
 @click.option("--verbose", "-v", is_flag=True, help="Print every frame on the wire.")
 @click.option("--echo", is_flag=True,
               help="Behave like an adapter that echoes: every byte the master sends comes "
-                   "back to it before the reply (a master needs --echo).")
+                   "back to it before the reply, with --baud byte by byte as it leaves the "
+                   "wire (a master needs --echo).")
 @profiles_option
 def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | None,
              scenario: Path | None, sets: tuple[str, ...], options: tuple[str, ...],

@@ -31,6 +31,7 @@ from rtupoll.errors import (
     DeviceTimeout,
     FrameError,
     Interrupted,
+    PortError,
     RefusedError,
     UsageError,
 )
@@ -122,7 +123,10 @@ def write(device: str, assignments: tuple[str, ...], port: str | None, baudrate:
             check_move(target, raws[-1])
         confirm(_question(target, [r.describe() for r in raws]), yes)
         settings = port_settings(target.profile, port, baudrate, parity, stopbits)
-        with _applied_if_interrupted(sent):
+        how = ([f"--{addressing.replace('_', '-')}"] if addressing != "pdu" else []) + \
+            (["--type", type_name] if type_name != "u16" else []) + \
+            (["--order", order] if order else [])
+        with _applied_if_interrupted(sent, _check(settings.port, target, raws, how)):
             rows = run_on_bus(settings, lambda bus: _raw(bus, target, raws, timing, sent),
                               on_timeout=speed_note(settings, target.profile, baudrate),
                               blocking=True)
@@ -139,11 +143,15 @@ def write(device: str, assignments: tuple[str, ...], port: str | None, baudrate:
                                            for op, fv in zip(ops, now, strict=True)]), yes)
             return await _fields(bus, target.unit, ops, timing, sent)
 
-        with _applied_if_interrupted(sent):
+        with _applied_if_interrupted(sent, _check(settings.port, target, ops)):
             rows = run_on_bus(settings, job, on_timeout=speed_note(settings, target.profile,
                                                                    baudrate), blocking=True)
     who = target.name if target.profile else f"unit {target.unit}"
-    emit(target, rows, fmt, False, title=f"{who} after writing (read back)")
+    try:
+        emit(target, rows, fmt, False, title=f"{who} after writing (read back)")
+    except KeyboardInterrupt:  # the writes are done and read back: only the showing stopped
+        raise Interrupted(f"interrupted while showing the result: {'; '.join(sent)} "
+                          "written and read back") from None
 
 
 def _now(fv: FieldValue | None) -> str:
@@ -157,16 +165,33 @@ def _question(target: Target, lines: list[str]) -> str:
 
 
 @contextlib.contextmanager
-def _applied_if_interrupted(sent: list[str]) -> Iterator[None]:
-    """Ctrl-C or SIGTERM once a write request has gone out: the device may have taken it,
-    so say so (exit 130, like any interruption), as ``set-address`` does."""
+def _applied_if_interrupted(sent: list[str], check: str) -> Iterator[None]:
+    """Ctrl-C or SIGTERM, or the port lost, once a write request has gone out: the device
+    may have taken it, so say so, and how to know (``check``), as ``set-address`` does
+    (exit 130 for an interruption, 3 for the port)."""
     try:
         yield
     except KeyboardInterrupt:
         if not sent:
             raise
         raise Interrupted(f"interrupted after sending {'; '.join(sent)}: the write may have "
-                          "been applied (read the device to know)") from None
+                          f"been applied; read the device to know: {check}") from None
+    except PortError as exc:
+        if not sent:
+            raise
+        raise PortError(f"{exc}, after sending {'; '.join(sent)}: the write may have been "
+                        f"applied; once the port is back, read the device to know: {check}"
+                        ) from None
+
+
+def _check(port: str, target: Target, writes: list[WriteOp] | list[RawWrite],
+           how: list[str] | None = None) -> str:
+    """The command that reads back what ``writes`` write (``how``: the raw options)."""
+    fields = [w.field.name for w in writes if isinstance(w, WriteOp)]
+    raws = [w.spec.label(0) + (f":{w.spec.count}" if w.spec.count > 1 else "")
+            for w in writes if isinstance(w, RawWrite)]
+    what = fields if not raws else ["--raw", *(how or []), *raws]
+    return " ".join(["rtupoll", "read", "-p", port, target.name, *what])
 
 
 async def _fields(bus: Any, unit: int, ops: list[WriteOp], timing: Timing,

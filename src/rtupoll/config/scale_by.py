@@ -11,11 +11,11 @@ is a number nobody writes.
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Sequence
 
 from rtupoll.config.yamlsrc import Node
 from rtupoll.model.codec import DataType
+from rtupoll.model.names import close_names
 from rtupoll.model.profile import Field, Poll
 
 __all__ = ["check", "names"]
@@ -47,7 +47,7 @@ def check(nodes: Sequence[Node], fields: Sequence[Field]) -> None:
         for name in f.scale_by:
             factor = by_name.get(name)
             if factor is None:
-                hint = difflib.get_close_matches(name, list(by_name), n=1)
+                hint = close_names(name, by_name)
                 raise at.fail(f"no field named {name!r}"
                               + (f" (did you mean {hint[0]!r}?)" if hint else ""))
             why = _not_a_factor(f, factor)

@@ -206,9 +206,9 @@ def _brief(value: object, width: int = 40) -> str:
 
 
 def _closest(key: str, allowed: set[str]) -> str | None:
-    import difflib
+    from rtupoll.model.names import close_names
 
-    m = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.6)
+    m = close_names(key, sorted(allowed))
     return m[0] if m else None
 
 

@@ -123,7 +123,8 @@ class Bus(LineBus):
         # pymodbus opens the port by this URL, through rtupoll's pyserial URL handler, so
         # that the Serial object is rtupoll's (``slot.port``) and written to at once
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr)
+                                                 deassert_dtr=settings.deassert_dtr,
+                                                 parity=settings.parity)
         self._connect_timeout = connect_timeout
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()

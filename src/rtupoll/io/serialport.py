@@ -151,6 +151,7 @@ class Slot:
     port: Any = None  # the OwnPort (a Serial, or an OwnPort over a URL's class)
     direction: str = ""  # "kernel" or "rts" once open with rs485
     error: str = ""  # why the port opened but cannot be used as asked (one line)
+    parity: str = "N"  # the line's parity (a pty, which has none, is marked: pty_parity)
 
 
 # the bus that claimed a slot holds it; once that bus is gone, so is its slot
@@ -239,6 +240,16 @@ class OwnPort:
             setter(self, value)
         except NotImplementedError:  # RFC 2217's client: "write_timeout is not supported"
             setter(self, None)  # its writes are a socket's sendall: they never wait long
+
+    def _reconfigure_port(self: Any, *args: Any, **kwargs: Any) -> None:
+        """pyserial's, which every setting (pymodbus sets the timeouts) goes through; then,
+        on a pty opened without the line's parity (``line_parity``), the parity marked
+        (``pty_parity``): pyserial's own would clear the mark."""
+        super()._reconfigure_port(*args, **kwargs)  # type: ignore[misc]  # (URL classes: none)
+        slot = self.slot
+        if slot is not None and slot.parity != "N" and self.parity == "N" and \
+                getattr(self, "fd", None) is not None:
+            pty_parity(self.fd, slot.parity)
 
     def read(self: Any, size: int = 1) -> bytes:
         """pyserial's ``read``; on a non-blocking port (``timeout`` 0, as pymodbus's
@@ -334,13 +345,14 @@ def register() -> None:
         serial.protocol_handler_packages.append(__name__)
 
 
-def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
+def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None, parity: str = "N"
           ) -> tuple[str, Slot | None]:
     """The URL pymodbus is to open ``port`` with, and the ``Slot`` that will hold the
     ``Serial`` object: ``rtupoll://N/PORT`` for a device (``/dev/ttyUSB0``, ``COM3``, and
     ``nodtr://``'s) and for pyserial's network ports (``rfc2217://``, ``socket://``, whose
     modem lines are the server's: DTR is left as it is); other URLs pass unchanged, with
-    no slot."""
+    no slot. ``parity``: the line's (a pty opened without it is marked with it,
+    ``pty_parity``)."""
     if port.lower().startswith(_PREFIX):
         port, deassert_dtr = port[len(_PREFIX):], True
     network = port.lower().startswith(NETWORK)
@@ -350,7 +362,7 @@ def claim(port: str, *, deassert_dtr: bool, rs485: Rs485 | None = None
                              "a serial port")
         return port_url(port, deassert_dtr=deassert_dtr), None
     number = next(_slot_ids)
-    slot = Slot(deassert_dtr=deassert_dtr and not network, rs485=rs485)
+    slot = Slot(deassert_dtr=deassert_dtr and not network, rs485=rs485, parity=parity)
     _SLOTS[number] = slot
     return f"{_OWN_PREFIX}{number}/{port}", slot
 
@@ -395,6 +407,35 @@ def line_parity(port: str, parity: str) -> str:
     and no parity bit, and Linux refuses to set one on it after its first open (EINVAL),
     so a pty is opened without; the framing, and so the timing, keeps ``parity``."""
     return "N" if os.path.realpath(device_path(port)).startswith("/dev/pts/") else parity
+
+
+def pty_parity(fd: int, parity: str) -> None:
+    """Say ``parity`` on a pty the way the kernel lets it be said: a pty has no parity bit
+    (Linux clears PARENB on it), but keeps input parity checking (INPCK, the receiver
+    checks parity: there is one) and PARODD. libmodbus (mbpoll) sets the same flags for
+    E and O, so the simulator, reading them from its side (``sim.server``), answers a
+    master only at its line's parity, as on a wire. Best effort: no error is raised."""
+    import termios
+
+    with contextlib.suppress(OSError, termios.error):
+        attrs = termios.tcgetattr(fd)
+        attrs[0] |= termios.INPCK
+        attrs[2] = (attrs[2] | termios.PARENB | termios.PARODD) if parity == "O" else \
+            (attrs[2] | termios.PARENB) & ~termios.PARODD
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+
+
+def pty_parity_of(fd: int) -> str:
+    """The parity a master set on a pty, as ``pty_parity`` (or libmodbus) says it: N, E, O."""
+    import termios
+
+    try:
+        iflag, _, cflag = termios.tcgetattr(fd)[:3]
+    except (OSError, termios.error):
+        return "N"
+    if not iflag & termios.INPCK and not cflag & termios.PARENB:
+        return "N"
+    return "O" if cflag & termios.PARODD else "E"
 
 
 def diagnose_serial(url: str, **settings: Any) -> str | None:

@@ -29,6 +29,7 @@ a programming error, said at once (``RuntimeError``), not a hang.
 from __future__ import annotations
 
 import contextlib
+import struct
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
@@ -83,7 +84,8 @@ class SyncBus(LineBus):
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
         self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr)
+                                                 deassert_dtr=settings.deassert_dtr,
+                                                 parity=settings.parity)
         self._connect_timeout = connect_timeout
         self._port: Any = None  # pyserial's Serial, or a socket to a gateway
         self._take: waits.Wait | None = None  # the port's wait (rtupoll.io.waits)
@@ -120,6 +122,27 @@ class SyncBus(LineBus):
             self._port = self._open_serial()
         self._take = waits.wait_on(self._port, sleep=self._sleep)
         self.line.opened(self._clock())  # a fresh port: count the silence from now
+
+    def rs485_mode(self) -> str:
+        """What the open port says of the kernel's RS-485 mode (Linux, TIOCGRS485):
+        "on" (the driver switches the transceiver's direction), "off" (it could), "none"
+        (no such mode: a pty, most USB adapters, which switch by themselves), or
+        "network" for a gateway or a port reached over the network."""
+        if self._gateway or not hasattr(self._port, "fileno"):
+            return "network"
+        try:
+            fd = self._port.fileno()
+        except (OSError, ValueError, AttributeError):
+            return "network" if "://" in self.settings.port else "none"
+        try:
+            import fcntl
+            import termios
+
+            request = getattr(termios, "TIOCGRS485", 0x542E)
+            flags = struct.unpack("8I", fcntl.ioctl(fd, request, bytes(32)))[0]
+        except (ImportError, OSError):
+            return "none"
+        return "on" if flags & 1 else "off"
 
     def disconnect(self) -> None:
         port, self._port, self._take = self._port, None, None

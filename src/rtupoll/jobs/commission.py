@@ -33,6 +33,7 @@ from rtupoll.errors import (
     DeviceTimeout,
     FrameError,
     Interrupted,
+    PortError,
     RefusedError,
     RtupollError,
     VerificationError,
@@ -293,11 +294,13 @@ async def run_plan(commissioner: Commissioner, changes: list[Change],
                 stopped = result.status is Status.NOT_RUN
             except RtupollError as exc:
                 failed = True
-                result = Result(change, Status.FAILED,
-                                str(exc).removeprefix(f"{change.label}: "), exc)
+                why = cut_off(change, exc) if isinstance(exc, PortError) and \
+                    commissioner.sent is change else str(exc)
+                result = Result(change, Status.FAILED, why.removeprefix(f"{change.label}: "),
+                                exc)
             except (asyncio.CancelledError, KeyboardInterrupt):
                 interrupted = True
-                result = _interrupted(change, commissioner.sent is change)
+                result = cut_short(change, commissioner.sent is change)
         results.append(result)
         if on_result:
             on_result(result)
@@ -320,12 +323,20 @@ async def _apply(commissioner: Commissioner, change: Change,
         again = True
 
 
-def _interrupted(change: Change, sent: bool) -> Result:
+def cut_short(change: Change, sent: bool, again: str = "run the plan again") -> Result:
+    """What an interruption left: ``sent``, the write may be out (the device may be at
+    either address), else nothing was written. ``again``: what finishes the job."""
     if sent:
         return Result(change, Status.UNVERIFIED,
                       f"interrupted after the write: the device may be at {change.new} or "
-                      f"still at {change.old}; run the plan again to check and finish")
+                      f"still at {change.old}; {again} to check both and finish")
     return Result(change, Status.NOT_RUN, "interrupted before anything was written")
+
+
+def cut_off(change: Change, exc: PortError, again: str = "run the plan again") -> str:
+    """A port lost once the write may be out: where the device may be now."""
+    return (f"{exc}: the write may have gone out, so the device may be at {change.new} or "
+            f"still at {change.old}; {again} once the port is back to check both and finish")
 
 
 def _same_number(value: object, text: str) -> bool:

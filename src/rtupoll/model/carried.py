@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 from rtupoll.frozen import frozen
 from rtupoll.model.codec import Value
-from rtupoll.model.interpret import FieldValue, interpret
+from rtupoll.model.interpret import FieldValue, display, interpret
 from rtupoll.model.profile import Profile
 from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu.capture import Frame
@@ -85,7 +85,8 @@ def _carried(frame: Frame, profile: Profile, got: Mapping[str, FieldValue]) -> l
                                "warning"))
             continue
         # a sentinel ("not available") is its name, never the number its registers spell
-        text = fv.text + (f" {f.unit}" if f.unit and fv.present else "")
+        shown, unit = display(fv)  # kelvin as °C, as every screen shows it
+        text = shown + (f" {unit}" if unit and fv.present else "")
         out.append(Carried(f.name, written, f.unit, raw, fv.output, text, fv.severity.value))
     return out
 

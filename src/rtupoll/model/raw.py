@@ -96,9 +96,9 @@ def parse_spec(text: str, *, addressing: Addressing = Addressing.PDU, type_name:
         table = TABLE_ALIASES[parts.pop(0).lower()]
     elif parts and parts[0][:1].isalpha() and not parts[0].lower().startswith("0x") \
             and not parts[0].lower().endswith("h"):
-        import difflib
+        from rtupoll.model.names import close_names
 
-        close = difflib.get_close_matches(parts[0].lower(), list(TABLE_ALIASES), n=1)
+        close = close_names(parts[0], TABLE_ALIASES)
         raise UsageError(f"{text!r}: unknown table {parts[0]!r}"
                          + (f" (did you mean {close[0]!r}?)" if close else "")
                          + f"; tables: {', '.join(t.value for t in Table)}")

@@ -162,6 +162,8 @@ class MqttService(Service):
         self._flushed = asyncio.Event()
         self._discovered: dict[str, str] = {}  # object id -> config topic, published
         self._retained_said = False  # a retained command was ignored, and the log said so
+        # device -> the fields its generation lacks, as announced (a variant learned)
+        self._absent: dict[str, frozenset[str]] = {}
 
     # -- the Service protocol ------------------------------------------------
 
@@ -186,6 +188,15 @@ class MqttService(Service):
         for out in self.publisher.readings(dev.config, dev.stats.state is State.ONLINE,
                                            dev.stats.last_good_time, readings):
             self._put(out)
+        absent = frozenset(f.name for f in dev.absent)
+        if absent != self._absent.get(dev.config.name, frozenset()):
+            # the device said which generation it is: announce it without the fields it
+            # lacks (Home Assistant drops those entities, never unknown for ever)
+            self._absent[dev.config.name] = absent
+            if self._connected.is_set():
+                self._queue_info()
+            if self.settings.discovery:
+                self._queue_discovery()
 
     async def on_reload(self, site: Site) -> Reload:
         """Topics and discovery follow the new site once the scheduler has it."""
@@ -479,11 +490,17 @@ class MqttService(Service):
         return out
 
     def _devices(self) -> Iterator[tuple[BusConfig, DeviceConfig]]:
+        """The devices, each with the fields it has (those its generation lacks left
+        out once it has said which it is)."""
         buses = self._scheduler.buses if self._scheduler is not None else []
         if buses:
             for bp in buses:
                 for d in bp.devices:
-                    yield bp.config, d.config
+                    cfg = d.config
+                    if d.absent:
+                        cfg = dataclasses.replace(cfg, fields=tuple(
+                            f for f in cfg.fields if f not in d.absent))
+                    yield bp.config, cfg
         else:
             yield from self.site.devices()
 

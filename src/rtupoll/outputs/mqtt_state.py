@@ -10,9 +10,10 @@ no profile field can take:
     {"co2": 800, ..., "last_seen": "2026-...Z", "_rtupoll": {"status": "ok", "error": null}}
 
 ``status`` is ``ok`` (every field has its value: none is null for a failed read, this
-scan's or, for a slow field not read in this one, its last), ``partial`` (some failed)
-or ``failed`` (none read this scan); ``error`` is the first failure's line (null when
-``ok``).
+scan's or, for a slow field not read in this one, its last, nor for the device's "no
+value": a sentinel, a NaN), ``partial`` (some failed or have no value) or ``failed``
+(none read this scan); ``error`` is the first failure's line (null when ``ok``). A field
+this generation of the device lacks is null and no failure.
 ``BASE/DEVICE/availability`` is published when it changes; ``BASE/DEVICE/FIELD``
 plain values when ``field_topics`` is on.
 """
@@ -96,8 +97,12 @@ class StatePublisher:
             name = r.field.name
             if r.value is not None:
                 read[name] = values[name] = value_of(r.value)
-                failed.pop(name, None)
                 good += 1
+                if values[name] is None:  # read, but the device gives no value (a
+                    # sentinel such as SENSOR_ERROR, a NaN float): null, so not "ok"
+                    failed[name] = f"no value: {name} is {r.value.text}"
+                else:
+                    failed.pop(name, None)
                 continue
             values[name] = None
             if r.status is Status.ABSENT:
@@ -106,7 +111,8 @@ class StatePublisher:
                 failed[name] = f"{r.status.value}: {r.error}"
                 failures.append(failed[name])
         self._values[t], self._failed[t] = values, failed
-        # a field not read this scan whose last read failed is null too: never "ok" then
+        # a field null for any other reason (no value this scan, or not read this scan
+        # and its last read failed) is null too: never "ok" then
         failures += [e for e in failed.values() if e not in failures]
         # the first failure that says why (a "skipped" only follows an earlier one)
         error = next((e for e in failures if not e.startswith("skipped")),

@@ -76,6 +76,9 @@ class Deframer:
         return left
 
 
+PAUSE = 0.02  # seconds: a pause fault's default
+
+
 @dataclass(frozen=True)
 class Transmission:
     """One reply to put on the wire: bytes, the device's turnaround and a fault delay."""
@@ -86,6 +89,7 @@ class Transmission:
     explicit: bool = False  # the turnaround was set for this device (applies without --baud)
     delay: float = 0.0  # extra, from a slow fault: the reply arrives this much later
     notes: tuple[str, ...] = ()
+    pause: float = 0.0  # a pause fault: the reply's second half goes this much later
 
 
 class Engine:
@@ -110,10 +114,11 @@ class Engine:
         have = ", ".join(d.name for d in self.devices)
         raise KeyError(f"no simulated device at {unit} (devices: {have})")
 
-    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
-               ) -> list[Transmission]:
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf,
+               parity: str | None = None) -> list[Transmission]:
         """One CRC-valid request -> what goes back on the wire (maybe nothing). ``idle``:
-        the silence on the line before it began (a device with a ``gap`` fault needs it)."""
+        the silence on the line before it began (a device with a ``gap`` fault needs it);
+        ``parity``: the parity it was sent at (None: any), only devices at it hear it."""
         self.requests += 1
         unit, fc = frame[0], frame[1]
         broadcast = unit == 0
@@ -130,6 +135,10 @@ class Engine:
         except Malformed as bad:
             request = bad
         for d in targets:
+            if parity is not None and parity != d.profile.serial.parity:  # to it, noise
+                self.why_silent = (f"{d.name}: sent at parity {parity}, the device runs at "
+                                   f"{d.profile.serial.parity}: parity errors, not a request")
+                continue
             if idle + 1e-9 < d.gap:  # the device's receiver was not ready: it never heard it
                 self.why_silent = (f"{d.name}: gap: the request came {idle * 1000:.1f} ms after "
                                    f"the last byte on the line; it needs {d.gap * 1000:g} ms")
@@ -160,7 +169,11 @@ class Engine:
             if exc is not None:
                 notes.insert(0, f"exception {reply[2]}")
             ta = d.config.turnaround
+            pause = next(((f.arg if f.arg is not None else PAUSE) for f in hits
+                          if f.kind == "pause"), 0.0)
+            if pause:
+                notes.append(f"pause {pause * 1000:g} ms")
             out.append(Transmission(data, at, d.profile.limits.turnaround if ta is None else ta,
-                                    ta is not None, delay, tuple(notes)))
+                                    ta is not None, delay, tuple(notes), pause))
         self.replies += len(out)
         return out

@@ -49,13 +49,15 @@ KINDS: dict[str, str] = {
             "exception 02, even inside a gap the profile bridges",
     "shift": "register ARG is an undocumented hole the device silently skips: a block read "
              "over it returns the following registers shifted down, padded with 0",
+    "pause": "the reply stops half-way for ARG seconds (default 0.02) before the rest: a "
+             "device or gateway that breaks its frames",
     "gap": "the device needs ARG seconds of silence on the line before a request (an idle "
            "gap, the 'T delay' of some meters): a request sooner after the last byte on the "
            "line, any device's, is not heard",
 }
 QUIRKS = ("hole", "shift", "gap")  # properties of the device, not of one request
 SILENT = ("dead", "lose-first")
-_FLOAT_ARG = {"slow", "gap"}
+_FLOAT_ARG = {"slow", "gap", "pause"}
 _INT_ARG = {"stray": (0, 255), "truncate": (1, 255), "wrong-id": (0, 255),
             "wrong-id-first": (0, 255), "exception": (1, 255), "lose-first": (0, 1000),
             "hole": (0, 0xFFFF), "shift": (0, 0xFFFF)}
@@ -105,9 +107,9 @@ def parse_fault(spec: str) -> Fault:
     kind, has_arg, arg_text = rest.partition("=")
     kind = kind.strip().lower()
     if kind not in KINDS:
-        import difflib
+        from rtupoll.model.names import close_names
 
-        hint = difflib.get_close_matches(kind, list(KINDS), n=1)
+        hint = close_names(kind, KINDS)
         raise FaultSpecError(f"fault {spec!r}: unknown kind {kind!r}"
                              + (f" (did you mean {hint[0]!r}?)" if hint else "")
                              + f"; kinds: {', '.join(KINDS)}")

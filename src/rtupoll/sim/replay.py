@@ -109,9 +109,10 @@ class ReplayEngine(Engine):
             self._cursor = _answers(self.capture, self.line)
         raise RuntimeError(f"the capture changed while replayed: {frame.hex(' ')} is gone")
 
-    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf
-               ) -> list[Transmission]:
-        """What the capture answered ``frame`` (``idle``: as ``Engine.handle``'s, unused)."""
+    def handle(self, frame: bytes, now: float = 0.0, idle: float = math.inf,
+               parity: str | None = None) -> list[Transmission]:
+        """What the capture answered ``frame`` (``idle``, ``parity``: as ``Engine.handle``'s,
+        unused: the capture's devices answered what they heard)."""
         self.requests += 1
         self.why_silent = ""
         unit = frame[0]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import math
 import os
 import struct
@@ -30,6 +31,7 @@ from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
 from rtupoll.io import clock as line_clock
+from rtupoll.io.serialport import pty_parity_of
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
@@ -89,7 +91,9 @@ class _Link:
         self._flush: asyncio.TimerHandle | None = None
         self.closed = False
 
-    def received(self, data: bytes) -> None:
+    def received(self, data: bytes, parity: str | None = None) -> None:
+        """Bytes from the master; ``parity``: the one it sent them at (a pty's, as the
+        master marked it), None where there is none (TCP)."""
         srv = self.server
         now = line_clock.now()
         if srv.echo and not self.closed:  # an adapter whose receiver is always on
@@ -102,7 +106,7 @@ class _Link:
         for kind, chunk in self.deframer.feed(data):
             srv.log(now, "in", chunk, "garbage" if kind == "garbage" else describe(chunk))
             if kind == "frame":
-                self._respond(chunk, now, self._idle)
+                self._respond(chunk, now, self._idle, parity)
             self._idle = 0.0  # what follows in the same burst came back to back
         if self._flush:
             self._flush.cancel()
@@ -133,11 +137,12 @@ class _Link:
         if left:
             self.server.log(line_clock.now(), "in", left, "garbage")
 
-    def _respond(self, frame: bytes, now: float, idle: float = math.inf) -> None:
+    def _respond(self, frame: bytes, now: float, idle: float = math.inf,
+                 parity: str | None = None) -> None:
         srv, fr = self.server, self.server.framing
         silence = fr.silence if fr else 0.0
         request_end = now + (fr.wire_time(len(frame)) if fr else 0.0)
-        replies = srv.engine.handle(frame, now, idle)
+        replies = srv.engine.handle(frame, now, idle, parity)
         if not replies and srv.on_wire:  # silence is not on the wire, but people ask why
             srv.on_wire(WireFrame(now, "none", b"", f"no reply: {srv.engine.why_silent}"))
         for tx in replies:
@@ -148,6 +153,13 @@ class _Link:
             end = start + (fr.wire_time(len(tx.data)) if fr else 0.0)
             if not tx.delay:  # a late reply collides on a real bus; it does not hold it
                 self.free_at = end + silence
+            if tx.pause:  # the first half, then the rest after the pause
+                half = len(tx.data) // 2
+                first = dataclasses.replace(tx, data=tx.data[:half])
+                rest = dataclasses.replace(tx, data=tx.data[half:], notes=())
+                srv.later(end + tx.delay, self._send, first)
+                srv.later(end + tx.delay + tx.pause, self._send, rest)
+                continue
             srv.later(end + tx.delay, self._send, tx)
 
     def _send(self, tx: Transmission) -> None:
@@ -245,7 +257,7 @@ class Server:
             if mismatch:  # a real device sees framing errors at the wrong speed: silence
                 self.log(line_clock.now(), "in", data, f"garbage: {mismatch}")
                 return
-            pty_link.received(data)
+            pty_link.received(data, pty_parity_of(slave))
 
         self.loop.add_reader(master, readable)
         if link:
@@ -291,8 +303,9 @@ class Server:
 
         A pty carries bytes at any speed, but pyserial still sets the speed it was asked
         for on the tty; comparing it lets 'rtupoll scan' find a device at its own baud rate
-        and nowhere else, as on a real wire. (Linux ptys drop the parity flags, so a
-        parity mismatch cannot be modelled this way.)
+        and nowhere else, as on a real wire. (Parity is each device's to hear: a pty has
+        no parity bit, but a master marks the parity it set, ``serialport.pty_parity``,
+        and ``Engine.handle`` lets only the devices at that parity hear the request.)
         """
         if not self.framing:
             return None

@@ -176,17 +176,26 @@ class Fleet:
                 best = gw
         return (best, topic[len(best.base) + 1:]) if best is not None else (None, "")
 
-    def _forget(self, base: str) -> None:
-        gone = self.gateways.pop(base, None)
-        if gone is not None:
-            self.fields -= sum(len(d.info["fields"]) for d in gone.devices.values())
-            self.trends.forget({k[0] for k in self.trends.rings
-                                if not k[0].startswith(base + "/")})
+    def _replace(self, base: str, new: Gateway | None) -> None:
+        """The gateway at ``base`` is ``new`` now (None: gone for good): the fields
+        counted again, and the trends of its devices that ``new`` has not dropped (a
+        device's key is exactly ``base/level``: another gateway's, under a longer base,
+        is never among them)."""
+        old = self.gateways.pop(base, None)
+        if old is not None:
+            self.fields -= sum(len(d.info["fields"]) for d in old.devices.values())
+            gone = {f"{base}/{lvl}" for lvl in old.devices} - \
+                ({f"{base}/{lvl}" for lvl in new.devices} if new is not None else set())
+            if gone:
+                self.trends.forget({k[0] for k in self.trends.rings} - gone)
+        if new is not None:
+            self.gateways[base] = new
+            self.fields += sum(len(d.info["fields"]) for d in new.devices.values())
 
     def _info(self, base: str, payload: bytes) -> None:
         if not payload.strip():  # a gateway that was removed for good
             if base in self.gateways:
-                self._forget(base)
+                self._replace(base, None)
                 self.hub.publish("state", "state", self._snapshot_json)
             return
         info = _loads(payload, "bridge/info")
@@ -204,16 +213,16 @@ class Fleet:
         for name, d in devices.items():
             if not isinstance(d, dict):
                 continue
-            if len(gw.devices) >= MAX_DEVICES:
+            # keyed by the device's topic level (``BASE/<level>`` is its state), with
+            # the site's name for it under "name"
+            level = _UNSAFE.sub("_", str(name))
+            if len(gw.devices) >= MAX_DEVICES or len(level) > MAX_TEXT:
                 cut += 1
                 continue
             fields = _field_infos(d.get("fields"), room)
             cut += max(0, (len(d["fields"]) if isinstance(d.get("fields"), dict) else 0)
                        - len(fields))
             room -= len(fields)
-            # keyed by the device's topic level (``BASE/<level>`` is its state), with
-            # the site's name for it under "name"
-            level = _UNSAFE.sub("_", str(name))[:MAX_TEXT]
             meta = {"profile": short(d.get("profile") or ""), "bus": short(d.get("bus") or ""),
                     "address": d.get("address") if isinstance(d.get("address"), int) and
                     not isinstance(d.get("address"), bool) and 0 <= d["address"] <= 255 else "",
@@ -225,9 +234,7 @@ class Fleet:
         if cut:
             self.dropped.refused(f"devices or fields past the limits ({MAX_DEVICES} devices, "
                                  f"{MAX_FIELDS} fields a gateway, {MAX_FLEET_FIELDS} in all)")
-        self._forget(base)
-        self.gateways[base] = gw
-        self.fields += sum(len(d.info["fields"]) for d in gw.devices.values())
+        self._replace(base, gw)
         for topic in [t for t in self.waiting if t.startswith(base + "/")]:
             held = self.waiting.pop(topic)
             self.waiting_bytes -= len(topic) + len(held)

@@ -41,6 +41,7 @@ import os
 import socket
 import struct
 import sys
+from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import urlsplit
@@ -58,6 +59,8 @@ log = logging.getLogger("rtupoll.web")
 PING = 15.0  # seconds between keep-alive events on the event streams
 BATCH = 0.25  # seconds the events gather before they are written, the same to every stream
 BEHIND = 4 << 20  # bytes a stream may fall behind before it is given a snapshot instead
+BUDGET = 32 << 20  # bytes all streams may be behind together (the furthest behind drop)
+CHUNK = 256 << 10  # bytes written to a stream at a time
 CLOSE_WAIT = 0.5  # seconds open requests get to finish when the authentication changes
 COOKIE = "rtupoll_token"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -74,12 +77,14 @@ SECURITY_HEADERS = {
 class Client:
     """One event stream's bytes to write, in order; a client that falls ``BEHIND`` bytes
     behind (a browser that stopped reading) drops them and gets a fresh snapshot when it
-    reads again, never a backlog."""
+    reads again, never a backlog. ``take`` hands out at most ``CHUNK`` bytes at a time
+    (more when one event is larger), so what waits for a slow reader stays here,
+    counted, not in its transport's buffer."""
 
     __slots__ = ("behind", "queue", "size", "wake")
 
     def __init__(self) -> None:
-        self.queue: list[bytes] = []
+        self.queue: deque[bytes] = deque()
         self.size = 0
         self.behind = False
         self.wake = asyncio.Event()
@@ -90,16 +95,26 @@ class Client:
         self.queue.append(data)
         self.size += len(data)
         if self.size > BEHIND:
-            self.queue.clear()
-            self.size, self.behind = 0, True
+            self.drop()
+        self.wake.set()
+
+    def drop(self) -> None:
+        """Behind: what waits is dropped; a snapshot comes next."""
+        self.queue.clear()
+        self.size, self.behind = 0, True
         self.wake.set()
 
     def take(self) -> bytes:
-        out = b"".join(self.queue)
-        self.queue.clear()
-        self.size = 0
-        self.wake.clear()
-        return out
+        out: list[bytes] = []
+        n = 0
+        while self.queue and (not out or n + len(self.queue[0]) <= CHUNK):
+            b = self.queue.popleft()
+            out.append(b)
+            n += len(b)
+        self.size -= n
+        if not self.queue:
+            self.wake.clear()
+        return b"".join(out)
 
 
 def encode(event: str, data: str) -> bytes:
@@ -137,8 +152,16 @@ class Hub:
             return
         out = b"".join(encode(event, data if isinstance(data, str) else data())
                        for event, data in pending.values())
+        total = 0
         for c in self.clients:
             c.put(out)
+            total += c.size
+        if total > BUDGET:  # many slow readers: the furthest behind start afresh
+            for c in sorted(self.clients, key=lambda c: c.size, reverse=True):
+                total -= c.size
+                c.drop()
+                if total <= BUDGET:
+                    break
 
     def join(self) -> Client:
         """A new client, before its snapshot is made (in the same step of the loop)."""
@@ -149,7 +172,9 @@ class Hub:
 
     def rejoin(self, client: Client) -> None:
         """A client that fell behind starts afresh, before its new snapshot is made."""
-        client.take()
+        client.queue.clear()
+        client.size = 0
+        client.wake.clear()
         client.behind = False
         self.epoch += 1
 
@@ -223,9 +248,15 @@ def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -
 
 
 LINGER = 1.0  # seconds a refused connection is given to read its 503
-REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\n"
-           b"Content-Length: 39\r\nConnection: close\r\nRetry-After: 10\r\n\r\n"
-           b"rtupoll: too many connections, retry\r\n\r\n")
+MAX_HEAD = 32 << 10  # bytes a connection may send from one request's headers to the next
+_BIG = b"rtupoll: request headers too large\n"
+TOO_LARGE = (b"HTTP/1.1 431 Request Header Fields Too Large\r\n"
+             b"Content-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
+             b"Connection: close\r\n\r\n%s" % (len(_BIG), _BIG))
+_BUSY = b"rtupoll: too many connections, retry later\n"
+REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+           b"Content-Length: %d\r\nConnection: close\r\nRetry-After: 10\r\n\r\n%s"
+           % (len(_BUSY), _BUSY))
 
 
 class Gate:
@@ -237,7 +268,9 @@ class Gate:
         self.open = 0
         self.lingering = 0  # refused ones whose 503 is being read
         self.refusals = Refusals(f"{server.what} {where}", log)
-        self.closed = {"header_timeout": 0, "idle_timeout": 0}  # connections, by deadline
+        # connections closed for what only a hostile or broken client does (an idle one
+        # closed is no news): one line a minute
+        self.expired = Refusals(f"{server.what} {where}", log, verb="closed")
 
     def __call__(self) -> Conn:
         return Conn(self)
@@ -251,7 +284,7 @@ class Conn(asyncio.Protocol):
     request's ``end``), and ``idle_timeout`` too while what it was sent waits for it to
     read (its transport paused our writing). A connection past its deadline is closed."""
 
-    __slots__ = ("busy", "gate", "inner", "phase", "stall", "timer", "transport")
+    __slots__ = ("busy", "gate", "got", "inner", "phase", "stall", "timer", "transport")
 
     def __init__(self, gate: Gate) -> None:
         self.gate = gate
@@ -261,6 +294,7 @@ class Conn(asyncio.Protocol):
         self.busy = False
         self.phase = ""  # "idle_timeout", "header_timeout" or "" (a request is handled)
         self.stall: asyncio.TimerHandle | None = None  # while its writes wait for it
+        self.got = 0  # bytes received since the last request's headers were in
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -289,7 +323,18 @@ class Conn(asyncio.Protocol):
         self._wait("idle_timeout")
 
     def data_received(self, data: bytes) -> None:
-        if self.inner is None:
+        if self.inner is None or self.transport is None:
+            return
+        self.got += len(data)
+        if self.got > MAX_HEAD:  # headers of 1 MB (aiohttp's own bound) on every
+            # connection would hold 256 MB: a request is a few kB, nothing comes after
+            # an event stream's request
+            self.gate.expired.refused(f"with more than {MAX_HEAD >> 10} kB of headers")
+            if self.busy:
+                reset(self.transport)
+            else:
+                self.transport.write(TOO_LARGE)
+                self.transport.close()
             return
         if not self.busy and self.phase != "header_timeout":
             self._wait("header_timeout")
@@ -316,8 +361,10 @@ class Conn(asyncio.Protocol):
 
     def _stalled(self) -> None:
         self.stall = None
-        if self.transport is not None and self.inner is not None:
-            self.gate.closed["unread"] = self.gate.closed.get("unread", 0) + 1
+        if self.transport is not None and self.inner is not None and \
+                not self.transport.is_closing():
+            self.gate.expired.refused(f"not reading what they were sent for "
+                                      f"{self.gate.server.settings.idle_timeout:g} s")
             reset(self.transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -339,6 +386,7 @@ class Conn(asyncio.Protocol):
     def begin(self) -> None:
         """A request's headers are in: no deadline while it is handled."""
         self.busy = True
+        self.got = 0
         self._cancel()
         self.phase = ""
 
@@ -364,11 +412,16 @@ class Conn(asyncio.Protocol):
         t = self.transport
         if t is None or self.inner is None or t.is_closing():
             return
-        self.gate.closed[self.phase] = self.gate.closed.get(self.phase, 0) + 1
-        if t.get_write_buffer_size():  # it does not read what it was sent either
+        settings = self.gate.server.settings
+        if t.get_write_buffer_size():  # it does not read what it was sent
+            self.gate.expired.refused(f"not reading what they were sent for "
+                                      f"{settings.idle_timeout:g} s")
             reset(t)
-        else:
-            t.close()
+            return
+        if self.phase == "header_timeout":
+            self.gate.expired.refused(f"with their headers not all in after "
+                                      f"{settings.header_timeout:g} s")
+        t.close()
 
 
 def reset(transport: asyncio.Transport) -> None:
@@ -669,7 +722,8 @@ class Listener(web.BaseSite):
         if sockets:
             port = sockets[0].getsockname()[1]
             host = f"[{self.host}]" if ":" in self.host else self.host
-            self.gate.refusals.what = f"{self.gate.server.what} {host}:{port}"
+            self.gate.refusals.what = self.gate.expired.what = \
+                f"{self.gate.server.what} {host}:{port}"
         self._unwatch = watch(sockets, self.gate.refusals)
 
     async def stop(self) -> None:
@@ -677,4 +731,5 @@ class Listener(web.BaseSite):
             self._unwatch()
             self._unwatch = None
         self.gate.refusals.flush()
+        self.gate.expired.flush()
         await super().stop()
