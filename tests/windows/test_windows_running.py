@@ -15,6 +15,7 @@ import select
 import shutil
 import subprocess
 import time
+import tty
 import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -169,10 +170,14 @@ def test_sniff_and_capture_on_a_com_port_that_hears_the_line(
     capture = tmp_path / "line1.pcapng"
     with w.running("sniff", "-p", "COM6", "-b", "9600", "--format", "json", "--capture",
                    winpath(capture), "huiwen-aq@3") as sniff:
-        time.sleep(2)  # (it has the port open: nothing says so)
-        for _ in range(3):  # the Linux master on the same line
+        # the Linux master on the same line, until the sniffer (which does not say when it
+        # has the port open) has heard a transaction whole
+        deadline = time.monotonic() + 60
+        while not records(sniff.lines):
+            assert time.monotonic() < deadline, "the sniffer heard nothing in 60 s"
             read = linux_rtupoll("read", "-p", bus.port, *PATIENT, "huiwen-aq@3", "co2")
             assert read.returncode == 0, read.stderr
+            time.sleep(0.2)
         lines = sniff.wait(lambda lines: len(records(lines)) >= 1)
         code, err = sniff.interrupt()
     assert code == 0, err
@@ -229,17 +234,21 @@ def test_set_address_interactive_on_a_console(wine: tuple[Wine, dict[str, Path]]
     w, links = wine
     bus = sim("radar-level@1", link=str(links["COM5"]), tick=None)
     master, slave = os.openpty()
+    # raw from the start, as Wine's console sets it once it reads: an Enter typed before
+    # that would reach it as a line feed (Ctrl-J, not Enter) through the tty's ICRNL
+    tty.setraw(slave)
     proc = subprocess.Popen(w.argv("-m", "rtupoll", "set-address", "-p", "COM5",
                                    "--interactive", "radar-level@1", "10"),
                             stdin=slave, stdout=slave, stderr=slave, env=environment(),
                             close_fds=True)
     os.close(slave)
-    seen = b""
+    seen, done = b"", 0  # everything shown; how much of it (as text) was expected
 
     def expect(text: str) -> str:
-        nonlocal seen
+        """What was shown since the last expectation, up to ``text`` (lines joined)."""
+        nonlocal seen, done
         deadline = time.monotonic() + 60
-        while text not in screen(seen).replace("\n", ""):
+        while text not in screen(seen).replace("\n", "")[done:]:
             assert time.monotonic() < deadline, screen(seen)
             if select.select([master], [], [], 0.5)[0]:
                 try:
@@ -247,9 +256,10 @@ def test_set_address_interactive_on_a_console(wine: tuple[Wine, dict[str, Path]]
                 except OSError:  # it ended
                     break
         shown = screen(seen).replace("\n", "")
-        assert text in shown, screen(seen)
-        seen = b""
-        return shown
+        at = shown.find(text, done)
+        assert at >= 0, screen(seen)
+        step, done = shown[done:at + len(text)], at + len(text)
+        return step
 
     try:
         expect("gets the next free address from 10.")
