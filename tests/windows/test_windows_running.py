@@ -9,13 +9,9 @@ Unix one, which Wine turns into its CTRL_C_EVENT (tests/windows/wine.py, ``Runni
 from __future__ import annotations
 
 import json
-import os
-import re
-import select
 import shutil
 import subprocess
 import time
-import tty
 import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -25,7 +21,7 @@ import pytest
 from brokers import Broker, free_port, listening
 from cli_runner import rtupoll as linux_rtupoll
 from conftest import ANSWERED, PATIENT
-from wine import Wine, environment, setup, winpath
+from wine import Console, Wine, setup, winpath
 
 from rtupoll.sim.runner import SimulatedBus
 
@@ -221,58 +217,33 @@ def test_the_demo_runs_on_windows(wine: tuple[Wine, dict[str, Path]]) -> None:
 
 
 
-def screen(raw: bytes) -> str:
-    """What a terminal shows, as text: Wine's console escapes out, lines joined again
-    where it wrapped them at 80 columns."""
-    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", raw.decode(errors="replace"))
-    return text.replace("\r\r\n", "\n").replace("\r", "")
-
 
 def test_set_address_interactive_on_a_console(wine: tuple[Wine, dict[str, Path]],
                                               sim: Sim) -> None:
-    # a Unix pty as the standard streams: Wine's console on it, what a person types
     w, links = wine
     bus = sim("radar-level@1", link=str(links["COM5"]), tick=None)
-    master, slave = os.openpty()
-    # raw from the start, as Wine's console sets it once it reads: an Enter typed before
-    # that would reach it as a line feed (Ctrl-J, not Enter) through the tty's ICRNL
-    tty.setraw(slave)
-    proc = subprocess.Popen(w.argv("-m", "rtupoll", "set-address", "-p", "COM5",
-                                   "--interactive", "radar-level@1", "10"),
-                            stdin=slave, stdout=slave, stderr=slave, env=environment(),
-                            close_fds=True)
-    os.close(slave)
-    seen, done = b"", 0  # everything shown; how much of it (as text) was expected
-
-    def expect(text: str) -> str:
-        """What was shown since the last expectation, up to ``text`` (lines joined)."""
-        nonlocal seen, done
-        deadline = time.monotonic() + 60
-        while text not in screen(seen).replace("\n", "")[done:]:
-            assert time.monotonic() < deadline, screen(seen)
-            if select.select([master], [], [], 0.5)[0]:
-                try:
-                    seen += os.read(master, 4096)
-                except OSError:  # it ended
-                    break
-        shown = screen(seen).replace("\n", "")
-        at = shown.find(text, done)
-        assert at >= 0, screen(seen)
-        step, done = shown[done:at + len(text)], at + len(text)
-        return step
-
-    try:
-        expect("gets the next free address from 10.")
-        expect("press Enter (q to finish):")
-        os.write(master, b"\r")
-        step = expect("So far: 1 sensor readdressed (10).")
+    with Console(w, "-m", "rtupoll", "set-address", "-p", "COM5", "--interactive",
+                 "radar-level@1", "10") as term:
+        term.expect("gets the next free address from 10.")
+        term.expect("press Enter (q to finish):")
+        term.type("\r")
+        step = term.expect("So far: 1 sensor readdressed (10).")
         assert "ok   radar-level@1 -> 10: changed" in step, step
         assert bus.addresses() == {"radar-level@1": 10}
-        expect("press Enter (q to finish):")
-        os.write(master, b"q\r")
-        assert proc.wait(timeout=60) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        os.close(master)
+        term.expect("press Enter (q to finish):")
+        term.type("q\r")
+        assert term.close() == 0
+
+
+def test_the_live_table_on_a_console(wine: tuple[Wine, dict[str, Path]], sim: Sim) -> None:
+    w, links = wine
+    bus = sim("huiwen-aq@3", "radar-level@2", link=str(links["COM5"]), tick=None)
+    bus.set(3, "co2", 1175)
+    bus.set(2, "air_gap_cm", 321)
+    with Console(w, "-m", "rtupoll", "poll", "-p", "COM5", "-b", "9600", *PATIENT,
+                 "--interval", "0.3", "huiwen-aq@3", "radar-level@2") as term:
+        shown = term.expect("air_gap_cm")
+        shown += term.expect("321")
+        term.interrupt()
+        assert term.close() == 0
+    assert "huiwen-aq@3" in shown and "1175" in shown, shown

@@ -26,12 +26,18 @@ handle"; Wine 8.0), so output goes to pipes (or to the command's own ``-o FILE``
 
 from __future__ import annotations
 
+import fcntl
 import os
+import re
+import select
 import shutil
 import signal
+import struct
 import subprocess
+import termios
 import threading
 import time
+import tty
 from collections.abc import Callable, Mapping
 from pathlib import Path, PurePath
 from types import TracebackType
@@ -223,3 +229,68 @@ class Running:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+def screen(raw: bytes) -> str:
+    """What a terminal shows of a Windows console's output, as text: Wine's escapes out,
+    its line ends as ``\\n``."""
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", raw.decode(errors="replace"))
+    return text.replace("\r\r\n", "\n").replace("\r", "")
+
+
+class Console:
+    """A Windows command on a console: a Unix pty as its standard streams, on which Wine
+    runs the Windows console (what a person sees and types)::
+
+        with Console(wine, "-m", "rtupoll", "set-address", ...) as term:
+            term.expect("press Enter")     # what was shown since the last expectation
+            term.type("\\r")               # Enter
+    """
+
+    def __init__(self, wine: Wine, *args: str, columns: int = 100, rows: int = 30) -> None:
+        self.master, slave = os.openpty()
+        # raw from the start, as Wine's console sets it once it reads: an Enter typed
+        # before that would reach it as a line feed (Ctrl-J, not Enter) through ICRNL
+        tty.setraw(slave)
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", rows, columns, 0, 0))
+        self.proc = subprocess.Popen(wine.argv(*args), stdin=slave, stdout=slave,
+                                     stderr=slave, env=environment(), close_fds=True)
+        os.close(slave)
+        self.seen, self.done = b"", 0  # everything shown; how much of it was expected
+
+    def expect(self, text: str, timeout: float = 60) -> str:
+        """What was shown since the last expectation, up to ``text`` (lines joined: the
+        console wraps them at its width)."""
+        deadline = time.monotonic() + timeout
+        while text not in screen(self.seen).replace("\n", "")[self.done:]:
+            assert time.monotonic() < deadline, screen(self.seen)[-3000:]
+            if select.select([self.master], [], [], 0.5)[0]:
+                try:
+                    self.seen += os.read(self.master, 4096)
+                except OSError:  # it ended
+                    break
+        shown = screen(self.seen).replace("\n", "")
+        at = shown.find(text, self.done)
+        assert at >= 0, screen(self.seen)[-3000:]
+        step, self.done = shown[self.done:at + len(text)], at + len(text)
+        return step
+
+    def type(self, text: str) -> None:
+        os.write(self.master, text.encode())
+
+    def interrupt(self) -> None:
+        """Ctrl-C (as ``Running.interrupt``)."""
+        self.proc.send_signal(signal.SIGINT)
+
+    def close(self, timeout: float = 60) -> int:
+        code = self.proc.wait(timeout=timeout)
+        return code
+
+    def __enter__(self) -> Console:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        os.close(self.master)
