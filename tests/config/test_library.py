@@ -216,6 +216,9 @@ KNOWN: list[tuple[str, Table, int, bytes, dict[str, Any]]] = [
     # Deye V104 (three-phase LV): 586 battery temperature +1000 offset x0.1, 587 x0.01 V
     ("deye-sg-lp3", Table.HOLDING, 586, _reply(1, 3, [1000, 5280, 81]),
      {"battery_temperature": 0.0, "battery_voltage": 52.8, "battery_soc": 81}),
+    # Deye V104, the high-voltage units: 587 "H: 0.1 V", 590 "H: 10 W" (S16)
+    ("deye-sg-hp3", Table.HOLDING, 587, _reply(1, 3, [4096, 81, 0, 0xFF6B]),
+     {"battery_voltage": 409.6, "battery_soc": 81, "battery_power": -1490}),
 ]
 
 
@@ -275,9 +278,10 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
     ("tracer", {"epever-tracer"}, "id"),
     ("charge controller", {"epever-tracer", "renogy-rover"}, "kind"),
     ("pv inverter", {"growatt-inverter", "growatt-min", "growatt-sph", "growatt-max",
-                     "huawei-sun2000", "deye-sg-lp1", "deye-sg-lp3"}, "kind"),
+                     "huawei-sun2000", "deye-sg-lp1", "deye-sg-lp3",
+                     "deye-sg-hp3"}, "kind"),
     ("battery_soc", {"epever-tracer", "renogy-rover", "growatt-sph", "deye-sg-lp1",
-                     "deye-sg-lp3"},
+                     "deye-sg-lp3", "deye-sg-hp3"},
      "field battery_soc"),
 ])
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],

@@ -218,3 +218,50 @@ def test_the_documented_example_profile_loads(tmp_path: Path) -> None:
     assert p.field("slave_address").layout.byte == "high"
     assert interpret(p.field("status"), (9,)).value == "FAULT (9)"
     assert p.addresses.check(0xCC) is not None and p.addresses.check(5) is None
+
+
+SIX_DIGITS = """\
+id: six
+vendor: Test
+model: Meter
+manual: none
+addressing: modicon
+fields:
+  - {name: voltage, table: input, address: 30001, type: f32}
+  - {name: meter_code, table: holding, address: 464515, type: u16}
+  - {name: far, table: holding, address: 49999, type: u16}
+"""
+
+
+@pytest.mark.parametrize(("written", "wire", "shown"), [
+    (464515, 0xFC02, "464515"), (465536, 0xFFFF, "465536"), (400001, 0, "40001"),
+    (49999, 9998, "49999"), (40001, 0, "40001")])
+def test_modicon_profiles_take_the_6_digit_form_past_9999(written: int, wire: int,
+                                                          shown: str) -> None:
+    """Eastron writes 464515 for holding 0xFC02; one rule for profiles and raw reads,
+    and an address is shown in the 5-digit form while it fits (400001 is 40001)."""
+    from rtupoll.model.raw import modicon_wire
+
+    assert Addressing.MODICON.to_wire(Table.HOLDING, written) == wire
+    assert modicon_wire(Table.HOLDING, written) == wire
+    assert Addressing.MODICON.show(Table.HOLDING, wire) == shown
+
+
+def test_a_6_digit_modicon_field_loads_shows_and_a_5_digit_past_49999_is_refused(
+        tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from rtupoll.cli import cli
+    from rtupoll.config.library import load_profile
+
+    path = tmp_path / "six.yaml"
+    path.write_text(SIX_DIGITS)
+    p = load_profile(path)
+    assert p.field("meter_code").address == 0xFC02 and p.field("far").address == 9998
+    show = CliRunner().invoke(cli, ["profiles", "show", str(path)], env={"COLUMNS": "120"})
+    assert "464515" in show.stdout and "0xFC02" in show.stdout
+    path.write_text(SIX_DIGITS.replace("address: 49999", "address: 50001"))
+    bad = CliRunner().invoke(cli, ["profiles", "check", str(path)])
+    assert bad.exit_code == 2
+    assert ("fields[2].address: 50001 is not a holding register reference (40001..49999, "
+            "or 400001..465536)") in bad.stderr

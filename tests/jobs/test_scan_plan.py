@@ -138,9 +138,10 @@ def test_probe_timeout_is_wire_time_silence_and_margin() -> None:
 
 def test_broadcast_any_and_reserved_addresses_are_skipped_and_say_why() -> None:
     why = skipped(range(0, 256), LIB)
-    assert set(why) == {0, 0xFE, 0xCC, 0xF8}
+    assert set(why) == {0, 0xFE, 0xCC, 0xF8, 0xFF}
     assert "co2meter-an117" in why[0xFE]
     assert "peacefair-pzem016" in why[0xF8]  # the PZEM's "general address"
+    assert "r4dcb08" in why[0xFF]  # the R4DCB08's
 
 
 def test_address_lists_and_their_errors() -> None:

@@ -218,6 +218,15 @@ def test_base_units_counters_precision_and_help() -> None:
                              field_metric(f).name.endswith("_coulombs") for f in amp_hours)
     assert field_metric(amp_hours[0]).name == "rtupoll_charging_today_coulombs"
     assert field_metric(amp_hours[0]).convert(12) == 43200.0
+    # promtool refuses abbreviated units in a name (_m_s, _s_cm, _m): base units instead
+    wind, soil, sun = (load_one(p) for p in ("dfrobot-sen0483", "sensecap-soil-ec02",
+                                             "huawei-sun2000"))
+    speed = field_metric(wind.field("wind_speed"))
+    assert (speed.name, speed.convert(3.7)) == ("rtupoll_wind_speed_meters_per_second", 3.7)
+    ec = field_metric(soil.field("conductivity"))
+    assert (ec.name, ec.convert(850)) == ("rtupoll_conductivity_siemens_per_meter", 0.085)
+    riso = field_metric(sun.field("insulation_resistance"))
+    assert (riso.name, riso.convert(3.0)) == ("rtupoll_insulation_resistance_ohms", 3e6)
 
 
 def test_listen_addresses() -> None:

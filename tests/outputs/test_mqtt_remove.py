@@ -6,14 +6,12 @@ retained message on a config topic Home Assistant never saw makes it log a warni
 
 from __future__ import annotations
 
-import contextlib
 import json
 import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import pytest
 from cli_runner import rtupoll
 
 from rtupoll.sim.runner import SimulatedBus
@@ -36,19 +34,6 @@ OTHER = ("homeassistant/device/rtupoll_south_air/config",  # another gateway's d
 def retain(broker: Broker, topic: str, payload: str) -> None:
     subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q", "1",
                     "-r", "-t", topic, "-m", payload], check=True, timeout=10)
-
-
-def subscribed(broker: Broker, sub: Subscriber) -> None:
-    """Wait until ``sub`` hears the broker: a marker published again and again until one
-    comes back (mosquitto_sub does not say when its subscription is made)."""
-    deadline = time.monotonic() + 60  # a hang guard; the first marker heard ends it
-    while time.monotonic() < deadline:
-        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker.port), "-q",
-                        "1", "-t", "test/marker", "-m", "x"], check=True, timeout=10)
-        with contextlib.suppress(pytest.fail.Exception):  # not yet: publish again
-            sub.wait(lambda m: m.topic == "test/marker", timeout=0.2)
-            return
-    raise AssertionError("mosquitto_sub never heard the broker")
 
 
 def settled(broker: Broker, sub: Subscriber, after: int = 0) -> list[tuple[str, str]]:
@@ -79,7 +64,7 @@ def _came(sub: Subscriber, after: int) -> bool:
 def test_on_an_empty_broker_nothing_is_sent(broker: Broker, tmp_path: Path) -> None:
     site = site_yaml(tmp_path, "tcp://127.0.0.1:9", broker.url)
     sub = broker.subscribe("#")
-    subscribed(broker, sub)
+    settled(broker, sub)  # heard: nothing the remover sends can go unseen
     before = len(sub.messages)
     done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr
@@ -105,8 +90,7 @@ def test_on_a_populated_broker_exactly_this_gateways_topics_go(
     for t in configs + topics:
         assert broker.retained(t) is not None, t
     sub = broker.subscribe("#")
-    subscribed(broker, sub)
-    settled(broker, sub)  # the retained messages, delivered on subscribing, come first
+    settled(broker, sub)  # heard, and the retained messages, delivered on subscribing, first
     before = len(sub.messages)
     done = rtupoll("poll", "-c", str(site), "--mqtt-remove-discovery")
     assert done.returncode == 0, done.stderr

@@ -23,6 +23,7 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
+from conftest import ANSWERED
 from forked_cli import rtupoll_popen
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -118,10 +119,15 @@ def test_promtool_passes_on_every_profile_the_gateway_and_slow_fields(
                 if up is not None and sum(s.value for s in up.samples) >= len(PROFILES) - 1:
                     break
             time.sleep(0.2)
-        # clients: mbpoll (one connection per run) and raw sockets, on both gateways
+        # clients: mbpoll (one connection per run) and raw sockets, on both gateways;
+        # mbpoll's timeout 5 s: line0 carries half the 9600 8N1 profiles polled every
+        # 0.5 s (Growatt's 850 ms idle gaps among them), a gateway request waits its turn
         fc, address = register(groups[0][0])
         for n in range(3):
-            got = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(serve[0]), "-1", "-o", "1",
+            # (ANSWERED: the reply ends the wait; the gateway's turn may come after a
+            # dead unit's timeout on a line this full)
+            got = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(serve[0]), "-1", "-o",
+                                  f"{ANSWERED:g}",
                                   "-a", "1", "-t", "4" if fc == 3 else "3", "-0",
                                   "-r", str(address), "-c", "1", "127.0.0.1"],
                                  capture_output=True, text=True, timeout=30)

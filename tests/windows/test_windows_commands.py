@@ -152,16 +152,20 @@ def test_set_address_dry_run_sends_nothing(windows: Windows, sim: Sim) -> None:
 
 def test_scan_finds_and_identifies_the_devices(windows: Windows, sim: Sim,
                                                tmp_path: Path) -> None:
-    sim("huiwen-aq@3", "radar-level@2", link=str(windows.links["COM5"]), tick=None)
+    bus = sim("huiwen-aq@3", "radar-level@2", link=str(windows.links["COM5"]), tick=None)
     found = tmp_path / "found.yaml"
     ran = windows.rtupoll("scan", "-p", "COM5", "--baudrate", "9600", "--addresses", "1-4",
                           "--format", "json", "--write-config", winpath(found))
     assert ran.returncode == 0, ran
     assert [(r["address"], r["status"], r["profile"]) for r in records(ran.stdout)] == [
         (2, "identified", "radar-level"), (3, "identified", "huiwen-aq")]
-    # the site file it wrote is one that poll takes (here, on Linux, with the pty's name)
-    text = found.read_text()
-    assert "COM5" in text, text
+    # the site file it wrote is one that poll takes, on the same COM port
+    assert "port: \"COM5\"" in found.read_text(), found.read_text()
+    polled = windows.rtupoll("poll", "-c", winpath(found), "--once", "--format", "json")
+    assert polled.returncode == 0, polled
+    got = {(r["field"], r["value"]) for r in records(polled.stdout)}
+    assert ("co2", bus.get(3, "co2").value) in got, polled.stdout
+    assert ("air_gap_cm", bus.get(2, "air_gap_cm").value) in got, polled.stdout
 
 
 def test_guess_ranks_the_register_as_the_device_holds_it(windows: Windows, sim: Sim) -> None:
@@ -186,6 +190,10 @@ def test_profiles_list_show_and_check(windows: Windows, tmp_path: Path) -> None:
     assert listed.returncode == 0, listed
     ids = {json.loads(line)["id"] for line in listed.stdout.splitlines() if line.strip()}
     assert ids == set(load_library().profiles), listed.stdout
+    assert "\u25a1" not in listed.stdout and "?" in listed.stdout  # (the code page lacks it)
+    utf8 = windows.rtupoll("profiles", "list", "--format", "json", env={"PYTHONUTF8": "1"},
+                           encoding="utf-8")  # as README says: UTF-8, every character
+    assert utf8.returncode == 0 and "\u25a1" in utf8.stdout, utf8
     shown = windows.rtupoll("profiles", "show", "huiwen-aq")
     assert shown.returncode == 0 and "co2" in shown.stdout and "30009" in shown.stdout, shown
     mine = tmp_path / "xy-md02.yaml"

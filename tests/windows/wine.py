@@ -26,12 +26,18 @@ handle"; Wine 8.0), so output goes to pipes (or to the command's own ``-o FILE``
 
 from __future__ import annotations
 
+import fcntl
 import os
+import re
+import select
 import shutil
 import signal
+import struct
 import subprocess
+import termios
 import threading
 import time
+import tty
 from collections.abc import Callable, Mapping
 from pathlib import Path, PurePath
 from types import TracebackType
@@ -54,11 +60,11 @@ def winpath(path: str | PurePath) -> str:
     return "Z:" + str(path).replace("/", "\\")
 
 
-def environment(extra: Mapping[str, str | None] = ()) -> dict[str, str]:  # type: ignore[assignment]
+def environment(extra: Mapping[str, str | None] | None = None) -> dict[str, str]:
     """The environment of a Windows process: Wine's settings, then ``extra`` (None unsets)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV"))}
     env.update(WINEPREFIX=str(PREFIX), WINEDEBUG="-all", WINEDLLOVERRIDES="mscoree,mshtml=")
-    for key, value in dict(extra).items():
+    for key, value in (extra or {}).items():
         if value is None:
             env.pop(key, None)
         else:
@@ -75,8 +81,8 @@ def setup() -> None:
 class Wine:
     """A Wine prefix's server with these COM ports, and commands run under it."""
 
-    def __init__(self, ports: Mapping[str, str | PurePath] = ()) -> None:  # type: ignore[assignment]
-        self.ports = {name: str(path) for name, path in dict(ports).items()}
+    def __init__(self, ports: Mapping[str, str | PurePath] | None = None) -> None:
+        self.ports = {name: str(path) for name, path in (ports or {}).items()}
         self.server: subprocess.Popen[bytes] | None = None
 
     def __enter__(self) -> Wine:
@@ -117,7 +123,7 @@ class Wine:
     def argv(self, *args: str) -> list[str]:
         return [WINE, str(PYTHON), *args]
 
-    def popen(self, *args: str, env: Mapping[str, str | None] = (),  # type: ignore[assignment]
+    def popen(self, *args: str, env: Mapping[str, str | None] | None = None,
               stdin: Any = subprocess.DEVNULL, **kwargs: Any) -> subprocess.Popen[str]:
         """``python.exe ARGS`` under Wine; stdout and stderr are pipes unless given."""
         kwargs.setdefault("stdout", subprocess.PIPE)
@@ -126,12 +132,13 @@ class Wine:
                                 env=environment(env), **kwargs)
 
     def run(self, *args: str, input: str | None = None, timeout: float = 120,
-            env: Mapping[str, str | None] = (),  # type: ignore[assignment]
-            cwd: str | Path | None = None) -> Ran:
-        """``python.exe ARGS`` under Wine, to its end."""
+            env: Mapping[str, str | None] | None = None, cwd: str | Path | None = None,
+            encoding: str = ENCODING) -> Ran:
+        """``python.exe ARGS`` under Wine, to its end (its output decoded as ``encoding``:
+        the code page's, unless the command was told otherwise, e.g. ``PYTHONUTF8=1``)."""
         start = time.monotonic()
-        proc = subprocess.run(self.argv(*args), input=input, capture_output=True, encoding=ENCODING,
-                              timeout=timeout, env=environment(env), cwd=cwd,
+        proc = subprocess.run(self.argv(*args), input=input, capture_output=True,
+                              encoding=encoding, timeout=timeout, env=environment(env), cwd=cwd,
                               stdin=None if input is not None else subprocess.DEVNULL)
         return Ran(proc.returncode, proc.stdout, proc.stderr, time.monotonic() - start)
 
@@ -222,3 +229,68 @@ class Running:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+def screen(raw: bytes) -> str:
+    """What a terminal shows of a Windows console's output, as text: Wine's escapes out,
+    its line ends as ``\\n``."""
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", raw.decode(errors="replace"))
+    return text.replace("\r\r\n", "\n").replace("\r", "")
+
+
+class Console:
+    """A Windows command on a console: a Unix pty as its standard streams, on which Wine
+    runs the Windows console (what a person sees and types)::
+
+        with Console(wine, "-m", "rtupoll", "set-address", ...) as term:
+            term.expect("press Enter")     # what was shown since the last expectation
+            term.type("\\r")               # Enter
+    """
+
+    def __init__(self, wine: Wine, *args: str, columns: int = 100, rows: int = 30) -> None:
+        self.master, slave = os.openpty()
+        # raw from the start, as Wine's console sets it once it reads: an Enter typed
+        # before that would reach it as a line feed (Ctrl-J, not Enter) through ICRNL
+        tty.setraw(slave)
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", rows, columns, 0, 0))
+        self.proc = subprocess.Popen(wine.argv(*args), stdin=slave, stdout=slave,
+                                     stderr=slave, env=environment(), close_fds=True)
+        os.close(slave)
+        self.seen, self.done = b"", 0  # everything shown; how much of it was expected
+
+    def expect(self, text: str, timeout: float = 60) -> str:
+        """What was shown since the last expectation, up to ``text`` (lines joined: the
+        console wraps them at its width)."""
+        deadline = time.monotonic() + timeout
+        while text not in screen(self.seen).replace("\n", "")[self.done:]:
+            assert time.monotonic() < deadline, screen(self.seen)[-3000:]
+            if select.select([self.master], [], [], 0.5)[0]:
+                try:
+                    self.seen += os.read(self.master, 4096)
+                except OSError:  # it ended
+                    break
+        shown = screen(self.seen).replace("\n", "")
+        at = shown.find(text, self.done)
+        assert at >= 0, screen(self.seen)[-3000:]
+        step, self.done = shown[self.done:at + len(text)], at + len(text)
+        return step
+
+    def type(self, text: str) -> None:
+        os.write(self.master, text.encode())
+
+    def interrupt(self) -> None:
+        """Ctrl-C (as ``Running.interrupt``)."""
+        self.proc.send_signal(signal.SIGINT)
+
+    def close(self, timeout: float = 60) -> int:
+        code = self.proc.wait(timeout=timeout)
+        return code
+
+    def __enter__(self) -> Console:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        os.close(self.master)

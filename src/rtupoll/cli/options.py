@@ -154,8 +154,9 @@ def port_options(f: F) -> F:
     f = click.option("--baudrate", "-b", type=click.IntRange(300, 4_000_000), default=None,
                      help="Baud rate (default: the profile's).")(f)
     f = click.option("--port", "-p", envvar="RTUPOLL_PORT",
-                     help="Serial port (/dev/ttyUSB0), or tcp://HOST:PORT for an RTU-over-TCP "
-                          "gateway. Also $RTUPOLL_PORT.")(f)
+                     help="Serial port (/dev/ttyUSB0, COM3), a network serial port "
+                          "(rfc2217://HOST:PORT, socket://HOST:PORT), or tcp://HOST:PORT for "
+                          "an RTU-over-TCP gateway. Also $RTUPOLL_PORT.")(f)
     return f
 
 

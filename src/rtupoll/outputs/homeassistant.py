@@ -72,6 +72,9 @@ _UNITS: dict[str, tuple[str, str | None]] = {
     "m³": ("m³", "volume"), "L": ("L", "volume"), "m³/h": ("m³/h", "volume_flow_rate"),
     "L/min": ("L/min", "volume_flow_rate"), "dB": ("dB", "sound_pressure"),
     "dBm": ("dBm", "signal_strength"), "W/m²": ("W/m²", "irradiance"),
+    "µS/cm": ("µS/cm", "conductivity"), "mS/cm": ("mS/cm", "conductivity"),
+    "S/cm": ("S/cm", "conductivity"),
+    "m/s": ("m/s", "speed"), "km/h": ("km/h", "speed"),
 }
 _ENERGY = {"energy"}
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]")
@@ -112,6 +115,8 @@ def classify(field: Field) -> tuple[str, str | None, str | None]:
         cls = None
     elif field.unit in ("", "%") and re.search(r"power_?factor|cos_?phi", name):
         cls = "power_factor"
+    elif cls == "speed" and "wind" in name:
+        cls = "wind_speed"
     elif field.unit == "ppm":
         cls = "carbon_dioxide" if "co2" in name else (
             "volatile_organic_compounds_parts" if "voc" in name else None)

@@ -85,6 +85,10 @@ UNITS: dict[str, tuple[str, float, float]] = {
     "mg/m3": ("grams_per_cubic_meter", 1e-3, 0.0),
     "Ah": ("coulombs", 3600.0, 0.0), "mAh": ("coulombs", 3.6, 0.0),
     "°": ("degrees", 1.0, 0.0),
+    "m/s": ("meters_per_second", 1.0, 0.0), "km/h": ("meters_per_second", 1 / 3.6, 0.0),
+    "Ω": ("ohms", 1.0, 0.0), "kΩ": ("ohms", 1e3, 0.0), "MΩ": ("ohms", 1e6, 0.0),
+    "µS/cm": ("siemens_per_meter", 1e-4, 0.0), "uS/cm": ("siemens_per_meter", 1e-4, 0.0),
+    "mS/cm": ("siemens_per_meter", 0.1, 0.0), "S/m": ("siemens_per_meter", 1.0, 0.0),
 }
 # a unit a field's name spells out (charging_amp_hours_today): dropped from the metric's
 # name when the value is converted, which then ends in the base unit instead
@@ -98,7 +102,8 @@ SIGNIFICANT = 12  # digits kept where a field's decimals are unknown (f32/f64): 
 RESERVED = frozenset({
     f"rtupoll_{n}{suffix}" for n in (
         "device_up", "device_state", "device_info", "requests", "exceptions", "cycles",
-        "late_replies", "device_timeout_seconds", "last_good_reading_age_seconds",
+        "late_replies", "device_timeout_seconds", "attempts", "retried",
+        "device_idle_gap_seconds", "last_good_reading_age_seconds",
         "request_duration_seconds", "bus_utilisation_ratio", "bus_transactions",
         "bus_busy_seconds", "bus_port_up", "bus_port_losses")
     for suffix in ("", "_total", "_bucket", "_count", "_sum", "_created")})

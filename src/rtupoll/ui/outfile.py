@@ -23,6 +23,19 @@ log = logging.getLogger("rtupoll.output")
 TAIL = 1 << 16  # bytes searched back for the last newline
 
 
+# Windows has no O_CLOEXEC (a descriptor is not inherited there unless asked) and no
+# pread, and opens in text mode unless O_BINARY (a "\n" written would be "\r\n")
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+_BINARY = getattr(os, "O_BINARY", 0)
+
+
+def _pread(fd: int, n: int, offset: int) -> bytes:
+    if hasattr(os, "pread"):
+        return os.pread(fd, n, offset)
+    os.lseek(fd, offset, os.SEEK_SET)  # (O_APPEND: writes still go to the end)
+    return os.read(fd, n)
+
+
 class OutputFile:
     """A text file ``RecordWriter`` writes through (``write`` and a no-op ``flush``)."""
 
@@ -33,7 +46,8 @@ class OutputFile:
         self.fd = self._open()
 
     def _open(self) -> int:
-        fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT | _CLOEXEC | _BINARY,
+                     0o644)
         try:
             self._trim(fd)
         except BaseException:
@@ -45,10 +59,10 @@ class OutputFile:
         """Cut off a partial last line left by an earlier run."""
         size = os.fstat(fd).st_size
         self.fresh = size == 0
-        if not size or os.pread(fd, 1, size - 1) == b"\n":
+        if not size or _pread(fd, 1, size - 1) == b"\n":
             return
         start = max(0, size - TAIL)
-        tail = os.pread(fd, size - start, start)
+        tail = _pread(fd, size - start, start)
         keep = start + tail.rfind(b"\n") + 1 if b"\n" in tail else 0 if start == 0 else size
         if keep == size:  # no newline within reach: a line too long to judge, left as it is
             os.write(fd, b"\n")
