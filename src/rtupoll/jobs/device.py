@@ -1,8 +1,9 @@
 """A profile at an address on a bus: the one read job, and probing the variant.
 
 The glue between the pure layers (profile, planner, reading) and the bus. Every read of
-a device's fields goes through here: ``poll``'s cycle block by block
-(``read_planned``), ``rtupoll read`` and MQTT ``get`` whole (``read_fields``). What the
+a device's fields goes through here: ``rtupoll read`` and MQTT ``get`` whole
+(``read_fields``), ``poll``'s cycle block by block (``read_block``, one timed transaction
+each, then the same rule for a refused block, ``after_refusal``). What the
 device taught earlier (its variant, the holes it refused: ``jobs.holes``) is an input,
 and what a read gives (values, why the other fields have none, holes found) comes back
 as one value, ``Read``. Timeouts and retries default to the profile's ``limits``,
