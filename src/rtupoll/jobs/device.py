@@ -16,15 +16,19 @@ from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from rtupoll.errors import DeviceException, FrameError
+from rtupoll.frozen import frozen
 from rtupoll.io.interface import BusLike
-from rtupoll.jobs.holes import FieldsRefused, Register, bisect, gaps
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field, Limits, Profile
 from rtupoll.model.scaling import Unscaled, scale_values
 from rtupoll.rtu import exception_name
+
+if TYPE_CHECKING:
+    from rtupoll.jobs.holes import Register
 
 __all__ = ["BlockRead", "Read", "Timing", "needs_variant", "probe_variant", "read_block",
            "read_fields", "read_planned", "timing"]
@@ -53,7 +57,7 @@ async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
     return decode_block(block, words)
 
 
-@dataclass(frozen=True)
+@frozen
 class BlockRead:
     """What one planned block gave: the values read, the fields the device refuses (with
     the exception), and the registers bisection found it refuses (``holes``: none when the
@@ -70,6 +74,8 @@ async def after_refusal(bus: BusLike, unit: int, block: Block, exc: DeviceExcept
     gap or several fields, what the device refuses is found by bisection (``jobs.holes``)
     and every other field read; None when nothing of the block reads (the exception stands
     for all its fields). Timeouts and garbled replies during the bisection propagate."""
+    from rtupoll.jobs.holes import bisect, gaps  # here: a read that is not refused needs none
+
     if exc.code != 2 or not (gaps(block) or len(block.fields) > 1):
         return None
     found = await bisect(bus, unit, block, timeout=timeout, retries=retries)
@@ -93,7 +99,7 @@ def needs_variant(profile: Profile, fields: Sequence[Field]) -> bool:
     return profile.variant is not None and any(f.since for f in fields)
 
 
-@dataclass(frozen=True)
+@frozen
 class Read:
     """What reading some fields of a device gave, as one value.
 
@@ -115,6 +121,8 @@ class Read:
         """What the read failed at, as ``rtupoll read`` exits with it after printing every
         value: fields refused (exit 5), then a factor that reads no ratio (exit 7)."""
         if self.refused:
+            from rtupoll.jobs.holes import FieldsRefused
+
             return FieldsRefused(self.refused)
         if self.unscaled:
             u = self.unscaled[0]
