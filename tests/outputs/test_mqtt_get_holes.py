@@ -1,7 +1,7 @@
-"""MQTT ``get`` over an undocumented hole gives what ``rtupoll read`` gives: the real CLI,
-a real mosquitto, the simulator over TCP with the Huiwen module's ``hole=`` fault (input
-30011, inside the gap the profile lets the planner bridge), every request on the wire
-seen through the simulator's ``on_wire``."""
+"""MQTT ``get`` over an undocumented hole gives what ``rtupoll read`` gives (and what a
+``poll`` cycle reads): the real CLI, a real mosquitto, the simulator over TCP with the
+Huiwen module's ``hole=`` fault (input 30011, inside the gap the profile lets the planner
+bridge), every request on the wire seen through the simulator's ``on_wire``."""
 
 from __future__ import annotations
 
@@ -92,6 +92,14 @@ def test_get_over_a_hole_reads_what_read_reads_and_the_poller_learns_the_hole(
     values = {r["field"]: r["value"] for r in map(json.loads, read.stdout.splitlines())}
     assert values == {"pm25": 12, "tvoc": 0.25, "hcho": 0.02, "co2": 800, "temperature": 21,
                       "humidity": 40}
+    # a poll cycle of the same fields, nothing learned: the same requests, the same values
+    asked = wire.mark()
+    cycle = rtupoll("poll", "-p", line.port, "--once", "--format", "json", "--fields",
+                    ",".join(SIX), "huiwen-aq@3")
+    assert cycle.returncode == 0, cycle.stderr
+    assert wire.reads(asked) == by_read
+    assert {r["field"]: r["value"] for r in map(json.loads, cycle.stdout.splitlines())} == \
+        values
 
     site = tmp_path / "site.yaml"
     site.write_text(SITE.format(port=line.port, url=broker.url))
