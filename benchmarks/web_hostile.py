@@ -140,8 +140,8 @@ def soak(args: argparse.Namespace, err: IO[str]) -> None:
                         s.connect(("127.0.0.1", port))
                         s.sendall(pipelined)
                         s.setblocking(False)
-                    elif s.recv(1, socket.MSG_PEEK) == b"":
-                        raise ConnectionResetError
+                    elif s.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 1)[0] != 1:
+                        raise ConnectionResetError  # no longer established: reset
                 except BlockingIOError:
                     pass
                 except OSError:
