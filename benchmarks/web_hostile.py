@@ -12,7 +12,8 @@ normal client (``GET /api/state`` every 0.1 s) 100 slow lorises (half a request,
 byte a second, each reconnecting when it is closed), 5 clients that pipeline requests
 and never read, and 10 malformed requests a second; it prints the RSS every minute, its
 growth after the first, the normal client's p50/p95 against the same client alone, and
-how much stderr grew.
+how much stderr grew; ``--calm`` runs the same without the hostile clients, for the
+process's own growth (the trend rings fill for an hour).
 
 Run: .venv/bin/python benchmarks/web_hostile.py [--hostile 1000] [--cap 2000]
      [--header-timeout 20] [--requests 200]
@@ -77,6 +78,8 @@ def main() -> None:
     ap.add_argument("--header-timeout", type=float, default=20.0)
     ap.add_argument("--requests", type=int, default=200)
     ap.add_argument("--soak", type=float, default=0.0, metavar="SECONDS")
+    ap.add_argument("--calm", action="store_true",
+                    help="--soak without the hostile clients: the process's own growth")
     args = ap.parse_args()
     with tempfile.NamedTemporaryFile("w+", suffix=".stderr") as err:
         (soak if args.soak else run)(args, err)
@@ -170,8 +173,8 @@ def soak(args: argparse.Namespace, err: IO[str]) -> None:
         normal(alone, 30)
         err.seek(0, os.SEEK_END)
         before = err.tell()
-        threads = [threading.Thread(target=f, daemon=True) for f in (lorises, readers,
-                                                                     malformed)]
+        threads = [] if args.calm else [
+            threading.Thread(target=f, daemon=True) for f in (lorises, readers, malformed)]
         for t in threads:
             t.start()
         beside: list[float] = []
