@@ -3,13 +3,14 @@
     .venv/bin/python benchmarks/edge_soak.py [--hostile-minutes 5] [--baseline 60]
 
 One real ``rtupoll poll --simulate huiwen-aq@3 net-irnet-pro@1 --baud 9600 --serve ...
---http ...`` process (the simulated line inside it, with the wire's real time), on
-loopback only. The hostile clients run in a process of their own, so that their loops
-do not slow this one's measurements (one interpreter lock). Two normal
-clients run all the time: a Modbus TCP client (one read at a time, every 0.2 s) and a
-dashboard client (``GET /api/state`` on one keep-alive connection, every 0.5 s); each
-reply's time is recorded and checked (a gateway reply must be the read's, never an
-exception; a dashboard reply must be 200).
+--http ... --mqtt ...`` process (the simulated line inside it, with the wire's real
+time) publishing to a local mosquitto, and one ``rtupoll web --mqtt ...`` (the fleet
+viewer) reading that broker, on loopback only. The hostile clients run in a process of
+their own, so that their loops do not slow this one's measurements (one interpreter
+lock). Three normal clients run all the time: a Modbus TCP client (one read at a time,
+every 0.2 s), a dashboard client (``GET /api/state`` on one keep-alive connection, every
+0.5 s) and the same against the fleet viewer; each reply's time is recorded and checked (a gateway
+reply must be the read's, never an exception; a page's reply must be 200).
 
 Phases: a baseline (``--baseline`` seconds, normal clients only), the hostile phase
 (``--hostile-minutes``), then a second baseline. In the hostile phase, beside the normal
@@ -22,9 +23,12 @@ clients (each hostile client from its own loopback address, 127.0.0.2-6):
 - a disconnecting writer: every 0.5 s a new connection sends a write (FC 16, the IRNET's
   gas level) and closes at once;
 - 12 gateway connections from one address (the cap per address is 8; each one closed
-  is opened again every second).
+  is opened again every second);
+- hostile retained MQTT messages, one every 2 s in turn: a 400-digit number as the
+  real gateway's CO2 reading, a ``bridge/info`` whose field has ``precision``
+  100000000, 400 kB on a topic no gateway owns (50 topics in turn), bad JSON.
 
-Every 10 s it reads the process's RSS (``/proc/PID/status`` VmRSS). At the end: the
+Every 10 s it reads both processes' RSS (``/proc/PID/status`` VmRSS). At the end: the
 normal clients' p50/p95 in the baselines and in the hostile phase, their ratio, the
 RSS from the end of the hostile phase's first minute to its end, the counts (replies,
 exceptions, refusals in the log, requests dropped unsent) and the verdict against the
@@ -36,8 +40,10 @@ from __future__ import annotations
 
 import argparse
 import http.client
+import json
 import multiprocessing
 import re
+import shutil
 import signal
 import socket
 import statistics
@@ -123,11 +129,11 @@ class Run:
         self.stop = threading.Event()  # everything
         self.calm = threading.Event()  # the hostile clients
         self.times: dict[tuple[str, str], list[float]] = {}
-        self.bad: dict[str, int] = {"gateway": 0, "dashboard": 0}
+        self.bad: dict[str, int] = {"gateway": 0, "dashboard": 0, "fleet": 0}
         self.lock = threading.Lock()
         self.hostile: dict[str, int] = {"half-open": 0, "idle": 0, "hog bytes": 0,
                                         "hog last sent at (s)": 0, "writes": 0,
-                                        "over cap": 0}
+                                        "over cap": 0, "mqtt": 0}
 
     def took(self, who: str, seconds: float) -> None:
         with self.lock:
@@ -160,7 +166,7 @@ def normal_gateway(run: Run, port: int) -> None:
         s.close()
 
 
-def normal_dashboard(run: Run, port: int) -> None:
+def normal_dashboard(run: Run, port: int, who: str = "dashboard") -> None:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=HANG)
     try:
         while not run.stop.is_set():
@@ -168,9 +174,9 @@ def normal_dashboard(run: Run, port: int) -> None:
             conn.request("GET", "/api/state")
             reply = conn.getresponse()
             reply.read()
-            run.took("dashboard", time.monotonic() - start)
+            run.took(who, time.monotonic() - start)
             if reply.status != 200:
-                run.bad["dashboard"] += 1
+                run.bad[who] += 1
             run.stop.wait(0.5)
     finally:
         conn.close()
@@ -181,7 +187,10 @@ def held(run: Run, port: int, source: str, n: int, what: str, send: bytes) -> No
     socks: list[socket.socket] = []
     try:
         while not run.calm.is_set():
-            socks = [s for s in socks if not closed(s) or s.close()]
+            gone = [s for s in socks if closed(s)]
+            for old in gone:
+                old.close()
+            socks = [s for s in socks if s not in gone]
             while len(socks) < n and not run.calm.is_set():
                 s = connect(port, source)
                 if s is None:
@@ -232,18 +241,42 @@ def writer(run: Run, port: int) -> None:
         run.calm.wait(0.5)
 
 
-HOSTILE = ("half-open", "idle", "hog", "writer", "over-cap")
+HOSTILE = ("half-open", "idle", "hog", "writer", "over-cap", "mqtt")
+NINES = "9" * 400
 
 
-def hostile(gw: int, web: int, seconds: float, out: multiprocessing.Queue[dict[str, int]],
-            only: tuple[str, ...] = HOSTILE) -> None:
+def mqtt(run: Run, broker: int) -> None:
+    """Hostile retained messages, one every 2 s in turn (mosquitto_pub, loopback)."""
+    evil = {"gateway": "evil", "devices": {"d": {"fields": {
+        "v": {"label": "v", "kind": "number", "precision": 100_000_000}}}}}
+    messages = [("rtupoll/edge/huiwen-aq_3", f'{{"co2": {NINES}, "temperature": 1e999}}'),
+                ("rtupoll/evil/bridge/info", json.dumps(evil)),
+                ("rtupoll/evil/d", '{"v": 1.5}'), ("rtupoll/edge/huiwen-aq_3", "{not json"),
+                ("elsewhere/{n}", "x" * 400_000)]
+    n = 0
+    while not run.calm.is_set():
+        topic, payload = messages[n % len(messages)]
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(broker), "-r", "-q",
+                        "1", "-t", topic.format(n=n % 50), "-s"], input=payload.encode(),
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=HANG,
+                       check=False)
+        run.count("mqtt")
+        n += 1
+        run.calm.wait(2)
+
+
+def hostile(gw: int, web: int, broker: int, seconds: float,
+            out: multiprocessing.Queue[dict[str, int]], only: tuple[str, ...] = HOSTILE
+            ) -> None:
     """The hostile clients (``only`` those named), for ``seconds``, in a process of their
     own; their counts to ``out`` at the end."""
     run = Run()
-    kinds = {"half-open": (held, (web, "127.0.0.2", 100, "half-open", HALF)),
+    kinds: dict[str, tuple[Callable[..., None], tuple[object, ...]]] = {
+             "half-open": (held, (web, "127.0.0.2", 100, "half-open", HALF)),
              "idle": (held, (web, "127.0.0.5", 100, "idle", b"")),
              "hog": (hog, (gw,)), "writer": (writer, (gw,)),
-             "over-cap": (held, (gw, "127.0.0.6", 12, "over cap", b""))}
+             "over-cap": (held, (gw, "127.0.0.6", 12, "over cap", b"")),
+             "mqtt": (mqtt, (broker,))}
     threads = [threading.Thread(target=f, args=(run, *a), daemon=True)
                for f, a in (kinds[k] for k in only)]
     for t in threads:
@@ -255,10 +288,14 @@ def hostile(gw: int, web: int, seconds: float, out: multiprocessing.Queue[dict[s
     out.put(dict(run.hostile))
 
 
-def sampler(run: Run, pid: int, samples: list[tuple[float, str, int]]) -> None:
+Sample = tuple[float, str, dict[str, int]]  # seconds, phase, RSS (kB) by process
+
+
+def sampler(run: Run, pids: dict[str, int], samples: list[Sample]) -> None:
     start = time.monotonic()
     while not run.stop.is_set():
-        samples.append((time.monotonic() - start, run.phase, rss_kb(pid)))
+        samples.append((time.monotonic() - start, run.phase,
+                        {name: rss_kb(pid) for name, pid in pids.items()}))
         run.stop.wait(10)
 
 
@@ -277,17 +314,25 @@ def main() -> None:
     args = ap.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     work = Path(tempfile.mkdtemp(prefix="rtupoll-edge-soak-"))
-    gw, web = free_port(), free_port()
-    err_path = work / "stderr.txt"
-    with err_path.open("wb") as err:
+    gw, web, fleet, broker = free_port(), free_port(), free_port(), free_port()
+    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    procs: list[subprocess.Popen[bytes]] = [subprocess.Popen(
+        [mosquitto, "-p", str(broker)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    err_path, fleet_err = work / "stderr.txt", work / "fleet-stderr.txt"
+    with err_path.open("wb") as err, fleet_err.open("wb") as ferr:
         proc = subprocess.Popen(
             [sys.executable, "-m", "rtupoll", "poll", "--simulate", "huiwen-aq@3",
              "net-irnet-pro@1", "--baud", "9600", "--interval", "1", "--format", "json", "-o",
              str(work / "readings.jsonl"), "--serve", f"127.0.0.1:{gw}",
-             "--http", f"127.0.0.1:{web}"],
+             "--http", f"127.0.0.1:{web}", "--mqtt", f"mqtt://127.0.0.1:{broker}",
+             "--mqtt-id", "edge"],
             stdout=subprocess.DEVNULL, stderr=err)
+        viewer = subprocess.Popen(
+            [sys.executable, "-m", "rtupoll", "web", "--mqtt", f"mqtt://127.0.0.1:{broker}",
+             "--http", f"127.0.0.1:{fleet}"], stdout=subprocess.DEVNULL, stderr=ferr)
+    procs += [proc, viewer]
     run = Run()
-    samples: list[tuple[float, str, int]] = []
+    samples: list[Sample] = []
     threads: list[threading.Thread] = []
 
     def start(target: Callable[..., None], *a: object) -> None:
@@ -296,12 +341,15 @@ def main() -> None:
         threads.append(t)
 
     try:
+        wait_port(broker, procs[0])
         wait_port(gw, proc)
         wait_port(web, proc)
-        time.sleep(5)  # the first polls, the first page
-        start(sampler, proc.pid, samples)
+        wait_port(fleet, viewer)
+        time.sleep(10)  # the first polls, the first page, the fleet's first messages
+        start(sampler, {"poll": proc.pid, "web": viewer.pid}, samples)
         start(normal_gateway, gw)
         start(normal_dashboard, web)
+        start(normal_dashboard, fleet, "fleet")
         print(f"baseline {args.baseline:g} s", flush=True)
         time.sleep(args.baseline)
         run.phase = "hostile, 1st minute"
@@ -309,21 +357,23 @@ def main() -> None:
         print(f"hostile clients for {args.hostile_minutes:g} min", flush=True)
         counts: multiprocessing.Queue[dict[str, int]] = multiprocessing.Queue()
         child = multiprocessing.get_context("fork").Process(
-            target=hostile, args=(gw, web, args.hostile_minutes * 60, counts,
+            target=hostile, args=(gw, web, broker, args.hostile_minutes * 60, counts,
                                   tuple(args.only or HOSTILE)), daemon=True)
         child.start()
         while time.monotonic() - hostile_at < args.hostile_minutes * 60:
             time.sleep(10)
-            if proc.poll() is not None:
-                raise SystemExit(f"rtupoll ended ({proc.returncode}); see {err_path}")
             if time.monotonic() - hostile_at >= 60:
                 run.phase = "hostile"
-            last = samples[-1] if samples else (0, "", 0)
-            print(f"  {time.monotonic() - hostile_at:5.0f} s  RSS {last[2] / 1024:.1f} MB",
-                  flush=True)
+            for p in procs:
+                if p.poll() is not None:
+                    raise SystemExit(f"{p.args!r} ended ({p.returncode}); see {work}")
+            last = samples[-1][2] if samples else {}
+            print(f"  {time.monotonic() - hostile_at:5.0f} s  RSS " + ", ".join(
+                f"{k} {v / 1024:.1f} MB" for k, v in last.items()), flush=True)
         run.hostile = counts.get(timeout=120)
         child.join(timeout=HANG)
-        samples.append((time.monotonic(), "hostile-end", rss_kb(proc.pid)))
+        samples.append((time.monotonic(), "hostile-end",
+                        {"poll": rss_kb(proc.pid), "web": rss_kb(viewer.pid)}))
         run.phase = "after"
         print(f"second baseline {args.baseline:g} s", flush=True)
         time.sleep(args.baseline)
@@ -332,21 +382,24 @@ def main() -> None:
         run.calm.set()
         for t in threads:
             t.join(timeout=HANG)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-    report(run, samples, err_path.read_text(errors="replace"), args)
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+    report(run, samples, err_path.read_text(errors="replace"),
+           fleet_err.read_text(errors="replace"), args)
 
 
-def report(run: Run, samples: list[tuple[float, str, int]], log: str,
+def report(run: Run, samples: list[Sample], log: str, fleet_log: str,
            args: argparse.Namespace) -> None:
     ok = True
     print("\nnormal clients' reply times (ms):")
     print(f"  {'client':<10} {'phase':<18} {'n':>6} {'p50':>8} {'p95':>8}")
-    for who in ("gateway", "dashboard"):
+    for who in ("gateway", "dashboard", "fleet"):
         base = run.times.get((who, "baseline"), []) + run.times.get((who, "after"), [])
         first = run.times.get((who, "hostile, 1st minute"), [])
         later = run.times.get((who, "hostile"), [])
@@ -363,19 +416,20 @@ def report(run: Run, samples: list[tuple[float, str, int]], log: str,
             ratio = quantiles(xs)[1] / quantiles(base)[1]
             print(f"  {who:<10} p95 {name} / baseline: {ratio:.2f} (bar {P95_BAR:g})")
             ok &= ratio <= P95_BAR or name != "hostile, all"
-    print(f"  replies not as asked: gateway {run.bad['gateway']}, dashboard "
-          f"{run.bad['dashboard']}")
+    print(f"  replies not as asked: {run.bad}")
     ok &= not any(run.bad.values())
     hostile = [(t, kb) for t, phase, kb in samples if phase.startswith("hostile,") or
                phase == "hostile"]
-    first = next((kb for t, kb in hostile if t >= hostile[0][0] + 60), hostile[-1][1])
     end = next(kb for _, phase, kb in samples if phase == "hostile-end")
-    peak = max(kb for _, kb in hostile)
-    print(f"\nRSS: at the start {samples[0][2] / 1024:.1f} MB; hostile phase: after its "
-          f"first minute {first / 1024:.2f} MB, at its end {end / 1024:.2f} MB (peak "
-          f"{peak / 1024:.2f} MB): growth {(end - first) / 1024:+.2f} MB "
-          f"(bar {RSS_BAR_KB / 1024:g} MB)")
-    ok &= end - first <= RSS_BAR_KB
+    for name in ("poll", "web"):
+        minute = next((kb[name] for t, kb in hostile if t >= hostile[0][0] + 60),
+                      hostile[-1][1][name])
+        peak = max(kb[name] for _, kb in hostile)
+        print(f"\nRSS of {name}: at the start {samples[0][2][name] / 1024:.1f} MB; hostile "
+              f"phase: after its first minute {minute / 1024:.2f} MB, at its end "
+              f"{end[name] / 1024:.2f} MB (peak {peak / 1024:.2f} MB): growth "
+              f"{(end[name] - minute) / 1024:+.2f} MB (bar {RSS_BAR_KB / 1024:g} MB)")
+        ok &= end[name] - minute <= RSS_BAR_KB
     print(f"hostile clients: {dict(run.hostile)}")
     dropped = sum(int(m) for m in re.findall(r"(\d+) requests? dropped unsent", log))
     refusals = [line for line in log.splitlines() if ": refused " in line]
@@ -385,6 +439,13 @@ def report(run: Run, samples: list[tuple[float, str, int]], log: str,
     for line in refusals[:6]:
         print(f"  {line[:160]}")
     ok &= "Traceback" not in log
+    dropped_lines = [line for line in fleet_log.splitlines() if "dropped" in line]
+    print(f"fleet viewer's log: {len(fleet_log.splitlines())} lines, {len(fleet_log)} "
+          f"bytes; {len(dropped_lines)} 'dropped' lines; {fleet_log.count('Traceback')} "
+          "tracebacks")
+    for line in dropped_lines[:3]:
+        print(f"  {line[:160]}")
+    ok &= "Traceback" not in fleet_log
     print(f"\n{'PASS' if ok else 'FAIL'}: hostile {args.hostile_minutes:g} min, baselines "
           f"{args.baseline:g} s each")
     sys.exit(0 if ok else 1)
