@@ -407,6 +407,7 @@ class Gateway:
             conn.queue.put_nowait(None)
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.shield(worker)  # a request on the line completes
+            stats.dropped += conn.dropped
             if conn.dropped:
                 writes = f" ({conn.dropped_writes} write{'s' * (conn.dropped_writes != 1)})" \
                     if conn.dropped_writes else ""
