@@ -504,6 +504,8 @@ class Gateway:
     async def _on_line(self, unit: int, ask: Ask, stats: ClientStats, queued: float | None,
                        dev: DevicePoller | None, conn: Connection | None) -> bytes:
         timeout = dev.config.response_timeout if dev is not None else self.config.timeout
+        if conn is not None and conn.gone():  # (no turn for a client already gone)
+            raise ClientGone
         async with self.turns.turn(id(stats)):
             if conn is not None:
                 if conn.gone():
