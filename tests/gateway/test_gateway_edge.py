@@ -95,6 +95,9 @@ def test_a_write_whose_client_left_before_its_turn_never_reaches_the_line() -> N
             line.release.set()
             first = await reply_to(r1)  # the one on the line completes, answered
             w1.close()
+            await until(lambda: not gw.clients[1].connected)
+            assert gw.clients[1].record()["dropped"] == 1  # counted for the client too
+            assert "1 dropped unsent" in gw.clients[1].summary()
             return list(line.sent), list(logs), first
 
     sent, logs, first = asyncio.run(main())

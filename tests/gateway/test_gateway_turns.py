@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 
-from rtupoll.gateway.turns import POLLER, Places, Turns
+from rtupoll.gateway.turns import POLLER, REMEMBERED, Places, Turns
 
 
 async def _hammer(turns: Turns, who: object, log: list[object], n: int) -> None:
@@ -93,3 +93,40 @@ def test_fewer_shared_places_after_a_reload_admit_nothing_shared_until_below() -
     assert not places.take("a")  # one shared still held: the one allowed
     places.give_back("a")
     assert places.take("a")
+
+
+def test_a_client_that_asks_now_and_then_goes_ahead_of_one_that_hammers() -> None:
+    """The hammering client waits again the moment its turn ends, so it is always
+    first in line; the client whose last turn is longest ago goes first all the same."""
+    async def main() -> list[object]:
+        turns, log = Turns(), []  # type: ignore[var-annotated]
+        line = asyncio.Event()
+
+        async def take(who: object, hold: asyncio.Event | None = None) -> None:
+            async with turns.turn(who):
+                log.append(who)
+                if hold is not None:
+                    await hold.wait()
+
+        await take("h")  # the hammer has had a turn just now; "o" has not had one
+        poller = asyncio.create_task(take(POLLER, line))  # the poller's cycle holds the line
+        await asyncio.sleep(0)
+        waiting = [asyncio.create_task(take("h")), asyncio.create_task(take("o"))]
+        await asyncio.sleep(0)  # both wait, "h" first
+        line.set()
+        await asyncio.gather(poller, *waiting)
+        return log
+
+    assert asyncio.run(main()) == ["h", POLLER, "o", "h"]
+
+
+def test_a_forgotten_client_counts_as_never_served() -> None:
+    turns = Turns()
+
+    async def main() -> None:
+        for n in range(REMEMBERED + 10):
+            async with turns.turn(n):
+                pass
+
+    asyncio.run(main())
+    assert len(turns._last) == REMEMBERED  # bounded, however many clients came and went

@@ -22,6 +22,7 @@ class ClientStats:
     timeouts: int = 0  # 0x0B: the device did not answer (or not validly)
     busy: int = 0  # 0x0A: the queue was full or the port gone
     refused: int = 0  # by the access rules or the gateway's own checks
+    dropped: int = 0  # not sent: the client had gone before their turn
     waits: deque[float] = field(default_factory=lambda: deque(maxlen=WAIT_WINDOW))
     logged: set[str] = field(default_factory=set)  # refusal reasons already logged
 
@@ -38,12 +39,13 @@ class ClientStats:
             if p50 is not None and p95 is not None else ""
         return (f"{self.requests} requests, {self.answered} answered ({self.cached} cached), "
                 f"{self.exceptions} exceptions, {self.timeouts} timeouts, {self.refused} "
-                f"refused, {self.busy} busy{waits}")
+                f"refused, {self.busy} busy"
+                + (f", {self.dropped} dropped unsent" if self.dropped else "") + waits)
 
     def record(self) -> dict[str, Any]:
         """JSON-ready; waits in seconds, null before the first request waited."""
         return {"client": self.peer, "connected": self.connected, "requests": self.requests,
                 "answered": self.answered, "cached": self.cached,
                 "exceptions": self.exceptions, "timeouts": self.timeouts, "busy": self.busy,
-                "refused": self.refused, "wait_p50": self.wait_p50(),
+                "refused": self.refused, "dropped": self.dropped, "wait_p50": self.wait_p50(),
                 "wait_p95": self.wait_p95()}

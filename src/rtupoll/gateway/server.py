@@ -10,8 +10,9 @@ answered 0x0A at once.
 
 Back-pressure: a client has at most ``client_queue`` requests in hand (waiting, on the
 line, or answered and being written). Its worker waits while more than ``HIGH_WATER``
-bytes of its replies are unread, so a client that does not read its replies soon
-has its ``client_queue`` in hand, and then nothing more is read from it: its requests
+bytes of its replies are unread (beyond its receive buffer and ``SEND_BUFFER``), so a
+client that does not read its replies soon has its ``client_queue`` in hand, and then
+nothing more is read from it: its requests
 stay in the kernel's buffers and its own, not in rtupoll's memory or the shared queue.
 
 A client that disconnects with a request on the line does not cut it short (a
@@ -69,7 +70,11 @@ Clock = Callable[[], float]
 KEEP_CLIENTS = 32  # disconnected clients' counters kept for the footer and JSON
 EVENTS = 5  # log lines kept for the live table
 STOP_WAIT = 2.0  # seconds a stopping gateway lets a request on the line complete
-HIGH_WATER = 16 * 1024  # bytes of a client's replies unread before its worker waits
+# A client that does not read its replies is found out once they fill its receive
+# buffer, the system's send buffer for it and asyncio's: these keep the last two small
+# (a Modbus reply is at most 260 bytes; a client that reads has a few in flight at most)
+HIGH_WATER = 2048  # bytes of a client's replies in asyncio's buffer before its worker waits
+SEND_BUFFER = 4096  # the socket's send buffer (SO_SNDBUF; Linux doubles it, 4608 at least)
 READ_LIMIT = 8 * 1024  # bytes read ahead from a client (asyncio pauses reading beyond 2x)
 HANGUP = getattr(select, "POLLRDHUP", 0) | getattr(select, "POLLHUP", 0) | \
     getattr(select, "POLLERR", 0)
@@ -343,6 +348,10 @@ class Gateway:
                 return
             with contextlib.suppress(AttributeError, RuntimeError):
                 writer.transport.set_write_buffer_limits(high=HIGH_WATER)
+            sock = writer.get_extra_info("socket")
+            if sock is not None:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
             await self._converse(reader, Connection(writer, stats))
         except asyncio.CancelledError:  # the gateway stops: the client is let go
             pass
@@ -398,6 +407,7 @@ class Gateway:
             conn.queue.put_nowait(None)
             with contextlib.suppress(asyncio.CancelledError):
                 await asyncio.shield(worker)  # a request on the line completes
+            stats.dropped += conn.dropped
             if conn.dropped:
                 writes = f" ({conn.dropped_writes} write{'s' * (conn.dropped_writes != 1)})" \
                     if conn.dropped_writes else ""
@@ -494,6 +504,8 @@ class Gateway:
     async def _on_line(self, unit: int, ask: Ask, stats: ClientStats, queued: float | None,
                        dev: DevicePoller | None, conn: Connection | None) -> bytes:
         timeout = dev.config.response_timeout if dev is not None else self.config.timeout
+        if conn is not None and conn.gone():  # (no turn for a client already gone)
+            raise ClientGone
         async with self.turns.turn(id(stats)):
             if conn is not None:
                 if conn.gone():
