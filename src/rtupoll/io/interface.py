@@ -16,7 +16,7 @@ from typing import NoReturn, Protocol
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError, UsageError
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.functions import reply_values
-from rtupoll.rtu.line import Line
+from rtupoll.rtu.line import Line, UnitCounts
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
@@ -182,6 +182,10 @@ class LineBus:
 
     def evidence(self, unit: int) -> Evidence:
         return evidence(self.line, unit)
+
+    def unit_counts(self, unit: int) -> UnitCounts:
+        """``unit``'s attempts as the line counts them, and its idle gap: a live view."""
+        return UnitCounts(self.line, unit)
 
     def reply_time(self, unit: int) -> float | None:
         """``unit``'s last reply time (request's end to reply's first byte), if any."""
