@@ -130,7 +130,7 @@ ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose rec
               "so with --echo (echo: true on the bus in a site file)")
 
 
-@dataclass
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Outstanding:
     """A request whose answer has not been identified yet."""
 
@@ -158,7 +158,7 @@ class Garbled:
     final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
-@dataclass
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Attempt:
     """The request in flight (its outstanding entry) and what has arrived for it."""
 
