@@ -178,7 +178,7 @@ class LineBus:
 
     def late(self, unit: int) -> int:
         """Late replies from ``unit``: answers to requests that had timed out."""
-        return int(self.line.counts.late[unit])
+        return self.line.counts.late.get(unit, 0)  # (a Counter's miss: a Python call)
 
     def evidence(self, unit: int) -> Evidence:
         return evidence(self.line, unit)

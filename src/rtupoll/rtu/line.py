@@ -22,18 +22,20 @@ A unit without one costs one dictionary look-up.
 **Learned idle gap.** A device that needs a gap nobody set looks slow: its first
 attempt, sent right after another device's reply, is not heard; the retry, after a
 whole timeout of silence, is answered. Taken for a late answer to the first attempt,
-that would raise the learned timeout to its ceiling and starve the device. So when an
-attempt that heard nothing at all was sent after a shorter silence than the retry
-that was answered, the answer is the retry's (its reply time counted from the retry,
-never counted late) and the unit's gap is raised: to twice the silence that was not
-enough (at least ``GAP_STEP``), never beyond the silence that was (or ``GAP_MAX``).
-The unanswered attempts stay outstanding, *suspect*: should one still be answered,
-the device heard it and is slow, not deaf: the reply is counted late as ever (so the
-timeout learns), the learned gap is dropped and not learned again for that unit for
-``GAP_REFUTED`` seconds. At ``GAP_MAX`` the evidence no longer counts as a gap. A
+that would raise the learned timeout to its ceiling and starve the device. So when a
+retry is answered after a silence ``_longer`` than that of every earlier attempt of
+the same request, none of which heard anything at all, the answer is the retry's (its
+reply time counted from the retry, never counted late: the timeout does not climb).
+The first time, the earlier attempts stay outstanding as *suspects* (a one-off late
+reply looks the same): an answer to one while no longer attempt is in flight means
+the device heard it and is slow, not deaf: it is counted late as ever (the timeout
+learns), and the unit learns no gap for ``GAP_REFUTED`` seconds. The second time (a
+suspect among them, or a gap learned already) the unit's gap is raised: to twice the
+silence that was not enough (at least ``GAP_STEP``), never beyond the silence that
+worked nor ``GAP_MAX``; a silence of ``GAP_MAX`` that was not enough is no gap. A
 learned gap halves every ``GAP_HALF_LIFE`` seconds (a device that needed a pause for
-a while is not slowed for ever; one that still needs it raises it again after one
-unheard attempt) and is gone below the silence (``learned_gap``).
+a while is not slowed for ever; one that still needs it raises it again) and is gone
+below the silence (``learned_gap``; ``UnitCounts.gap`` for a unit's health).
 
 **Which reply answers which request.** RTU has no transaction id: a read reply carries
 only the unit, the function and a byte count, so a late reply to one request looks
@@ -302,10 +304,11 @@ class Line:
 
     # -- sending ---------------------------------------------------------------
 
-    def send(self, request: bytes, now: float, *, retry: bool = False) -> None:
+    def send(self, request: bytes, now: float, retry: bool = False) -> None:
         """``request`` starts on the wire at ``now``; its answer is awaited (not a
         broadcast). ``retry``: a retry of the same request (``Transaction``)."""
-        idle = now - max(self.last_rx, self.tx_end)
+        last = self.last_rx if self.last_rx > self.tx_end else self.tx_end
+        idle = now - last  # the silence before it
         if self.learned and request[0] in self.learned:
             self._decay(request[0], now)
         self.tx_end = now + self.framing.wire_time(len(request))

@@ -117,7 +117,7 @@ class Transaction:
                  tolerate: bool = False, turnaround: float = 0.1) -> None:
         if not 0 < timeout <= 60 or retries < 0:
             raise Refused(f"timeout {timeout} s / retries {retries} make no sense")
-        self.line, self.request = line, request
+        self.line, self.request, self.unit = line, request, request[0]
         self.timeout, self.retries, self.tolerate = timeout, retries, tolerate
         self.turnaround = turnaround
         framing = line.framing
@@ -149,7 +149,7 @@ class Transaction:
     def ready_at(self) -> float:
         """When the next attempt may go: the first honours the drain, a retry only the
         silence (the unit's idle gap, ``Line.set_idle_gap``, for both)."""
-        return self.line.ready_at(drain=self.attempts == 0, unit=self.request[0])
+        return self.line.ready_at(drain=self.attempts == 0, unit=self.unit)
 
     def next(self) -> Step:
         """What the driver does now."""
@@ -172,10 +172,10 @@ class Transaction:
     def sent(self, now: float) -> None:
         """The request started on the wire at ``now``."""
         framing = self.line.framing
-        self.line.send(self.request, now, retry=self.attempts > 0)
+        self.line.send(self.request, now, self.attempts > 0)  # (a retry after the first)
         self.attempts += 1
         self.wire += framing.wire_time(len(self.request))
-        if self.request[0] == 0:  # a broadcast: nobody answers
+        if self.unit == 0:  # a broadcast: nobody answers
             self.line.after_broadcast(self.turnaround)
             self.result = Done(b"", "broadcast")
             return
