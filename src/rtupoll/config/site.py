@@ -13,6 +13,7 @@ Pure: reads files, opens no port, imports no pymodbus.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -72,7 +73,7 @@ class DeviceConfig:
     def retry_count(self) -> int:
         return self.profile.limits.retries if self.retries is None else self.retries
 
-    @property
+    @functools.cached_property  # (asked before every transaction: computed once)
     def gap(self) -> float:
         """The silence the device needs on the line before a request (``Line.set_idle_gap``)."""
         return self.profile.limits.idle_gap if self.idle_gap is None else self.idle_gap

@@ -16,7 +16,7 @@ from typing import NoReturn, Protocol
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError, UsageError
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.functions import reply_values
-from rtupoll.rtu.line import Line
+from rtupoll.rtu.line import Line, UnitCounts
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
@@ -178,10 +178,14 @@ class LineBus:
 
     def late(self, unit: int) -> int:
         """Late replies from ``unit``: answers to requests that had timed out."""
-        return int(self.line.counts.late[unit])
+        return self.line.counts.late.get(unit, 0)  # (a Counter's miss: a Python call)
 
     def evidence(self, unit: int) -> Evidence:
         return evidence(self.line, unit)
+
+    def unit_counts(self, unit: int) -> UnitCounts:
+        """``unit``'s attempts as the line counts them, and its idle gap: a live view."""
+        return UnitCounts(self.line, unit)
 
     def reply_time(self, unit: int) -> float | None:
         """``unit``'s last reply time (request's end to reply's first byte), if any."""

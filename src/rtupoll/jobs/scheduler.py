@@ -314,7 +314,8 @@ class DevicePoller:
         st.requests += 1
         self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
-        st.line = self.timing.seen
+        if st.line is None:
+            st.line = self.timing.counts
         culprit = self.load.add(now, now - start,
                                 failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
                                 else None)

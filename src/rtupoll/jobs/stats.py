@@ -20,7 +20,7 @@ from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
 
 if TYPE_CHECKING:
-    from rtupoll.rtu.transaction import Evidence
+    from rtupoll.rtu.line import UnitCounts
 
 LATENCY_WINDOW = 1000  # transactions kept for the percentiles
 LOAD_WINDOW = 10.0  # seconds over which bus utilisation is measured
@@ -77,7 +77,7 @@ class DeviceStats:
     timeout: float | None = None  # the timeout used now, seconds beyond the wire time
     timeout_source: str = ""  # pinned (the user's) | profile (nothing learned yet) | learned
     # the line's count of the device's attempts (each by how it ended), its idle gap
-    line: Evidence | None = None
+    line: UnitCounts | None = None
     holes: list[str] = field(default_factory=list)  # registers learned never to bridge, why
     exceptions: Counter[int] = field(default_factory=Counter)
     latencies: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
@@ -105,8 +105,9 @@ class DeviceStats:
     # transaction counts above say what each read came to, these what the wire did
     @property
     def attempts(self) -> int:
-        """Requests put on the wire for the device, retries included."""
-        return self.line.attempts if self.line else 0
+        """Requests put on the wire for the device, retries included: each ended answered
+        (a transaction ``ok`` or an exception reply), garbled or timed out."""
+        return self.ok + self.exception_count + self.timed_out + self.garbled_attempts
 
     @property
     def timed_out(self) -> int:

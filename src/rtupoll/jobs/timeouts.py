@@ -40,6 +40,7 @@ from rtupoll.figures import nearest_rank
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
+    from rtupoll.rtu.line import UnitCounts
     from rtupoll.rtu.transaction import Evidence
 
 FLOOR = 0.02  # seconds: never wait less than this beyond the wire time and the silence
@@ -141,7 +142,7 @@ class DeviceTiming:
         self._late_seen: int | None = None
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
         self._gap = 0.0  # the idle gap last told to the bus
-        self.seen: Evidence | None = None  # the bus's evidence after the last transaction
+        self.counts: UnitCounts | None = None  # the bus's live count of the unit's attempts
 
     @property
     def timeout(self) -> float:
@@ -169,11 +170,13 @@ class DeviceTiming:
         if bus is None:
             est.ceiling, self._bounds = top, None
             return self.timeout
-        if gap is not None and gap != self._gap:
+        if gap != self._gap and gap is not None:
             bus.set_idle_gap(unit, gap)
             self._gap = gap
         bounds = (FLOOR + self.silence + bus.adapter_latency, top)
         if bounds != self._bounds:  # the first time, a reload, the adapter's latency known
+            counts = getattr(bus, "unit_counts", None)  # (a test's scripted bus has none)
+            self.counts = counts(unit) if counts is not None else None
             est.ceiling = top
             est.set_floor(bounds[0])
             self._bounds = bounds
@@ -193,7 +196,7 @@ class DeviceTiming:
         """``answered``: the transaction got a reply (data or an exception reply)."""
         if bus is None:
             return
-        evidence = self.seen = bus.evidence(unit)
+        evidence = bus.evidence(unit)
         if answered and evidence.reply_time is not None:
             self.estimator.answered(evidence.reply_time)
         self._take_late(evidence)

@@ -22,18 +22,20 @@ A unit without one costs one dictionary look-up.
 **Learned idle gap.** A device that needs a gap nobody set looks slow: its first
 attempt, sent right after another device's reply, is not heard; the retry, after a
 whole timeout of silence, is answered. Taken for a late answer to the first attempt,
-that would raise the learned timeout to its ceiling and starve the device. So when an
-attempt that heard nothing at all was sent after a shorter silence than the retry
-that was answered, the answer is the retry's (its reply time counted from the retry,
-never counted late) and the unit's gap is raised: to twice the silence that was not
-enough (at least ``GAP_STEP``), never beyond the silence that was (or ``GAP_MAX``).
-The unanswered attempts stay outstanding, *suspect*: should one still be answered,
-the device heard it and is slow, not deaf: the reply is counted late as ever (so the
-timeout learns), the learned gap is dropped and not learned again for that unit for
-``GAP_REFUTED`` seconds. At ``GAP_MAX`` the evidence no longer counts as a gap. A
+that would raise the learned timeout to its ceiling and starve the device. So when a
+retry is answered after a silence ``_longer`` than that of every earlier attempt of
+the same request, none of which heard anything at all, the answer is the retry's (its
+reply time counted from the retry, never counted late: the timeout does not climb).
+The first time, the earlier attempts stay outstanding as *suspects* (a one-off late
+reply looks the same): an answer to one while no longer attempt is in flight means
+the device heard it and is slow, not deaf: it is counted late as ever (the timeout
+learns), and the unit learns no gap for ``GAP_REFUTED`` seconds. The second time (a
+suspect among them, or a gap learned already) the unit's gap is raised: to twice the
+silence that was not enough (at least ``GAP_STEP``), never beyond the silence that
+worked nor ``GAP_MAX``; a silence of ``GAP_MAX`` that was not enough is no gap. A
 learned gap halves every ``GAP_HALF_LIFE`` seconds (a device that needed a pause for
-a while is not slowed for ever; one that still needs it raises it again after one
-unheard attempt) and is gone below the silence (``learned_gap``).
+a while is not slowed for ever; one that still needs it raises it again) and is gone
+below the silence (``learned_gap``; ``UnitCounts.gap`` for a unit's health).
 
 **Which reply answers which request.** RTU has no transaction id: a read reply carries
 only the unit, the function and a byte count, so a late reply to one request looks
@@ -131,7 +133,7 @@ ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose rec
               "so with --echo (echo: true on the bus in a site file)")
 
 
-@dataclass
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Outstanding:
     """A request whose answer has not been identified yet."""
 
@@ -159,7 +161,7 @@ class Garbled:
     final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
-@dataclass
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Attempt:
     """The request in flight (its outstanding entry) and what has arrived for it."""
 
@@ -177,10 +179,45 @@ class LineCounts:
     unsolicited: int = 0  # frames and bursts that answered nothing we asked
     echoes: int = 0  # requests that came back with echo off (the adapter echoes)
     gap_raised: Counter[int] = field(default_factory=Counter)  # learned idle gap raises
-    sent: Counter[int] = field(default_factory=Counter)  # attempts (requests put on the wire)
     garbled: Counter[int] = field(default_factory=Counter)  # attempts ended by a garbled reply
     timeouts: Counter[int] = field(default_factory=Counter)  # attempts that got no reply
     retried: Counter[int] = field(default_factory=Counter)  # answered only by a retry
+
+
+class UnitCounts:
+    """One unit's share of what a line counts, read when asked (a device's health:
+    ``jobs.stats``): nothing is copied per transaction. Every attempt ends answered,
+    garbled or timed out (or as an echo, with echo off)."""
+
+    __slots__ = ("line", "unit")
+
+    def __init__(self, line: Line, unit: int) -> None:
+        self.line, self.unit = line, unit
+
+    @property
+    def timeouts(self) -> int:
+        """Attempts that got no reply."""
+        return self.line.counts.timeouts.get(self.unit, 0)
+
+    @property
+    def garbled(self) -> int:
+        """Attempts ended by a garbled reply (an echo is not one)."""
+        return self.line.counts.garbled.get(self.unit, 0)
+
+    @property
+    def retried(self) -> int:
+        """Transactions answered only by a retry."""
+        return self.line.counts.retried.get(self.unit, 0)
+
+    @property
+    def gap(self) -> float:
+        """The idle gap a request to the unit waits for, beyond the 3.5 characters (0: none)."""
+        return self.line.gaps.get(self.unit, self.line.line_gap)
+
+    @property
+    def gap_learned(self) -> bool:
+        """Its gap is (also) learned (``Line.learned_gap``), not only set."""
+        return self.unit in self.line.learned
 
 
 class Line:
@@ -219,11 +256,12 @@ class Line:
         # the silence before a request: the line's (every unit's) and per unit, as set
         self.idle_gap = idle_gap
         self._gap_set: dict[int, float] = {}
-        # the gap each unit gets (set, the line's), only where above the 3.5 characters
-        self._gap: dict[int, float] = {}
+        # the gap each unit gets (set, learned, the line's), where above the 3.5 characters
+        self.gaps: dict[int, float] = {}
         self._quiet = max(framing.silence, idle_gap)  # any other unit's
+        self.line_gap = idle_gap if idle_gap > framing.silence else 0.0  # theirs, beyond it
         # per unit, a learned idle gap: (seconds, since when); refuted: until when none is
-        self._learned: dict[int, tuple[float, float]] = {}
+        self.learned: dict[int, tuple[float, float]] = {}
         self._refuted: dict[int, float] = {}
         self._suspected: set[int] = set()  # units with suspects outstanding
 
@@ -239,30 +277,26 @@ class Line:
 
     def gap(self, unit: int) -> float:
         """The silence a request to ``unit`` waits for (the 3.5 characters at least)."""
-        return self._gap.get(unit, self._quiet)
-
-    def gap_learned(self, unit: int) -> bool:
-        """Whether ``unit``'s gap is (also) learned."""
-        return unit in self._learned
+        return self.gaps.get(unit, self._quiet)
 
     @property
     def learned_gap(self) -> dict[int, float]:
         """Per unit, the idle gap learned (as of its last request), where one is."""
-        return {unit: gap for unit, (gap, _) in self._learned.items()}
+        return {unit: gap for unit, (gap, _) in self.learned.items()}
 
     def _regap(self, unit: int) -> None:
-        learned = self._learned.get(unit)
+        learned = self.learned.get(unit)
         gap = max(self._gap_set.get(unit, 0.0), self.idle_gap, learned[0] if learned else 0.0)
         if gap > self.framing.silence:
-            self._gap[unit] = gap
+            self.gaps[unit] = gap
         else:
-            self._gap.pop(unit, None)
+            self.gaps.pop(unit, None)
 
-    def ready_at(self, *, drain: bool = True, unit: int | None = None) -> float:
-        """The earliest time the next request (to ``unit``: its idle gap) may start
-        (``drain``: honour a drain)."""
-        gap = self._quiet if unit is None else self._gap.get(unit, self._quiet)
-        ready = max(self.last_rx, self.tx_end) + gap
+    def ready_at(self, *, drain: bool = True, unit: int = -1) -> float:
+        """The earliest time the next request (to ``unit``: its idle gap; none named: the
+        line's) may start (``drain``: honour a drain)."""
+        ready = max(self.last_rx, self.tx_end) + (
+            self.gaps.get(unit, self._quiet) if self.gaps else self._quiet)
         if drain and self.drain_for:
             quiet = max(self.last_rx, self.timeout_at) + self.drain_for
             ready = max(ready, min(quiet, self.timeout_at + self._drain_limit * self.drain_for))
@@ -274,13 +308,14 @@ class Line:
 
     # -- sending ---------------------------------------------------------------
 
-    def send(self, request: bytes, now: float, *, retry: bool = False) -> None:
+    def send(self, request: bytes, now: float, retry: bool = False) -> None:
         """``request`` starts on the wire at ``now``; its answer is awaited (not a
         broadcast). ``retry``: a retry of the same request (``Transaction``)."""
         if self.tap is not None:
             self.tap(True, request)
-        idle = now - max(self.last_rx, self.tx_end)
-        if self._learned and request[0] in self._learned:
+        last = self.last_rx if self.last_rx > self.tx_end else self.tx_end
+        idle = now - last  # the silence before it
+        if self.learned and request[0] in self.learned:
             self._decay(request[0], now)
         self.tx_end = now + self.framing.wire_time(len(request))
         self.drain_for = 0.0
@@ -296,7 +331,6 @@ class Line:
             self.attempt = None
             return
         entry = Outstanding(request, exp, now, now + self._settle(exp.unit), idle, retry)
-        self.counts.sent[exp.unit] += 1
         self._outstanding.setdefault(exp.unit, deque()).append(entry)
         self.attempt = Attempt(entry)
 
@@ -437,17 +471,20 @@ class Line:
             return False
         in_flight = att.entry if att is not None else None
         queue = self._outstanding[unit]
+        # (one fit and no suspects, the usual case: none of this applies)
         if len(fits) > 1 and in_flight in fits and self._unheard(unit, fits, in_flight, began):
+            assert in_flight is not None
             for e in fits:  # answered; the attempts that were not heard: see _unheard
                 if e is in_flight or (e.silent and not e.suspect):
                     queue.remove(e)
             if not queue:
                 del self._outstanding[unit]
-            self._latency[unit] = max(began - in_flight.sent, 0.95 * self._latency.get(unit, 0.0))
+            self._latency[unit] = max(began - in_flight.sent,
+                                      0.95 * self._latency.get(unit, 0.0))
             self.reply_time[unit] = max(
                 0.0, began - in_flight.sent - self.framing.wire_time(len(in_flight.request)))
             return True
-        if unit in self._suspected and any(e.suspect for e in fits):
+        if self._suspected and unit in self._suspected and any(e.suspect for e in fits):
             self._refute(unit, began)  # one taken for not heard may be answered: it was heard
         gone = min(fits, key=lambda e: e.expires)
         queue.remove(gone)
@@ -467,7 +504,7 @@ class Line:
 
     # -- the learned idle gap ---------------------------------------------------
 
-    def _unheard(self, unit: int, fits: list[Outstanding], in_flight: Outstanding | None,
+    def _unheard(self, unit: int, fits: list[Outstanding], in_flight: Outstanding,
                  began: float) -> bool:
         """Whether one frame that fits ``fits`` (the attempt in flight among them) is the
         answer in flight's, the others not heard by the device (module docstring):
@@ -481,7 +518,6 @@ class Line:
           them: its answer (the suspects stay).
 
         Anything else, a suspect among them, refutes (``_refute``)."""
-        assert in_flight is not None
         older = [e for e in fits if e is not in_flight]
         if any(e.request != in_flight.request or not _longer(in_flight.idle, e.idle)
                for e in older) or self._refuted.get(unit, -math.inf) > began:
@@ -494,14 +530,14 @@ class Line:
         short = max(e.idle for e in fresh)
         if short >= GAP_MAX:  # that long a silence was not enough: no gap explains it
             return False
-        if len(fresh) == len(older) and unit not in self._learned:  # the first time
+        if len(fresh) == len(older) and unit not in self.learned:  # the first time
             for e in fresh:
                 e.suspect = True
             self._suspected.add(unit)
             return True
-        was = self._learned.get(unit, (0.0, began))[0]
+        was = self.learned.get(unit, (0.0, began))[0]
         gap = min(GAP_MAX, in_flight.idle, max(GAP_STEP, 2 * short))
-        self._learned[unit] = (max(gap, was), began)
+        self.learned[unit] = (max(gap, was), began)
         self._regap(unit)
         self.counts.gap_raised[unit] += 1
         for e in older:
@@ -515,17 +551,17 @@ class Line:
         self._suspected.discard(unit)
         for e in self._outstanding.get(unit, ()):
             e.suspect = False
-        if self._learned.pop(unit, None) is not None:
+        if self.learned.pop(unit, None) is not None:
             self._regap(unit)
 
     def _decay(self, unit: int, now: float) -> None:
         """A learned gap halves every ``GAP_HALF_LIFE`` seconds; below the silence it is gone."""
-        gap, since = self._learned[unit]
+        gap, since = self.learned[unit]
         left = gap * 0.5 ** ((now - since) / GAP_HALF_LIFE)
         if left <= self.framing.silence:
-            del self._learned[unit]
+            del self.learned[unit]
         else:
-            self._learned[unit] = (left, now)
+            self.learned[unit] = (left, now)
         self._regap(unit)
 
     def _garbled(self, att: Attempt) -> str | None:

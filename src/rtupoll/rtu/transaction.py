@@ -117,7 +117,7 @@ class Transaction:
                  tolerate: bool = False, turnaround: float = 0.1) -> None:
         if not 0 < timeout <= 60 or retries < 0:
             raise Refused(f"timeout {timeout} s / retries {retries} make no sense")
-        self.line, self.request = line, request
+        self.line, self.request, self.unit = line, request, request[0]
         self.timeout, self.retries, self.tolerate = timeout, retries, tolerate
         self.turnaround = turnaround
         framing = line.framing
@@ -149,7 +149,7 @@ class Transaction:
     def ready_at(self) -> float:
         """When the next attempt may go: the first honours the drain, a retry only the
         silence (the unit's idle gap, ``Line.set_idle_gap``, for both)."""
-        return self.line.ready_at(drain=self.attempts == 0, unit=self.request[0])
+        return self.line.ready_at(drain=self.attempts == 0, unit=self.unit)
 
     def next(self) -> Step:
         """What the driver does now."""
@@ -172,10 +172,10 @@ class Transaction:
     def sent(self, now: float) -> None:
         """The request started on the wire at ``now``."""
         framing = self.line.framing
-        self.line.send(self.request, now, retry=self.attempts > 0)
+        self.line.send(self.request, now, self.attempts > 0)  # (a retry after the first)
         self.attempts += 1
         self.wire += framing.wire_time(len(self.request))
-        if self.request[0] == 0:  # a broadcast: nobody answers
+        if self.unit == 0:  # a broadcast: nobody answers
             self.line.after_broadcast(self.turnaround)
             self.result = Done(b"", "broadcast")
             return
@@ -264,26 +264,17 @@ class BusStats:
 
 @frozen
 class Evidence:
-    """What the line knows of one unit (``rtupoll.jobs.timeouts``, the device's health):
-    its reply times, and each attempt counted by how it ended (``LineCounts``)."""
+    """What the line knows of one unit's reply times (``rtupoll.jobs.timeouts``)."""
 
     late: int = 0  # replies that came after their request had timed out
     reply_time: float | None = None  # the last answer's
     late_reply_time: float | None = None  # the last late reply's
-    attempts: int = 0  # requests put on the wire, retries included
-    timeouts: int = 0  # attempts that got no reply
-    garbled: int = 0  # attempts ended by a garbled reply
-    retried: int = 0  # transactions answered only by a retry
-    gap: float = 0.0  # the idle gap a request to it waits for (0: the 3.5 characters)
-    gap_learned: bool = False  # learned (``Line.learned_gap``), not (only) set
 
 
 def evidence(line: Line, unit: int) -> Evidence:
-    c = line.counts
-    gap = line.gap(unit)
-    return Evidence(int(c.late[unit]), line.reply_time.get(unit), line.late_reply_time.get(unit),
-                    c.sent[unit], c.timeouts[unit], c.garbled[unit], c.retried[unit],
-                    gap if gap > line.framing.silence else 0.0, line.gap_learned(unit))
+    # (get: a Counter's missing key costs a Python call, and this is once a transaction)
+    return Evidence(line.counts.late.get(unit, 0), line.reply_time.get(unit),
+                    line.late_reply_time.get(unit))
 
 
 # -- requests, checked before anything is sent -----------------------------------------
