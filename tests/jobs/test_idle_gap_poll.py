@@ -7,17 +7,23 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import io
 from typing import Any
 
+import pytest
+from rich.console import Console
 from test_poll_faults import PollProcess
-from virtual import simulated
+from virtual import VirtualClock, simulated
 
 from rtupoll.config.site import from_specs
-from rtupoll.jobs.scheduler import Backoff, BusPoller
+from rtupoll.jobs.scheduler import BusPoller, Scheduler
 from rtupoll.jobs.timeouts import CEILING
+from rtupoll.outputs.metrics import SchedulerCollector
 from rtupoll.rtu import Table, read_request
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
+from rtupoll.ui.live import PollView
+from rtupoll.web.state import Clocks, health_state
 
 NEEDS = 0.05  # the Huiwen's gap, seconds
 SECONDS = 15.0
@@ -26,15 +32,8 @@ SECONDS = 15.0
 def poll_15s(gap: float | None) -> tuple[BusPoller, dict[str, int]]:
     """15 virtual seconds of both at --interval 0, at 9600 baud; ``gap``: the Huiwen's
     idle_gap as set (None: none set, learned)."""
-    bus, clock = simulated(["huiwen-aq@3", "radar-level@7"], [f"3:gap={NEEDS}"],
-                           baudrate=9600, turnaround=0.005)
-    site = from_specs("virtual", [("huiwen-aq", 3), ("radar-level", 7)], baudrate=9600,
-                      interval=0, check_serial=False)
-    b = site.buses[0]
-    if gap is not None:
-        b = dataclasses.replace(b, devices=(dataclasses.replace(b.devices[0], idle_gap=gap),
-                                            b.devices[1]))
-    bp = BusPoller(b, bus, backoff=Backoff(), clock=clock, wall=clock)
+    scheduler, clock = gap_site(gap)
+    bp = scheduler.buses[0]
 
     async def go() -> None:
         end = clock.now + SECONDS
@@ -45,6 +44,20 @@ def poll_15s(gap: float | None) -> tuple[BusPoller, dict[str, int]]:
 
     asyncio.run(go())
     return bp, {d.config.name: d.stats.ok for d in bp.devices}
+
+
+def gap_site(gap: float | None) -> tuple[Scheduler, VirtualClock]:
+    """The Huiwen that needs ``NEEDS`` beside the radar, on one virtual bus."""
+    bus, clock = simulated(["huiwen-aq@3", "radar-level@7"], [f"3:gap={NEEDS}"],
+                           baudrate=9600, turnaround=0.005)
+    site = from_specs("virtual", [("huiwen-aq", 3), ("radar-level", 7)], baudrate=9600,
+                      interval=0, check_serial=False)
+    b = site.buses[0]
+    if gap is not None:
+        b = dataclasses.replace(b, devices=(dataclasses.replace(b.devices[0], idle_gap=gap),
+                                            b.devices[1]))
+    site = dataclasses.replace(site, buses=(b,))
+    return Scheduler(site, open_bus=lambda _: bus, clock=clock), clock
 
 
 def test_the_simulated_device_ignores_a_request_sooner_than_its_gap() -> None:
@@ -68,6 +81,37 @@ def test_a_gap_needing_device_beside_a_busy_one_gets_its_gap_learned() -> None:
     assert line.counts.late[3] == 0
     # before: 6 reads of the Huiwen against 130 of the radar (its timeout at 3 s)
     assert ok["huiwen-aq@3"] >= 30 and ok["radar-level@7"] >= 250, ok
+
+
+def test_a_learned_gap_is_shown_in_the_footer_the_api_and_the_metrics() -> None:
+    scheduler, clock = gap_site(None)
+
+    async def go() -> None:
+        bp = scheduler.buses[0]
+        end = clock.now + SECONDS
+        while clock.now < end:
+            dev = bp.next_device()
+            clock.now = max(clock.now, dev.next_due)
+            await bp.run_one(dev, lambda d, rs: None)
+
+    asyncio.run(go())
+    huiwen, radar = scheduler.pollers()
+    health = health_state(huiwen, Clocks())
+    assert health["idle_gap_source"] == "learned" and health["idle_gap"] >= NEEDS
+    assert health["timed_out_attempts"] >= 2 and health["retried"] >= 2
+    assert health_state(radar, Clocks())["idle_gap"] == 0.0
+    samples = {(s.name, s.labels.get("device"), s.labels.get("source")): s.value
+               for family in SchedulerCollector(scheduler, clock=clock).collect()
+               for s in family.samples}
+    assert samples["rtupoll_device_idle_gap_seconds", "huiwen-aq@3", "learned"] == \
+        pytest.approx(health["idle_gap"])
+    assert not [k for k in samples if k[0] == "rtupoll_device_idle_gap_seconds"
+                and k[1] == "radar-level@7"]
+    out = io.StringIO()
+    Console(file=out, width=120, color_system=None).print(
+        PollView(scheduler.buses, title="virtual").health_table(120))
+    row = next(line for line in out.getvalue().splitlines() if "huiwen-aq@3" in line)
+    assert f"~{health['idle_gap'] * 1000:.0f} ms" in row
 
 
 def test_a_gap_set_costs_no_attempt_and_no_learning() -> None:
