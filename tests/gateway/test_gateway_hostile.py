@@ -101,7 +101,7 @@ def test_a_client_that_never_reads_takes_no_others_place_and_memory_stays_bounde
     assert {r[0] for r in replies} == {0x04}, sorted({r[:2].hex() for r in replies})
     # without back-pressure, rtupoll read all 40 MB and its 0x0A replies piled up unread
     assert sent < 20_000_000, sent
-    assert after - before < 16 * 1024, (before, after, sent)
+    assert after - before < 4 * 1024, (before, after, sent)  # kB (was +118 MB)
     assert proc.returncode == 0, err
 
 
