@@ -138,9 +138,12 @@ def test_probe_timeout_is_wire_time_silence_and_margin() -> None:
 
 def test_broadcast_any_and_reserved_addresses_are_skipped_and_say_why() -> None:
     why = skipped(range(0, 256), LIB)
-    assert set(why) == {0, 0xFE, 0xCC, 0xF8}
+    # Huawei reserves 248..255; the R4DCB08 answers 255 whatever its address. An 'any
+    # device' address is named as such even where another profile reserves it
+    assert set(why) == {0, 0xFE, 0xCC, 0xF8} | set(range(248, 256))
     assert "co2meter-an117" in why[0xFE]
     assert "peacefair-pzem016" in why[0xF8]  # the PZEM's "general address"
+    assert "reserved by huawei-sun2000" in why[249] and "every r4dcb08" in why[255]
 
 
 def test_address_lists_and_their_errors() -> None:
