@@ -114,9 +114,11 @@ def skipped(addresses: Iterable[int], profiles: Iterable[Profile]) -> dict[int, 
     wanted = set(addresses)
     if 0 in wanted:
         why[0] = "broadcast: every device acts on it and none answers"
-    for p in profiles:
+    profiles = list(profiles)
+    for p in profiles:  # an 'any device' address first: devices answer there
         if p.addresses.any in wanted and p.addresses.any is not None:
             why.setdefault(p.addresses.any, f"every {p.id} answers it ('any device' address)")
+    for p in profiles:
         for a, reason in p.addresses.reserved.items():
             if a in wanted:
                 why.setdefault(a, f"reserved by {p.id}: {reason}")
