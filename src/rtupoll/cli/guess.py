@@ -77,11 +77,7 @@ def guess(args: tuple[str, ...], port: str | None, unit: int | None, offline: bo
     if known is not None:
         return _known(args, known, port, unit, offline, timeout, top, fmt, given)
     if offline:
-        specs = [a for a in args if ":" in a]
-        words = parse_words([a for a in args if ":" not in a])
-        if not words:
-            raise UsageError("--words needs the registers, e.g. --words 0000 A0C1")
-        table, start = (_spec(specs[0])[:2]) if specs else (Table.HOLDING, 0)
+        table, start, words = _given(args)
         first, count = start, len(words)
         source = f"{len(words)} register(s) given"
     else:
@@ -127,11 +123,7 @@ def _known(args: tuple[str, ...], text: str, port: str | None, unit: int | None,
                              "register values")
         table, start = field.table, field.address
     elif offline:
-        specs = [a for a in args if ":" in a]
-        words = parse_words([a for a in args if ":" not in a])
-        if not words:
-            raise UsageError("--words needs the registers, e.g. --words 0000 A0C1")
-        table, start = (_spec(specs[0])[:2]) if specs else (Table.HOLDING, 0)
+        table, start, words = _given(args)
     else:
         if len(args) != 1 or args[0].count(":") != 1:
             raise UsageError("--known VALUE takes TABLE:START, where the manual says the "
@@ -216,6 +208,16 @@ def _setting_of(field: Any) -> str:
 
     lay = field.layout
     return Solution(field.address, 0, lay.type, lay.order, lay.scale, (), 0.0, 0.0).setting
+
+
+def _given(args: tuple[str, ...]) -> tuple[Table, int, tuple[int, ...]]:
+    """``--words``: the registers in hex, and where they start (TABLE:START, else holding 0)."""
+    specs = [a for a in args if ":" in a]
+    words = parse_words([a for a in args if ":" not in a])
+    if not words:
+        raise UsageError("--words needs the registers, e.g. --words 0000 A0C1")
+    table, start = (_spec(specs[0])[:2]) if specs else (Table.HOLDING, 0)
+    return table, start, words
 
 
 def _spec(text: str) -> tuple[Table, int, int]:
