@@ -253,7 +253,10 @@ MALFORMED = {
     "no Host": b"GET /api/state HTTP/1.1\r\nConnection: close\r\n\r\n",
     "NUL in the path": b"GET /api/st\x00ate HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n",
     "huge headers": b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-A: " + b"a" * 20_000 + b"\r\n\r\n",
-    "many headers": b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n" + b"X: y\r\n" * 500 + b"\r\n",
+    # (aiohttp before 3.10 takes 500 headers, answers and keeps the connection: closed
+    # here, so the answer ends)
+    "many headers": b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n"
+                    + b"X: y\r\n" * 500 + b"\r\n",
     "a bad chunk": b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nTransfer-Encoding: chunked\r\n\r\n"
                    b"zz\r\nxx\r\n",
     "HTTP/2's preface": b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n",
