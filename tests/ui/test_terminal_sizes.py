@@ -9,6 +9,7 @@ Piped, ``poll`` writes records as they come and says so in one stderr line.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import re
@@ -33,10 +34,13 @@ Sim = Callable[..., SimulatedBus]
 pytestmark = pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux")
 
 
+_SESSIONS = itertools.count()  # a tmux server of its own for each terminal, even in a row
+
+
 @contextmanager
 def terminal(width: int, height: int, command: list[str]) -> Iterator[Callable[[], list[str]]]:
     """``command`` in a tmux pane of ``width`` x ``height``; yields a screen grabber."""
-    sock = f"rtupoll-test-{os.getpid()}-{width}x{height}"
+    sock = f"rtupoll-test-{os.getpid()}-{next(_SESSIONS)}-{width}x{height}"  # one a call
     tmux = ["tmux", "-L", sock]
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     env["TERM"] = "xterm-256color"  # the size is the terminal's, as for a person
