@@ -56,25 +56,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from soak import free_port, rss_kb  # (benchmarks/, run from the checkout as the others)
+
 RSS_BAR_KB = 1024
 P95_BAR = 2.0
 READ = struct.pack(">BHH", 4, 0x7536, 4)  # huiwen-aq: PM2.5, TVOC, HCHO, CO2
 WRITE = struct.pack(">BHHB", 16, 0x0200, 2, 4) + bytes.fromhex("0000 4248")  # IRNET gas
 HALF = b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: "
 HANG = 30.0  # a socket wait that never comes back ends the client's loop
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def rss_kb(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise RuntimeError("no VmRSS")
 
 
 def mbap(tid: int, unit: int, pdu: bytes) -> bytes:

@@ -9,13 +9,14 @@ poller under test is the real one: ``rtupoll.jobs.scheduler.Scheduler`` over
 from __future__ import annotations
 
 import contextlib
+import json
 import resource
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from rtupoll.config.site import DeviceConfig, Site, from_specs
@@ -79,3 +80,22 @@ def cpu_seconds() -> float:
     the kernel's resolution (``os.times`` counts whole clock ticks)."""
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
+
+
+def transactions_of(site: Site) -> Callable[[list[str]], int]:
+    """How many transactions the ``poll --format json`` records of ``site`` cost: each
+    device's complete cycles (records / its fields) times its planned block reads."""
+    from rtupoll.jobs.scheduler import Scheduler
+
+    blocks = {d.config.name: len(d.blocks)
+              for d in Scheduler(site, open_bus=lambda config: None).pollers()}
+    fields = {d.name: len(d.fields) for _, d in site.devices()}
+
+    def transactions(lines: list[str]) -> int:
+        per_device: dict[str, int] = {}
+        for line in lines:
+            name = json.loads(line)["device"]
+            per_device[name] = per_device.get(name, 0) + 1
+        return sum(n // fields[d] * blocks[d] for d, n in per_device.items())
+
+    return transactions

@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import json
 import os
 import signal
 import statistics
@@ -42,7 +41,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from poll_common import cpu_seconds, seed_site, simulator
+from poll_common import cpu_seconds, seed_site, simulator, transactions_of
 
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
@@ -129,15 +128,7 @@ def command(port: str, baud: int, seconds: float, source: str | None = None
     per process, is left out), CPU from /proc/PID/stat. ``source``: run rtupoll from
     that source tree instead (``--baseline``: another version, in the same rounds)."""
     site = seed_site(port, baud, DEVICES)
-    blocks = {d.config.name: len(d.blocks) for d in Scheduler(site, open_bus=_no_bus).pollers()}
-    fields = {d.name: len(d.fields) for _, d in site.devices()}
-
-    def transactions(lines: list[str]) -> int:
-        per_device: dict[str, int] = {}
-        for line in lines:
-            name = json.loads(line)["device"]
-            per_device[name] = per_device.get(name, 0) + 1
-        return sum(n // fields[d] * blocks[d] for d, n in per_device.items())
+    transactions = transactions_of(site)
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "readings.jsonl"

@@ -19,7 +19,6 @@ Run: .venv/bin/python benchmarks/poll_instructions.py --baseline /tmp/base/src
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import signal
@@ -30,29 +29,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from poll_common import seed_site, simulator
-
-from rtupoll.jobs.scheduler import Scheduler
+from poll_common import seed_site, simulator, transactions_of
 
 DEVICES = ("radar-level@2", "huiwen-aq@3", "co2meter-an117@4")
-
-
-def _no_bus(config: object) -> object:
-    return None
 
 
 def measure(port: str, baud: int, seconds: float, source: str | None) -> tuple[int, int]:
     """(instructions, transactions) of the command in a steady window."""
     site = seed_site(port, baud, DEVICES)
-    blocks = {d.config.name: len(d.blocks) for d in Scheduler(site, open_bus=_no_bus).pollers()}
-    fields = {d.name: len(d.fields) for _, d in site.devices()}
-
-    def transactions(lines: list[str]) -> int:
-        per_device: dict[str, int] = {}
-        for line in lines:
-            name = json.loads(line)["device"]
-            per_device[name] = per_device.get(name, 0) + 1
-        return sum(n // fields[d] * blocks[d] for d, n in per_device.items())
+    transactions = transactions_of(site)
 
     with tempfile.TemporaryDirectory() as tmp:
         out, profile = Path(tmp) / "readings.jsonl", Path(tmp) / "callgrind.out"
