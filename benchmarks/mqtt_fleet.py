@@ -129,9 +129,9 @@ async def publish_cpu(url: str, baud: int, messages: int) -> float:
     before, sent = time.process_time(), service.published
     for i in range(messages):
         d = devices[i % len(devices)]
-        service._flushed.clear()
+        service.outbox.flushed.clear()
         service.on_readings(d, readings[d.config.name])
-        await service._flushed.wait()
+        await service.outbox.flushed.wait()
     spent, count = time.process_time() - before, service.published - sent
     await service.stop()
     return spent / max(count, 1)

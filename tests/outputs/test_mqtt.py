@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,7 @@ from rtupoll.config.site import BusConfig, from_specs, load_site
 from rtupoll.errors import ConfigError, RefusedError, UsageError
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.outputs import homeassistant as ha
-from rtupoll.outputs.mqtt import Outbox, backoff, device_topics, plain, topic_name
+from rtupoll.outputs.mqtt import plain, topic_name
 from rtupoll.outputs.mqtt_commands import WRITES_OFF, failed, plan_get, plan_set, protected
 from rtupoll.rtu import Table
 
@@ -115,21 +116,6 @@ def test_site_section_mistakes_are_file_line(tmp_path: Path, section: str, where
     with pytest.raises(ConfigError) as err:
         load_site(path)
     assert str(err.value).startswith(f"{path}:{where}")
-
-
-def test_topic_names_are_safe_and_distinct() -> None:
-    assert topic_name("radar-level@4") == "radar-level_4"
-    assert topic_name("tank 1/north") == "tank_1_north"
-    site = from_specs("/dev/null", [("huiwen-aq", 3), ("radar-level", 4)])
-    assert device_topics(site) == {"huiwen-aq@3": "huiwen-aq_3", "radar-level@4": "radar-level_4"}
-
-
-def test_topic_collisions_are_refused(tmp_path: Path) -> None:
-    path = site_file(tmp_path, "").read_text().replace("name: air", "name: tank 4") \
-        .replace("name: tank,", "name: tank_4,")
-    (tmp_path / "site.yaml").write_text(path)
-    with pytest.raises(UsageError, match="'tank 4' and 'tank_4' would share"):
-        device_topics(load_site(tmp_path / "site.yaml"))
 
 
 # -- Home Assistant discovery -------------------------------------------------
@@ -241,30 +227,6 @@ def test_get_takes_nothing_a_list_or_fields() -> None:
         plan_get(dev, b'["analog_1_peak"]')
 
 
-# -- the outbox and reconnection --------------------------------------------
-
-def test_outbox_keeps_the_latest_per_topic_and_is_bounded() -> None:
-    box = Outbox(limit=2)
-    box.put("a", "1", retain=False, qos=0)
-    box.put("b", "1", retain=True, qos=0)
-    box.put("a", "2", retain=False, qos=0)
-    box.put("c", "1", retain=False, qos=0)  # over the limit: dropped
-    assert box.dropped == 2 and len(box) == 2
-    first = box.pop()
-    assert first is not None and first[0] == "a" and first[1].payload == "2"
-    box.restore(*first)
-    assert len(box) == 2
-    box.put("b", "3", retain=True, qos=0)
-    second = box.pop()
-    assert second is not None and second[1].payload == "3"
-
-
-def test_reconnect_backoff_doubles_to_a_cap() -> None:
-    mid = [backoff(n, lambda: 0.5) for n in (1, 2, 3, 4, 12)]
-    assert mid == [0.5, 1.0, 2.0, 4.0, 30.0]
-    assert backoff(1, lambda: 0.0) == pytest.approx(0.4)
-
-
 def test_plain_values() -> None:
     assert [plain(v) for v in (12.5, "GOOD", ["A", "B"], True)] == \
         ["12.5", "GOOD", '["A","B"]', "true"]
@@ -305,26 +267,6 @@ def test_poll_now_and_submit_run_ahead_of_the_schedule() -> None:
     asyncio.run(asyncio.wait_for(main(), 10))
 
 
-def test_the_live_table_footer_says_where_and_how(tmp_path: Path) -> None:
-    from rtupoll.outputs.mqtt import MqttService
-
-    site = load_site(site_file(tmp_path, "mqtt:\n  url: mqtt://broker.lan/plant\n"))
-    assert site.mqtt is not None
-
-    async def footer() -> str:
-        assert site.mqtt is not None
-        service = MqttService(site.mqtt, site, log_lines=False)
-        service.outbox.put("plant/air", "{}", retain=False, qos=0)
-        text = service.footer().plain
-        service.lost_at, service.last_error = 0.0, "connection refused"
-        return text + "\n" + service.footer().plain
-
-    connecting, lost = asyncio.run(footer()).split("\n")
-    assert connecting == ("mqtt mqtt://broker.lan:1883/plant · connecting · 0 published · "
-                          "1 waiting")
-    assert "broker lost" in lost and "(connection refused), reconnecting" in lost
-
-
 def test_a_missing_aiomqtt_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
     import sys
 
@@ -338,3 +280,25 @@ def test_a_missing_aiomqtt_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
     assert str(err.value) == ("MQTT (--mqtt, or mqtt: in the site file) needs aiomqtt: "
                               + install_command("mqtt")[1])
     assert err.value.exit_code == 2
+
+
+def test_the_live_table_footer_says_where_and_how(tmp_path: Path) -> None:
+    from rtupoll.outputs.mqtt import MqttService
+
+    site = load_site(site_file(tmp_path, "mqtt:\n  url: mqtt://broker.lan/plant\n"))
+    assert site.mqtt is not None
+
+    async def footer() -> str:
+        assert site.mqtt is not None
+        service = MqttService(site.mqtt, site, log_lines=False)
+        service.outbox.put("plant/air", "{}", retain=False, qos=0)
+        text = service.footer().plain
+        c = service.connection
+        c.lost_at, c.last_error = time.monotonic() - 12, "connection refused"
+        return text + "\n" + service.footer().plain
+
+    connecting, lost = asyncio.run(footer()).split("\n")
+    assert connecting == ("mqtt mqtt://broker.lan:1883/plant · connecting · 0 published · "
+                          "1 waiting")
+    assert lost.startswith("mqtt mqtt://broker.lan:1883/plant · broker lost 12 s ago "
+                           "(connection refused), reconnecting")

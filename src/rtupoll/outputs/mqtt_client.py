@@ -129,6 +129,35 @@ def make_client(settings: MqttSettings, *, will: bool) -> aiomqtt.Client:
     return client
 
 
+async def close(client: aiomqtt.Client) -> None:
+    """Leave the client's session, whatever state it is in (never raises)."""
+    with contextlib.suppress(Exception):
+        await client.__aexit__(None, None, None)
+
+
+async def retained(client: aiomqtt.Client, base: str, topics: list[str]) -> dict[str, bytes]:
+    """The retained payloads (not empty) of ``topics`` (filters allowed) now: every one
+    arrives on subscription, before a marker of our own published after it comes back
+    (``CONNECT_TIMEOUT`` at most)."""
+    marker = f"{base}/bridge/sync/{uuid.uuid4().hex}"
+    got: dict[str, bytes] = {}
+    await client.subscribe([(t, 1) for t in [*topics, marker]])
+    await client.publish(marker, b"1", qos=1)
+
+    async def collect() -> None:
+        async for message in client.messages:
+            topic = message.topic.value
+            if topic == marker:
+                return
+            if message.retain and isinstance(message.payload, bytes) and message.payload:
+                got[topic] = message.payload
+
+    with contextlib.suppress(asyncio.TimeoutError):
+        await asyncio.wait_for(collect(), CONNECT_TIMEOUT)
+    await client.unsubscribe([*topics, marker])
+    return got
+
+
 async def connect(client: aiomqtt.Client, settings: MqttSettings) -> None:
     """Enter the client's session, or a one-line ``BrokerError``."""
     from rtupoll.errors import BrokerError
