@@ -4,17 +4,23 @@ aiomqtt (2.x, on paho-mqtt 2.x) is an optional extra, imported only here and onl
 when MQTT is used.
 
 **The socket race** (``SafeClient``). paho calls ``on_socket_open`` and
-``on_socket_register_write`` with its socket; aiomqtt 2.5 answers by scheduling
+``on_socket_register_write`` with its socket; aiomqtt 2.x answers by scheduling
 ``loop.add_reader(sock.fileno(), ...)`` / ``loop.add_writer(sock.fileno(), ...)`` with
 ``call_soon_threadsafe``, the descriptor's *number* taken at once. When the broker goes
-away, paho closes that socket before the loop runs the scheduled call, which then
-registers a closed descriptor: on Python 3.13 the loop logs "Exception in callback
-BaseSelectorEventLoop.add_writer() ... OSError: [Errno 9] Bad file descriptor" with a
-traceback; on any version, had the number been reused by a new socket meanwhile (the
-reconnection's), the dead client's callback would be registered on it. ``SafeClient``
-schedules the same registration but decides when it runs: only if that socket is still
-the client's and still open. The read and write callbacks themselves are aiomqtt's
-(the same bodies), so what happens on a live socket does not change.
+away (or a dead client is collected), paho closes that socket before the loop runs the
+scheduled call, which then registers a closed descriptor: the loop logs "Exception in
+callback BaseSelectorEventLoop.add_writer() ... OSError: [Errno 9] Bad file
+descriptor" with a traceback; had the number been taken meanwhile by a new socket (the
+reconnection's, a dashboard client's, a reopened port's), the dead client's callback
+would be registered on it, in place of its owner's. ``SafeClient`` schedules the same
+registration but decides when it runs: only if that socket is still the client's and
+still open (and, for the writer, paho still has something to write). The read and write
+callbacks are aiomqtt's, so what happens on a live socket does not change.
+
+aiomqtt 2.x has no public way to this: its constructor binds paho's four socket hooks
+to its own methods and takes no loop or hook of the caller's; its 3.0 line (paho gone)
+manages the socket itself. ``on_socket_unregister_write`` and ``on_socket_close`` act at
+once, on a socket paho has not closed yet, and stay aiomqtt's.
 """
 
 from __future__ import annotations
@@ -61,16 +67,24 @@ def _open(sock: Any) -> bool:
 
 @cache
 def client_class() -> Any:
-    """``aiomqtt.Client`` with the socket registrations made safe (module docstring)."""
+    """``aiomqtt.Client`` with its two socket registrations made safe (module docstring)."""
     lib = aiomqtt_module()
 
     class SafeClient(lib.Client):  # type: ignore[misc,name-defined]
+        """aiomqtt 2.x binds paho's socket hooks to these methods in its constructor
+        and offers no other way in: the two that schedule a registration are replaced,
+        each running aiomqtt's own callback only on a socket still the client's and
+        open. paho is driven through its public external-loop API (``socket``,
+        ``want_write``, ``loop_read``, ``loop_write``); what is aiomqtt's own (the loop,
+        the future that says the connection broke, the keepalive task) is used as
+        aiomqtt's hooks use it."""
+
         def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
             def callback() -> None:  # aiomqtt's reader: read until nothing is pending
                 try:
                     while True:
                         client.loop_read()
-                        pending = getattr(client._sock, "pending", None)
+                        pending = getattr(client.socket(), "pending", None)  # TLS
                         if pending is not None and pending() > 0:
                             continue
                         break
@@ -81,12 +95,9 @@ def client_class() -> Any:
             def register() -> None:
                 if client.socket() is sock and _open(sock):
                     self._loop.add_reader(sock.fileno(), callback)
-
-            def create_misc_task() -> None:
-                self._misc_task = self._loop.create_task(self._misc_loop())
+                    self._misc_task = self._loop.create_task(self._misc_loop())
 
             self._loop.call_soon_threadsafe(register)
-            self._loop.call_soon_threadsafe(create_misc_task)
 
         def _on_socket_register_write(self, client: Any, userdata: Any, sock: Any) -> None:
             def callback() -> None:  # aiomqtt's writer
@@ -97,17 +108,12 @@ def client_class() -> Any:
                         self._disconnected.set_exception(exc)
 
             def register() -> None:
-                # paho may have unregistered it meanwhile (the data went out at once):
-                # a writer on an idle socket would run on every turn of the loop
-                if client.socket() is sock and _open(sock) and \
-                        getattr(client, "_registered_write", True):
+                # paho may have written it all meanwhile (and unregistered): a writer on
+                # an idle socket would run on every turn of the loop
+                if client.socket() is sock and _open(sock) and client.want_write():
                     self._loop.add_writer(sock.fileno(), callback)
 
             self._loop.call_soon_threadsafe(register)
-
-        def _on_socket_unregister_write(self, client: Any, userdata: Any, sock: Any) -> None:
-            if _open(sock):
-                self._loop.remove_writer(sock.fileno())
 
     return SafeClient
 
