@@ -1,5 +1,5 @@
 """MQTT without a process of its own: settings, discovery payloads, command checks, the
-outbox, and the scheduler's hooks for commands (in virtual time).
+scheduler's hooks for commands (in virtual time) and the service's live-table line.
 
 The end-to-end behaviour (a real mosquitto, the real CLI) is in ``test_mqtt_cli.py``.
 """
