@@ -2,7 +2,8 @@
 
 Every error a user can cause or meet carries its own exit code, so the CLI maps
 errors to exit codes in exactly one place (``cli.main``) and scripts can tell a
-wiring fault from a typo. The codes are documented in the README.
+wiring fault from a typo. The codes are documented in the README. Each also carries
+its ``status``, the word an MQTT command's result gives for it (docs/mqtt.md).
 """
 
 from __future__ import annotations
@@ -12,9 +13,11 @@ from typing import ClassVar
 
 class RtupollError(Exception):
     """Base of every error rtupoll reports as one line, never as a traceback. A class
-    that owns an exit code says what it means (``meaning``: ``--help`` shows it)."""
+    that owns an exit code says what it means (``meaning``: ``--help`` shows it);
+    ``status`` is its word in an MQTT command's result."""
 
     exit_code = 1
+    status = "error"
     meaning: ClassVar[str]
 
 
@@ -22,6 +25,7 @@ class UsageError(RtupollError):
     """Bad arguments: a device spec, register spec or option that makes no sense."""
 
     exit_code = 2
+    status = "usage"
     meaning = "bad arguments, profile or configuration; output that cannot be written"
 
 
@@ -98,6 +102,7 @@ class PortError(RtupollError):
     went away under a command that ends with it (``sniff``: the adapter unplugged)."""
 
     exit_code = 3
+    status = "port"
     meaning = "port cannot be opened (missing, busy, no permission) or went away"
 
 
@@ -111,6 +116,7 @@ class DeviceTimeout(BusError):
     """No (valid) reply within the device's timeout."""
 
     exit_code = 4
+    status = "timeout"
     meaning = "no response from the device"
 
 
@@ -118,6 +124,7 @@ class FrameError(BusError):
     """A reply arrived but was unusable: CRC error, garbage, truncated or malformed."""
 
     exit_code = 7
+    status = "garbled"
     meaning = "garbled reply (CRC error, truncated or malformed frame, an echoing adapter)"
 
 
@@ -125,6 +132,7 @@ class DeviceException(BusError):
     """The device answered with a Modbus exception response."""
 
     exit_code = 5
+    status = "exception"
     meaning = ("the device answered with a Modbus exception (read: the fields that answered "
                "are printed, the refused one with its exception)")
 
@@ -141,6 +149,7 @@ class VerificationError(RtupollError):
     """A write was sent but reading back does not show the intended result."""
 
     exit_code = 6
+    status = "verification"
     meaning = "verification failed (a write did not take effect)"
 
 
@@ -159,6 +168,7 @@ class RefusedError(RtupollError):
     """
 
     exit_code = 8
+    status = "refused"
     meaning = ("refused before sending (read-only field, a value its type cannot hold, "
                "address taken)")
 

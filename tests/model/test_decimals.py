@@ -12,6 +12,7 @@ import pytest
 from rtupoll.config.library import load_library, load_profile
 from rtupoll.model.interpret import (
     decimals,
+    field_kind,
     field_words,
     format_value,
     interpret,
@@ -19,7 +20,6 @@ from rtupoll.model.interpret import (
     places,
 )
 from rtupoll.model.profile import Field
-from rtupoll.outputs.fleet import kind
 from rtupoll.outputs.homeassistant import components
 from rtupoll.outputs.metrics import field_metric
 
@@ -40,7 +40,7 @@ def test_every_consumer_is_told_the_same_decimals() -> None:
         known = number_decimals(field)
         entities = components(field, controls=False)
         # a number's sensor is told its decimals; an enum, flags or text shows no number
-        number = kind(field) == "number"
+        number = field_kind(field) == "number"
         assert not number or field.name in entities, field
         told = known if number else None
         assert entities.get(field.name, {}).get("suggested_display_precision") == told, field

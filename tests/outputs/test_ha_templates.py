@@ -28,7 +28,7 @@ import pytest
 from jinja2.sandbox import ImmutableSandboxedEnvironment
 
 from rtupoll.config.library import load_one
-from rtupoll.model.codec import DataType
+from rtupoll.model.codec import DataType, value_range
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.sim.runner import simulated_bus
 from tests.brokers import Broker, Subscriber, have_mosquitto
@@ -230,7 +230,7 @@ def profile_values(field: Any) -> list[float]:
     its type's extremes at its scale."""
     if field.values:
         return list(field.values)
-    lo, hi = ha.type_bounds(field)
+    lo, hi = value_range(field.layout)
     return [field.minimum if field.minimum is not None else lo,
             field.maximum if field.maximum is not None else hi]
 

@@ -192,6 +192,26 @@ def test_set_is_refused_while_writes_are_off() -> None:
                                                 "error": WRITES_OFF}
 
 
+def test_a_results_status_is_its_error_classs_word_as_the_docs_list_them() -> None:
+    """``status`` in a command's result comes from the error class (``errors.py``, beside
+    its exit code): every word the docs list, with its exit code, and "error" for the
+    rest."""
+    import re
+
+    from rtupoll import errors
+
+    docs = (Path(__file__).parents[2] / "docs" / "mqtt.md").read_text(encoding="utf-8")
+    listed = docs.split("(`status`: ", 1)[1].split(")", 1)[0]
+    said = {word: int(code) for word, code in re.findall(r"`(\w+)` (\d+)", listed)}
+    classes = [c for c in vars(errors).values()
+               if isinstance(c, type) and issubclass(c, errors.RtupollError)]
+    owned = {c.status: c.exit_code for c in classes if "status" in c.__dict__}
+    assert owned == {**said, "error": 1}
+    assert failed(errors.EncodeError("x"))["status"] == "refused"  # a subclass: its base's
+    assert failed(errors.ConfigError("x"))["status"] == "error"
+    assert failed(errors.DeviceException(2, unit=1))["status"] == "exception"
+
+
 @pytest.mark.parametrize("payload, error, why", [
     (b'{"measurement_1": 3}', RefusedError, "measurement_1 is read-only"),
     (b'{"measurement_1_mode": "NOPE"}', RefusedError, "'NOPE' is not one of"),

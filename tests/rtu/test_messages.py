@@ -10,12 +10,10 @@ from hypothesis import strategies as st
 
 from rtupoll.rtu import read_request, write_multiple_request, write_single_request
 from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.frames import NEED_MORE, NOT_A_FRAME, Direction, frame_at, lengths
 from rtupoll.rtu.functions import FUNCTIONS, MAX_QUANTITY, Table, data_bytes
 from rtupoll.rtu.messages import (
-    ILLEGAL_ADDRESS,
-    ILLEGAL_FUNCTION,
-    ILLEGAL_VALUE,
     ExceptionReply,
     Malformed,
     OtherReply,
@@ -103,8 +101,9 @@ def test_any_bytes_parse_or_are_refused_with_a_reason(data: bytes, unit: int | N
     try:
         req = parse_request(data, unit=unit)
     except Malformed as bad:
-        assert bad.reason and bad.code in (None, ILLEGAL_FUNCTION, ILLEGAL_ADDRESS,
-                                           ILLEGAL_VALUE)
+        assert bad.reason and bad.code in (None, ExceptionCode.ILLEGAL_FUNCTION,
+                                           ExceptionCode.ILLEGAL_ADDRESS,
+                                           ExceptionCode.ILLEGAL_VALUE)
     else:  # what parses encodes back to the same message
         assert parse_request(req.frame()) == req
 
@@ -144,18 +143,19 @@ def test_the_messages_are_the_frames_the_builders_make() -> None:
 
 
 @pytest.mark.parametrize(("pdu", "code", "words"), [
-    (b"", ILLEGAL_FUNCTION, "empty PDU"),
-    (b"\x83\x00\x00\x00\x01", ILLEGAL_FUNCTION, "function 131"),
-    (b"\x63\x00", ILLEGAL_FUNCTION, "function 99"),
-    (b"\x03\x00\x00\x00", ILLEGAL_VALUE, "4 bytes, the function takes 5"),
-    (b"\x03\x00\x00\x00\x00", ILLEGAL_VALUE, "quantity 0 is outside 1..125"),
-    (b"\x03\x00\x00\x00\x7E", ILLEGAL_VALUE, "quantity 126 is outside 1..125"),
-    (b"\x01\x00\x00\x07\xD1", ILLEGAL_VALUE, "quantity 2001 is outside 1..2000"),
-    (b"\x04\xFF\xFF\x00\x02", ILLEGAL_ADDRESS, "runs past 0xFFFF"),
-    (b"\x05\x00\x01\x12\x34", ILLEGAL_VALUE, "neither ON nor OFF"),
-    (b"\x10\x00\x01\x00\x02\x02\x00\x01", ILLEGAL_VALUE, "byte count 2 does not fit"),
-    (b"\x10\x00\x01\x00\x7C\x00", ILLEGAL_VALUE, "quantity 124 is outside 1..123"),
-    (b"\x0F\x00\x01\x00\x03\x00", ILLEGAL_VALUE, "byte count 0 does not fit quantity 3"),
+    (b"", ExceptionCode.ILLEGAL_FUNCTION, "empty PDU"),
+    (b"\x83\x00\x00\x00\x01", ExceptionCode.ILLEGAL_FUNCTION, "function 131"),
+    (b"\x63\x00", ExceptionCode.ILLEGAL_FUNCTION, "function 99"),
+    (b"\x03\x00\x00\x00", ExceptionCode.ILLEGAL_VALUE, "4 bytes, the function takes 5"),
+    (b"\x03\x00\x00\x00\x00", ExceptionCode.ILLEGAL_VALUE, "quantity 0 is outside 1..125"),
+    (b"\x03\x00\x00\x00\x7E", ExceptionCode.ILLEGAL_VALUE, "quantity 126 is outside 1..125"),
+    (b"\x01\x00\x00\x07\xD1", ExceptionCode.ILLEGAL_VALUE, "quantity 2001 is outside 1..2000"),
+    (b"\x04\xFF\xFF\x00\x02", ExceptionCode.ILLEGAL_ADDRESS, "runs past 0xFFFF"),
+    (b"\x05\x00\x01\x12\x34", ExceptionCode.ILLEGAL_VALUE, "neither ON nor OFF"),
+    (b"\x10\x00\x01\x00\x02\x02\x00\x01", ExceptionCode.ILLEGAL_VALUE, "byte count 2 does not fit"),
+    (b"\x10\x00\x01\x00\x7C\x00", ExceptionCode.ILLEGAL_VALUE, "quantity 124 is outside 1..123"),
+    (b"\x0F\x00\x01\x00\x03\x00", ExceptionCode.ILLEGAL_VALUE,
+     "byte count 0 does not fit quantity 3"),
 ])
 def test_a_refused_request_says_why_and_which_code(pdu: bytes, code: int, words: str) -> None:
     with pytest.raises(Malformed, match=words) as got:
@@ -226,10 +226,10 @@ def test_the_gateway_and_the_simulator_answer_the_parsers_code() -> None:
     pdu = bytes.fromhex("04 FF FF 00 02")  # runs past 0xFFFF
     with pytest.raises(BadRequest) as got:
         parse(pdu)
-    assert got.value.code == ILLEGAL_ADDRESS
+    assert got.value.code == ExceptionCode.ILLEGAL_ADDRESS
     engine = Engine([SimDeviceConfig(load_one("huiwen-aq"), 3)], tick=None)
     [reply] = engine.handle(with_crc(b"\x03" + pdu))
-    assert reply.data == ExceptionReply(3, 4, ILLEGAL_ADDRESS).frame()
+    assert reply.data == ExceptionReply(3, 4, ExceptionCode.ILLEGAL_ADDRESS).frame()
     device: SimDevice = engine.device(3)
     answer = device.handle(ReadRequest(3, 4, 30009, 1))
     assert answer is not None and isinstance(parse_reply(ReadRequest(3, 4, 30009, 1), answer),

@@ -17,7 +17,7 @@ from rtupoll.cli.params import UNIT, Seconds
 from rtupoll.errors import DeviceException, UsageError
 from rtupoll.model.guess import Guess, interpretations, parse_words
 from rtupoll.model.raw import SYNTAX, parse_spec
-from rtupoll.rtu import Table
+from rtupoll.rtu import ExceptionCode, Table
 from rtupoll.rtu.functions import MAX_REGISTERS
 from rtupoll.ui.records import to_json
 
@@ -250,7 +250,8 @@ def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int
             try:
                 return first, await bus.read(unit, table, first, n, timeout=timeout, retries=1)
             except DeviceException as exc:
-                if exc.code != 2 or i == len(tries) - 1 or (first, n) == (start, count):
+                if exc.code != ExceptionCode.ILLEGAL_ADDRESS or i == len(tries) - 1 \
+                        or (first, n) == (start, count):
                     raise
         raise AssertionError("unreachable")
 

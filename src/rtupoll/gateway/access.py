@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from rtupoll.config.gateway_settings import ServeConfig
-from rtupoll.gateway.pdu import ILLEGAL_FUNCTION, PATH_UNAVAILABLE, Ask
+from rtupoll.gateway.pdu import Ask
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu.effects import (
     BROADCAST_FUNCTIONS,
@@ -25,6 +25,7 @@ from rtupoll.rtu.effects import (
     effect,
     writes,
 )
+from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.functions import FUNCTION_NAMES
 
 
@@ -63,37 +64,38 @@ class Access:
         refused unless a rule allows it."""
         cfg, fc = self.config, ask.function
         if unit in RESERVED_UNITS:
-            return Refusal(PATH_UNAVAILABLE, f"unit {unit} is reserved in Modbus RTU "
+            return Refusal(ExceptionCode.PATH_UNAVAILABLE, f"unit {unit} is reserved in Modbus RTU "
                            "(248-255; 0xFE reaches whoever is there): never forwarded")
         eff = effect(ask.pdu)
         what = _what(ask.pdu)
         if eff is Effect.UNKNOWN:
-            return Refusal(ILLEGAL_FUNCTION, f"{what}: its effect on a device is unknown")
+            return Refusal(ExceptionCode.ILLEGAL_FUNCTION,
+                           f"{what}: its effect on a device is unknown")
         if unit == 0:
             if not cfg.broadcast:
-                return Refusal(PATH_UNAVAILABLE, "broadcast (unit 0) is not allowed")
+                return Refusal(ExceptionCode.PATH_UNAVAILABLE, "broadcast (unit 0) is not allowed")
             if fc not in BROADCAST_FUNCTIONS:
-                return Refusal(PATH_UNAVAILABLE, f"a broadcast can only write (FC 5, 6, 15, "
-                               f"16, 22), not {what}")
+                return Refusal(ExceptionCode.PATH_UNAVAILABLE, "a broadcast can only write "
+                               f"(FC 5, 6, 15, 16, 22), not {what}")
         if cfg.read_only and not (eff is Effect.READ and fc in TABLE_READS):
-            return Refusal(ILLEGAL_FUNCTION, f"{what} is refused (read-only gateway: only "
-                           "reads of coils and registers, FC 1-4)")
+            return Refusal(ExceptionCode.ILLEGAL_FUNCTION, f"{what} is refused (read-only "
+                           "gateway: only reads of coils and registers, FC 1-4)")
         setup = unit in cfg.setup_writes
         if eff is Effect.STATE and not setup:
-            return Refusal(ILLEGAL_FUNCTION, f"{what} changes the device's state (a "
+            return Refusal(ExceptionCode.ILLEGAL_FUNCTION, f"{what} changes the device's state (a "
                            "setup_writes unit only)")
         if eff is not Effect.WRITE or setup:
             return None
         runs = writes(ask.pdu)
         if runs is None:
-            return Refusal(ILLEGAL_FUNCTION, f"{what}: what it writes cannot be checked (a "
-                           "setup_writes unit only)")
+            return Refusal(ExceptionCode.ILLEGAL_FUNCTION, f"{what}: what it writes cannot "
+                           "be checked (a setup_writes unit only)")
         fields = self.guarded.get(unit, ()) if unit else \
             tuple(f for fs in self.guarded.values() for f in fs)
         for run in runs:
             for f in fields:
                 if run.overlaps(f.table, f.address, f.end):
-                    return Refusal(ILLEGAL_FUNCTION, f"writing {f.name} of unit "
+                    return Refusal(ExceptionCode.ILLEGAL_FUNCTION, f"writing {f.name} of unit "
                                    f"{unit or 'all'} is not allowed (it would change how "
                                    "the device is reached)")
         return None

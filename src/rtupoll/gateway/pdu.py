@@ -15,21 +15,17 @@ from dataclasses import dataclass
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
 from rtupoll.rtu.effects import Effect, effect
+from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.functions import READ_FUNCTIONS, pack_bits, request_length
 from rtupoll.rtu.messages import (
-    ILLEGAL_ADDRESS,
-    ILLEGAL_FUNCTION,
-    ILLEGAL_VALUE,
     Malformed,
     OtherRequest,
     ReadRequest,
     parse_request,
 )
 
-__all__ = ["ILLEGAL_ADDRESS", "ILLEGAL_FUNCTION", "ILLEGAL_VALUE", "PATH_UNAVAILABLE",
-           "TARGET_FAILED", "Ask", "BadRequest",
+__all__ = ["Ask", "BadRequest",
            "exception_pdu", "parse", "pdu_length", "read_reply", "write_reply"]
-PATH_UNAVAILABLE, TARGET_FAILED = 0x0A, 0x0B
 
 
 class BadRequest(ClientError):
@@ -78,7 +74,7 @@ def parse(pdu: bytes) -> Ask:
     try:
         msg = parse_request(pdu, unit=0)
     except Malformed as exc:
-        raise BadRequest(exc.code or ILLEGAL_VALUE, exc.reason) from None
+        raise BadRequest(exc.code or ExceptionCode.ILLEGAL_VALUE, exc.reason) from None
     if isinstance(msg, OtherRequest):
         return Ask(pdu, msg.function)
     if isinstance(msg, ReadRequest):

@@ -47,9 +47,6 @@ from rtupoll.gateway.access import Access
 from rtupoll.gateway.cache import ReadCache
 from rtupoll.gateway.clients import ClientStats
 from rtupoll.gateway.pdu import (
-    ILLEGAL_FUNCTION,
-    PATH_UNAVAILABLE,
-    TARGET_FAILED,
     Ask,
     BadRequest,
     exception_pdu,
@@ -60,6 +57,7 @@ from rtupoll.gateway.turns import Places, Turns
 from rtupoll.jobs.stats import State
 from rtupoll.refusals import Refusals, watch
 from rtupoll.rtu.effects import Effect, effect, writes
+from rtupoll.rtu.exception_codes import ExceptionCode
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller
@@ -395,7 +393,8 @@ class Gateway:
                         self.log(stats, f"queue full ({self.config.queue} requests): "
                                  "answered 0x0A", once="queue")
                         conn.queue.put_nowait(
-                            (frame, 0.0, exception_pdu(frame.pdu[0], PATH_UNAVAILABLE)))
+                            (frame, 0.0, exception_pdu(frame.pdu[0],
+                                                       ExceptionCode.PATH_UNAVAILABLE)))
                         continue
                     self.pending += 1
                     conn.queue.put_nowait((frame, self._clock(), None))
@@ -491,7 +490,7 @@ class Gateway:
         if (dev is not None and dev.stats.state is State.OFFLINE) or \
                 (dev is None and self.silent.held(unit, self._clock())):
             stats.timeouts += 1
-            return exception_pdu(ask.function, TARGET_FAILED)
+            return exception_pdu(ask.function, ExceptionCode.TARGET_FAILED)
         if ask.read and self.cache is not None and ask.table is not None:
             got = self.cache.get(unit, ask.table, ask.address, ask.count, self._clock())
             if got is not None:
@@ -537,15 +536,15 @@ class Gateway:
                 self.silent.timed_out(unit, self._clock())
             failed = True
             stats.timeouts += 1
-            return exception_pdu(ask.function, TARGET_FAILED)
+            return exception_pdu(ask.function, ExceptionCode.TARGET_FAILED)
         except RefusedError as exc:  # a function the bus cannot build
             stats.refused += 1
             self.log(stats, f"refused: {exc}", once=f"fc{ask.function}")
-            return exception_pdu(ask.function, ILLEGAL_FUNCTION)
+            return exception_pdu(ask.function, ExceptionCode.ILLEGAL_FUNCTION)
         except PortError as exc:
             stats.busy += 1
             self.log(stats, f"answered 0x0A: {exc}", once="port")
-            return exception_pdu(ask.function, PATH_UNAVAILABLE)
+            return exception_pdu(ask.function, ExceptionCode.PATH_UNAVAILABLE)
         finally:
             end = self._clock()
             self.poller.load.add(end, end - start, failed_by=self if failed else None)

@@ -25,7 +25,7 @@ from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field, Limits, Profile
 from rtupoll.model.scaling import Unscaled, scale_values
-from rtupoll.rtu import exception_name
+from rtupoll.rtu import ExceptionCode, exception_name
 
 if TYPE_CHECKING:
     from rtupoll.jobs.holes import Register
@@ -76,7 +76,7 @@ async def after_refusal(bus: BusLike, unit: int, block: Block, exc: DeviceExcept
     for all its fields). Timeouts and garbled replies during the bisection propagate."""
     from rtupoll.jobs.holes import bisect, gaps  # here: a read that is not refused needs none
 
-    if exc.code != 2 or not (gaps(block) or len(block.fields) > 1):
+    if exc.code != ExceptionCode.ILLEGAL_ADDRESS or not (gaps(block) or len(block.fields) > 1):
         return None
     found = await bisect(bus, unit, block, timeout=timeout, retries=retries)
     return None if found is None else BlockRead(found.values, found.refused, found.holes)

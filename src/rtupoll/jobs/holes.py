@@ -34,7 +34,7 @@ from rtupoll.errors import ConfigError, DeviceException
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block
 from rtupoll.model.profile import Field
-from rtupoll.rtu import Table
+from rtupoll.rtu import ExceptionCode, Table
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
@@ -124,7 +124,8 @@ async def bisect(bus: BusLike, unit: int, block: Block, *, timeout: float,
     values: list[FieldValue] = []
     refused: list[tuple[Field, DeviceException]] = []
     # a piece that is the whole block (no gaps) is known refused: split it at once
-    known = DeviceException(2, unit=unit, function=block.table.read_function)
+    known = DeviceException(ExceptionCode.ILLEGAL_ADDRESS, unit=unit,
+                            function=block.table.read_function)
     for piece in pieces(block):
         await _split(bus, unit, piece, values, refused, timeout=timeout, retries=retries,
                      known=known if piece.count == block.count else None)

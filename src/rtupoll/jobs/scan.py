@@ -38,7 +38,7 @@ from rtupoll.io.interface import BusLike
 from rtupoll.jobs.timeouts import late_margin
 from rtupoll.model.identify import check_passes
 from rtupoll.model.profile import Profile
-from rtupoll.rtu import Framing, Table, exception_name, read_frame_sizes
+from rtupoll.rtu import ExceptionCode, Framing, Table, exception_name, read_frame_sizes
 
 LATENCY = 0.02  # USB-serial adapters deliver a reply up to a latency-timer tick late
 LATE_WAIT = 4  # after the last address, late answers are awaited this many reply waits
@@ -200,7 +200,8 @@ def describe(read: Read, outcome: Outcome) -> str:
     table, address, count = read
     what = f"{table.value} 0x{address:04X}" + (f"+{count}" if count > 1 else "")
     if isinstance(outcome, DeviceException):
-        name = "" if outcome.code == 2 else f" {exception_name(outcome.code).lower()}"
+        name = "" if outcome.code == ExceptionCode.ILLEGAL_ADDRESS \
+            else f" {exception_name(outcome.code).lower()}"
         return f"{what}: exception {outcome.code:02d}{name}"
     if isinstance(outcome, DeviceTimeout):
         return f"{what}: no answer"

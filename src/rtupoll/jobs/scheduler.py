@@ -64,7 +64,7 @@ from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
 from rtupoll.model.scaling import scale
-from rtupoll.rtu import Framing, Table, read_frame_sizes, transaction_wire_time
+from rtupoll.rtu import ExceptionCode, Framing, Table, read_frame_sizes, transaction_wire_time
 
 T = TypeVar("T")
 Job = Callable[["BusLike"], Awaitable[T]]  # BusPoller.submit: work on the bus, between cycles
@@ -256,7 +256,7 @@ class DevicePoller:
         key = (block.table, block.address, block.count)
         if key in self.holes.tried:
             return None
-        refusal = DeviceException(2, unit=self.config.address,
+        refusal = DeviceException(ExceptionCode.ILLEGAL_ADDRESS, unit=self.config.address,
                                   function=block.table.read_function)
         try:
             found = await after_refusal(transport, self.config.address, block, refusal,

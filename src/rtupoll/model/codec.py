@@ -17,6 +17,7 @@ import contextlib
 import enum
 import math
 import struct
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 
 from rtupoll.errors import EncodeError
@@ -53,6 +54,7 @@ class DataType(str, enum.Enum):
         return self in (DataType.F32, DataType.F64)
 
 
+F32_MAX = 3.4028234663852886e38  # the largest finite 32-bit float
 _STRUCT = {"u16": "H", "i16": "h", "u32": "I", "i32": "i", "u64": "Q", "i64": "q",
            "f32": "f", "f64": "d", "u8": "B", "i8": "b"}
 
@@ -201,9 +203,9 @@ def encode_raw(raw: int | float | str | bool, layout: Layout,
     if t.is_float:
         try:
             packed = struct.pack(">" + _STRUCT[t.value], float(raw))
-        except OverflowError:  # past the largest f32 (3.4028235e38)
+        except OverflowError:  # past the largest f32
             raise EncodeError(f"{raw:g} is outside what {t.value} holds "
-                              "(largest 3.4028235e+38)") from None
+                              f"(largest {F32_MAX:.8g})") from None
         return _to_words(packed, layout.order)
     if isinstance(raw, float):
         if not math.isfinite(raw) or raw != int(raw):
@@ -279,6 +281,17 @@ def bits_range(layout: Layout) -> tuple[int, int]:
     n = layout.width
     return (-(1 << (n - 1)), (1 << (n - 1)) - 1) if layout.type is DataType.I16 \
         else (0, (1 << n) - 1)
+
+
+def value_range(layout: Layout) -> tuple[float, float]:
+    """The values a layout holds at its scale and offset (lowest first): a float type's
+    finite range, an integer type's (or bit field's) stored integers scaled."""
+    if layout.type.is_float:
+        big = F32_MAX if layout.type is DataType.F32 else sys.float_info.max
+        return -big, big
+    a, b = bits_range(layout)
+    lo, hi = sorted((a * layout.scale + layout.offset, b * layout.scale + layout.offset))
+    return lo, hi
 
 
 def int_range(t: DataType) -> tuple[int, int]:

@@ -170,6 +170,30 @@ def number_decimals(field: Field) -> int | None:
     return 0 if known is None and field.layout.type.is_integer else known
 
 
+KINDS = ("number", "enum", "flags", "text")  # a field's kind on a screen (``field_kind``)
+
+
+def field_kind(field: Field) -> str:
+    """What sort of value a field has on a screen: ``number``, ``enum``, ``flags`` or
+    ``text`` (a string, and a coil's true/false). Only numbers have trends; the dashboard,
+    a fleet viewer's ``bridge/info`` and Home Assistant's entities all go by it."""
+    if field.enum:
+        return "enum"
+    if field.flags:
+        return "flags"
+    if field.layout.type in (DataType.STRING, DataType.BOOL):
+        return "text"
+    return "number"
+
+
+def shown_precision(field: Field) -> int | None:
+    """The decimals a screen is told a field's numbers have (the dashboard's and a fleet
+    viewer's ``precision``, Home Assistant's display precision): ``number_decimals``;
+    None for what is not a number (``field_kind``) and for a float register without a
+    precision."""
+    return number_decimals(field) if field_kind(field) == "number" else None
+
+
 # units shown in another unit on a person's screen: unit -> (shown unit, offset added)
 DISPLAY_UNITS = {"K": ("°C", -273.15)}
 

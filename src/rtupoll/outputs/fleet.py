@@ -16,8 +16,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.model.codec import DataType
-from rtupoll.model.interpret import number_decimals
+from rtupoll.model.interpret import field_kind, shown_precision
 from rtupoll.model.profile import first_clause
 
 if TYPE_CHECKING:
@@ -36,26 +35,11 @@ def choice_label(choice: Choice) -> str:
     return first_clause(choice.description) or choice.name
 
 
-def kind(field: Field) -> str:
-    """``number``, ``enum``, ``flags`` or ``text`` (a bool, JSON true/false, is ``text``)."""
-    if field.enum:
-        return "enum"
-    if field.flags:
-        return "flags"
-    if field.layout.type in (DataType.STRING, DataType.BOOL):
-        return "text"
-    return "number"
-
-
-def precision(field: Field) -> int | None:
-    """Decimal places a number is shown with (``number_decimals``); None for what is not
-    a number and for a float register without a precision."""
-    return number_decimals(field) if kind(field) == "number" else None
-
-
 def field_info(field: Field) -> dict[str, Any]:
-    return {"label": field.title, "unit": field.unit, "kind": kind(field),
-            "precision": precision(field)}
+    """A field as ``bridge/info`` tells a fleet viewer of it: its title, the device's
+    unit, and the kind and precision every screen goes by (``model.interpret``)."""
+    return {"label": field.title, "unit": field.unit, "kind": field_kind(field),
+            "precision": shown_precision(field)}
 
 
 def bridge_info(gateway_id: str, base: str, devices: Iterable[tuple[BusConfig, DeviceConfig]],

@@ -30,17 +30,16 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.model.codec import DataType, bits_range
+from rtupoll.model.codec import DataType, value_range
+from rtupoll.model.interpret import shown_precision
 from rtupoll.model.profile import Field, Severity
 from rtupoll.outputs.fleet import (
     LAST_SEEN,
     STATUS_KEY,
     choice_label,
-    precision,
     version,
 )
 
@@ -50,7 +49,6 @@ if TYPE_CHECKING:
 ORIGIN_NAME = "rtupoll"
 STATUSES = ("ok", "partial", "failed")  # _rtupoll.status in a state message
 MIN_STEP = 0.001  # the smallest step Home Assistant accepts for a number
-_F32_MAX = 3.4028234663852886e38
 # profile unit -> (Home Assistant unit, device class); ppm and µg/m³ depend on the field
 _UNITS: dict[str, tuple[str, str | None]] = {
     "°C": ("°C", "temperature"), "°F": ("°F", "temperature"), "K": ("K", "temperature"),
@@ -141,23 +139,12 @@ def _options(names: list[str]) -> str:
     return json.dumps(names, ensure_ascii=False)
 
 
-def type_bounds(field: Field) -> tuple[float, float]:
-    """The values the field's register type holds at its scale and offset."""
-    layout = field.layout
-    if layout.type.is_float:
-        big = _F32_MAX if layout.type is DataType.F32 else sys.float_info.max
-        return -big, big
-    a, b = bits_range(layout)
-    lo, hi = sorted((a * layout.scale + layout.offset, b * layout.scale + layout.offset))
-    return lo, hi
-
-
 def number_bounds(field: Field) -> tuple[float, float, float]:
     """(min, max, step) of a writable number, so that Home Assistant's box admits every
     value the profile allows: its ``values:``, else its ``range``, else what the register
     type holds at the field's scale; the step is the scale's (or the precision's)."""
     layout = field.layout
-    lo, hi = type_bounds(field)
+    lo, hi = value_range(layout)
     if field.values:
         lo, hi = min(field.values), max(field.values)
     if field.minimum is not None:
@@ -223,7 +210,7 @@ def components(field: Field, *, controls: bool) -> dict[str, dict[str, Any]]:
             entity["unit_of_measurement"] = unit
         if cls:
             entity["device_class"] = cls
-        places = precision(field)
+        places = shown_precision(field)
         if places is not None:
             entity["suggested_display_precision"] = places
         out[uid_base] = entity

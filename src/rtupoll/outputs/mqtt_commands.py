@@ -32,18 +32,13 @@ from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.errors import (
-    DeviceException,
-    DeviceTimeout,
-    FrameError,
-    PortError,
     RefusedError,
     RtupollError,
     UsageError,
-    VerificationError,
 )
 from rtupoll.jobs.device import Timing
 from rtupoll.jobs.writes import WriteOp, plan_write, read_back, verify, write
-from rtupoll.model.codec import DataType
+from rtupoll.model.codec import DataType, value_range
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field, Poll, Profile
 from rtupoll.ui.records import finite
@@ -55,16 +50,11 @@ if TYPE_CHECKING:
 
 WRITES_OFF = ("writes over MQTT are off: start poll with --mqtt-allow-writes, or set "
               "mqtt.allow_writes: true in the site file")
-_STATUS: tuple[tuple[type[RtupollError], str], ...] = (
-    (RefusedError, "refused"), (UsageError, "usage"), (VerificationError, "verification"),
-    (DeviceTimeout, "timeout"), (FrameError, "garbled"), (DeviceException, "exception"),
-    (PortError, "port"))
 
 
 MAX_PAYLOAD = 16_384  # bytes of a command's payload
 MAX_DEPTH = 4  # nesting of a command's JSON ({"fields": [...]} is 2)
 _DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)", re.ASCII)  # no exponent
-_F32_MAX = 3.4028234663852886e38
 _PROTECTED = {"address": "the device's own address", "baud": "the device's baud rate"}
 
 
@@ -184,11 +174,9 @@ def _text(field: Field, value: Any) -> str:
 
 def _holds(field: Field, number: float, text: str) -> None:
     """Refuse a number no register of the field could carry (before encoding it)."""
-    from rtupoll.outputs.homeassistant import type_bounds
-
     if field.enum or field.flags or field.layout.type in (DataType.STRING, DataType.BOOL):
         return
-    lo, hi = type_bounds(field)
+    lo, hi = value_range(field.layout)
     if not math.isfinite(number) or not lo <= number <= hi:
         raise RefusedError(f"{field.name}: {text[:40]} is outside what the field can hold "
                            f"({lo:g}..{hi:g})")
@@ -255,8 +243,8 @@ def ok(values: dict[str, Any]) -> dict[str, Any]:
 
 def failed(exc: RtupollError, values: dict[str, Any] | None = None) -> dict[str, Any]:
     """The CLI's one line and exit code, as a result payload."""
-    status = next((s for cls, s in _STATUS if isinstance(exc, cls)), "error")
-    out: dict[str, Any] = {"status": status, "exit_code": exc.exit_code, "error": str(exc)}
+    out: dict[str, Any] = {"status": exc.status, "exit_code": exc.exit_code,
+                           "error": str(exc)}
     if values:
         out["values"] = values  # written (and read back) before the failure; a get's read
     return out

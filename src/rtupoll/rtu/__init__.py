@@ -5,7 +5,8 @@ is given, so every rule is tested in virtual time and reused by the bus (a thin 
 adapter), the simulator's engine, ``decode`` and the sniffer.
 
 - ``functions``: the function table (request and reply lengths per function code,
-  names, exception names), frame builders;
+  names), frame builders;
+- ``exception_codes``: ``ExceptionCode``, the exception codes by name;
 - ``crc``: the CRC-16;
 - ``timing``: character timing and the 3.5-character silence;
 - ``match``: which bytes answer a request, and why an unanswered attempt failed;
@@ -17,12 +18,11 @@ adapter), the simulator's engine, ``decode`` and the sniffer.
 """
 
 from rtupoll.rtu.crc import crc16, crc_ok, with_crc
+from rtupoll.rtu.exception_codes import EXCEPTION_NAMES, ExceptionCode, exception_name
 from rtupoll.rtu.functions import (
-    EXCEPTION_NAMES,
     FUNCTION_NAMES,
     FUNCTIONS,
     Table,
-    exception_name,
     exception_response,
     read_frame_sizes,
     read_request,
@@ -34,7 +34,8 @@ from rtupoll.rtu.functions import (
 from rtupoll.rtu.timing import Framing, transaction_wire_time
 
 __all__ = [
-    "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
+    "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "ExceptionCode", "Framing", "Table",
+    "crc16", "crc_ok",
     "exception_name", "exception_response", "read_frame_sizes", "read_request",
     "read_response", "transaction_wire_time", "with_crc", "write_coil_request",
     "write_multiple_request", "write_single_request",

@@ -16,6 +16,8 @@ from collections.abc import Sequence
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.exception_codes import EXCEPTION_NAMES as EXCEPTION_NAMES  # (re-exported)
+from rtupoll.rtu.exception_codes import exception_name as exception_name
 
 MAX_FRAME = 256  # the RTU maximum, address to CRC
 MAX_PDU = MAX_FRAME - 3  # function and data: the frame without unit and CRC
@@ -46,21 +48,6 @@ class Table(str, enum.Enum):
     def modicon_base(self) -> int:
         """The Modicon reference prefix: 0xxxx coils, 1xxxx, 3xxxx inputs, 4xxxx holding."""
         return {"coil": 0, "discrete": 10000, "input": 30000, "holding": 40000}[self.value]
-
-
-EXCEPTION_NAMES: dict[int, str] = {
-    1: "ILLEGAL FUNCTION",
-    2: "ILLEGAL DATA ADDRESS",
-    3: "ILLEGAL DATA VALUE",
-    4: "SERVER DEVICE FAILURE",
-    5: "ACKNOWLEDGE",
-    6: "SERVER DEVICE BUSY",
-    7: "NEGATIVE ACKNOWLEDGE",
-    8: "MEMORY PARITY ERROR",
-    10: "GATEWAY PATH UNAVAILABLE",
-    11: "GATEWAY TARGET DEVICE FAILED TO RESPOND",
-}
-
 
 
 @frozen
@@ -179,9 +166,6 @@ def echoed_by_design(request: bytes) -> bool:
 def data_bytes(function: int, count: int) -> int:
     """Data bytes a read of ``count`` registers (3, 4) or bits (1, 2) returns."""
     return (count + 7) // 8 if function in (1, 2) else 2 * count
-
-def exception_name(code: int) -> str:
-    return EXCEPTION_NAMES.get(code, "UNKNOWN EXCEPTION")
 
 
 def read_request(unit: int, table: Table, address: int, count: int) -> bytes:

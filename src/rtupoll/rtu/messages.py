@@ -26,6 +26,7 @@ import struct
 from dataclasses import dataclass
 
 from rtupoll.rtu.crc import crc_ok, with_crc
+from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.functions import (
     FUNCTIONS,
     MAX_QUANTITY,
@@ -39,7 +40,6 @@ from rtupoll.rtu.functions import (
     words,
 )
 
-ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE = 0x01, 0x02, 0x03
 COIL_ON, COIL_OFF = 0xFF00, 0x0000
 
 
@@ -47,7 +47,7 @@ class Malformed(ValueError):
     """Bytes that are no valid message: ``reason`` in words; ``code`` the exception a
     server answers (None: it answers nothing); ``unit`` and ``function`` where known."""
 
-    def __init__(self, reason: str, code: int | None = ILLEGAL_VALUE, *,
+    def __init__(self, reason: str, code: int | None = ExceptionCode.ILLEGAL_VALUE, *,
                  unit: int | None = None, function: int | None = None) -> None:
         super().__init__(reason)
         self.reason, self.code, self.unit, self.function = reason, code, unit, function
@@ -241,12 +241,12 @@ def parse_request(data: bytes, *, unit: int | None = None) -> Request:
     else:
         pdu = data
     if not pdu:
-        raise Malformed("empty PDU", ILLEGAL_FUNCTION, unit=unit)
+        raise Malformed("empty PDU", ExceptionCode.ILLEGAL_FUNCTION, unit=unit)
     fc = pdu[0]
     fn = FUNCTIONS.get(fc)
     if fn is None or fc & 0x80:
         raise Malformed(f"function {fc} is not a Modbus request rtupoll passes on",
-                        ILLEGAL_FUNCTION, unit=unit, function=fc)
+                        ExceptionCode.ILLEGAL_FUNCTION, unit=unit, function=fc)
     want = fn.request.fixed or fn.request.of(b"\x00" + pdu[:10])
     if want is None:
         raise Malformed(f"{fn.name}: truncated ({len(pdu)} bytes)", unit=unit, function=fc)
@@ -268,7 +268,7 @@ def parse_request(data: bytes, *, unit: int | None = None) -> Request:
         raise Malformed(f"{fn.name}: quantity {n} is outside 1..{limit}", unit=unit,
                         function=fc)
     if address + n > 0x10000:
-        raise Malformed(f"0x{address:04X} + {n} runs past 0xFFFF", ILLEGAL_ADDRESS,
+        raise Malformed(f"0x{address:04X} + {n} runs past 0xFFFF", ExceptionCode.ILLEGAL_ADDRESS,
                         unit=unit, function=fc)
     if fc in READS:
         return ReadRequest(unit, fc, address, n)

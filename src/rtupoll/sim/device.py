@@ -46,10 +46,9 @@ from rtupoll.model.codec import Value, decode
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu import Table, exception_response, read_response, with_crc
+from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.functions import pack_bits
 from rtupoll.rtu.messages import (
-    ILLEGAL_FUNCTION,
-    ILLEGAL_VALUE,
     Malformed,
     OtherRequest,
     ReadRequest,
@@ -239,16 +238,17 @@ class SimDevice:
                 and request.data[:2] == b"\x00\x00":  # return query data: the request back
             return with_crc(bytes((unit,)) + request.pdu())
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
-            return self._refuse(unit, fc, ILLEGAL_FUNCTION)
+            return self._refuse(unit, fc, ExceptionCode.ILLEGAL_FUNCTION)
         if isinstance(request, Malformed):
-            return self._refuse(unit, fc, request.code or ILLEGAL_VALUE)
+            return self._refuse(unit, fc, request.code or ExceptionCode.ILLEGAL_VALUE)
         if isinstance(request, ReadRequest):
             return self._read(request)
         if isinstance(request, WriteSingle) and fc == 5:
             return self._write_coil(request)
         if isinstance(request, WriteSingle | WriteMultiple):
             return self._write(request)
-        return self._refuse(unit, fc, ILLEGAL_FUNCTION)  # (not reached: fc is 1-6 or 16)
+        # (not reached: fc is 1-6 or 16)
+        return self._refuse(unit, fc, ExceptionCode.ILLEGAL_FUNCTION)
 
     def _identify(self, req: OtherRequest) -> bytes | None:
         """Read device identification (FC 43/14) and report server id (FC 17), as the
@@ -258,17 +258,19 @@ class SimDevice:
         if req.function == 17:
             return with_crc(bytes((req.unit,)) + ident.server_id_reply(self.profile.server_id))
         if len(req.data) != 3 or req.data[0] != ident.MEI_DEVICE_ID:
-            return self._refuse(req.unit, 43, ILLEGAL_FUNCTION if req.data[:1] != b"\x0e"
-                                else ILLEGAL_VALUE)
+            return self._refuse(req.unit, 43, ExceptionCode.ILLEGAL_FUNCTION
+                                if req.data[:1] != b"\x0e" else ExceptionCode.ILLEGAL_VALUE)
         objects = {o: t.encode("ascii") for o, t in self.profile.identification}
         try:
             pdu = ident.device_id_reply(req.data[1], req.data[2], objects)
         except ValueError:  # an unknown code (3: value), an object it lacks (2: address)
-            return self._refuse(req.unit, 43, 2 if req.data[1] == 4 else ILLEGAL_VALUE)
+            return self._refuse(req.unit, 43, ExceptionCode.ILLEGAL_ADDRESS if req.data[1] == 4
+                                else ExceptionCode.ILLEGAL_VALUE)
         return with_crc(bytes((req.unit,)) + pdu)
 
     def _refuse(self, unit: int, fc: int, code: int) -> bytes | None:
-        if self.profile.limits.silent_on_error and code in (1, 3):
+        if self.profile.limits.silent_on_error and code in (ExceptionCode.ILLEGAL_FUNCTION,
+                                                       ExceptionCode.ILLEGAL_VALUE):
             return None
         return exception_response(unit, fc, code)
 
@@ -276,7 +278,7 @@ class SimDevice:
         unit, fc, address, count, table = req.unit, req.function, req.address, req.count, \
             req.table
         if table.is_register and count > self.profile.limits.max_registers:
-            return self._refuse(unit, fc, ILLEGAL_VALUE)
+            return self._refuse(unit, fc, ExceptionCode.ILLEGAL_VALUE)
         regs = range(address, address + count)
         for r in regs:
             if (table, r) in self._exception_at:
@@ -284,7 +286,7 @@ class SimDevice:
         if any(r not in self.readable[table] for r in regs) or (
                 table.is_register and any(r in self.holes for r in regs)) or (
                 count == 1 and table.is_register and address in self.shifts):
-            return self._refuse(unit, fc, 2)
+            return self._refuse(unit, fc, ExceptionCode.ILLEGAL_ADDRESS)
         words = self.words(table, address, count)
         skipped = sorted(r for r in regs if r in self.shifts) if table.is_register else []
         if skipped:  # the silent hole: the registers after it move down, 0 fills the end
@@ -304,7 +306,7 @@ class SimDevice:
         if any(f.table is Table.COIL for f in self.fields):
             fs = self._by_register.get((Table.COIL, req.address))
             if not fs or not all(f.writable for f in fs):
-                return self._refuse(req.unit, req.function, 2)
+                return self._refuse(req.unit, req.function, ExceptionCode.ILLEGAL_ADDRESS)
         self.image[Table.COIL][req.address] = req.value
         return req.frame()
 
@@ -315,7 +317,7 @@ class SimDevice:
         for r in regs:
             fs = self._by_register.get((Table.HOLDING, r))
             if not fs or not all(f.writable for f in fs):
-                return self._refuse(unit, fc, 2)
+                return self._refuse(unit, fc, ExceptionCode.ILLEGAL_ADDRESS)
             touched.update((f.name, f) for f in fs)
         new = dict(self.image[Table.HOLDING])
         new.update(zip(regs, values, strict=True))
@@ -325,10 +327,10 @@ class SimDevice:
             if isinstance(value, (int, float)) and not isinstance(value, bool) and (
                     (f.minimum is not None and value < f.minimum)
                     or (f.maximum is not None and value > f.maximum)):
-                return self._refuse(unit, fc, 3)
+                return self._refuse(unit, fc, ExceptionCode.ILLEGAL_VALUE)
             if f.name == self.profile.set_address.field and (
                     not isinstance(value, int) or self.profile.addresses.check(value)):
-                return self._refuse(unit, fc, 3)
+                return self._refuse(unit, fc, ExceptionCode.ILLEGAL_VALUE)
             decoded[f.name] = value
         self.image[Table.HOLDING] = new
         for name, v in decoded.items():

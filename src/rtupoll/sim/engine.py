@@ -21,7 +21,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.rtu import crc_ok, exception_response
+from rtupoll.rtu import ExceptionCode, crc_ok, exception_response
 from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at
 from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS
 from rtupoll.rtu.messages import Malformed, Request, parse_request
@@ -157,7 +157,7 @@ class Engine:
             exc = next((f for f in hits if f.kind == "exception"), None)
             at = d.address
             if exc is not None:
-                code = int(exc.arg) if exc.arg is not None else 4
+                code = int(exc.arg) if exc.arg is not None else ExceptionCode.DEVICE_FAILURE
                 reply: bytes | None = exception_response(unit, fc, code)
             else:
                 reply = d.handle(request)

@@ -31,15 +31,16 @@ from __future__ import annotations
 import json
 import logging
 import math
-import re
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from rtupoll.model.interpret import DISPLAY_UNITS, shown_number
+from rtupoll.model.interpret import DISPLAY_UNITS, KINDS, shown_number
 from rtupoll.model.profile import is_difference
+from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
+from rtupoll.outputs.mqtt_state import topic_name
 from rtupoll.refusals import Refusals
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub
@@ -57,8 +58,6 @@ MAX_FLEET_FIELDS = 10_000  # in all: trends of 152 MB at most
 MAX_PRECISION = 6  # decimals a number is shown with at most
 MAX_TEXT = 200  # characters of a name, label, unit, error or text value shown
 INFO, BRIDGE, AVAIL = "/bridge/info", "/bridge/state", "/availability"
-STATUS_KEY = "_rtupoll"  # rtupoll's own status in a state message (never a field)
-_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")  # as outputs.mqtt.topic_name
 
 
 class Dropped(ValueError):
@@ -215,7 +214,7 @@ class Fleet:
                 continue
             # keyed by the device's topic level (``BASE/<level>`` is its state), with
             # the site's name for it under "name"
-            level = _UNSAFE.sub("_", str(name))
+            level = topic_name(str(name))
             if len(gw.devices) >= MAX_DEVICES or len(level) > MAX_TEXT:
                 cut += 1
                 continue
@@ -248,9 +247,9 @@ class Fleet:
         fields = _fields(dev)
         # only what is shown is kept: the device's fields, its status and time
         values = {k: _value(v) for k, v in values.items()
-                  if k in fields or k in (STATUS_KEY, "last_seen", "error")}
+                  if k in fields or k in (STATUS_KEY, LAST_SEEN, "error")}
         now = self.clock()
-        seen = _epoch(values.get("last_seen"))
+        seen = _epoch(values.get(LAST_SEEN))
         at = seen if seen is not None and now - SPAN < seen <= now + 1 else now
         dev.values, dev.time, dev.at = values, now, at
         key = f"{gw.base}/{dev.level}"
@@ -325,8 +324,7 @@ def _field_infos(got: object, room: int) -> dict[str, dict[str, Any]]:
         p = v.get("precision")
         precision = min(max(p, 0), MAX_PRECISION) if isinstance(p, int) and \
             not isinstance(p, bool) else None
-        kind = v.get("kind") if v.get("kind") in ("number", "enum", "flags", "text") \
-            else "number"
+        kind = v.get("kind") if v.get("kind") in KINDS else "number"
         out[short(k)] = {"label": short(v.get("label") or ""), "unit": short(v.get("unit") or ""),
                          "kind": kind, "precision": precision}
     return out
@@ -376,7 +374,7 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
             "profile": str(info.get("profile") or ""), "model": "",
             "address": info.get("address", ""), "bus": str(info.get("bus") or ""),
             "state": state, "error": error if state != "online" or not fields else "",
-            "health": {"last_seen": _epoch(values.get("last_seen")), "next_try": None},
+            "health": {"last_seen": _epoch(values.get(LAST_SEEN)), "next_try": None},
             "fields": fields}
 
 

@@ -19,11 +19,12 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from rtupoll.config.http_settings import merge
+from rtupoll.config.mqtt_settings import default_gateway_id
 from rtupoll.jobs.services import Service
 from rtupoll.model.interpret import DISPLAY_UNITS, display_value
 from rtupoll.ui.records import to_json
 from rtupoll.web.server import Hub, Server
-from rtupoll.web.state import Clocks, buses_event, device_delta, gateway_id, number, poll_state
+from rtupoll.web.state import Clocks, buses_event, device_delta, number, poll_state
 from rtupoll.web.trend import TrendStore
 
 if TYPE_CHECKING:
@@ -52,7 +53,7 @@ class WebService(Service):
         self.say, self.cli = say, cli
         self.hub = Hub()
         self.trends = TrendStore(time.time())
-        self.gateway = gateway_id()
+        self.gateway = default_gateway_id()  # the id MQTT publishes under (docs/mqtt.md)
         self.others: Sequence[Any] = others
         self.server = Server(settings, self)
         self._scheduler: Scheduler | None = None

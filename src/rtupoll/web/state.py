@@ -23,14 +23,19 @@ Times are wall-clock seconds since the epoch.
 from __future__ import annotations
 
 import math
-import re
-import socket
 import time
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any
 
+from rtupoll.config.mqtt_settings import default_gateway_id
 from rtupoll.jobs.stats import State, Status
-from rtupoll.model.interpret import display, display_unit, display_value
+from rtupoll.model.interpret import (
+    display,
+    display_unit,
+    display_value,
+    field_kind,
+    shown_precision,
+)
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
@@ -41,11 +46,6 @@ SHORT_STATUS = {"timeout": "no reply", "garbled": "garbled reply", "skipped": "n
                 "port": "port gone", "absent": "not in this variant"}
 
 
-def gateway_id() -> str:
-    """This machine's name, lower-cased, in [a-z0-9_-] (the fleet identity's default)."""
-    return re.sub(r"[^a-z0-9_-]+", "-", socket.gethostname().lower()).strip("-") or "rtupoll"
-
-
 def version() -> str:
     from importlib.metadata import PackageNotFoundError
     from importlib.metadata import version as dist_version
@@ -54,16 +54,6 @@ def version() -> str:
         return dist_version("rtupoll")
     except PackageNotFoundError:
         return ""
-
-
-def kind_of(f: Field) -> str:
-    if f.enum:
-        return "enum"
-    if f.flags:
-        return "flags"
-    if f.layout.type.value == "string":
-        return "text"
-    return "number"
 
 
 _META: dict[int, tuple[Field, dict[str, Any]]] = {}  # id(field) -> (field, its meta)
@@ -77,7 +67,7 @@ def field_meta(f: Field) -> dict[str, Any]:
         got = _META[id(f)] = (f, {
             "name": f.name, "label": f.title,
             "description": text.splitlines()[0] if text else "",
-            "unit": display_unit(f), "kind": kind_of(f), "precision": f.precision})
+            "unit": display_unit(f), "kind": field_kind(f), "precision": shown_precision(f)})
         if len(_META) > 100_000:  # profiles reloaded again and again: start afresh
             _META.clear()
     return dict(got[1])
@@ -237,7 +227,7 @@ def poll_state(scheduler: Scheduler, *, title: str, served: Iterable[dict[str, A
     clocks = Clocks()
     by_bus = {s["bus"]: s for s in served}
     return {"mode": "poll", "time": clocks.wall, "span": _span(), "step": _step(),
-            "gateways": [{"id": gateway or gateway_id(), "title": title, "online": True,
+            "gateways": [{"id": gateway or default_gateway_id(), "title": title, "online": True,
                           "version": version(),
                           "buses": [bus_state(bp, clocks, by_bus) for bp in scheduler.buses]}]}
 

@@ -1,0 +1,78 @@
+"""The dashboard of a polling process (``web.state``) and the fleet page (``web.fleet``,
+from what a gateway publishes) show one field alike: its label, unit, kind and
+precision come from one home (``model.interpret.field_kind``/``shown_precision``,
+``Field.title``), and so do its value and text; and both name the gateway by the one
+host-name rule MQTT publishes under (``config.mqtt_settings.default_gateway_id``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import socket
+from typing import Any
+
+import pytest
+
+from rtupoll.config.http_settings import HttpSettings
+from rtupoll.config.library import load_library
+from rtupoll.config.mqtt_settings import MqttSettings, default_gateway_id
+from rtupoll.config.site import from_specs
+from rtupoll.jobs.stats import Reading
+from rtupoll.model.interpret import interpret
+from rtupoll.outputs.fleet import bridge_info
+from rtupoll.outputs.mqtt_commands import value_of
+from rtupoll.web.fleet import Fleet
+from rtupoll.web.service import WebService
+from rtupoll.web.state import field_state
+
+SHOWN = ("label", "unit", "kind", "precision", "value", "text", "status")
+
+
+def test_the_dashboard_and_the_fleet_page_show_every_bundled_field_alike() -> None:
+    """Every field of every bundled profile, holding a raw 7 in its last register: the
+    dashboard's field against the fleet page's, made from the gateway's ``bridge/info``
+    and state message as a broker carries them."""
+    compared, told = 0, 0
+    kinds: set[str] = set()
+    for profile in load_library().profiles.values():
+        site = from_specs("/dev/null", [(profile.id, 1)])
+        bus = site.buses[0]
+        dev = dataclasses.replace(bus.devices[0], fields=profile.fields)  # every field
+        fleet = Fleet("rtupoll", clock=lambda: 1.8e9)
+        info = bridge_info("gw", "rtupoll/gw", [(bus, dev)], {dev.name: "dev"}, "1")
+        assert fleet.handle("rtupoll/gw/bridge/info", json.dumps(info).encode())
+        dashboard: dict[str, dict[str, Any]] = {}
+        state: dict[str, Any] = {}
+        for f in dev.fields:
+            fv = interpret(f, (0,) * (f.words - 1) + (7,))
+            dashboard[f.name] = field_state(f, Reading(1.8e9, dev, f, fv), None)
+            state[f.name] = value_of(fv)  # as the state message carries it
+        assert fleet.handle("rtupoll/gw/dev", json.dumps(state).encode())
+        (gw,) = fleet.snapshot()["gateways"]
+        ((shown,),) = [b["devices"] for b in gw["buses"]]
+        page = {f["name"]: f for f in shown["fields"]}
+        assert list(page) == [f.name for f in dev.fields], profile.id
+        for f in dev.fields:
+            ours = {k: dashboard[f.name].get(k) for k in SHOWN}
+            theirs = {k: page[f.name].get(k) for k in SHOWN}
+            assert ours == theirs, (profile.id, f.name)
+            compared += 1
+            kinds.add(ours["kind"])
+            told += ours["precision"] is not None
+    assert compared > 1000 and kinds == {"number", "enum", "flags", "text"}
+    assert told > 500  # scaled registers are told their decimals on both pages
+
+
+AWKWARD = ["pi_lab-01", "Pi-Lab-01", "pi.lab 01", "PUMP-HOUSE.example.com", "-edge-",
+           "__x__", "Übergabe-1", "###", "", "a" * 80, " spaced \t"]
+
+
+@pytest.mark.parametrize("host", AWKWARD)
+def test_the_dashboard_names_the_gateway_as_mqtt_does(host: str,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The host name is the one input: the dashboard's gateway id (``poll --http``) is
+    the id the gateway publishes under, which the fleet page shows."""
+    monkeypatch.setattr(socket, "gethostname", lambda: host)
+    published = MqttSettings(host="broker").gateway_id
+    assert published == default_gateway_id(host)
+    assert WebService(HttpSettings("127.0.0.1", 0)).gateway == published
