@@ -9,6 +9,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 
@@ -22,8 +23,8 @@ def render(accept: str) -> tuple[bytes, str]:
 
 
 @contextlib.asynccontextmanager
-async def listening(**limits: float) -> AsyncIterator[MetricsListener]:
-    listener = MetricsListener("127.0.0.1", 0, render, **limits)  # type: ignore[arg-type]
+async def listening(**limits: Any) -> AsyncIterator[MetricsListener]:
+    listener = MetricsListener("127.0.0.1", 0, render, **limits)
     await listener.start()
     try:
         yield listener
@@ -135,7 +136,7 @@ def test_a_client_that_reads_nothing_of_a_large_answer_is_reset() -> None:
                                    idle_timeout=0.3)
         await listener.start()
         try:
-            reader, writer = await connect(listener)
+            _, writer = await connect(listener)
             writer.write(b"GET /metrics HTTP/1.1\r\n\r\n")
             deadline = asyncio.get_running_loop().time() + 30  # a hang guard
             while not listener.expired.total:  # it never reads: reset after idle_timeout
