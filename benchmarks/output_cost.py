@@ -34,10 +34,11 @@ from pathlib import Path
 from poll_common import seed_site, simulator
 from prometheus_client import CollectorRegistry, generate_latest
 
-from rtupoll.cli.poll import RecordWriter
+from rtupoll.app.poll import record_format
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.outputs.metrics import SchedulerCollector
+from rtupoll.ui.record_writer import RecordWriter
 
 DEVICES = ("radar-level@2", "huiwen-aq@3", "co2meter-an117@4")
 BAUD = 115200
@@ -71,7 +72,7 @@ def alone(port: str, cycles: int, repeat: int = 5) -> None:
         return best / readings
 
     def write(fmt: str) -> None:
-        w = RecordWriter(io.StringIO(), fmt)
+        w = RecordWriter(io.StringIO(), record_format(fmt, scheduler.site))
         for d, r in got:
             w.write(r, d.stats.state.value)
 

@@ -334,22 +334,39 @@ def test_sighup_reloads_and_reopens_the_output(sim: Callable[..., SimulatedBus],
     assert sum(1 for ev, _, _ in events if ev == "reopen") == 2
 
 
-def test_reopen_starts_a_csv_file_with_its_header(tmp_path: Path) -> None:
-    from rtupoll.cli.poll import RecordWriter
-    from rtupoll.config.site import from_specs
-    from rtupoll.model.interpret import interpret
+def test_a_reload_hands_the_record_writer_the_new_site(
+        sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    """The records' bus tag follows a device moved to another bus: the reload calls the
+    writer's ``follow`` (it owns its device -> bus names; nobody else holds them), and a
+    refused reload changes nothing."""
+    import io
 
-    dev = from_specs("/dev/null", [("huiwen-aq", 3)], check_serial=False).buses[0].devices[0]
-    field = dev.profile.field("co2")
-    reading = Reading(1.0, dev, field, interpret(field, [500]))
-    path = tmp_path / "readings.csv"
-    with path.open("a", encoding="utf-8", newline="") as fh:
-        writer = RecordWriter(fh, "csv", header=True, path=path)
-        writer.write([reading])
-        path.rename(tmp_path / "readings.csv.1")
-        writer.reopen()
-        writer.write([reading, reading])
-        writer.out.close()
-    old, new = (tmp_path / "readings.csv.1").read_text(), path.read_text()
-    assert old.splitlines()[0].startswith("time,device,") and len(old.splitlines()) == 2
-    assert new.splitlines()[0] == old.splitlines()[0] and len(new.splitlines()) == 3
+    from rtupoll.outputs.influx import InfluxFormat
+    from rtupoll.ui.record_writer import RecordWriter
+
+    one, two = sim("huiwen-aq@3"), sim("huiwen-aq@3")
+    path = site_file(tmp_path / "site.yaml", (one.port, [AIR]))
+    out = io.StringIO()
+
+    async def main() -> None:
+        site = load_site(path)
+        scheduler = Scheduler(site)
+        writer = RecordWriter(out, InfluxFormat(site))
+        service = ReloadService(lambda: load_site(path), writer)
+        async with Run(scheduler) as run:
+            await service.start(scheduler)
+            await run.more("air", 1)
+            writer.write(list(scheduler.pollers()[0].stats.latest.values()))
+            site_file(path, (two.port, [AIR]))
+            await service.reload_once()
+            await run.more("air", 1)
+            writer.write(list(scheduler.pollers()[0].stats.latest.values()))
+            path.write_text("buses: [")  # refused: the tag stays
+            await service.reload_once()
+            writer.write(list(scheduler.pollers()[0].stats.latest.values()))
+            await service.stop()
+
+    asyncio.run(main())
+    buses = [dict(t.split("=") for t in line.split(" ")[0].split(",")[1:])["bus"]
+             for line in out.getvalue().splitlines() if line.startswith("rtupoll_status")]
+    assert buses == [one.port, two.port, two.port]

@@ -19,10 +19,10 @@ from click.testing import CliRunner, Result
 from conftest import live_and_dead
 
 from rtupoll.cli import cli
-from rtupoll.config.site import from_specs
+from rtupoll.config.site import BusConfig, Site, from_specs
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.interpret import FieldValue, interpret
-from rtupoll.outputs.influx import InfluxFormatter, lines
+from rtupoll.outputs.influx import InfluxFormat, lines
 from rtupoll.sim.runner import SimulatedBus
 
 Line = tuple[str, dict[str, str], dict[str, Any], int]
@@ -182,9 +182,24 @@ def test_formatter_splits_several_devices_and_keeps_state() -> None:
     a, b = _device("a"), _device("b")
     ra = Reading(1.0, a, a.profile.field("co2"), interpret(a.profile.field("co2"), [5]))
     rb = Reading(2.0, b, b.profile.field("co2"), None, "garbled", "bad CRC")
-    text = InfluxFormatter({"a": "one", "b": "two"}).format([ra, rb], "online")
+    site = Site((BusConfig("one", "/dev/a", 9600, devices=(a,)),
+                 BusConfig("two", "/dev/b", 9600, devices=(b,))))
+    text = InfluxFormat(site).text([ra, rb], "online")
     parsed = [parse_line(x) for x in text.splitlines()]
     assert [(m, t["device"], t["bus"]) for m, t, _, _ in parsed] == [
         ("rtupoll_reading", "a", "one"), ("rtupoll_status", "a", "one"),
         ("rtupoll_status", "b", "two")]
     assert parsed[2][2]["up"] == 0 and parsed[2][2]["error"] == "bad CRC"
+
+
+def test_the_bus_tag_follows_the_site_it_is_given_and_no_other() -> None:
+    """The format owns its device -> bus names: a reload hands it the new site
+    (``follow``); the site it was built from, or a dict anyone holds, changes nothing."""
+    a = _device("a")
+    ra = Reading(1.0, a, a.profile.field("co2"), interpret(a.profile.field("co2"), [5]))
+    fmt = InfluxFormat(Site((BusConfig("one", "/dev/a", 9600, devices=(a,)),)))
+    assert {parse_line(x)[1]["bus"] for x in fmt.text([ra]).splitlines()} == {"one"}
+    fmt.follow(Site((BusConfig("moved", "/dev/b", 9600, devices=(a,)),)))
+    assert {parse_line(x)[1]["bus"] for x in fmt.text([ra]).splitlines()} == {"moved"}
+    fmt.follow(Site(()))  # gone from the site: no bus tag (an empty tag is invalid)
+    assert all("bus" not in parse_line(x)[1] for x in fmt.text([ra]).splitlines())

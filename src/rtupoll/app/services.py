@@ -47,8 +47,6 @@ def poll_services(site: Site, writer: Reopenable | None, given: Sequence[Service
     verbose = log_format is not None or sys.stderr.isatty() or \
         bool(os.environ.get("JOURNAL_STREAM")) or any(b.serve for b in site.buses)
     logs.setup(log_format or "text", level=logging.INFO if verbose else logging.ERROR)
-    if writer is not None:
-        writer.buses.update({d.name: b.name for b, d in site.devices()})
     services = list(given)
     collectors = [c for s in given for c in s.collectors()]
     if verbose and not table and not once:  # --once names each failed device itself

@@ -41,9 +41,12 @@ HANGUP: signal.Signals | None = getattr(signal, "SIGHUP", None)  # None on Windo
 
 
 class Reopenable(Protocol):
-    buses: dict[str, str]  # device name -> bus name, for records that name the bus
+    """The record output (``ui.record_writer.RecordWriter``): its file reopened, and the
+    reloaded site followed (records that name a device's bus)."""
 
     def reopen(self) -> None: ...
+
+    def follow(self, site: Site) -> None: ...
 
 
 class ReloadService(Service):
@@ -65,7 +68,6 @@ class ReloadService(Service):
 
     async def start(self, scheduler: Scheduler) -> None:
         self._scheduler = scheduler
-        self._name_buses()
         if HANGUP is None:  # no SIGHUP (Windows): nothing to reload on
             return
         was = signal.getsignal(HANGUP)
@@ -139,17 +141,12 @@ class ReloadService(Service):
         changes = await self._scheduler.reload(site)
         for p in prepared:
             changes += await p.commit(self._scheduler)
-        self._name_buses()
+        if self.output is not None:
+            self.output.follow(self._scheduler.site)
         for c in changes:
             log.info("reload: %s", c, extra={"event": "reload"})
         if not changes:
             log.info("reload: nothing changed", extra={"event": "reload"})
-
-    def _name_buses(self) -> None:
-        if self.output is not None and self._scheduler is not None:
-            self.output.buses.clear()
-            self.output.buses.update({d.config.name: bp.config.name
-                                      for bp in self._scheduler.buses for d in bp.devices})
 
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
         return None

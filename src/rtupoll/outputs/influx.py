@@ -43,7 +43,10 @@ import math
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
+from rtupoll.ui.records import RecordFormat
+
 if TYPE_CHECKING:
+    from rtupoll.config.site import Site
     from rtupoll.jobs.stats import Reading
 
 MEASUREMENT = "rtupoll_reading"
@@ -163,14 +166,19 @@ def _line(name: str, tagset: str, fields: Iterable[tuple[str, str]], t: float) -
     return f"{head} {','.join(f'{k}={v}' for k, v in fields)} {nanoseconds(t)}"
 
 
-class InfluxFormatter:
-    """``RecordWriter``'s influx format: readings in, whole lines out."""
+class InfluxFormat(RecordFormat):
+    """``poll --format influx``: readings in, whole lines out, each device's ``bus`` tag
+    from the site polled (given at the start, ``follow``ed at a reload)."""
 
-    def __init__(self, buses: dict[str, str] | None = None) -> None:
-        """``buses``: device name -> bus name, for the ``bus`` tag."""
-        self.buses = buses if buses is not None else {}
+    def __init__(self, site: Site | None = None) -> None:
+        self._bus: dict[str, str] = {}  # device name -> bus name, this format's own
+        if site is not None:
+            self.follow(site)
 
-    def format(self, readings: Sequence[Reading], state: str = "") -> str:
+    def follow(self, site: Site) -> None:
+        self._bus = {d.name: b.name for b, d in site.devices()}
+
+    def text(self, readings: Sequence[Reading], state: str = "") -> str:
         """Lines for one device cycle (``state``: the device's state after it), or for
         several devices' cycles in a row (``poll --once``)."""
         out: list[str] = []
@@ -178,6 +186,6 @@ class InfluxFormatter:
         for i in range(1, len(readings) + 1):
             if i == len(readings) or readings[i].device.name != readings[start].device.name:
                 run = readings[start:i]
-                out += lines(run, bus=self.buses.get(run[0].device.name, ""), state=state)
+                out += lines(run, bus=self._bus.get(run[0].device.name, ""), state=state)
                 start = i
         return "".join(line + "\n" for line in out)

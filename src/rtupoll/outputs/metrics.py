@@ -27,14 +27,14 @@ the other documented ones); flags: ``_flag{flag}``, one series per flag; strings
 exported: the series disappears, it never keeps its last value as if fresh. A field
 on a slower interval (``interval: 60``) keeps its last good reading between its reads.
 
-``exposition`` renders the text from the state; ``MetricsService`` only carries it over
-HTTP (``--metrics``: loopback unless a host is given, as ``--serve``).
+``exposition`` renders the text from the state; ``Exporter`` is what a running poll
+shows, for the dashboard's ``/metrics`` (``--http``) and for ``MetricsService``, which
+serves it on a listener of its own, no aiohttp (``--metrics``: loopback unless a host is
+given, as ``--serve``; ``outputs.metrics_listener``).
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 import math
 import os
@@ -60,6 +60,7 @@ if TYPE_CHECKING:
     from rtupoll.jobs.services import Reload
     from rtupoll.jobs.stats import Reading
     from rtupoll.model.profile import Field
+    from rtupoll.outputs.metrics_listener import MetricsListener
 
 log = logging.getLogger("rtupoll.metrics")
 
@@ -381,7 +382,7 @@ def _add(fam: Metric, labels: list[str], value: float) -> None:
 def exposition(registry: CollectorRegistry, accept: str = "") -> tuple[bytes, str]:
     """The ``/metrics`` body for a registry, in the format an ``Accept`` header asks for
     (the text format when it asks for none): ``(body, content type)``. Any HTTP server
-    can serve it; ``MetricsService`` is the one ``poll --metrics`` runs."""
+    can serve it; ``Exporter.render`` is what both of ``poll``'s listeners serve."""
     from prometheus_client.exposition import choose_encoder
 
     encoder, ctype = choose_encoder(accept)
@@ -389,7 +390,43 @@ def exposition(registry: CollectorRegistry, accept: str = "") -> tuple[bytes, st
 
 
 # ---------------------------------------------------------------------------
-# the service: an HTTP listener on the event loop
+# what /metrics shows of a running poll, for either listener
+
+
+class Exporter:
+    """The scheduler's collector and the other services' (the gateway's clients) in one
+    registry, fed every device cycle: ``render`` is the ``/metrics`` body, served by
+    ``MetricsService`` (``--metrics``) and by the dashboard (``--http``) alike."""
+
+    def __init__(self, scheduler: Scheduler, others: Sequence[object] = ()) -> None:
+        from prometheus_client import CollectorRegistry
+
+        self.collector = SchedulerCollector(scheduler)
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(self.collector)
+        for other in others:
+            self.registry.register(other)  # type: ignore[arg-type]
+        self._bus_of: dict[str, BusPoller] = {}
+
+    def render(self, accept: str = "") -> tuple[bytes, str]:
+        """The exposition now: ``(body, content type)`` (see ``exposition``)."""
+        return exposition(self.registry, accept)
+
+    def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
+        bus = self._bus_of.get(dev.config.name)
+        if bus is None or dev not in bus.devices:  # not seen yet, or moved by a reload
+            self.follow(self.collector.scheduler)
+            bus = self._bus_of.get(dev.config.name)
+        if bus is not None:
+            self.collector.observe(bus, dev, readings)
+
+    def follow(self, scheduler: Scheduler) -> None:
+        """Which bus each device is on (again, after a reload)."""
+        self._bus_of = {d.config.name: bp for bp in scheduler.buses for d in bp.devices}
+
+
+# ---------------------------------------------------------------------------
+# the service: the exporter on its own listener (outputs.metrics_listener)
 
 
 class MetricsService(Service):
@@ -402,97 +439,48 @@ class MetricsService(Service):
             import prometheus_client  # noqa: F401
         except ImportError:
             raise MissingLibrary("--metrics", "metrics") from None
-        self.collector: SchedulerCollector | None = None
         self.others: list[Any] = list(others)
-        self.registry: CollectorRegistry | None = None
-        self._server: asyncio.Server | None = None
-        self._bus_of: dict[str, BusPoller] = {}
-        self.address = ""  # http://HOST:PORT/metrics once listening
+        self.exporter: Exporter | None = None
+        self._listener: MetricsListener | None = None
+
+    @property
+    def address(self) -> str:
+        """``http://HOST:PORT/metrics`` once listening, else ""."""
+        return self._listener.address if self._listener is not None else ""
 
     def render(self, accept: str = "") -> tuple[bytes, str]:
         """The exposition now: ``(body, content type)`` (see ``exposition``)."""
-        if self.registry is None:
+        if self.exporter is None:
             raise RuntimeError("the metrics service has not started")
-        return exposition(self.registry, accept)
+        return self.exporter.render(accept)
 
     async def start(self, scheduler: Scheduler) -> None:
-        from prometheus_client import CollectorRegistry
+        from rtupoll.outputs.metrics_listener import MetricsListener
 
-        self.collector = SchedulerCollector(scheduler)
-        self.registry = CollectorRegistry(auto_describe=False)
-        self.registry.register(self.collector)
-        for other in self.others:
-            self.registry.register(other)
+        self.exporter = Exporter(scheduler, self.others)
+        listener = MetricsListener(self.host, self.port, self.exporter.render)
         try:
-            # [::]: IPv6 and IPv4 (asyncio binds "::" IPv6-only)
-            hosts = ["::", "0.0.0.0"] if self.host == "::" else self.host
-            self._server = await asyncio.start_server(self._serve, hosts, self.port)
+            await listener.start()
         except OSError as exc:
             why = os.strerror(exc.errno) if exc.errno else str(exc)
             raise UsageError(f"--metrics: cannot listen on {self.host}:{self.port}: "
                              f"{why}") from None
-        sock = self._server.sockets[0].getsockname()
-        host = f"[{sock[0]}]" if ":" in sock[0] else sock[0]
-        self.address = f"http://{host}:{sock[1]}/metrics"
+        self._listener = listener
         log.info("serving metrics on %s", self.address, extra={"event": "metrics"})
 
     def on_readings(self, dev: DevicePoller, readings: list[Reading]) -> None:
-        if self.collector is None:
-            return
-        bus = self._bus_of.get(dev.config.name)
-        if bus is None:  # not seen yet
-            self._bus_of = self._buses(self.collector.scheduler)
-            bus = self._bus_of.get(dev.config.name)
-        if bus is not None:
-            self.collector.observe(bus, dev, readings)
+        if self.exporter is not None:
+            self.exporter.on_readings(dev, readings)
 
     async def on_reload(self, site: Site) -> Reload:
         """Devices may have moved to other buses: which bus each is on, again."""
         def then(scheduler: Scheduler) -> list[str]:
-            self._bus_of = self._buses(scheduler)
+            if self.exporter is not None:
+                self.exporter.follow(scheduler)
             return []
         return Follow(then)
 
-    @staticmethod
-    def _buses(scheduler: Scheduler) -> dict[str, BusPoller]:
-        return {d.config.name: bp for bp in scheduler.buses for d in bp.devices}
-
     async def stop(self) -> None:
-        if self._server is not None:
-            self._server.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 1.0)
-            self._server = None
-
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """One request per connection: GET or HEAD /metrics, / says where they are."""
-        try:
-            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10.0)
-            request, *header_lines = head.decode("latin-1").split("\r\n")
-            method, _, rest = request.partition(" ")
-            path = rest.partition(" ")[0].partition("?")[0]
-            headers = {k.strip().lower(): v.strip() for k, _, v in
-                       (h.partition(":") for h in header_lines if h)}
-            if method not in ("GET", "HEAD"):
-                status, ctype, body = "405 Method Not Allowed", "text/plain", b"GET only\n"
-            elif path == "/metrics" and self.registry is not None:
-                body, ctype = self.render(headers.get("accept", ""))
-                status = "200 OK"
-            elif path == "/":
-                status, ctype = "200 OK", "text/plain; charset=utf-8"
-                body = b"rtupoll: metrics at /metrics\n"
-            else:
-                status, ctype, body = "404 Not Found", "text/plain", b"not found: try /metrics\n"
-            writer.write(f"HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\n"
-                         f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
-                         .encode("latin-1"))
-            if method != "HEAD":
-                writer.write(body)
-            await writer.drain()
-        except (TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError,
-                ConnectionError, UnicodeError):
-            pass
-        finally:
-            writer.close()
-            with contextlib.suppress(Exception):
-                await writer.wait_closed()
+        if self._listener is not None:
+            await self._listener.stop()
+            self._listener = None

@@ -11,15 +11,17 @@ metrics, Influx) goes through ``finite`` / ``json_safe`` / ``to_json`` for this.
 
 from __future__ import annotations
 
+import io
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rtupoll.figures import iso_time
 from rtupoll.model.interpret import FieldValue
 
 if TYPE_CHECKING:
+    from rtupoll.config.site import Site
     from rtupoll.jobs.stats import Reading
 
 READ_KEYS = ("device", "profile", "address", "field", "value", "unit", "raw", "severity", "text")
@@ -209,3 +211,51 @@ def _cell(v: Any) -> str:
         return " ".join(str(x) for x in v) if all(isinstance(x, int) for x in v) \
             else "|".join(str(x) for x in v)
     return str(v)
+
+
+class RecordFormat:
+    """One format of ``poll``'s records (``ui.record_writer.RecordWriter`` writes them):
+    readings in, whole lines out. ``JsonFormat`` and ``CsvFormat`` here,
+    ``outputs.influx.InfluxFormat`` for line protocol."""
+
+    def text(self, readings: Sequence[Reading], state: str = "") -> str:
+        """The lines of one device cycle (``state``: the device's state after it), or of
+        several devices' cycles in a row."""
+        raise NotImplementedError
+
+    def restart(self, fresh: bool) -> None:
+        """The records go on in another file (SIGHUP); ``fresh``: it is empty."""
+
+    def follow(self, site: Site) -> None:
+        """The site polled from now on (a reload): which bus each device is on."""
+
+
+class JsonFormat(RecordFormat):
+    """JSON lines (``JsonRecords``)."""
+
+    def __init__(self) -> None:
+        self._line = JsonRecords().line
+
+    def text(self, readings: Sequence[Reading], state: str = "") -> str:
+        line = self._line
+        return "".join([line(r) for r in readings])
+
+
+class CsvFormat(RecordFormat):
+    """CSV of ``POLL_KEYS``, the header first unless the output has one (``header``)."""
+
+    def __init__(self, *, header: bool = True) -> None:
+        self._buf = io.StringIO()
+        self._csv = CsvWriter(self._buf, POLL_KEYS, header=header)
+
+    def text(self, readings: Sequence[Reading], state: str = "") -> str:
+        for r in readings:
+            self._csv.write(reading_record(r))
+        text = self._buf.getvalue()
+        self._buf.seek(0)
+        self._buf.truncate()
+        return text
+
+    def restart(self, fresh: bool) -> None:
+        """A new file: a header again when it is empty."""
+        self._csv = CsvWriter(self._buf, POLL_KEYS, header=fresh)

@@ -38,8 +38,6 @@ import hmac
 import importlib.resources
 import logging
 import os
-import socket
-import struct
 import sys
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -49,6 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import web
 
 from rtupoll.errors import UsageError
+from rtupoll.outputs.metrics_listener import LINGER, MAX_HEAD, REFUSED, TOO_LARGE, reset
 from rtupoll.refusals import Refusals, watch
 from rtupoll.ui.records import to_json
 
@@ -247,18 +246,6 @@ def authorised(settings: HttpSettings, headers: Any, cookies: Any, query: Any) -
     return False
 
 
-LINGER = 1.0  # seconds a refused connection is given to read its 503
-MAX_HEAD = 32 << 10  # bytes a connection may send from one request's headers to the next
-_BIG = b"rtupoll: request headers too large\n"
-TOO_LARGE = (b"HTTP/1.1 431 Request Header Fields Too Large\r\n"
-             b"Content-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
-             b"Connection: close\r\n\r\n%s" % (len(_BIG), _BIG))
-_BUSY = b"rtupoll: too many connections, retry later\n"
-REFUSED = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
-           b"Content-Length: %d\r\nConnection: close\r\nRetry-After: 10\r\n\r\n%s"
-           % (len(_BUSY), _BUSY))
-
-
 class Gate:
     """One listener's connections: how many are open (its cap), the refusals, and the
     ``Conn`` of each open one's transport (for the middleware)."""
@@ -422,16 +409,6 @@ class Conn(asyncio.Protocol):
             self.gate.expired.refused(f"with their headers not all in after "
                                       f"{settings.header_timeout:g} s")
         t.close()
-
-
-def reset(transport: asyncio.Transport) -> None:
-    """Close a connection whose client does not read: a reset (SO_LINGER 0), so that
-    neither the transport's buffer nor the kernel's queue of it outlives the close."""
-    sock = transport.get_extra_info("socket")
-    if sock is not None:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-    transport.abort()
 
 
 class RequestLog:

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from rtupoll.config.site import Site
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller, Scheduler
     from rtupoll.jobs.stats import Reading
-    from rtupoll.outputs.metrics import MetricsService
+    from rtupoll.outputs.metrics import Exporter
     from rtupoll.web.server import Listener
 
 log = logging.getLogger("rtupoll.web")
@@ -58,7 +58,7 @@ class WebService(Service):
         self.server = Server(settings, self)
         self._scheduler: Scheduler | None = None
         self._bus_of: dict[str, BusPoller] = {}
-        self._prom: MetricsService | None = None
+        self._prom: Exporter | None = None
         self._ticker: asyncio.Task[None] | None = None
         # per device: the hub's epoch and the signatures of the fields last sent
         self._sent: dict[str, tuple[int, dict[str, object]]] = {}
@@ -104,6 +104,8 @@ class WebService(Service):
     def reloaded(self, scheduler: Scheduler) -> None:
         """The scheduler took a new site: other devices, perhaps other buses."""
         self._bus_of = {}
+        if self._prom is not None:
+            self._prom.follow(scheduler)
         self.trends.forget({d.config.name for d in scheduler.pollers()})
         self._sent.clear()
         self.hub.publish("state", "state", self._state_event)
@@ -126,30 +128,19 @@ class WebService(Service):
         return self.trends.series(key, field, time.time())
 
     def metrics(self, accept: str) -> tuple[bytes, str] | None:
-        if self._prom is None or self._prom.registry is None:
-            return None
-        from prometheus_client.exposition import choose_encoder
-
-        encoder, ctype = choose_encoder(accept)
-        return encoder(self._prom.registry), ctype
+        return self._prom.render(accept) if self._prom is not None else None
 
     # -----------------------------------------------------------------------------
 
-    def _metrics(self, scheduler: Scheduler) -> MetricsService | None:
-        """``outputs.metrics``'s collector and registry, without its own listener."""
+    def _metrics(self, scheduler: Scheduler) -> Exporter | None:
+        """``outputs.metrics``' exporter, the one ``--metrics`` serves, served here."""
         try:
-            from prometheus_client import CollectorRegistry
-
-            from rtupoll.outputs.metrics import MetricsService, SchedulerCollector
+            import prometheus_client  # noqa: F401
         except ImportError:
             return None
-        prom = MetricsService("127.0.0.1:0")  # never started: its registry is served here
-        prom.collector = SchedulerCollector(scheduler)
-        prom.registry = CollectorRegistry(auto_describe=False)
-        prom.registry.register(prom.collector)
-        for other in self.others:
-            prom.registry.register(other)
-        return prom
+        from rtupoll.outputs.metrics import Exporter
+
+        return Exporter(scheduler, self.others)
 
     async def _tick(self) -> None:
         while True:
