@@ -36,8 +36,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rtupoll.io import serialport, waits
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io import own_port, waits
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.rtu import Table
 
@@ -45,7 +45,7 @@ BAUD = 115200
 UNIT, ADDRESS = 3, 30008  # the Huiwen's co2 (input 30009)
 
 
-class NoDescriptor(serialport.Serial):
+class NoDescriptor(own_port.Serial):
     """The pty as a COM port looks to ``wait_on``: no descriptor offered."""
 
     @property
@@ -83,7 +83,7 @@ def async_round(path: str, n: int, poll: bool = False, pump: bool = False
     from rtupoll.io.bus import Bus
 
     if pump:
-        own = serialport.OwnPort
+        own = own_port.OwnPort
         saved = own.device_fd, own.fileno
         own.device_fd = property(lambda self: None)  # type: ignore[assignment,method-assign]
         own.fileno = _pumped  # type: ignore[method-assign]
@@ -112,7 +112,7 @@ def _pumped(self: Any) -> int:
     """``OwnPort.fileno`` of a port that offers no descriptor (``rfc2217://``'s path)."""
     if self._pump is None:
         self.timeout = waits.SLICE
-        self._pump = waits.Pump(waits.PortWait(serialport._Base(self)))
+        self._pump = waits.Pump(waits.PortWait(own_port._Base(self)))
     return int(self._pump.fileno())
 
 

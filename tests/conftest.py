@@ -387,15 +387,15 @@ class RawPort:
 @pytest.fixture
 def dtr_states(monkeypatch: pytest.MonkeyPatch) -> list[tuple[bool, bool]]:
     """(DTR, RTS) as each rtupoll-opened port sets them when it opens, in order."""
-    from rtupoll.io import serialport
+    from rtupoll.io import own_port
 
     states: list[tuple[bool, bool]] = []
-    real = serialport.Serial._update_dtr_state
+    real = own_port.Serial._update_dtr_state
 
     def spy(self: Any) -> None:
         states.append((self._dtr_state, self._rts_state))
         real(self)
-    monkeypatch.setattr(serialport.Serial, "_update_dtr_state", spy)
+    monkeypatch.setattr(own_port.Serial, "_update_dtr_state", spy)
     return states
 
 

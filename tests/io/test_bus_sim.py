@@ -21,7 +21,6 @@ import serial
 from conftest import ANSWERED, judged
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError, UsageError
-from rtupoll.io import serialport
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.runner import SimulatedBus
@@ -185,15 +184,6 @@ def test_dtr_and_rts_are_deasserted_before_open(
     assert states == [(True, True)]  # rtupoll's Serial too (rtupoll://), lines as pyserial's
     assert run(go(True)) == bus_sim.registers(5, Table.INPUT, 1, 1)
     assert states == [(True, True), (False, False)]
-
-
-def test_nodtr_url_handler() -> None:
-    port = serial.serial_for_url("nodtr:///dev/ttyUSB3", do_not_open=True)
-    assert isinstance(port, serialport.Serial)
-    assert port.port == "/dev/ttyUSB3"
-    assert serialport.port_url("/dev/ttyUSB3", deassert_dtr=True) == "nodtr:///dev/ttyUSB3"
-    assert serialport.port_url("socket://h:1", deassert_dtr=True) == "socket://h:1"
-    assert serialport.port_url("/dev/ttyUSB3", deassert_dtr=False) == "/dev/ttyUSB3"
 
 
 def test_dead_device_costs_its_timeout_not_more(sim: Sim) -> None:

@@ -30,7 +30,7 @@ from virtual import START
 from rtupoll.errors import DeviceTimeout
 from rtupoll.io import clock, waits
 from rtupoll.io.bus import Bus
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.rtu import Framing, Table
 from rtupoll.sim.engine import Engine

@@ -1,6 +1,6 @@
 """Issue 24.4: adapters that echo (--echo, echo: true) and RS-485 direction control
-(--rs485): end to end on the simulator's echoing adapter, and the modem-line calls of
-direction control recorded on a fake port against the bytes written."""
+(--rs485), end to end on the simulator's echoing adapter (direction control's modem-line
+calls on a fake port: tests/io/test_rs485.py)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,6 @@ from forked_cli import rtupoll_popen
 from rtupoll.cli import cli
 from rtupoll.config.site import from_specs, load_site
 from rtupoll.errors import ConfigError, DeviceTimeout, FrameError
-from rtupoll.io import serialport
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Table
@@ -196,94 +195,6 @@ def test_site_file_rs485_delay_out_of_range_is_file_line_field(tmp_path: Path) -
         load_site(_site(tmp_path, "    rs485:\n      delay_before: 5\n"))
     text = str(exc.value)
     assert "site.yaml:5" in text and "delay_before" in text
-
-
-# -- direction control -----------------------------------------------------------------
-
-
-class FakePort:
-    """Records modem-line calls and bytes written, in order. ``kernel``: the driver
-    has RS-485 mode; ``rts``: RTS can be driven."""
-
-    port = "/dev/ttyFAKE0"
-
-    def __init__(self, *, kernel: bool, rts: bool) -> None:
-        self.kernel, self.can_rts = kernel, rts
-        self.events: list[tuple[str, object]] = []
-        self._mode: object = None
-
-    @property
-    def rs485_mode(self) -> object:
-        return self._mode
-
-    @rs485_mode.setter
-    def rs485_mode(self, value: object) -> None:
-        if value is not None and not self.kernel:
-            raise ValueError("Failed to set RS485 mode: [Errno 25] Inappropriate ioctl")
-        self._mode = value
-        self.events.append(("rs485_mode", value))
-
-    @property
-    def rts(self) -> bool:
-        return False
-
-    @rts.setter
-    def rts(self, level: bool) -> None:
-        if not self.can_rts:
-            raise OSError(25, "Inappropriate ioctl for device")
-        self.events.append(("rts", level))
-
-    def write(self, data: bytes) -> int:
-        self.events.append(("write", data))
-        return len(data)
-
-    def flush(self) -> None:
-        self.events.append(("flush", None))
-
-
-def test_kernel_rs485_mode_where_the_driver_has_it() -> None:
-    port = FakePort(kernel=True, rts=True)
-    mode, toggle = serialport.direction_control(port, serialport.Rs485(0.001, 0.002))
-    assert mode == "kernel" and toggle is None
-    settings: Any = port.rs485_mode
-    assert settings.rts_level_for_tx is True and settings.rts_level_for_rx is False
-    assert (settings.delay_before_tx, settings.delay_before_rx) == (0.001, 0.002)
-    assert [e[0] for e in port.events] == ["rs485_mode"]  # RTS left to the kernel
-
-
-def test_rts_toggled_around_each_frame_without_kernel_mode() -> None:
-    port = FakePort(kernel=False, rts=True)
-    mode, toggle = serialport.direction_control(port, serialport.Rs485(0.001, 0.002))
-    assert mode == "rts" and toggle is not None
-    assert port.events == [("rs485_mode", None), ("rts", False)]  # listening
-    port.events.clear()
-    toggle._sleep = lambda s: port.events.append(("sleep", s))
-    frame = bytes.fromhex("02 03 00 02 00 01 25 f9".replace(" ", ""))
-    assert toggle.write(port.write, frame) == len(frame)
-    assert port.events == [("rts", True), ("sleep", 0.001), ("write", frame),
-                           ("flush", None), ("sleep", 0.002), ("rts", False)]
-
-
-def test_rts_is_dropped_even_when_the_write_fails() -> None:
-    port = FakePort(kernel=False, rts=True)
-    _, toggle = serialport.direction_control(port, serialport.Rs485())
-    assert toggle is not None
-    port.events.clear()
-
-    def broken(data: bytes) -> int:
-        raise OSError(5, "Input/output error")
-
-    with pytest.raises(OSError):
-        toggle.write(broken, b"\x01")
-    assert port.events == [("rts", True), ("rts", False)]
-
-
-def test_a_port_with_neither_is_one_clear_line() -> None:
-    port = FakePort(kernel=False, rts=False)
-    with pytest.raises(Exception) as exc:
-        serialport.direction_control(port, serialport.Rs485())
-    text = str(exc.value)
-    assert "\n" not in text and "neither" in text and "RS-485" in text and "RTS" in text
 
 
 def test_rs485_on_a_pty_is_a_port_error_in_one_line(echoing: SimulatedBus) -> None:

@@ -19,7 +19,7 @@ from cli_runner import rtupoll
 from conftest import PATIENT
 from rfc2217_server import Rfc2217Server
 
-from rtupoll.io import serialport, waits
+from rtupoll.io import port_settings, waits
 from rtupoll.io.syncbus import SyncBus
 from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
@@ -48,7 +48,7 @@ def records(stdout: str) -> list[dict[str, object]]:
 
 def test_the_portable_wait_is_what_such_a_port_gets(line: tuple[str, SimulatedBus]) -> None:
     port, _ = line
-    with SyncBus(serialport.PortSettings(port)) as bus:
+    with SyncBus(port_settings.PortSettings(port)) as bus:
         assert isinstance(bus._take, waits.PortWait)  # no descriptor to os.read
 
 

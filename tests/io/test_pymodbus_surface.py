@@ -15,7 +15,7 @@ import serial
 from conftest import ANSWERED
 from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
-from rtupoll.io import serialport
+from rtupoll.io import own_port
 from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import Table, read_request
 from rtupoll.sim.runner import SimulatedBus
@@ -59,14 +59,14 @@ def test_a_serial_port_is_opened_through_pyserials_url_handlers(sim: Sim) -> Non
     reaches ``Protocol.data_received``, ``send`` writes through the transport, and
     ``close``/``is_active`` are as documented."""
     bus = sim("co2meter-an117@5", tick=None)
-    url, slot = serialport.claim(bus.port, deassert_dtr=False)
+    url, slot = own_port.claim(bus.port, deassert_dtr=False)
     assert url.startswith("rtupoll://") and slot is not None
 
     async def go() -> tuple[bytes, bool, int]:
         proto = Recorder(_serial_params(url))
         assert await proto.connect()
         assert proto.is_active()
-        assert isinstance(slot.port, serialport.Serial) and slot.port.is_open
+        assert isinstance(slot.port, own_port.Serial) and slot.port.is_open
         transport = proto.transport
         assert isinstance(transport, asyncio.WriteTransport)
         assert transport.get_write_buffer_size() == 0
@@ -84,15 +84,15 @@ def test_a_serial_port_is_opened_through_pyserials_url_handlers(sim: Sim) -> Non
     assert got[:3] == bytes((5, 4, 2)) and len(got) == 7
     assert not active and connected == 1
     assert slot.port is not None and not slot.port.is_open  # pymodbus closed our Serial
-    serialport.release(url)
+    own_port.release(url)
 
 
 def test_a_nonblocking_port_reads_only_what_waits(sim: Sim) -> None:
     """pymodbus sets the port's read and write timeouts to 0: reading what waits in
     rtupoll's Serial never blocks the event loop, and both take the one-system-call
-    path (``io.serialport.Serial.read``/``write``)."""
+    path (``io.own_port.Serial.read``/``write``)."""
     bus = sim("co2meter-an117@5", tick=None)
-    url, slot = serialport.claim(bus.port, deassert_dtr=False)
+    url, slot = own_port.claim(bus.port, deassert_dtr=False)
 
     async def go() -> tuple[Any, bytes]:
         proto = Recorder(_serial_params(url))
@@ -104,7 +104,7 @@ def test_a_nonblocking_port_reads_only_what_waits(sim: Sim) -> None:
         return timeouts, data
 
     assert asyncio.run(go()) == ((0, 0), b"")
-    serialport.release(url)
+    own_port.release(url)
 
 
 def test_a_tcp_gateway_is_a_socket_transport_with_the_same_callbacks() -> None:
@@ -181,7 +181,7 @@ def test_a_serial_port_is_waited_on_by_the_loop_never_polled(sim: Sim) -> None:
 
     assert SerialTransport.force_poll is False
     bus = sim("huiwen-aq@3")
-    url, slot = serialport.claim(bus.port, deassert_dtr=False)
+    url, slot = own_port.claim(bus.port, deassert_dtr=False)
     readers: list[int] = []
 
     async def main() -> None:

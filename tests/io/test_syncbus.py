@@ -18,7 +18,7 @@ import serial
 from conftest import ANSWERED
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, PortError
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.jobs.device import read_fields
 from rtupoll.rtu import Framing, Table

@@ -16,7 +16,7 @@ import pytest
 import serial
 from conftest import ANSWERED
 
-from rtupoll.io import serialport, waits
+from rtupoll.io import own_port, waits
 
 
 @pytest.fixture
@@ -30,7 +30,7 @@ def pty() -> Iterator[tuple[int, str]]:
 
 
 def opened(path: str) -> Any:
-    return serialport.Serial(path, baudrate=115200, timeout=waits.SLICE)
+    return own_port.Serial(path, baudrate=115200, timeout=waits.SLICE)
 
 
 def test_the_wait_is_chosen_by_what_the_port_offers(pty: tuple[int, str]) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 from cli_runner import rtupoll
 
 from rtupoll.io.latency import latency_timer
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.jobs.doctor import Doctor, Finding
 from rtupoll.sim.runner import SimulatedBus, simulated_bus

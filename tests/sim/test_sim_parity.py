@@ -1,6 +1,6 @@
 """Parity as the wire has it (issue 47: an 8E1 meter answered a master at 8N1 or 8O1, and
 ``scan --parity N,E`` listed it twice). A pty has no parity bit; the master marks the
-parity it set (``serialport.pty_parity``: INPCK, and PARODD for odd, the flags libmodbus
+parity it set (``pty_parity.pty_parity``: INPCK, and PARODD for odd, the flags libmodbus
 sets too), and the simulator lets only the devices at that parity hear a request. Real
 masters on the simulator's pty: rtupoll (read, scan) and mbpoll."""
 
@@ -19,8 +19,8 @@ from click.testing import CliRunner
 from conftest import PATIENT
 
 from rtupoll.cli import cli
-from rtupoll.io import serialport
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io import pty_parity
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus
 from rtupoll.rtu import Table
 from rtupoll.sim.runner import SimulatedBus
@@ -36,7 +36,7 @@ def test_a_pty_opened_at_a_parity_says_so_from_its_other_side(parity: str) -> No
     try:
         tty.setraw(slave)
         with SyncBus(PortSettings(os.ttyname(slave), baudrate=19200, parity=parity)):
-            assert serialport.pty_parity_of(slave) == parity
+            assert pty_parity.pty_parity_of(slave) == parity
             assert not termios.tcgetattr(slave)[2] & termios.PARENB  # (no parity bit)
     finally:
         os.close(master)

@@ -13,7 +13,7 @@ import pytest
 from cli_runner import rtupoll
 
 from rtupoll.io import taps
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus
 from rtupoll.rtu import Table, read_request, with_crc
 from rtupoll.sim.runner import SimulatedBus

@@ -236,7 +236,7 @@ def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int
     """The registers around START: one more on each side when the device allows it.
     Read on the blocking bus (no event loop), as ``rtupoll read`` does."""
     from rtupoll.cli.target import line_settings, run_on_bus
-    from rtupoll.io.serialport import PortSettings
+    from rtupoll.io.port_settings import PortSettings
 
     port, baudrate, parity, stopbits = serial
     # DTR deasserted: some boards (CO2Meter) are held in reset while it is asserted

@@ -23,7 +23,7 @@ from rtupoll.numbers import parse_unit
 
 if TYPE_CHECKING:
     from rtupoll.io.bus import Bus
-    from rtupoll.io.serialport import PortSettings
+    from rtupoll.io.port_settings import PortSettings
 
 F = TypeVar("F", bound=Callable[..., object])
 T = TypeVar("T")
@@ -70,7 +70,7 @@ def port_settings(profile: Profile | None, port: str | None, baudrate: int | Non
                   parity: str | None, stopbits: str | None) -> PortSettings:
     """The profile's serial settings (9600 8N1 without one), each overridable; the port
     from --port or $RTUPOLL_PORT (``need_port`` says so when neither is given)."""
-    from rtupoll.io.serialport import PortSettings
+    from rtupoll.io.port_settings import PortSettings
 
     s = profile.serial if profile else None
     return PortSettings(
@@ -88,7 +88,7 @@ def line_settings() -> dict[str, Any]:
     """``PortSettings``' echo, rs485 and idle_gap from --echo, --rs485 and --idle-gap
     (``cli.options``)."""
     from rtupoll.cli.options import given_line_options
-    from rtupoll.io.serialport import Rs485
+    from rtupoll.io.port_settings import Rs485
 
     given = given_line_options()
     return {"echo": given.echo, "rs485": Rs485(*given.rs485) if given.rs485 else None,

@@ -29,7 +29,7 @@ from rtupoll.config.mqtt_settings import MqttSettings
 from rtupoll.config.mqtt_settings import parse_section as parse_mqtt
 from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
 from rtupoll.frozen import frozen
-from rtupoll.io.serialport import gateway
+from rtupoll.io.port_names import gateway
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Addressing, Field, Poll, Profile, idle_gap_error
 from rtupoll.rtu import Framing

@@ -36,7 +36,7 @@ def latency_timer(port: str, *, root: str = "/", platform: str | None = None,
     """``port``'s adapter latency timer in seconds, or None for any other port or when
     unknown. ``root``: where ``/sys`` and ``/dev`` are looked up (tests give a tree of
     their own); ``registry``: Windows's (tests give one of their own)."""
-    from rtupoll.io.serialport import device_path
+    from rtupoll.io.port_names import device_path
 
     if "://" in port.replace("nodtr://", ""):
         return None
@@ -71,7 +71,7 @@ def _from_registry(port: str, registry: Registry) -> float | None:
 def latency_warning(port: str, latency: float | None, *, platform: str | None = None
                     ) -> str | None:
     """One line for the user when ``port``'s adapter latency timer is above 1 ms."""
-    from rtupoll.io.serialport import device_path
+    from rtupoll.io.port_names import device_path
 
     if latency is None or latency <= LATENCY_OK:
         return None

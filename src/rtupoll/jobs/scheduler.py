@@ -534,7 +534,7 @@ OpenBus = Callable[[BusConfig], BusLike]
 def open_real_bus(config: BusConfig) -> BusLike:
     """A ``rtupoll.io.bus.Bus`` for the configured port (imported here: pymodbus is slow)."""
     from rtupoll.io.bus import Bus, PortSettings
-    from rtupoll.io.serialport import Rs485
+    from rtupoll.io.port_settings import Rs485
 
     bus = Bus(PortSettings(port=config.port, baudrate=config.baudrate, parity=config.parity,
                            bytesize=config.bytesize, stopbits=config.stopbits,

@@ -31,7 +31,7 @@ from typing import TypeVar
 
 from rtupoll.errors import PortError, UsageError
 from rtupoll.io import clock as line_clock
-from rtupoll.io.serialport import pty_parity_of
+from rtupoll.io.pty_parity import pty_parity_of
 from rtupoll.rtu import FUNCTION_NAMES, Framing
 from rtupoll.sim.engine import Deframer, Engine, Transmission
 
@@ -304,7 +304,7 @@ class Server:
         A pty carries bytes at any speed, but pyserial still sets the speed it was asked
         for on the tty; comparing it lets 'rtupoll scan' find a device at its own baud rate
         and nowhere else, as on a real wire. (Parity is each device's to hear: a pty has
-        no parity bit, but a master marks the parity it set, ``serialport.pty_parity``,
+        no parity bit, but a master marks the parity it set, ``pty_parity.pty_parity``,
         and ``Engine.handle`` lets only the devices at that parity hear the request.)
         """
         if not self.framing:

@@ -21,11 +21,11 @@ from rtupoll.figures import iso_time, quantile
 from rtupoll.model.identify import check_passes
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
+from rtupoll.model.record import failed_record, poll_record, record
 from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu import messages
 from rtupoll.rtu.functions import READ_FUNCTIONS, Table
 from rtupoll.rtu.stream import Transaction
-from rtupoll.ui.records import failed_record, poll_record, record
 
 RATE_WINDOW = 10.0  # seconds over which the request rate is measured
 REPLY_WINDOW = 1000  # reply times kept for the percentiles

@@ -1,7 +1,7 @@
 """The tap: a serial port opened for listening only.
 
 pyserial directly, used read-only: this module never calls ``write``, and the port is
-opened with DTR and RTS deasserted (``io.serialport.OwnPort``), because on adapters
+opened with DTR and RTS deasserted (``io.own_port.OwnPort``), because on adapters
 whose RS-485 driver is enabled by RTS an asserted RTS would put the sniffer's
 transmitter on the pair and jam the bus. The adapter's transmitter must stay off
 (docs/sniff.md): an adapter with automatic direction control only transmits when
@@ -21,8 +21,9 @@ from typing import Any
 from rtupoll.errors import PortError, UsageError
 from rtupoll.io import clock as line_clock
 from rtupoll.io import waits
+from rtupoll.io.own_port import own_class
 from rtupoll.io.port_errors import open_error
-from rtupoll.io.serialport import NETWORK, gateway, own_class
+from rtupoll.io.port_names import NETWORK, gateway
 from rtupoll.rtu.timing import Framing
 
 POLL = 0.02  # seconds between ticks while the line is quiet

@@ -23,7 +23,7 @@ from rich.segment import Segment
 from rich.table import Table
 from rich.text import Text
 
-from rtupoll.io.serialport import gateway
+from rtupoll.io.port_names import gateway
 from rtupoll.jobs.scheduler import BusPoller, DevicePoller
 from rtupoll.jobs.stats import DeviceStats, Reading, State
 from rtupoll.model.interpret import display, display_unit

@@ -1,6 +1,8 @@
-"""rtupoll's ``Serial`` on a non-blocking port (timeout 0, as pymodbus's transport sets
-it): one ``os.read`` / ``os.write`` per call instead of pyserial's ``Timeout`` and
-``select``, with pyserial's results and errors. On a real pseudo-terminal."""
+"""rtupoll's own port (``rtupoll.io.own_port``): the ``nodtr://`` and ``rtupoll://`` URL
+handlers and the slots behind them; its ``Serial`` on a non-blocking port (timeout 0, as
+pymodbus's transport sets it): one ``os.read`` / ``os.write`` per call instead of
+pyserial's ``Timeout`` and ``select``, with pyserial's results and errors. On a real
+pseudo-terminal."""
 
 from __future__ import annotations
 
@@ -13,7 +15,10 @@ import pytest
 import serial
 from conftest import ANSWERED
 
-from rtupoll.io.serialport import Serial
+from rtupoll.errors import UsageError
+from rtupoll.io import own_port
+from rtupoll.io.own_port import Serial
+from rtupoll.io.port_settings import Rs485
 
 
 @pytest.fixture
@@ -25,6 +30,33 @@ def pty() -> Iterator[tuple[int, str]]:
     yield master, path
     with contextlib.suppress(OSError):  # a test closed it
         os.close(master)
+
+
+def test_nodtr_url_handler() -> None:
+    port = serial.serial_for_url("nodtr:///dev/ttyUSB3", do_not_open=True)
+    assert isinstance(port, own_port.Serial)
+    assert port.port == "/dev/ttyUSB3"
+
+
+def test_a_claimed_port_is_opened_through_its_slot_until_released() -> None:
+    url, slot = own_port.claim("nodtr:///dev/ttyUSB3", deassert_dtr=False, parity="E")
+    assert slot is not None and slot.deassert_dtr and slot.parity == "E"  # nodtr:// says so
+    assert url.startswith("rtupoll://") and url.endswith("/dev/ttyUSB3")
+    port = serial.serial_for_url(url, do_not_open=True)
+    assert isinstance(port, own_port.Serial) and port.slot is slot
+    assert port.port == "/dev/ttyUSB3"
+    own_port.release(url)
+    with pytest.raises(serial.SerialException):
+        serial.serial_for_url(url, do_not_open=True)
+
+
+def test_network_ports_get_a_slot_and_other_urls_pass_unchanged() -> None:
+    url, slot = own_port.claim("socket://127.0.0.1:7", deassert_dtr=True)
+    assert slot is not None and not slot.deassert_dtr  # a network port's modem lines are not ours
+    own_port.release(url)
+    assert own_port.claim("loop://", deassert_dtr=True) == ("loop://", None)
+    with pytest.raises(UsageError, match="not a serial port"):
+        own_port.claim("socket://127.0.0.1:7", deassert_dtr=False, rs485=Rs485())
 
 
 def _port(path: str, **options: object) -> Serial:
