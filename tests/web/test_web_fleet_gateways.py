@@ -66,3 +66,20 @@ def test_two_real_gateways_show_on_one_fleet_page(broker: Broker,
             g.stop()
     for g in gateways:
         assert "Traceback" not in g.stderr(), g.stderr()
+
+
+def test_a_gateways_own_dashboard_names_it_as_the_fleet_page_does(
+        broker: Broker, sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
+    """``--mqtt-id``: the id the gateway publishes under is its dashboard's too (the host
+    name's id otherwise, which the fleet page would not know it by)."""
+    bus = sim("huiwen-aq@3", tcp=True, tick=None)
+    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "-o",
+                  str(tmp_path / "east.jsonl"), "--mqtt", broker.url, "--mqtt-id", "east",
+                  "--http", "127.0.0.1:0", "huiwen-aq@3"], tmp_path, name="east",
+                 fresh=True) as east, \
+            running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                    name="web", fresh=True) as web:
+        fleet = until(lambda: [gw["id"] for gw in get_json(web.url + "api/state")["gateways"]]
+                      or None, "the gateway on the fleet page", limit=90)
+        own = [gw["id"] for gw in get_json(east.url + "api/state")["gateways"]]
+        assert own == fleet == ["east"]

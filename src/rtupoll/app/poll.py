@@ -54,6 +54,7 @@ class PollRun:
     http: HttpSettings | None = None
     log_format: str | None = None
     reload: Callable[[], Site] | None = None  # SIGHUP: the site file again
+    gateway_id: str | None = None  # the id MQTT publishes under (the dashboard's)
 
 
 @dataclass
@@ -86,7 +87,7 @@ def run(job: PollRun, *, stop: Callable[[], asyncio.Event],
             site, writer, job.services, gateway=job.gateway, once=job.once,
             table=show_table, metrics=job.metrics or site.metrics or None,
             log_format=job.log_format, reload=job.reload, http=job.http, title=job.title,
-            say=say)
+            gateway_id=job.gateway_id, say=say)
         view: PollView | None = None
         if console is not None:
             from rtupoll.ui.live import PollView

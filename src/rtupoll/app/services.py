@@ -27,7 +27,8 @@ def poll_services(site: Site, writer: Reopenable | None, given: Sequence[Service
                   gateway: GatewayService | None, once: bool, table: bool,
                   metrics: str | None, log_format: str | None,
                   reload: Callable[[], Site] | None, http: HttpSettings | None,
-                  title: str, say: Callable[[str], None]) -> list[Service]:
+                  title: str, say: Callable[[str], None],
+                  gateway_id: str | None = None) -> list[Service]:
     """Every service of ``poll``, in start order: ``given`` (the command's options made
     them: --verify-blocks, the gateway, MQTT), state-change logging (not under the live
     table, which shows the states itself), ``/metrics``, the dashboard, SIGHUP (reload and
@@ -60,7 +61,7 @@ def poll_services(site: Site, writer: Reopenable | None, given: Sequence[Service
     from rtupoll.web.options import http_service
 
     services += http_service(site, http, served=gateway.snapshot if gateway else list,
-                             others=collectors, title=title, say=say)
+                             others=collectors, title=title, say=say, gateway_id=gateway_id)
     notifier = Notifier()
 
     def notify(what: str) -> None:

@@ -164,11 +164,12 @@ def poll(devices: tuple[DeviceSpec, ...], config: Path | None, port: str | None,
           contextlib.nullcontext(_given(wanted, served))) as target:
         fmt = _piped(fmt, once=once, gone=mqtt_remove_discovery)
         site, gateway = _gateway(target.site, served, services, fmt)
-        if _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once, services, fmt,
-                 mqtt_id):
+        mqtt_id = _mqtt(site, mqtt, mqtt_allow_writes, mqtt_remove_discovery, once,
+                        services, fmt, mqtt_id)
+        if mqtt_remove_discovery:
             return
         outcome = run(PollRun(site, target.title, fmt, once, output, services, gateway,
-                              metrics, http, log_format, target.reload),
+                              metrics, http, log_format, target.reload, mqtt_id),
                       stop=stop_event, say=_say)
     _ended(outcome, target.hint if fmt == "table" and not once else "")
 
@@ -299,14 +300,15 @@ def _gateway(site: Site, served: ServeConfig | None, services: list[Service], fm
 
 
 def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: bool,
-          services: list[Service], fmt: str, gateway_id: str | None = None) -> bool:
-    """``--mqtt`` or the site file's ``mqtt:``: the MQTT service (rtupoll.outputs.mqtt).
-    True when ``--mqtt-remove-discovery`` did its job: nothing is polled then."""
+          services: list[Service], fmt: str, gateway_id: str | None = None) -> str | None:
+    """``--mqtt`` or the site file's ``mqtt:``: the MQTT service (rtupoll.outputs.mqtt),
+    or ``--mqtt-remove-discovery`` done (nothing is polled then). The gateway id it
+    publishes under (none without MQTT): the dashboard's."""
     if site.mqtt is None and not url:
         if allow_writes or remove or gateway_id is not None:
             raise UsageError("--mqtt-allow-writes, --mqtt-id and --mqtt-remove-discovery need "
                              "--mqtt URL (or mqtt: in the site file)")
-        return False
+        return None
     from rtupoll.outputs import mqtt as mqtt_out
 
     settings = mqtt_out.from_options(site, url, allow_writes=allow_writes,
@@ -326,11 +328,11 @@ def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: b
                        f" and {count(len(gone.topics), 'retained topic')} under "
                        f"{settings.base} (bridge state and info, availability) from "
                        f"{settings.where}", err=True)
-        return True
+        return settings.gateway_id
     # under the live table its news is a footer line rather than log lines
     services.append(mqtt_out.MqttService(settings, site, once=once,
                                          log_lines=fmt != "table"))
-    return False
+    return settings.gateway_id
 
 
 def _learning(config: Path | None, verify: bool, remember: bool) -> list[Service]:

@@ -73,10 +73,11 @@ def pop_http(opts: MutableMapping[str, Any]) -> HttpSettings | None:
 
 def http_service(site: Site, cli: HttpSettings | None, *,
                  served: Callable[[], Sequence[dict[str, Any]]], others: Sequence[object],
-                 title: str, say: Callable[[str], None]) -> list[WebService]:
+                 title: str, say: Callable[[str], None],
+                 gateway_id: str | None = None) -> list[WebService]:
     """``--http`` or the site file's ``http:``: the service (none without either).
     ``served``: the gateways' clients the page shows; ``others``: other services'
-    collectors for ``/metrics``."""
+    collectors for ``/metrics``; ``gateway_id``: the id MQTT publishes under, if any."""
     settings = merge(cli, site.http)
     if settings is None:
         return []
@@ -86,4 +87,4 @@ def http_service(site: Site, cli: HttpSettings | None, *,
     from rtupoll.web.service import WebService
 
     return [WebService(settings, title=title, served=served, say=say, others=others,
-                       cli=cli)]
+                       cli=cli, gateway=gateway_id)]

@@ -45,15 +45,16 @@ class WebService(Service):
     def __init__(self, settings: HttpSettings, *, title: str = "",
                  served: Callable[[], Sequence[dict[str, Any]]] = list,
                  say: Callable[[str], None] | None = None, others: Sequence[object] = (),
-                 cli: HttpSettings | None = None) -> None:
+                 cli: HttpSettings | None = None, gateway: str | None = None) -> None:
         """``served``: the gateways' clients; ``others``: other services' collectors, for
         ``/metrics``; ``cli``: the command line's ``--http*``, over the site file's
-        ``http:`` again at a reload."""
+        ``http:`` again at a reload; ``gateway``: the id MQTT publishes under (``--mqtt-id``,
+        ``mqtt: gateway_id:``), else the host name's, as MQTT's default."""
         self.settings, self.title, self.served = settings, title, served
         self.say, self.cli = say, cli
         self.hub = Hub()
         self.trends = TrendStore(time.time())
-        self.gateway = default_gateway_id()  # the id MQTT publishes under (docs/mqtt.md)
+        self.gateway = gateway or default_gateway_id()  # the id MQTT publishes under
         self.others: Sequence[Any] = others
         self.server = Server(settings, self)
         self._scheduler: Scheduler | None = None
