@@ -7,7 +7,10 @@ wiring fault from a typo. The codes are documented in the README.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
+
+if TYPE_CHECKING:
+    from rtupoll.rtu.transaction import Evidence
 
 
 class RtupollError(Exception):
@@ -102,9 +105,11 @@ class PortError(RtupollError):
 
 
 class BusError(RtupollError):
-    """A transaction on the bus failed."""
+    """A transaction on the bus failed. ``evidence``: what it told of the unit's timing
+    (an exception reply's reply time, late replies, attempts), set by the bus."""
 
     exit_code = 4
+    evidence: Evidence | None = None
 
 
 class DeviceTimeout(BusError):
