@@ -56,17 +56,11 @@ BAUD = 9600
 
 
 class TimedBus(VirtualBus):
-    """The virtual bus telling reply times as ``io.bus.Bus`` does; replies due by now
-    reach the line before the next request goes, as bytes would."""
+    """The virtual bus, logging each read; replies due by now reach the line before the
+    next request goes, as bytes would."""
 
     adapter_latency = 0.0
     log: list[tuple[float, bool]] | None = None  # (duration, got a value) per read
-
-    def reply_time(self, unit: int) -> float | None:
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        return self.line.late_reply_time.get(unit)
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
                    timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:

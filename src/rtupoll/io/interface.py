@@ -205,14 +205,6 @@ class LineBus:
         a live view."""
         return UnitCounts(self.line, unit)
 
-    def reply_time(self, unit: int) -> float | None:
-        """``unit``'s last reply time (request's end to reply's first byte), if any."""
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        """The reply time of ``unit``'s last late reply, if it sent one."""
-        return self.line.late_reply_time.get(unit)
-
     def set_idle_gap(self, unit: int, seconds: float) -> None:
         """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""
         self.line.set_idle_gap(unit, seconds)
