@@ -34,7 +34,8 @@ from rtupoll.jobs.timeouts import (
     TimeoutEstimator,
 )
 from rtupoll.rtu import Framing, Table, read_request, read_response
-from rtupoll.rtu.line import Answer, Line, UnitCounts
+from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.line import LATE_FACTOR, Answer, Line, UnitCounts
 from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
@@ -311,6 +312,32 @@ def test_a_dead_devices_cost_per_probe_falls_to_near_its_learned_timeout() -> No
     assert cost <= framing.wire_time(8 + 15) + 2 * learned + 3 * framing.silence
     assert cost < profile_timeout / 2
     assert dev.stats.state is State.OFFLINE
+
+
+def test_the_poller_sends_each_read_with_the_profiles_patience() -> None:
+    """Learned down to a few ms, a device that falls silent is still expected to answer
+    late for ``LATE_FACTOR`` of its profile's timeouts: the poller passes the patience
+    with the read, so a different read of the same shape waits that long (``rtu.line``'s
+    hazard), not a few learned timeouts."""
+    clock, bp, engine = setup(0.005)
+    dev = bp.devices[0]
+    profile_timeout = dev.config.profile.limits.timeout
+
+    async def scenario() -> float:
+        await polled(bp, 120)
+        assert dev.timing.timeout < profile_timeout / 5
+        engine.devices[0].address = 99  # silent from now on
+        start = clock.now
+        await bp.run_one(dev, lambda d, rs: None)
+        return start
+
+    start = run_virtual(scenario(), clock)
+    bus = bp.transport
+    assert isinstance(bus, VirtualBus) and dev.stats.timeouts >= 1
+    asked = bus.sent[-1]  # the read that timed out; another of its shape:
+    other = with_crc(asked[:2] + (int.from_bytes(asked[2:4], "big") + 1).to_bytes(2, "big")
+                     + asked[4:6])
+    assert bus.line.hazard_until(other, clock.now) >= start + LATE_FACTOR * profile_timeout
 
 
 # -- scan: an address that answered late is asked again ------------------------------
