@@ -37,6 +37,7 @@ __all__ = ["OK_COST", "START", "Behaviour", "ScriptedBus", "VirtualBus", "Virtua
            "heard_nothing", "polled", "run_virtual", "simulated"]
 
 T = TypeVar("T")
+HANG = 10.0  # real seconds the virtual loop waits for another thread when no timer is set
 
 START = 1000.0  # virtual clocks start here: a wall clock is never near zero either
 
@@ -65,8 +66,12 @@ class _Jumping(selectors.DefaultSelector):
         ready: list[Any] = super().select(0)
         if ready or timeout == 0:
             return ready
-        if timeout is None:
-            raise RuntimeError("every task waits and no timer is set: a hang in virtual time")
+        if timeout is None:  # no timer: only another thread can wake the loop (an executor)
+            ready = super().select(HANG)
+            if not ready:
+                raise RuntimeError("every task waits and no timer is set: a hang in "
+                                   "virtual time")
+            return ready
         self.clock.now += timeout
         return []
 
