@@ -45,6 +45,8 @@ from rtupoll.jobs.scan import Found, Setting, default_margin, presence_probes, s
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.line import Line, UnitCounts
+from rtupoll.rtu.transaction import Reply
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
@@ -54,27 +56,21 @@ BAUD = 9600
 
 
 class TimedBus(VirtualBus):
-    """The virtual bus telling reply times as ``io.bus.Bus`` does; replies due by now
-    reach the line before the next request goes, as bytes would."""
+    """The virtual bus, logging each read; replies due by now reach the line before the
+    next request goes, as bytes would."""
 
     adapter_latency = 0.0
     log: list[tuple[float, bool]] | None = None  # (duration, got a value) per read
 
-    def reply_time(self, unit: int) -> float | None:
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        return self.line.late_reply_time.get(unit)
-
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         while self._pending and self._pending[0][0] <= self._clock():
             when, _, data = heapq.heappop(self._pending)
             self.line.receive(data, when)
         start, ok = self._clock(), False
         try:
             values = await super().read(unit, table, address, count, timeout=timeout,
-                                        retries=retries)
+                                        retries=retries, patience=patience)
             ok = True
             return values
         finally:
@@ -163,7 +159,8 @@ def scan(fixed: bool, listen: bool = True) -> tuple[float, list[int]]:
         bus = TimedBus(engine, s.framing, clock=clock, sleep=clock.sleep) if not fixed else \
             VirtualBus(engine, s.framing, clock=clock, sleep=clock.sleep)
         if fixed or not listen:  # a fixed-timeout scan does not listen for late answers
-            bus.late = lambda unit: 0  # type: ignore[method-assign,unused-ignore]
+            deaf = Line(s.framing)  # (a line that heard nothing)
+            bus.unit_counts = lambda unit: UnitCounts(deaf, unit)  # type: ignore[method-assign,unused-ignore]
         yield bus
 
     found: list[Found] = []

@@ -2,7 +2,10 @@
 
 The clock is the project's own ``rtupoll.sim.virtual.VirtualClock``: time passes only
 when a test or a bus moves it, so a timeout, a backoff or five minutes of polling cost
-no wall-clock time and no other process can stretch them.
+no wall-clock time and no other process can stretch them. ``run_virtual`` runs a
+coroutine on an event loop whose time is that clock and which, when every task waits
+(a sleep, a timeout), jumps the clock to the next timer instead of waiting for it: the
+project's own loops (``BusPoller.run``: its idle waits, its timeouts) run as they are.
 
 The bus is the project's own ``VirtualBus`` where the subject is what happens on a line
 (the simulator's engine answers, with its faults, under the real line discipline):
@@ -14,19 +17,27 @@ outcome costing what it would on the line.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import asyncio
+import selectors
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
-from rtupoll.jobs.scheduler import BusPoller
+from rtupoll.jobs.scheduler import BusPoller, DevicePoller
+from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table
-from rtupoll.rtu.transaction import Evidence
+from rtupoll.rtu.line import Line, UnitCounts
+from rtupoll.rtu.transaction import Evidence, Reply
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 __all__ = ["OK_COST", "START", "Behaviour", "ScriptedBus", "VirtualBus", "VirtualClock",
-           "poll_for", "simulated"]
+           "heard_nothing", "polled", "run_virtual", "simulated"]
+
+T = TypeVar("T")
+HANG = 10.0  # real seconds the virtual loop waits for another thread when no timer is set
 
 START = 1000.0  # virtual clocks start here: a wall clock is never near zero either
 
@@ -43,13 +54,58 @@ def simulated(devices: Sequence[str], faults: Sequence[str] = (), *, seed: int =
     return VirtualBus(engine, Framing(baudrate), clock=clock, sleep=clock.sleep), clock
 
 
-async def poll_for(bp: BusPoller, clock: VirtualClock, seconds: float) -> None:
-    """The bus loop without sleeping: the clock jumps to the next device due."""
-    end = clock.now + seconds
-    while clock.now < end:
-        dev = bp.next_device()
-        clock.now = max(clock.now, dev.next_due)
-        await bp.run_one(dev, lambda d, rs: None)
+class _Jumping(selectors.DefaultSelector):
+    """The loop's selector: what is ready now (the loop's own wake-ups); when nothing is,
+    the wait for the next timer passes at once, on the clock."""
+
+    def __init__(self, clock: VirtualClock) -> None:
+        super().__init__()
+        self.clock = clock
+
+    def select(self, timeout: float | None = None) -> list[Any]:
+        ready: list[Any] = super().select(0)
+        if ready or timeout == 0:
+            return ready
+        if timeout is None:  # no timer: only another thread can wake the loop (an executor)
+            ready = super().select(HANG)
+            if not ready:
+                raise RuntimeError("every task waits and no timer is set: a hang in "
+                                   "virtual time")
+            return ready
+        self.clock.now += timeout
+        return []
+
+
+class _VirtualLoop(asyncio.SelectorEventLoop):
+    def __init__(self, clock: VirtualClock) -> None:
+        super().__init__(_Jumping(clock))
+        self.clock = clock
+
+    def time(self) -> float:
+        return self.clock.now
+
+
+def run_virtual(main: Coroutine[Any, Any, T], clock: VirtualClock) -> T:
+    """``asyncio.run(main)`` on ``clock``'s time (module docstring)."""
+    with asyncio.Runner(loop_factory=lambda: _VirtualLoop(clock)) as runner:
+        return runner.run(main)
+
+
+async def polled(bp: BusPoller, seconds: float,
+                 sink: Callable[[DevicePoller, list[Reading]], None] | None = None) -> None:
+    """``bp.run`` itself, stopped after ``seconds`` of the loop's time (virtual time under
+    ``run_virtual``); ``sink`` gets each cycle's readings."""
+    stop = asyncio.Event()
+    asyncio.get_running_loop().call_later(seconds, stop.set)
+    await bp.run(sink or (lambda d, rs: None), stop)
+
+
+_QUIET = Line(Framing(9600))  # a line that has heard nothing
+
+
+def heard_nothing(unit: int) -> UnitCounts:
+    """``BusLike.unit_counts`` of a bus that counts nothing (a scripted one)."""
+    return UnitCounts(_QUIET, unit)
 
 
 # (block address, call number) -> ok | slow (answers, but takes 0.8 s) | timeout | crc |
@@ -71,19 +127,13 @@ class ScriptedBus:
     async def open(self) -> None: ...
     async def close(self) -> None: ...
 
-    def late(self, unit: int) -> int:
-        return 0  # late replies seen from ``unit`` (none here)
-
     adapter_latency = 0.0  # BusLike: no USB adapter
 
-    def evidence(self, unit: int) -> Evidence:
-        return Evidence(late=self.late(unit))  # nothing measured
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        pass
+    def unit_counts(self, unit: int) -> UnitCounts:
+        return heard_nothing(unit)  # no late replies, nothing counted
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         self.calls.append((unit, address, retries))
         what = self.behaviour.get(unit, lambda a, n: "ok")(address, len(self.calls))
         if what == "timeout":
@@ -94,4 +144,4 @@ class ScriptedBus:
             raise FrameError("CRC error")
         if what.startswith("exc"):
             raise DeviceException(int(what[3:]), unit=unit, function=table.read_function)
-        return tuple(range(count))
+        return Reply(tuple(range(count)), Evidence())  # nothing measured

@@ -8,7 +8,10 @@ its ``status``, the word an MQTT command's result gives for it (docs/mqtt.md).
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
+
+if TYPE_CHECKING:
+    from rtupoll.rtu.transaction import Evidence
 
 
 class RtupollError(Exception):
@@ -107,9 +110,11 @@ class PortError(RtupollError):
 
 
 class BusError(RtupollError):
-    """A transaction on the bus failed."""
+    """A transaction on the bus failed. ``evidence``: what it told of the unit's timing
+    (an exception reply's reply time, late replies, attempts), set by the bus."""
 
     exit_code = 4
+    evidence: Evidence | None = None
 
 
 class DeviceTimeout(BusError):

@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Sequence
 
+from virtual import heard_nothing
+
 from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import BusConfig, Site
 from rtupoll.errors import DeviceTimeout, FrameError, PortError, RefusedError
@@ -14,7 +16,8 @@ from rtupoll.gateway.server import Gateway, SilentUnits
 from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table
-from rtupoll.rtu.transaction import Evidence
+from rtupoll.rtu.line import UnitCounts
+from rtupoll.rtu.transaction import Reply
 
 
 class ScriptedLine:
@@ -30,7 +33,7 @@ class ScriptedLine:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         raise AssertionError("the gateway reads through transact")
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
@@ -42,16 +45,10 @@ class ScriptedLine:
                          retries: int = 0) -> None:
         raise AssertionError("the gateway writes through transact")
 
-    def late(self, unit: int) -> int:
-        return 0
-
     adapter_latency = 0.0  # BusLike: no USB adapter
 
-    def evidence(self, unit: int) -> Evidence:
-        return Evidence(late=self.late(unit))  # nothing measured
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        pass
+    def unit_counts(self, unit: int) -> UnitCounts:
+        return heard_nothing(unit)  # nothing measured
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
                        retries: int = 0) -> bytes:

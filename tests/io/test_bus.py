@@ -165,7 +165,7 @@ def test_stray_bytes_before_the_reply_are_skipped(peer: Responder, unit: int,
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(unit, Table.HOLDING, 10, 2, timeout=ANSWERED)
+            return (await bus.read(unit, Table.HOLDING, 10, 2, timeout=ANSWERED)).values
     assert run(go()) == values(10, 2)
 
 
@@ -175,7 +175,7 @@ def test_wrong_id_reply_together_with_the_right_one(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], int]:
         async with fast(peer.path) as bus:
-            got = await bus.read(1, Table.HOLDING, 10, 2, timeout=ANSWERED)
+            got = (await bus.read(1, Table.HOLDING, 10, 2, timeout=ANSWERED)).values
             return got, bus.stats.attempts
     assert run(go()) == (values(10, 2), 1)  # taken at once, no retry needed
 
@@ -185,7 +185,7 @@ def test_reply_split_across_writes_and_after_garbage(peer: Responder) -> None:
 
     async def go() -> tuple[int, ...]:
         async with fast(peer.path) as bus:
-            return await bus.read(1, Table.INPUT, 0, 3, timeout=ANSWERED)
+            return (await bus.read(1, Table.INPUT, 0, 3, timeout=ANSWERED)).values
     assert run(go()) == values(0, 3)
 
 
@@ -257,7 +257,8 @@ def test_retry_after_a_crc_error(peer: Responder) -> None:
 
     async def go() -> tuple[tuple[int, ...], Any]:
         async with fast(peer.path) as bus:
-            return await bus.read(1, Table.HOLDING, 5, 1, timeout=ANSWERED, retries=1), bus.stats
+            got = await bus.read(1, Table.HOLDING, 5, 1, timeout=ANSWERED, retries=1)
+            return got.values, bus.stats
     got, stats = run(go())
     assert got == values(5, 1)
     assert (stats.attempts, stats.retries, stats.outcomes["ok"]) == (2, 1, 1)
@@ -302,8 +303,8 @@ def test_late_reply_is_never_taken_for_the_next_answer(peer: Responder) -> None:
         async with fast(peer.path) as bus:
             with pytest.raises(DeviceTimeout):
                 await bus.read(1, Table.HOLDING, 0, 2, timeout=0.1)
-            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)
-            assert bus.late(1) + bus.unsolicited >= 1  # the late reply was heard and dropped
+            got = (await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)).values
+            assert bus.unit_counts(1).late + bus.unsolicited >= 1  # heard, dropped
             return got
     assert run(go()) == values(100, 2)
     sent_second = peer.requests[1][0]
@@ -327,7 +328,8 @@ def test_a_line_that_is_never_quiet_does_not_hold_the_bus_for_ever(peer: Respond
             with pytest.raises(DeviceTimeout):
                 await bus.read(9, Table.HOLDING, 0, 1, timeout=0.1)  # nobody at 9
             # (20 s: a hang guard, the bus held for ever; the cap is 3 drains, 0.3 s)
-            return await asyncio.wait_for(bus.read(1, Table.HOLDING, 7, 1, timeout=ANSWERED), 20)
+            got = await asyncio.wait_for(bus.read(1, Table.HOLDING, 7, 1, timeout=ANSWERED), 20)
+            return got.values
     try:
         assert run(go()) == values(7, 1)
     finally:
@@ -345,8 +347,8 @@ def test_without_drain_the_late_reply_is_still_recognised(peer: Responder) -> No
         async with fast(peer.path, drain=0.0) as bus:
             with pytest.raises(DeviceTimeout):
                 await bus.read(1, Table.HOLDING, 0, 2, timeout=0.1)
-            got = await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)
-            return got, bus.late(1)
+            got = (await bus.read(1, Table.HOLDING, 100, 2, timeout=ANSWERED)).values
+            return got, bus.unit_counts(1).late
     assert run(go()) == (values(100, 2), 1)
 
 
@@ -359,9 +361,9 @@ def test_late_reply_to_a_retry_is_a_right_answer(peer: Responder) -> None:
             # late for attempt 1 whatever the load; retries for ANSWERED in all, for a
             # busy machine's responder thread (one failed with 2: 0.15 s), ended by the
             # answer; the next read is answered
-            first = await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05,
-                                   retries=round(ANSWERED / 0.05))
-            second = await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
+            first = (await bus.read(1, Table.HOLDING, 7, 1, timeout=0.05,
+                                    retries=round(ANSWERED / 0.05))).values
+            second = (await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)).values
             return first, second
     assert run(go()) == (values(7, 1), values(8, 1))
 
@@ -398,7 +400,7 @@ def test_random_faults_never_misattribute(peer: Responder) -> None:
             for i in range(len(plan)):
                 address = rnd.randrange(0, 1000)
                 try:
-                    got = await bus.read(1, Table.HOLDING, address, 2, timeout=timeout)
+                    got = (await bus.read(1, Table.HOLDING, address, 2, timeout=timeout)).values
                 except (DeviceTimeout, FrameError):
                     failed += 1
                     continue
@@ -425,7 +427,7 @@ def test_inter_frame_silence_and_one_transaction_in_flight(peer: Responder,
             reads = [bus.read(u, Table.HOLDING, a, 2, timeout=ANSWERED)
                      for a in range(8) for u in (1, 2, 3)]
             got = await asyncio.gather(*reads)
-            assert got == [values(a, 2) for a in range(8) for _ in (1, 2, 3)]
+            assert [r.values for r in got] == [values(a, 2) for a in range(8) for _ in (1, 2, 3)]
     run(go())
     assert len(peer.requests) == len(peer.replies) == 24
     gaps = [req[0] - rep[0] for req, rep in zip(peer.requests[1:], peer.replies, strict=False)]
@@ -450,7 +452,8 @@ def test_a_byte_during_the_silence_starts_it_again(peer: Responder, jitter: floa
 
     async def go() -> list[tuple[int, ...]]:
         async with Bus(PortSettings(peer.path, baudrate=framing.baudrate)) as bus:
-            return [await bus.read(1, Table.HOLDING, a, 2, timeout=ANSWERED) for a in range(n)]
+            return [(await bus.read(1, Table.HOLDING, a, 2, timeout=ANSWERED)).values
+                    for a in range(n)]
     assert run(go()) == [values(a, 2) for a in range(n)]
     heard = [t for t, _ in peer.replies]
     gaps = [sent - max(t for t in heard if t < sent) for sent, _ in peer.requests[1:]]
@@ -476,7 +479,7 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
                 await waiting
             await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
             assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
-            return await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
+            return (await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)).values
     assert run(go()) == values(8, 1)
 
 
@@ -504,14 +507,14 @@ def test_gateway_reboot_is_survived() -> None:
     async def go() -> list[Any]:
         got: list[Any] = []
         async with Bus(PortSettings(gw.path), connect_timeout=0.5) as bus:
-            got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
+            got.append((await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED)).values)
             gw.stop()
             await asyncio.sleep(0.05)
             with pytest.raises(PortError, match="refused"):
                 await bus.read(1, Table.INPUT, 3, 2, timeout=0.1)
             back = Responder(tcp=port, offset=0x2000)
             try:
-                got.append(await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED))
+                got.append((await bus.read(1, Table.INPUT, 3, 2, timeout=ANSWERED)).values)
             finally:
                 back.stop()
         return got

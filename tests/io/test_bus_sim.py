@@ -52,10 +52,10 @@ def test_every_fault_kind_while_a_neighbour_stays_right(sim: Sim, fault: str,
     async def ask(bus: Bus) -> Any:
         try:
             if outcome is DeviceTimeout:
-                return await bus.read(3, *IRNET_BLOCK, timeout=0.08)
+                return (await bus.read(3, *IRNET_BLOCK, timeout=0.08)).values
             if outcome is FrameError:
-                return await judged(lambda t: bus.read(3, *IRNET_BLOCK, timeout=t))
-            return await bus.read(3, *IRNET_BLOCK, timeout=ANSWERED)
+                return (await judged(lambda t: bus.read(3, *IRNET_BLOCK, timeout=t))).values
+            return (await bus.read(3, *IRNET_BLOCK, timeout=ANSWERED)).values
         except (DeviceTimeout, FrameError, DeviceException) as exc:
             return type(exc)
 
@@ -64,7 +64,7 @@ def test_every_fault_kind_while_a_neighbour_stays_right(sim: Sim, fault: str,
         async with Bus(PortSettings(bus_sim.port, baudrate=115200)) as bus:
             for _ in range(3):
                 got.append(await ask(bus))
-                got.append(await bus.read(1, *IRNET_BLOCK, timeout=ANSWERED))
+                got.append((await bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)).values)
         return got
     got = run(go())
     assert got[1::2] == [image(bus_sim, 1)] * 3  # never another request's answer
@@ -102,7 +102,8 @@ def test_rtu_over_tcp_gateway(sim: Sim) -> None:
     async def go() -> list[tuple[int, ...]]:
         async with Bus(PortSettings(bus_sim.port)) as bus:  # (a right reply ends the wait:
             # 0.3 s failed once beside 4 workers under load)
-            return [await bus.read(1, *IRNET_BLOCK, timeout=ANSWERED) for _ in range(4)]
+            return [(await bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)).values
+                    for _ in range(4)]
     assert run(go()) == [image(bus_sim, 1)] * 4
 
 
@@ -145,7 +146,7 @@ def test_port_vanishes_and_returns(sim: Sim, tmp_path: Path) -> None:
     async def go() -> list[Any]:
         seen: list[Any] = []
         async with Bus(PortSettings(link, baudrate=115200)) as bus:
-            seen.append(await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED))
+            seen.append((await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)).values)
             # (the loss is noticed when the attempt's time is up, so this 0.5 s is waited
             # out whatever its length: unplugged below as soon as the request is in)
             pending = asyncio.ensure_future(bus.read(6, Table.INPUT, 1, 1, timeout=0.5))
@@ -160,7 +161,7 @@ def test_port_vanishes_and_returns(sim: Sim, tmp_path: Path) -> None:
                     seen.append((type(exc), str(exc)))
             second = sim("co2meter-an117@5", link=link, tick=None)  # plugged back
             second.set(5, "co2", 777)
-            seen.append(await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED))
+            seen.append((await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)).values)
             seen.append(bus.stats.outcomes["port"])
         return seen
     seen = run(go())
@@ -179,7 +180,7 @@ def test_dtr_and_rts_are_deasserted_before_open(
     async def go(deassert: bool) -> tuple[int, ...]:
         async with Bus(PortSettings(bus_sim.port, baudrate=115200,
                                     deassert_dtr=deassert)) as bus:
-            return await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)
+            return (await bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)).values
     run(go(False))
     assert states == [(True, True)]  # rtupoll's Serial too (rtupoll://), lines as pyserial's
     assert run(go(True)) == bus_sim.registers(5, Table.INPUT, 1, 1)

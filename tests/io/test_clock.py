@@ -194,7 +194,7 @@ def test_the_bus_on_a_coarse_event_loop_keeps_its_deadlines_and_does_not_spin(
         other = asyncio.create_task(ticker())
         async with Bus(PortSettings(bus.port, baudrate=BAUD)) as b:
             for _ in range(5):
-                assert await b.read(3, Table.INPUT, 30008, 1, timeout=0.5)
+                assert (await b.read(3, Table.INPUT, 30008, 1, timeout=0.5)).values
                 start = time.perf_counter()
                 with pytest.raises(DeviceTimeout):
                     await b.read(9, Table.INPUT, 30008, 1, timeout=timeout)

@@ -160,7 +160,7 @@ def test_the_bus_reads_through_all_of_it(sim: Sim) -> None:
 
     async def go() -> tuple[tuple[int, ...], str]:
         async with Bus(PortSettings(bus.port, baudrate=115200)) as b:
-            values = await b.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)
+            values = (await b.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)).values
             try:
                 await b.read(9, Table.INPUT, 1, 1, timeout=0.05)
                 why = ""

@@ -43,10 +43,10 @@ def test_faults_while_a_neighbour_stays_right(sim: Sim, fault: str, outcome: Any
     with SyncBus(PortSettings(bus_sim.port, baudrate=115200)) as bus:
         for _ in range(3):
             try:
-                got.append(run(bus.read(3, *IRNET_BLOCK, timeout=patience)))
+                got.append(run(bus.read(3, *IRNET_BLOCK, timeout=patience)).values)
             except (DeviceTimeout, FrameError, DeviceException) as exc:
                 got.append(type(exc))
-            got.append(run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)))
+            got.append(run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)).values)
         stats = bus.stats
     assert got[1::2] == [image(bus_sim, 1)] * 3  # never another request's answer
     assert got[0::2] == [image(bus_sim, 3) if outcome == "ok" else outcome] * 3
@@ -95,7 +95,7 @@ def test_rtu_over_tcp_gateway(sim: Sim) -> None:
     bus_sim = sim("net-irnet-pro@1", faults=["1:stray@2", "1:wrong-id-first@3"], tcp=True,
                   tick=None)
     with SyncBus(PortSettings(bus_sim.port)) as bus:
-        got = [run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)) for _ in range(4)]
+        got = [run(bus.read(1, *IRNET_BLOCK, timeout=ANSWERED)).values for _ in range(4)]
     assert got == [image(bus_sim, 1)] * 4
 
 
@@ -144,7 +144,7 @@ def test_dtr_and_rts_are_deasserted_before_open(
     states = dtr_states
     bus_sim = sim("co2meter-an117@5", tick=None)
     with SyncBus(PortSettings(bus_sim.port, baudrate=115200, deassert_dtr=True)) as bus:
-        assert run(bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)) == \
+        assert run(bus.read(5, Table.INPUT, 1, 1, timeout=ANSWERED)).values == \
             bus_sim.registers(5, Table.INPUT, 1, 1)
     assert states == [(False, False)]
 

@@ -33,7 +33,7 @@ def test_values_exceptions_and_timeouts_in_virtual_time() -> None:
     bus.engine.device(2).pin("level_cm", 333)
 
     async def go() -> None:
-        assert await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1) == (333,)
+        assert (await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1)).values == (333,)
         with pytest.raises(DeviceException) as exc:
             await bus.read(2, Table.INPUT, 0x4000, 1, timeout=0.1)
         assert exc.value.code in (1, 2)
@@ -55,13 +55,13 @@ def test_a_late_reply_is_counted_and_never_decoded() -> None:
         got: list[object] = []
         for address in range(3):
             try:
-                got.append((await bus.read(2, Table.HOLDING, address, 1, timeout=0.1))[0])
+                got.append((await bus.read(2, Table.HOLDING, address, 1, timeout=0.1)).values[0])
             except DeviceTimeout:
                 got.append("timeout")
         return got
 
     assert asyncio.run(go()) == [111, "timeout", 333]
-    assert bus.late(2) == 1
+    assert bus.unit_counts(2).late == 1
 
 
 def test_the_scheduler_backs_off_a_dead_device_in_virtual_time() -> None:
@@ -90,7 +90,7 @@ def test_a_crc_error_is_known_at_once_not_after_the_timeout() -> None:
     bus, clock = virtual(["radar-level@2"], faults=("2:crc@1",))
 
     async def go() -> tuple[int, ...]:
-        return await bus.read(2, Table.HOLDING, 2, 1, timeout=5.0, retries=1)
+        return (await bus.read(2, Table.HOLDING, 2, 1, timeout=5.0, retries=1)).values
 
     asyncio.run(go())
     assert len(bus.sent) == 2  # the garbled attempt and its retry
@@ -148,14 +148,14 @@ def test_an_echoing_adapter_and_crc_noise_in_virtual_time() -> None:
         for _ in range(200):
             try:
                 got.append((await bus.read(2, Table.HOLDING, 2, 1, timeout=0.1,
-                                           retries=2))[0])
+                                           retries=2)).values[0])
             except FrameError:
                 got.append("garbled")
         return got
 
     got = asyncio.run(go())
     assert set(got) <= {333, "garbled"} and got.count(333) > 150
-    assert bus.late(2) == 0
+    assert bus.unit_counts(2).late == 0
     assert bus.stats.outcomes["ok"] == got.count(333)
 
     plain = VirtualBus(Engine(config.devices, (), seed=1, tick=None), clock=clock,

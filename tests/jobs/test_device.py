@@ -20,6 +20,7 @@ from rtupoll.jobs.device import probe_variant, read_block, read_fields, timing
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import Table
+from rtupoll.rtu.transaction import Evidence, Reply
 from rtupoll.sim.runner import SimulatedBus
 
 T = TypeVar("T")
@@ -40,11 +41,11 @@ class Recorder:
         self.fail = fail or {}
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         self.calls.append((unit, table, address, count, timeout, retries))
         if address in self.fail:
             raise self.fail[address]
-        return tuple((address + i) & 0xFFFF for i in range(count))
+        return Reply(tuple((address + i) & 0xFFFF for i in range(count)), Evidence())
 
 
 @pytest.mark.parametrize("pid", sorted(SEEDS))
@@ -119,5 +120,6 @@ def test_values_come_back_in_request_order_and_errors_propagate() -> None:
     with pytest.raises(DeviceTimeout):
         run(read_fields(failing, p, 3, wanted))
     block = plan(wanted, p)[0]
-    assert [fv.field.name for fv in run(read_block(rec, 3, block, timeout=0.1, retries=0))] \
-        == ["pm25", "hcho"]
+    got_block = run(read_block(rec, 3, block, timeout=0.1, retries=0))
+    assert [fv.field.name for fv in got_block.values] == ["pm25", "hcho"]
+    assert got_block.evidence == Evidence()  # what the bus told of the transaction

@@ -25,6 +25,7 @@ from rtupoll.jobs.scheduler import Backoff, BusPoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.planner import Block, plan
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.transaction import Reply
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
@@ -87,10 +88,10 @@ class Reads(VirtualBus):
     exceptions: int = 0
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         try:
             return await super().read(unit, table, address, count, timeout=timeout,
-                                      retries=retries)
+                                      retries=retries, patience=patience)
         except DeviceException:
             self.exceptions += 1
             raise

@@ -20,6 +20,7 @@ from rtupoll.errors import PortError
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.rtu import Table
+from rtupoll.rtu.transaction import Reply
 
 SLOW = {"import_active_energy", "export_active_energy", "total_active_energy"}
 
@@ -35,11 +36,11 @@ class Unplugged:
         return getattr(self.bus, name)
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         if self.gone:
             raise PortError("/dev/ttyUSB0: the port is gone")
         return await self.bus.read(unit, table, address, count, timeout=timeout,
-                                   retries=retries)
+                                   retries=retries, patience=patience)
 
 
 def test_slow_fields_are_read_in_the_first_cycle_after_the_port_is_back() -> None:

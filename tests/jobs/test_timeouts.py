@@ -1,9 +1,10 @@
 """Timeouts that tune themselves (rtupoll.jobs.timeouts), in virtual time.
 
 The estimator's rules are checked with numbers; the whole loop -- the line measuring
-reply times, the scheduler asking for each timeout, a simulated device drifting or
-dying -- runs on ``sim.virtual.VirtualBus`` (the simulator's engine and the real line
-discipline) with a virtual clock, so minutes of polling cost milliseconds.
+reply times, the scheduler's own loop (``BusPoller.run``) asking for each timeout, a
+simulated device drifting or dying -- runs on ``sim.virtual.VirtualBus`` (the
+simulator's engine and the real line discipline) with a virtual clock
+(``virtual.run_virtual``), so minutes of polling cost milliseconds.
 """
 
 from __future__ import annotations
@@ -16,9 +17,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from virtual import heard_nothing, polled, run_virtual
 
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
+from rtupoll.errors import DeviceTimeout
 from rtupoll.figures import quantile
 from rtupoll.io.latency import latency_timer, latency_warning
 from rtupoll.jobs.scheduler import Backoff, BusPoller
@@ -31,7 +34,8 @@ from rtupoll.jobs.timeouts import (
     TimeoutEstimator,
 )
 from rtupoll.rtu import Framing, Table, read_request, read_response
-from rtupoll.rtu.line import Answer, Line
+from rtupoll.rtu.crc import with_crc
+from rtupoll.rtu.line import LATE_FACTOR, Answer, Line, UnitCounts
 from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
@@ -42,18 +46,12 @@ from rtupoll.sim.virtual import VirtualBus, VirtualClock
 
 
 class Quiet:
-    """A bus that has measured nothing (``BusLike``'s evidence side)."""
+    """A bus whose line has heard nothing (``BusLike``'s counting side)."""
 
     adapter_latency = 0.0
 
-    def late(self, unit: int) -> int:
-        return 0
-
-    def evidence(self, unit: int) -> Evidence:
-        return Evidence()
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        pass
+    def unit_counts(self, unit: int) -> UnitCounts:
+        return heard_nothing(unit)
 
 
 def test_the_line_measures_reply_time_from_the_requests_end_to_the_first_byte() -> None:
@@ -86,32 +84,36 @@ def test_a_short_learned_timeout_does_not_shorten_the_late_window() -> None:
     line.send(first, 0.0)
     line.expire(0.03, 0.03)  # a learned 30 ms timeout
     assert line.hazard_until(other, 0.1) == pytest.approx(12 * 0.03)
-    line.patience[1] = 0.5  # the profile's timeout
     line.send(first, 1.0)
-    line.expire(1.03, 0.03)
+    line.expire(1.03, 0.03, 0.5)  # the request's patience: the profile's timeout
     assert line.hazard_until(other, 1.1) == pytest.approx(1.0 + 12 * 0.5)
 
 
-def test_the_scheduler_side_keeps_the_profiles_patience() -> None:
-    told: dict[int, float] = {}
-
-    class Patient:  # a bus that tells reply times (BusLike.evidence), as the buses do
-        adapter_latency = 0.0
-
-        def late(self, unit: int) -> int:
-            return 0
-
-        def evidence(self, unit: int) -> Evidence:
-            return Evidence()
-
-        def set_patience(self, unit: int, seconds: float) -> None:
-            told[unit] = seconds
-
-    timing = DeviceTiming(0.5, silence=0.004)
+def test_a_read_with_a_short_learned_timeout_keeps_the_profiles_patience() -> None:
+    """The patience goes with the read (no bus state set beforehand): a device whose
+    timeout was learned down to a few ms, silent once, is still expected to answer late
+    for as long as its profile's timeout allows, in virtual time on the virtual bus."""
+    clock = VirtualClock(1000.0)
+    engine = Engine([SimConfig(load_one("huiwen-aq"), 3)], tick=None)
+    bus = VirtualBus(engine, Framing(9600), clock=clock, sleep=clock.sleep)
+    timing = DeviceTiming(0.5, silence=Framing(9600).silence)
     for _ in range(300):
         timing.estimator.answered(0.005)
-    assert timing.before(Patient(), 7) < 0.05
-    assert told == {7: 0.5}
+    engine.devices[0].address = 99  # silent from now on
+    timeout = timing.before(bus, 3)
+    assert timeout < 0.05 and timing.patience == 0.5
+
+    async def silent() -> float:
+        sent = clock.now
+        with pytest.raises(DeviceTimeout) as exc:
+            await bus.read(3, Table.INPUT, 30006, 1, timeout=timeout,
+                           patience=timing.patience)
+        assert exc.value.evidence is not None and exc.value.evidence.attempts == 1
+        return sent
+
+    sent = asyncio.run(silent())
+    other = read_request(3, Table.INPUT, 30007, 1)  # the same shape: its late reply fits
+    assert bus.line.hazard_until(other, clock.now) == pytest.approx(sent + 12 * 0.5, abs=0.02)
 
 
 def test_a_reply_faster_than_the_wire_counts_as_zero() -> None:
@@ -173,7 +175,8 @@ def test_a_timeout_alone_teaches_nothing_so_a_dead_device_stays_cheap() -> None:
         timing.estimator.answered(0.006)
     learned = timing.timeout
     for _ in range(20):
-        timing.after(Quiet(), 1, answered=False)  # no evidence from a silent device
+        timing.before(Quiet(), 1)
+        timing.learn(Evidence(attempts=2))  # a timeout: no reply time, nothing late
     assert timing.timeout == learned < 0.05
 
 
@@ -235,16 +238,6 @@ def set_turnaround(engine: Engine, seconds: float) -> None:
     d.config = dataclasses.replace(d.config, turnaround=seconds)
 
 
-async def poll_for(bp: BusPoller, clock: VirtualClock, seconds: float, each: object = None) -> None:
-    end = clock.now + seconds
-    while clock.now < end:
-        dev = bp.next_device()
-        clock.now = max(clock.now, dev.next_due)
-        await bp.run_one(dev, lambda d, rs: None)
-        if callable(each):
-            each()
-
-
 def test_a_device_drifting_from_5_to_300_ms_and_back_is_never_offline() -> None:
     clock, bp, engine = setup(0.005)
     dev = bp.devices[0]
@@ -258,17 +251,17 @@ def test_a_device_drifting_from_5_to_300_ms_and_back_is_never_offline() -> None:
         timeouts.append((now_turnaround[0], dev.stats.timeout))
 
     async def scenario() -> None:
-        await poll_for(bp, clock, 120, watch)  # learn the fast device
+        await polled(bp, 120, lambda d, rs: watch())  # learn the fast device
         fast = dev.stats.timeout
         assert fast is not None and fast < 0.1
         steps = [0.005 * 1.15 ** k for k in range(31)]  # 5 ms .. ~330 ms, 15% a step
         for t in [*steps, *reversed(steps)]:
             now_turnaround[0] = t
             set_turnaround(engine, t)
-            await poll_for(bp, clock, 5, watch)
-        await poll_for(bp, clock, 300, watch)  # long enough to come down again
+            await polled(bp, 5, lambda d, rs: watch())
+        await polled(bp, 300, lambda d, rs: watch())  # long enough to come down again
 
-    asyncio.run(scenario())
+    run_virtual(scenario(), clock)
     assert State.OFFLINE not in states and State.RETRYING not in states
     assert dev.stats.timeouts == 0
     peak = max(t for _, t in timeouts)
@@ -284,11 +277,11 @@ def test_a_sudden_jump_to_300_ms_costs_at_most_two_timeouts_never_offline() -> N
     states: list[State] = []
 
     async def scenario() -> None:
-        await poll_for(bp, clock, 120)
+        await polled(bp, 120)
         set_turnaround(engine, 0.3)
-        await poll_for(bp, clock, 60, lambda: states.append(dev.stats.state))
+        await polled(bp, 60, lambda d, rs: states.append(dev.stats.state))
 
-    asyncio.run(scenario())
+    run_virtual(scenario(), clock)
     assert State.OFFLINE not in states
     assert dev.stats.late >= 1 or dev.stats.timeouts >= 1  # it did notice the jump
     assert dev.stats.timeouts <= 2  # the reads in flight when it jumped, no more
@@ -302,7 +295,7 @@ def test_a_dead_devices_cost_per_probe_falls_to_near_its_learned_timeout() -> No
     profile_timeout = dev.config.profile.limits.timeout
 
     async def scenario() -> tuple[float, float]:
-        await poll_for(bp, clock, 120)
+        await polled(bp, 120)
         learned = dev.timing.timeout
         engine.devices[0].address = 99  # gone: nothing answers 3 any more
         costs = []
@@ -312,13 +305,39 @@ def test_a_dead_devices_cost_per_probe_falls_to_near_its_learned_timeout() -> No
             costs.append(clock.now - start)
         return learned, max(costs[1:])  # the first cycle still had its retry
 
-    learned, cost = asyncio.run(scenario())
+    learned, cost = run_virtual(scenario(), clock)
     assert learned < profile_timeout / 5
     framing = Framing(9600)
     # one probe: its frames, the learned timeout and the quiet period after it
     assert cost <= framing.wire_time(8 + 15) + 2 * learned + 3 * framing.silence
     assert cost < profile_timeout / 2
     assert dev.stats.state is State.OFFLINE
+
+
+def test_the_poller_sends_each_read_with_the_profiles_patience() -> None:
+    """Learned down to a few ms, a device that falls silent is still expected to answer
+    late for ``LATE_FACTOR`` of its profile's timeouts: the poller passes the patience
+    with the read, so a different read of the same shape waits that long (``rtu.line``'s
+    hazard), not a few learned timeouts."""
+    clock, bp, engine = setup(0.005)
+    dev = bp.devices[0]
+    profile_timeout = dev.config.profile.limits.timeout
+
+    async def scenario() -> float:
+        await polled(bp, 120)
+        assert dev.timing.timeout < profile_timeout / 5
+        engine.devices[0].address = 99  # silent from now on
+        start = clock.now
+        await bp.run_one(dev, lambda d, rs: None)
+        return start
+
+    start = run_virtual(scenario(), clock)
+    bus = bp.transport
+    assert isinstance(bus, VirtualBus) and dev.stats.timeouts >= 1
+    asked = bus.sent[-1]  # the read that timed out; another of its shape:
+    other = with_crc(asked[:2] + (int.from_bytes(asked[2:4], "big") + 1).to_bytes(2, "big")
+                     + asked[4:6])
+    assert bus.line.hazard_until(other, clock.now) >= start + LATE_FACTOR * profile_timeout
 
 
 # -- scan: an address that answered late is asked again ------------------------------
@@ -365,9 +384,10 @@ def test_the_bus_measures_a_devices_reply_time_on_the_wire(sim: Callable[..., Si
         async with Bus(PortSettings(line.port, 9600)) as bus:
             for _ in range(5):
                 timeout = timing.before(bus, 3)
-                await bus.read(3, Table.INPUT, 30006, 8, timeout=timeout, retries=1)
-                timing.after(bus, 3, answered=True)
-            return bus.reply_time(3), timing.timeout
+                reply = await bus.read(3, Table.INPUT, 30006, 8, timeout=timeout, retries=1,
+                                       patience=timing.patience)
+                timing.learn(reply.evidence)
+            return reply.evidence.reply_time, timing.timeout
 
     took, learned = asyncio.run(go())
     # the device waits the silence and its turnaround; the request's own wire time (8
@@ -468,32 +488,25 @@ def test_the_estimators_sorted_window_gives_the_percentile_of_its_last_samples()
     assert len(est.samples) == WINDOW
 
 
-def test_one_evidence_read_per_transaction_and_a_late_reply_between_still_counts() -> None:
-    """``after`` reads the bus's evidence; ``before`` reads only the count of late replies
-    unless it moved, so steady polling costs one evidence read a transaction, and a late
-    reply heard between two transactions still raises the next one's timeout."""
+def test_the_timing_learns_from_each_reads_evidence_and_a_late_reply_between() -> None:
+    """``learn`` takes each read's evidence (its reply time, late replies); a late reply
+    the line heard between two reads (while another device's request was out) raises the
+    next read's timeout, read from the line's live count (no copy per transaction)."""
+    line = Line(Framing(9600))
 
-    class Counting(Quiet):
-        def __init__(self) -> None:
-            self.reads, self.late_replies = 0, 0
+    class Counted(Quiet):
+        def unit_counts(self, unit: int) -> UnitCounts:
+            return UnitCounts(line, unit)
 
-        def late(self, unit: int) -> int:
-            return self.late_replies
-
-        def evidence(self, unit: int) -> Evidence:
-            self.reads += 1
-            return Evidence(late=self.late_replies, reply_time=0.01,
-                            late_reply_time=0.3 if self.late_replies else None)
-
-    bus, timing = Counting(), DeviceTiming(0.5, silence=0.004)
-    for _ in range(10):
+    bus, timing = Counted(), DeviceTiming(0.5, silence=0.004)
+    for _ in range(30):
         timing.before(bus, 1)
-        timing.after(bus, 1, answered=True)
-    reads = bus.reads
-    for _ in range(20):
-        assert timing.before(bus, 1) < 0.5  # learned from the 10 ms answers
-        timing.after(bus, 1, answered=True)
-    assert bus.reads - reads == 20
-    bus.late_replies = 1  # a late reply, heard while another device's request was out
+        timing.learn(Evidence(reply_time=0.01, attempts=1))
+    assert timing.before(bus, 1) < 0.5  # learned from the 10 ms answers
+    line.counts.late[1] += 1  # a late reply, heard while another device's request was out
+    line.late_reply_time[1] = 0.3
     assert timing.before(bus, 1) == pytest.approx(MARGIN * 0.3)
-    assert bus.reads - reads == 21
+    timing.learn(Evidence(reply_time=0.01, late=1, late_reply_time=0.3, attempts=1))
+    assert timing.estimator.late_replies == 1  # the same late reply, not counted twice
+    timing.learn(None)  # a bus that told nothing: nothing learned
+    assert timing.timeout == pytest.approx(MARGIN * 0.3)

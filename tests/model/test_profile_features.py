@@ -11,6 +11,7 @@ from textwrap import dedent
 
 import pytest
 from click.testing import CliRunner
+from virtual import heard_nothing
 
 from rtupoll.cli import cli
 from rtupoll.config.library import load_one, load_profile
@@ -22,7 +23,8 @@ from rtupoll.model.codec import DataType, Layout, decode, encode
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
 from rtupoll.rtu import Table
-from rtupoll.rtu.transaction import Evidence
+from rtupoll.rtu.line import UnitCounts
+from rtupoll.rtu.transaction import Evidence, Reply
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.ui.records import CsvWriter, record, to_json
@@ -201,20 +203,14 @@ class CountingTransport:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
         self.reads.append((address, count))
-        return (0,) * count
+        return Reply((0,) * count, Evidence())  # nothing measured
 
     adapter_latency = 0.0  # BusLike: no USB adapter
 
-    def late(self, unit: int) -> int:
-        return 0  # no late replies
-
-    def evidence(self, unit: int) -> Evidence:
-        return Evidence()  # nothing measured
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        pass
+    def unit_counts(self, unit: int) -> UnitCounts:
+        return heard_nothing(unit)  # no late replies
 
 
 def test_the_scheduler_reads_a_slow_field_once_per_its_interval(meter: Path) -> None:

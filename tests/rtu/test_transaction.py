@@ -17,7 +17,6 @@ from rtupoll.rtu.transaction import (
     Refused,
     Send,
     Transaction,
-    evidence,
     pdu_frame,
     read_frame,
     write_coil_frame,
@@ -58,7 +57,8 @@ def test_an_answer_is_done_with_its_reply_time_and_counted() -> None:
     assert (stats.transactions, stats.attempts, stats.retries) == (1, 1, 0)
     assert stats.outcomes["ok"] == 1
     assert stats.wire == pytest.approx(FRAMING.wire_time(len(REQ) + len(GOOD)))
-    assert evidence(line, 3).reply_time == done.reply_time
+    ev = tx.evidence()
+    assert (ev.reply_time, ev.late, ev.attempts) == (done.reply_time, 0, 1)
 
 
 def test_timeouts_are_retried_after_the_silence_and_the_last_failure_says_tries() -> None:

@@ -248,7 +248,8 @@ def _read(serial: tuple[str, int, str, int], unit: int, table: Table, start: int
         for i, (first, n) in enumerate(t for t in tries
                                        if t[0] >= 0 and t[0] + t[1] <= 0x10000):
             try:
-                return first, await bus.read(unit, table, first, n, timeout=timeout, retries=1)
+                return first, (await bus.read(unit, table, first, n, timeout=timeout,
+                                              retries=1)).values
             except DeviceException as exc:
                 if exc.code != ExceptionCode.ILLEGAL_ADDRESS or i == len(tries) - 1 \
                         or (first, n) == (start, count):

@@ -184,8 +184,8 @@ async def read_raw(bus: Any, unit: int, specs: list[RegisterSpec], max_registers
     for spec in specs:
         words: list[int] = []
         for address, count in split_reads(spec, max_registers):
-            words += await bus.read(unit, spec.table, address, count, timeout=timing.timeout,
-                                    retries=timing.retries)
+            words += (await bus.read(unit, spec.table, address, count,
+                                     timeout=timing.timeout, retries=timing.retries)).values
         n = spec.layout.words
         rows += [(f, interpret(f, words[i * n:(i + 1) * n]), "")
                  for i, f in enumerate(spec.fields())]

@@ -547,7 +547,7 @@ class Gateway:
             return exception_pdu(ask.function, ExceptionCode.PATH_UNAVAILABLE)
         finally:
             end = self._clock()
-            self.poller.load.add(end, end - start, failed_by=self if failed else None)
+            self.poller.load.add(end, end - start, failed=failed)
             if ask.write and self.cache is not None:  # FC 22 and 23 too
                 for run in writes(ask.pdu) or ():
                     self.cache.forget(unit, run.table, run.address, run.count)

@@ -6,6 +6,12 @@ and ``rtupoll.sim.virtual.VirtualBus`` (the simulator's engine called directly, 
 tests whose subject is not the port) both are one, as python-can's buses are one
 ``BusABC``. Errors are the ``rtupoll.errors`` bus errors: ``DeviceTimeout``,
 ``FrameError``, ``DeviceException``, ``PortError``, ``RefusedError``.
+
+**Timing is in the values.** A read returns its values and its evidence as one value
+(``Reply``: the reply time, the unit's late replies so far, the attempts); a bus error
+carries its transaction's (``BusError.evidence``). How long a late reply stays expected
+is passed with the request (``patience``). What the line heard from a unit between its
+requests (late replies to requests that timed out) is a live view, ``unit_counts``.
 """
 
 from __future__ import annotations
@@ -13,7 +19,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import NoReturn, Protocol
 
-from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError, UsageError
+from rtupoll.errors import (
+    BusError,
+    DeviceException,
+    DeviceTimeout,
+    FrameError,
+    RefusedError,
+    UsageError,
+)
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.functions import reply_values
 from rtupoll.rtu.line import Line, UnitCounts
@@ -21,12 +34,11 @@ from rtupoll.rtu.transaction import (
     Await,
     BusStats,
     Done,
-    Evidence,
     Failed,
     Refused,
+    Reply,
     Send,
     Transaction,
-    evidence,
     pdu_frame,
     read_frame,
     write_coil_frame,
@@ -45,8 +57,10 @@ class BusLike(Protocol):
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        """Registers as 16-bit ints; coils and discrete inputs as 0/1."""
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+        """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and the
+        evidence; ``patience``: how long a late reply stays expected, when longer than
+        ``timeout``."""
         ...
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
@@ -63,16 +77,9 @@ class BusLike(Protocol):
         """Any request PDU; the reply PDU (an exception PDU when the device sent one)."""
         ...
 
-    def late(self, unit: int) -> int:
-        """Replies from ``unit`` that came after their request had timed out."""
-        ...
-
-    def evidence(self, unit: int) -> Evidence:
-        """What the line knows of ``unit``'s reply times, as one value."""
-        ...
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter."""
+    def unit_counts(self, unit: int) -> UnitCounts:
+        """What the line counts of ``unit`` (late replies, attempts by how they ended, its
+        idle gap): a live view, read when asked."""
         ...
 
     def set_idle_gap(self, unit: int, seconds: float) -> None:
@@ -83,8 +90,9 @@ class BusLike(Protocol):
 class LineBus:
     """The one implementation of ``BusLike`` over ``rtu.transaction``: requests are
     checked and built here, each becomes a ``Transaction``, and a subclass only drives
-    it (``_run``: the port's ``Bus``, the simulator's ``VirtualBus``). What the line
-    knows (late replies, reply times) is read from the one ``rtu.line.Line``."""
+    it (``_run``: the port's ``Bus``, the simulator's ``VirtualBus``). A read's evidence
+    is its transaction's (``Transaction.evidence``); what the line counts of a unit is
+    read from the one ``rtu.line.Line`` (``unit_counts``)."""
 
     line: Line
     stats: BusStats
@@ -110,26 +118,40 @@ class LineBus:
             await self._step(tx, step)
 
     async def _transact(self, request: bytes, timeout: float, retries: int, *,
-                        tolerate: bool = False) -> Done:
+                        tolerate: bool = False, patience: float = 0.0) -> Transaction:
+        """``request``'s transaction, over (its ``result`` a ``Done``); a bus error
+        carries its evidence."""
         try:
             tx = Transaction(self.line, request, timeout=timeout, retries=retries,
-                             tolerate=tolerate, turnaround=self.broadcast_turnaround)
+                             tolerate=tolerate, turnaround=self.broadcast_turnaround,
+                             patience=patience)
         except Refused as exc:
             raise UsageError(str(exc)) from None
-        return await self._run(tx)
+        try:
+            await self._run(tx)
+        except BusError as exc:
+            exc.evidence = tx.evidence()
+            raise
+        return tx
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0) -> tuple[int, ...]:
-        """Registers as 16-bit ints; coils and discrete inputs as 0/1."""
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+        """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and
+        the transaction's evidence, as one value. ``patience``: how long a late reply
+        stays expected when longer than ``timeout`` (a learned timeout does not shorten
+        it: ``Line.expire``)."""
         try:
             request = read_frame(unit, table, address, count)
         except Refused as exc:
             raise RefusedError(str(exc)) from None
-        done = await self._transact(request, timeout, retries)
-        values = reply_values(done.frame, count)
+        tx = await self._transact(request, timeout, retries, patience=patience)
+        assert isinstance(tx.result, Done)
+        values = reply_values(tx.result.frame, count)
         if len(values) != count:
-            raise FrameError(f"unit {unit} returned {len(values)} values for {count}")
-        return values
+            error = FrameError(f"unit {unit} returned {len(values)} values for {count}")
+            error.evidence = tx.evidence()
+            raise error
+        return Reply(values, tx.evidence())
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
                               function: int = 16, timeout: float, retries: int = 0,
@@ -143,9 +165,10 @@ class LineBus:
             raise UsageError(f"reply {reply!r} is not one of: {', '.join(REPLY_MODES)}")
         request = _checked(lambda: write_registers_frame(unit, address, values,
                                                                function=function))
-        done = await self._transact(request, timeout, retries if reply == "echo" else 0,
-                                    tolerate=reply != "echo")
-        return bool(done.frame)
+        tx = await self._transact(request, timeout, retries if reply == "echo" else 0,
+                                  tolerate=reply != "echo")
+        assert isinstance(tx.result, Done)
+        return bool(tx.result.frame)
 
     async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
                          retries: int = 0) -> None:
@@ -159,10 +182,11 @@ class LineBus:
         For a gateway passing other masters' requests through; a broadcast returns b""."""
         request = _checked(lambda: pdu_frame(unit, pdu))
         try:
-            done = await self._transact(request, timeout, retries)
+            tx = await self._transact(request, timeout, retries)
         except DeviceException as exc:
             return bytes((pdu[0] | 0x80, exc.code))
-        return done.frame[1:-2]
+        assert isinstance(tx.result, Done)
+        return tx.result.frame[1:-2]
 
     # -- what the line knows ---------------------------------------------------------
 
@@ -176,29 +200,10 @@ class LineBus:
         """Frames and bursts of bytes that answered nothing this bus asked."""
         return int(self.line.counts.unsolicited)
 
-    def late(self, unit: int) -> int:
-        """Late replies from ``unit``: answers to requests that had timed out."""
-        return self.line.counts.late.get(unit, 0)  # (a Counter's miss: a Python call)
-
-    def evidence(self, unit: int) -> Evidence:
-        return evidence(self.line, unit)
-
     def unit_counts(self, unit: int) -> UnitCounts:
-        """``unit``'s attempts as the line counts them, and its idle gap: a live view."""
+        """``unit``'s late replies and attempts as the line counts them, and its idle gap:
+        a live view."""
         return UnitCounts(self.line, unit)
-
-    def reply_time(self, unit: int) -> float | None:
-        """``unit``'s last reply time (request's end to reply's first byte), if any."""
-        return self.line.reply_time.get(unit)
-
-    def late_reply_time(self, unit: int) -> float | None:
-        """The reply time of ``unit``'s last late reply, if it sent one."""
-        return self.line.late_reply_time.get(unit)
-
-    def set_patience(self, unit: int, seconds: float) -> None:
-        """Count ``unit``'s late window in ``seconds`` when its timeout is shorter
-        (``Line.patience``: a learned timeout does not shorten it)."""
-        self.line.patience[unit] = seconds
 
     def set_idle_gap(self, unit: int, seconds: float) -> None:
         """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""

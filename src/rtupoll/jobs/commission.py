@@ -155,8 +155,8 @@ class Commissioner:
         f = address_field(profile)
         t = self.timing(profile)
         try:
-            words = await self.bus.read(unit, f.table, f.address, f.words, timeout=t.timeout,
-                                        retries=t.retries)
+            words = (await self.bus.read(unit, f.table, f.address, f.words,
+                                         timeout=t.timeout, retries=t.retries)).values
         except DeviceTimeout:
             return Presence.SILENT
         except (FrameError, DeviceException):  # an exception reply or garbage: someone is there
@@ -171,8 +171,8 @@ class Commissioner:
         name, want = change.check
         f = change.profile.field(name)
         t = self.timing(change.profile)
-        words = await self.bus.read(unit, f.table, f.address, f.words, timeout=t.timeout,
-                                    retries=t.retries)
+        words = (await self.bus.read(unit, f.table, f.address, f.words, timeout=t.timeout,
+                                     retries=t.retries)).values
         got = interpret(f, words)
         if got.text == want or _same_number(got.value, want):
             return None

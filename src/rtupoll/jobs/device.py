@@ -3,7 +3,8 @@
 The glue between the pure layers (profile, planner, reading) and the bus. Every read of
 a device's fields goes through here: ``rtupoll read`` and MQTT ``get`` whole
 (``read_fields``), ``poll``'s cycle block by block (``read_block``, one timed transaction
-each, then the same rule for a refused block, ``after_refusal``). What the
+each, its values and its evidence as one value, ``BlockValues``, then the same rule for a
+refused block, ``after_refusal``). What the
 device taught earlier (its variant, the holes it refused: ``jobs.holes``) is an input,
 and what a read gives (values, why the other fields have none, holes found) comes back
 as one value, ``Read``. Timeouts and retries default to the profile's ``limits``,
@@ -29,9 +30,10 @@ from rtupoll.rtu import ExceptionCode, exception_name
 
 if TYPE_CHECKING:
     from rtupoll.jobs.holes import Register
+    from rtupoll.rtu.transaction import Evidence
 
-__all__ = ["BlockRead", "Read", "Timing", "needs_variant", "probe_variant", "read_block",
-           "read_fields", "read_planned", "timing"]
+__all__ = ["BlockRead", "BlockValues", "Read", "Timing", "needs_variant", "probe_variant",
+           "read_block", "read_fields", "read_planned", "timing"]
 
 
 @dataclass(frozen=True)
@@ -49,12 +51,22 @@ def timing(profile: Profile | None, timeout: float | None = None, retries: int |
                   limits.retries if retries is None else retries)
 
 
+@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+class BlockValues:
+    """One planned read, decoded, and its transaction's evidence (``rtu.transaction.
+    Evidence``: what the poller's timing learns from, ``jobs.timeouts``)."""
+
+    values: list[FieldValue]
+    evidence: Evidence
+
+
 async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
-                     retries: int) -> list[FieldValue]:
-    """One planned read, decoded: one transaction. Bus errors propagate."""
-    words = await bus.read(unit, block.table, block.address, block.count,
-                           timeout=timeout, retries=retries)
-    return decode_block(block, words)
+                     retries: int, patience: float = 0.0) -> BlockValues:
+    """One planned read, decoded: one transaction (``patience``: ``BusLike.read``'s). Bus
+    errors propagate, each with its evidence (``BusError.evidence``)."""
+    got = await bus.read(unit, block.table, block.address, block.count,
+                         timeout=timeout, retries=retries, patience=patience)
+    return BlockValues(decode_block(block, got.values), got.evidence)
 
 
 @frozen
@@ -87,7 +99,8 @@ async def read_planned(bus: BusLike, unit: int, block: Block, *, timeout: float,
     """``block`` read; refused: ``after_refusal``, else each field refused with the
     exception. A timeout or a garbled reply propagates."""
     try:
-        return BlockRead(await read_block(bus, unit, block, timeout=timeout, retries=retries))
+        return BlockRead((await read_block(bus, unit, block, timeout=timeout,
+                                           retries=retries)).values)
     except DeviceException as exc:
         found = await after_refusal(bus, unit, block, exc, timeout=timeout, retries=retries)
         return found or BlockRead([], tuple((f, exc) for f in block.fields))
@@ -188,7 +201,8 @@ async def probe_variant(bus: BusLike, profile: Profile, unit: int, *,
     t = timing(profile, timeout, retries)
     try:
         (block,) = plan([field], profile)
-        (fv,) = await read_block(bus, unit, block, timeout=t.timeout, retries=t.retries)
+        (fv,) = (await read_block(bus, unit, block, timeout=t.timeout,
+                                  retries=t.retries)).values
     except DeviceException as exc:
         if exc.code in profile.variant.on_exception:
             return profile.variant.on_exception[exc.code]

@@ -148,8 +148,8 @@ async def _split(bus: BusLike, unit: int, piece: Block, values: list[FieldValue]
     try:
         if known is not None:
             raise known
-        words = await bus.read(unit, piece.table, piece.address, piece.count,
-                               timeout=timeout, retries=retries)
+        words = (await bus.read(unit, piece.table, piece.address, piece.count,
+                                timeout=timeout, retries=retries)).values
     except DeviceException as exc:
         if len(piece.fields) == 1:
             refused.append((piece.fields[0], exc))
@@ -222,12 +222,12 @@ async def verify_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
     that moved meanwhile is read again (up to ``tries`` rounds); still moving: no verdict
     (None). Bus errors propagate."""
     for _ in range(tries):
-        first = await bus.read(unit, block.table, block.address, block.count,
-                               timeout=timeout, retries=retries)
-        alone = {f.name: await bus.read(unit, f.table, f.address, f.words, timeout=timeout,
-                                        retries=retries) for f in block.fields}
-        second = await bus.read(unit, block.table, block.address, block.count,
-                                timeout=timeout, retries=retries)
+        first = (await bus.read(unit, block.table, block.address, block.count,
+                                timeout=timeout, retries=retries)).values
+        alone = {f.name: (await bus.read(unit, f.table, f.address, f.words, timeout=timeout,
+                                         retries=retries)).values for f in block.fields}
+        second = (await bus.read(unit, block.table, block.address, block.count,
+                                 timeout=timeout, retries=retries)).values
         bad, moved = [], False
         for f in block.fields:
             at = f.address - block.address

@@ -16,10 +16,10 @@ The order is chosen so a scan stays fast and honest:
   address costs exactly one timeout;
 - every answer is cached per address, so a check already answered by an earlier
   request costs nothing, and a profile that contradicts an answer is never probed;
-- an address whose answer arrives after its probe timed out (``Bus.late``) is asked
-  again with a longer timeout (``jobs.timeouts.late_margin``: twice the late reply's
-  time) before it is called empty, so a slow device is found without making every
-  empty address wait for it;
+- an address whose answer arrives after its probe timed out (the line counts it late,
+  ``BusLike.unit_counts``) is asked again with a longer timeout
+  (``jobs.timeouts.late_margin``: twice the late reply's time) before it is called
+  empty, so a slow device is found without making every empty address wait for it;
 - the most specific profiles (most checks) are tried first, so a one-check profile
   (CO2Meter: one register in 0..10000) only claims a device nothing else explains.
 
@@ -228,8 +228,8 @@ class Identifier:
             table, address, count = read
             timeout = reply_wait(self.setting.framing, self.margin)
             try:
-                cache[read] = await self.bus.read(unit, table, address, count,
-                                                  timeout=timeout, retries=0)
+                cache[read] = (await self.bus.read(unit, table, address, count,
+                                                   timeout=timeout, retries=0)).values
             except DeviceTimeout as exc:
                 cache[read] = exc
                 if present:
@@ -242,8 +242,8 @@ class Identifier:
                      timeout: float) -> None:
         table, address, count = read
         try:
-            cache[read] = await self.bus.read(unit, table, address, count, timeout=timeout,
-                                              retries=0)
+            cache[read] = (await self.bus.read(unit, table, address, count,
+                                               timeout=timeout, retries=0)).values
         except (DeviceException, DeviceTimeout, FrameError) as exc:
             cache[read] = exc
 
@@ -352,7 +352,7 @@ async def sweep(open_bus: Callable[[Setting], AbstractAsyncContextManager[BusLik
                 found += await _late_ones(bus, profiles, setting, margin, probes, empty)
                 progress(setting, unit)
             # the last addresses' late answers may still be on their way
-            if empty and callable(getattr(bus, "late", None)):
+            if empty:
                 await asyncio.sleep(LATE_WAIT * reply_wait(setting.framing, margin))
                 found += await _late_ones(bus, profiles, setting, margin, probes, empty)
         if first and any(f.setting == setting and f.profile for f in found):
@@ -364,11 +364,9 @@ async def _late_ones(bus: BusLike, profiles: Sequence[Profile], setting: Setting
     """Addresses called empty whose answer has come in late since: asked again with a
     longer timeout (``jobs.timeouts.late_margin``), before they are called empty."""
     out: list[Found] = []
-    if not callable(getattr(bus, "late", None)):  # a transport that cannot tell
-        return out
-    for unit in [u for u in empty if bus.late(u)]:
+    for unit in [u for u in empty if bus.unit_counts(u).late]:
         empty.remove(unit)
-        took = bus.evidence(unit).late_reply_time
+        took = bus.unit_counts(unit).late_reply_time
         longer = Identifier(bus, profiles, setting, late_margin(margin, took))
         result = await probe_address(bus, longer, probes, unit)
         if result is not None:

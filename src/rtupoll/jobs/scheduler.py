@@ -49,6 +49,7 @@ from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import (
     BlockRead,
+    BlockValues,
     Read,
     after_refusal,
     needs_variant,
@@ -65,6 +66,7 @@ from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
 from rtupoll.model.scaling import scale
 from rtupoll.rtu import ExceptionCode, Framing, Table, read_frame_sizes, transaction_wire_time
+from rtupoll.rtu.transaction import Evidence
 
 T = TypeVar("T")
 Job = Callable[["BusLike"], Awaitable[T]]  # BusPoller.submit: work on the bus, between cycles
@@ -167,9 +169,10 @@ class DevicePoller:
                                           policy.stopped)
                 continue
             retries = policy.retries()
-            status, error, values = await self._transact(read_block(
-                transport, cfg.address, block, timeout=self.timeout(transport), retries=retries),
-                via=transport)
+            status, error, got = await self._transact(read_block(
+                transport, cfg.address, block, timeout=self.timeout(transport), retries=retries,
+                patience=self.timing.patience))
+            values = got.values if got is not None else None
             if status is Status.EXCEPTION and self.refused == 2:
                 found = await self._find_holes(transport, block, retries)
                 if found is not None:  # the refused fields alone keep the exception
@@ -214,7 +217,7 @@ class DevicePoller:
         cfg = self.config
         status, error, variant = await self._transact(probe_variant(
             transport, cfg.profile, cfg.address, timeout=self.timeout(transport),
-            retries=retries), via=transport)
+            retries=retries))
         if status is not Status.OK:  # a reply that is no answer: the reads say what is wrong
             return error if status is Status.TIMEOUT else ""
         self._take_variant(variant)
@@ -291,39 +294,43 @@ class DevicePoller:
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
                                   ceiling=cfg.timeout_ceiling, gap=cfg.gap)
 
-    async def _transact(self, read: Awaitable[T], *, via: BusLike | None = None
-                        ) -> tuple[Status, str, T | None]:
-        """One read (not yet awaited), timed and counted: (status, error, what it read)."""
+    async def _transact(self, read: Awaitable[T]) -> tuple[Status, str, T | None]:
+        """One read (not yet awaited), timed and counted: (status, error, what it read).
+        The timing learns from its evidence: the ``BlockValues``'s, or its bus error's."""
         cfg, st = self.config, self.stats
         start = self._clock()
         status, error, values = Status.OK, "", None
+        evidence: Evidence | None = None
         self.refused = None
         try:
             values = await read
+            if isinstance(values, BlockValues):
+                evidence = values.evidence
         except DeviceTimeout as exc:
             status, error = Status.TIMEOUT, str(exc) or f"no response from {cfg.spec}"
             st.timeouts += 1
+            evidence = exc.evidence
         except FrameError as exc:
             status, error = Status.GARBLED, str(exc)
             st.garbled += 1
+            evidence = exc.evidence
         except DeviceException as exc:
             status, error = Status.EXCEPTION, str(exc)
             st.exceptions[exc.code] += 1
             self.refused = exc.code
+            evidence = exc.evidence
         now = self._clock()
         st.requests += 1
-        self.timing.after(via, cfg.address, answered=status in (Status.OK, Status.EXCEPTION))
+        self.timing.learn(evidence)
         st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
         if st.line is None:
             st.line = self.timing.counts
-        culprit = self.load.add(now, now - start,
-                                failed_by=self if status in (Status.TIMEOUT, Status.GARBLED)
-                                else None)
         # the bus's quiet period after a failure is the failing device's cost, not ours
-        (culprit if isinstance(culprit, DevicePoller) else self).charge(now, now - start)
+        own = self.load.add(now, now - start, self,
+                            failed=status is Status.TIMEOUT or status is Status.GARBLED)
         if status is Status.OK:
             st.ok += 1
-            if culprit is None:
+            if own:
                 st.latencies.append(now - start)
         return status, error, values
 
@@ -405,7 +412,6 @@ class BusPoller:
         dev.last_run = self._seq
         try:
             readings = await dev.cycle(self.transport)
-            dev.stats.late = self.transport.late(dev.config.address)
         except PortError as exc:
             # the adapter vanished (or the gateway went away): no device is to blame, so
             # none is backed off; the whole bus pauses briefly and the bus reopens the port

@@ -12,7 +12,7 @@ import enum
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from rtupoll.config.site import DeviceConfig
 from rtupoll.figures import quantile
@@ -73,7 +73,6 @@ class DeviceStats:
     ok: int = 0
     timeouts: int = 0
     garbled: int = 0  # CRC errors, garbage, truncated or malformed replies
-    late: int = 0  # replies that came after their request had timed out (never decoded)
     timeout: float | None = None  # the timeout used now, seconds beyond the wire time
     timeout_source: str = ""  # pinned (the user's) | profile (nothing learned yet) | learned
     # the line's count of the device's attempts (each by how it ended), its idle gap
@@ -96,6 +95,12 @@ class DeviceStats:
             if r.ok:
                 self.last_good[r.field.name] = r
                 self.last_good_time = r.time
+
+    @property
+    def late(self) -> int:
+        """Replies that came after their request had timed out (never decoded), as the
+        line counts them."""
+        return self.line.late if self.line else 0
 
     @property
     def exception_count(self) -> int:
@@ -144,29 +149,44 @@ class DeviceStats:
         return quantile(self.latencies, 95)
 
 
+class Charged(Protocol):
+    """Who pays for bus time (``jobs.scheduler.DevicePoller``: its share of the bus)."""
+
+    def charge(self, now: float, seconds: float) -> None: ...
+
+
 class BusLoad:
-    """Transactions and the share of time the bus was busy, over a sliding window."""
+    """Transactions and the share of time the bus was busy, over a sliding window, and
+    who each transaction's time is charged to."""
 
     def __init__(self, started: float) -> None:
         self.started = started
         self.transactions = 0
-        self._failed_by: object = None  # the last transaction timed out or was garbled
+        # the last transaction timed out or was garbled: for whom (None: not a device's)
+        self._after_failure = False
+        self._failed_by: Charged | None = None
         self._recent: deque[tuple[float, float]] = deque()  # (end time, duration)
 
-    def add(self, end: float, duration: float, *, failed_by: object = None) -> object:
-        """Count one transaction (``failed_by``: who it failed for, if it timed out or was
-        garbled); returns who the transaction before it failed for, if it did.
+    def add(self, end: float, duration: float, by: Charged | None = None, *,
+            failed: bool = False) -> bool:
+        """Count one transaction, made for ``by`` (None: not a device's, a gateway
+        client's) and ``failed`` (timed out or garbled), and charge its time; True when
+        the time was its own (the transaction before it did not fail).
 
         After a timeout or a garbled reply the bus waits for a quiet line before the
         next request, so the next transaction's time says nothing about its own device:
-        it is the failing device's cost.
+        it is charged to the failing device (to ``by`` when that was none's).
         """
-        after_failure, self._failed_by = self._failed_by, failed_by
+        own = not self._after_failure
+        payer = by if own or self._failed_by is None else self._failed_by
+        self._after_failure, self._failed_by = failed, by if failed else None
+        if payer is not None:
+            payer.charge(end, duration)
         self.transactions += 1
         self._recent.append((end, duration))
         while self._recent and self._recent[0][0] < end - LOAD_WINDOW:
             self._recent.popleft()
-        return after_failure
+        return own
 
     def utilisation(self, now: float) -> float:
         """Busy share of the last ``LOAD_WINDOW`` seconds (or since the start), 0..1."""

@@ -16,16 +16,21 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
   the ceiling (``CEILING``, or the site file's ``timeout_ceiling:`` / ``--timeout-ceiling``);
 - **up at once**: a reply slower than the timeout allows for raises it straight to
   ``MARGIN`` times that reply time; a **late reply** (heard after its request timed
-  out, ``Bus.late``) raises it to ``MARGIN`` times the late reply's time, and at least
-  ``LATE_GROWTH`` times what it was;
+  out: a read's ``Evidence``, or the line's count between two reads,
+  ``BusLike.unit_counts``) raises it to ``MARGIN`` times the late reply's time, and at
+  least ``LATE_GROWTH`` times what it was;
 - **down slowly**: towards a lower target by ``DOWN`` of the difference per answer,
   so one fast spell does not undo what a slow one taught;
 - a timeout alone teaches nothing (the device may be gone): a dead device keeps the
   short timeout it had learned, so probing it costs little;
 - a pinned timeout (``--timeout``, site file ``timeout:``) is used as given;
 - a learned timeout shorter than the profile's does not shorten how long a late reply
-  is still expected (``Bus.set_patience``, ``rtu.line``'s late window): waiting less
-  must never mean mistaking a late reply for the next answer.
+  is still expected (``DeviceTiming.patience``, passed with each read: ``rtu.line``'s
+  late window): waiting less must never mean mistaking a late reply for the next answer.
+
+``DeviceTiming`` is one device's: ``before`` gives the next read's timeout, ``patience``
+goes with the read, and ``learn`` takes the read's evidence (``rtu.transaction.Evidence``,
+in the read's ``Reply`` or its bus error).
 """
 
 from __future__ import annotations
@@ -126,11 +131,12 @@ class TimeoutEstimator:
 
 
 class DeviceTiming:
-    """One polled device's timeout, fed from its transport's evidence.
+    """One polled device's timeout, learned from its reads' evidence.
 
     ``pinned``: the user's timeout (None: learn). ``before`` is called before each
-    transaction and gives the timeout to use (taking late replies heard since the
-    last call into account); ``after`` takes the transaction's outcome.
+    transaction and gives the timeout to use (taking late replies the line heard since
+    the last read into account); the read goes with ``patience``; ``learn`` takes the
+    read's ``Evidence``.
     """
 
     def __init__(self, start: float, *, silence: float, ceiling: float | None = None,
@@ -139,10 +145,10 @@ class DeviceTiming:
         self.pinned = pinned
         self.estimator = TimeoutEstimator(start, floor=FLOOR + silence,
                                           ceiling=CEILING if ceiling is None else ceiling)
-        self._late_seen: int | None = None
+        self._late_seen: int | None = None  # the line's count of late replies, as last seen
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
         self._gap = 0.0  # the idle gap last told to the bus
-        self.counts: UnitCounts | None = None  # the bus's live count of the unit's attempts
+        self.counts: UnitCounts | None = None  # the line's live count of the unit's attempts
 
     @property
     def timeout(self) -> float:
@@ -158,12 +164,11 @@ class DeviceTiming:
     def before(self, bus: BusLike | None, unit: int, *, pinned: float | None = None,
                ceiling: float | None = None, gap: float | None = None) -> float:
         """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
-        ``ceiling``: the device's configuration now, which a reload may change). The
-        bus's evidence (``BusLike.evidence``: a value) is read; the patience a late
-        reply is still expected with is told back (``BusLike.set_patience``). The
-        evidence itself (``after`` reads it once per transaction) is read here only when
-        the count of late replies moved: one read per transaction. ``gap``: the idle gap
-        the device needs (``BusLike.set_idle_gap``), told to the bus when it changes."""
+        ``ceiling``: the device's configuration now, which a reload may change). A late
+        reply the line heard since the last read (while another device's request was
+        out: ``BusLike.unit_counts``, a live view, no copy) raises it first. ``gap``: the
+        idle gap the device needs (``BusLike.set_idle_gap``), told to the bus when it
+        changes."""
         self.pinned = pinned
         est = self.estimator
         top = CEILING if ceiling is None else ceiling
@@ -174,40 +179,40 @@ class DeviceTiming:
             bus.set_idle_gap(unit, gap)
             self._gap = gap
         bounds = (FLOOR + self.silence + bus.adapter_latency, top)
-        if bounds != self._bounds:  # the first time, a reload, the adapter's latency known
-            counts = getattr(bus, "unit_counts", None)  # (a test's scripted bus has none)
-            self.counts = counts(unit) if counts is not None else None
+        counts = self.counts
+        if bounds != self._bounds or counts is None:  # the first time, a reload, the
+            counts = self.counts = bus.unit_counts(unit)  # adapter's latency known
             est.ceiling = top
             est.set_floor(bounds[0])
             self._bounds = bounds
-        if bus.late(unit) != self._late_seen:  # the evidence is read only when a late
-            self._take_late(bus.evidence(unit))  # reply came (and the first time)
-        timeout = self.timeout
-        bus.set_patience(unit, max(est.start, timeout))  # a late reply stays expected that long
-        return timeout
+        late = counts.late
+        if late != self._late_seen:  # a late reply came (or the first time)
+            self._take_late(late, counts.late_reply_time)
+        return self.timeout
 
     @property
     def patience(self) -> float:
-        """How long a late reply is still expected: as long as the manual allows, even
-        when the timeout learned is shorter."""
-        return max(self.estimator.start, self.timeout)
+        """How long a late reply is still expected (passed with each read): as long as
+        the manual allows, even when the timeout learned is shorter."""
+        start, timeout = self.estimator.start, self.timeout
+        return start if start > timeout else timeout
 
-    def after(self, bus: BusLike | None, unit: int, answered: bool) -> None:
-        """``answered``: the transaction got a reply (data or an exception reply)."""
-        if bus is None:
+    def learn(self, evidence: Evidence | None) -> None:
+        """A read's evidence (None: its bus told none): an answer's reply time (data or
+        an exception reply), and late replies heard."""
+        if evidence is None:
             return
-        evidence = bus.evidence(unit)
-        if answered and evidence.reply_time is not None:
+        if evidence.reply_time is not None:
             self.estimator.answered(evidence.reply_time)
-        self._take_late(evidence)
+        if evidence.late != self._late_seen:
+            self._take_late(evidence.late, evidence.late_reply_time)
 
-    def _take_late(self, evidence: Evidence) -> None:
-        n = evidence.late
+    def _take_late(self, n: int, reply_time: float | None) -> None:
         if self._late_seen is None:
             self._late_seen = n
         if n > self._late_seen:
             self._late_seen = n
-            self.estimator.late(evidence.late_reply_time)
+            self.estimator.late(reply_time)
 
 
 def late_margin(margin: float, late_reply: float | None, ceiling: float = CEILING) -> float:

@@ -155,8 +155,8 @@ async def write(bus: BusLike, unit: int, op: WriteOp, timing: Timing, *, reply: 
         return op.words, True
     words = op.words
     if op.shared:
-        current = await bus.read(unit, Table.HOLDING, f.address, 1, timeout=timing.timeout,
-                                 retries=timing.retries)
+        current = (await bus.read(unit, Table.HOLDING, f.address, 1,
+                                  timeout=timing.timeout, retries=timing.retries)).values
         words = field_words(f, op.value, current)
     echoed = await bus.write_registers(unit, f.address, words, function=op.function,
                                        timeout=timing.timeout, retries=timing.retries,
@@ -166,8 +166,8 @@ async def write(bus: BusLike, unit: int, op: WriteOp, timing: Timing, *, reply: 
 
 async def read_back(bus: BusLike, unit: int, field: Field, timing: Timing) -> FieldValue:
     """Read one field (or raw run) back, as it is now."""
-    words = await bus.read(unit, field.table, field.address, field.words,
-                           timeout=timing.timeout, retries=timing.retries)
+    words = (await bus.read(unit, field.table, field.address, field.words,
+                            timeout=timing.timeout, retries=timing.retries)).values
     return interpret(field, words)
 
 
@@ -256,8 +256,8 @@ async def write_raw(bus: BusLike, unit: int, rw: RawWrite, timing: Timing) -> No
 async def verify_raw(bus: BusLike, unit: int, rw: RawWrite, timing: Timing) -> list[FieldValue]:
     """Read the run back; it must hold exactly the words written."""
     spec = rw.spec
-    got = await bus.read(unit, spec.table, spec.address, spec.words, timeout=timing.timeout,
-                         retries=timing.retries)
+    got = (await bus.read(unit, spec.table, spec.address, spec.words,
+                          timeout=timing.timeout, retries=timing.retries)).values
     if tuple(got) != rw.words:
         raise VerificationError(f"{spec.label(0)}: wrote {words_to_hex(rw.words)} but it reads "
                                 f"back {words_to_hex(got)}")

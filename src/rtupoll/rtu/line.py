@@ -60,9 +60,9 @@ order). Hence:
 So that the line never has to guess, a request is not sent while an earlier,
 *different* request to the same unit and function may still be answered
 (``hazard_until``): a request that timed out may be answered up to ``LATE_FACTOR``
-timeouts late (counted in the unit's ``patience`` when that is longer than the
-timeout given: a timeout learned shorter than the manual's does not shorten the
-window; or ``SETTLE_FACTOR`` times the longest reply time seen from that unit, if
+timeouts late (counted in the request's ``patience``, ``expire``, when that is longer
+than the timeout given: a timeout learned shorter than the manual's does not shorten
+the window; or ``SETTLE_FACTOR`` times the longest reply time seen from that unit, if
 longer; at most ``horizon``); a request whose answer was taken from an identical
 earlier request's late reply may still be answered within ``SETTLE_FACTOR`` reply
 times. Its answer arriving ends the wait at once. The bus waits for this outside
@@ -185,14 +185,25 @@ class LineCounts:
 
 
 class UnitCounts:
-    """One unit's share of what a line counts, read when asked (a device's health:
-    ``jobs.stats``): nothing is copied per transaction. Every attempt ends answered,
-    garbled or timed out (or as an echo, with echo off)."""
+    """One unit's share of what a line counts, read when asked (a device's health,
+    ``jobs.stats``; late replies heard between its requests, ``jobs.timeouts``): nothing
+    is copied per transaction. Every attempt ends answered, garbled or timed out (or
+    as an echo, with echo off)."""
 
     __slots__ = ("line", "unit")
 
     def __init__(self, line: Line, unit: int) -> None:
         self.line, self.unit = line, unit
+
+    @property
+    def late(self) -> int:
+        """Replies that came after their request had timed out (never decoded)."""
+        return self.line.counts.late.get(self.unit, 0)
+
+    @property
+    def late_reply_time(self) -> float | None:
+        """The reply time of the unit's last late reply, if it sent one."""
+        return self.line.late_reply_time.get(self.unit)
 
     @property
     def timeouts(self) -> int:
@@ -244,9 +255,6 @@ class Line:
         # last late reply (an answer to a request that had timed out or was superseded)
         self.reply_time: dict[int, float] = {}
         self.late_reply_time: dict[int, float] = {}
-        # per unit: the timeout its late window is counted in when a shorter one was
-        # given (a learned timeout must not shorten how long a late reply is expected)
-        self.patience: dict[int, float] = {}
         self._buf = bytearray()  # received bytes not yet explained
         self._marks: list[tuple[int, float]] = []  # (offset in _buf, arrival time) per chunk
         self._idle_burst = False
@@ -577,11 +585,12 @@ class Line:
 
     # -- an attempt that got no answer -------------------------------------------
 
-    def expire(self, now: float, timeout: float) -> str | None:
+    def expire(self, now: float, timeout: float, patience: float = 0.0) -> str | None:
         """The attempt's deadline passed: None for a timeout (silence, noise, other
         units' frames), else why what arrived is a garbled reply. The request stays
-        outstanding, and the next request waits for the drain (by default
-        ``timeout``, the time the device was given)."""
+        outstanding (its late window counted in ``patience`` when that is longer than
+        ``timeout``: a learned timeout does not shorten it), and the next request waits
+        for the drain (by default ``timeout``, the time the device was given)."""
         att, self.attempt = self.attempt, None
         self.timeout_at = now
         self.drain_for = self._drain if self._drain is not None else timeout
@@ -589,7 +598,7 @@ class Line:
             return None
         unit = att.entry.expect.unit
         att.entry.silent = not att.rx
-        late = max(LATE_FACTOR * max(timeout, self.patience.get(unit, 0.0)),
+        late = max(LATE_FACTOR * (timeout if timeout > patience else patience),
                    SETTLE_FACTOR * self._latency.get(unit, 0))
         att.entry.expires = att.entry.sent + min(self._horizon, late)
         why = diagnose(bytes(att.rx), att.entry.expect)

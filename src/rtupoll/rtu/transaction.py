@@ -30,9 +30,12 @@ caller does not require (``tolerate``) ends ``Done(b"", "unconfirmed")`` instead
 broadcast (unit 0) ends when it is sent: ``Done(b"", "broadcast")``, and the line
 gives the devices ``turnaround`` to act on it.
 
-**Timing evidence** is in the values: ``Done.reply_time`` is the answer's reply time
-(``Answer.reply_time``), and ``evidence(line, unit)`` what the line knows of a unit
-(late replies, the last reply times) as one frozen value.
+**Timing evidence** is in the values: ``Done.reply_time`` (and an exception reply's
+``Failed.reply_time``) is the answer's reply time (``Answer.reply_time``), and
+``Transaction.evidence`` what the transaction tells of its unit's timing as one value
+(``Evidence``: that reply time, the unit's late replies so far, the attempts made), which
+a read returns with its values (``Reply``). How long a late reply to the request stays
+expected is the request's own (``patience``, ``Line.expire``), not the line's state.
 
 **Request checks** (``read_frame``, ``write_registers_frame``, ``write_coil_frame``,
 ``pdu_frame``) build a request or raise ``Refused`` (nothing is sent): the quantity
@@ -101,6 +104,8 @@ class Failed:
     unit: int
     function: int
     code: int = 0
+    # an exception reply's (``Answer.reply_time``)
+    reply_time: float | None = field(default=None, compare=False)
 
     @property
     def outcome(self) -> str:
@@ -114,11 +119,15 @@ class Transaction:
     """One request, its attempts and its outcome. See the module docstring."""
 
     def __init__(self, line: Line, request: bytes, *, timeout: float, retries: int = 0,
-                 tolerate: bool = False, turnaround: float = 0.1) -> None:
+                 tolerate: bool = False, turnaround: float = 0.1,
+                 patience: float = 0.0) -> None:
+        """``patience``: how long a late reply is still expected when that is longer
+        than ``timeout`` (``Line.expire``: a learned timeout does not shorten it)."""
         if not 0 < timeout <= 60 or retries < 0:
             raise Refused(f"timeout {timeout} s / retries {retries} make no sense")
         self.line, self.request, self.unit = line, request, request[0]
         self.timeout, self.retries, self.tolerate = timeout, retries, tolerate
+        self.patience = patience
         self.turnaround = turnaround
         framing = line.framing
         self.limit = timeout + framing.wire_time(len(request) + (answer_length(request) or 0))
@@ -198,7 +207,7 @@ class Transaction:
         self._in_flight = False
         att = self.line.attempt
         rx = bytes(att.rx) if att is not None else b""
-        why = self.line.expire(now, self.timeout)
+        why = self.line.expire(now, self.timeout, self.patience)
         if why:
             self._failed("frame", why)
         else:
@@ -226,10 +235,18 @@ class Transaction:
         self.wire += self.line.framing.wire_time(len(frame))
         if frame[1] & 0x80:
             self.result = Failed("exception", f"exception {frame[2]}", frame[0],
-                                 self.request[1], frame[2])
+                                 self.request[1], frame[2], answer.reply_time)
         else:
             self.result = Done(frame, "ok", answer.reply_time)
         return self.result
+
+    def evidence(self) -> Evidence:
+        """What this transaction (over, or failed) tells of its unit's timing."""
+        result, line, unit = self.result, self.line, self.unit
+        # (get: a Counter's missing key costs a Python call, and this is once a transaction)
+        return Evidence(result.reply_time if result is not None else None,
+                        line.counts.late.get(unit, 0), line.late_reply_time.get(unit),
+                        self.attempts)
 
     def _give_up(self) -> Done | Failed:
         failure = self._failure or Failed("timeout", f"no reply from unit {self.request[0]}",
@@ -262,19 +279,26 @@ class BusStats:
         self.outcomes[outcome or tx.outcome] += 1
 
 
-@frozen
+@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Evidence:
-    """What the line knows of one unit's reply times (``rtupoll.jobs.timeouts``)."""
+    """What one transaction tells of its unit's timing (``rtupoll.jobs.timeouts`` learns
+    from it): its answer's reply time (None: no answer, or a broadcast), the late replies
+    the line has heard from the unit so far and the last one's reply time, and the
+    requests put on the wire (retries included)."""
 
-    late: int = 0  # replies that came after their request had timed out
-    reply_time: float | None = None  # the last answer's
+    reply_time: float | None = None
+    late: int = 0  # replies that came after their request had timed out, the unit's so far
     late_reply_time: float | None = None  # the last late reply's
+    attempts: int = 0
 
 
-def evidence(line: Line, unit: int) -> Evidence:
-    # (get: a Counter's missing key costs a Python call, and this is once a transaction)
-    return Evidence(line.counts.late.get(unit, 0), line.reply_time.get(unit),
-                    line.late_reply_time.get(unit))
+@dataclass(slots=True)  # made per read: plain, not frozen (CPU)
+class Reply:
+    """A read's outcome as one value: the values (registers as 16-bit ints, coils and
+    discrete inputs as 0/1) and the transaction's ``Evidence``."""
+
+    values: tuple[int, ...]
+    evidence: Evidence
 
 
 # -- requests, checked before anything is sent -----------------------------------------
