@@ -38,8 +38,9 @@ from pathlib import Path
 from typing import Any
 
 from rtupoll.config.library import load_library
-from rtupoll.rtu import Framing, read_request, read_response
+from rtupoll.rtu import Framing, read_request
 from rtupoll.rtu.functions import Table
+from rtupoll.rtu.messages import ReadReply
 from rtupoll.rtu.stream import Transaction
 from rtupoll.sim.scenario import profile
 from rtupoll.sniff.model import BusView, Known
@@ -61,7 +62,8 @@ def saturated(seconds: float, framing: Framing) -> list[tuple[bytes, float, floa
         _, unit, table, address, count = READS[i % len(READS)]
         fc = table.read_function
         for frame in (read_request(unit, table, address, count),
-                      read_response(unit, fc, [(i * 7 + k) & 0x7FFF for k in range(count)])):
+                      ReadReply(unit, fc, tuple([(i * 7 + k) & 0x7FFF
+                                                 for k in range(count)])).frame()):
             end = t + framing.wire_time(len(frame))
             out.append((frame, t, end))
             t = end + framing.silence

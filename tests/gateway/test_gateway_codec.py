@@ -15,8 +15,9 @@ from rtupoll.errors import ConfigError, UsageError
 from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access, line_settings
 from rtupoll.gateway.cache import ReadCache
-from rtupoll.gateway.pdu import BadRequest, parse, read_reply, write_reply
+from rtupoll.gateway.pdu import BadRequest, parse
 from rtupoll.rtu import Table, with_crc
+from rtupoll.rtu.messages import ReadReply, WriteReply
 
 
 def frame(tid: int, unit: int, pdu: bytes, *, proto: int = 0, length: int | None = None
@@ -98,12 +99,11 @@ def test_parse_refuses_with_the_servers_exception_code(pdu: bytes, code: int) ->
     assert err.value.code == code
 
 
-def test_replies() -> None:
-    assert read_reply(3, [555, 0, 100]) == bytes.fromhex("03 06 02 2b 00 00 00 64")
-    assert read_reply(1, [1, 0, 1, 1, 0, 0, 0, 0, 1]) == bytes.fromhex("01 02 0d 01")
-    assert write_reply(parse(bytes.fromhex("06 9c 41 00 05"))) == bytes.fromhex("06 9c 41 00 05")
-    assert write_reply(parse(bytes.fromhex("10 00 10 00 02 04 00 01 00 02"))) == \
-        bytes.fromhex("10 00 10 00 02")
+def test_replies_are_the_messages_own_pdus() -> None:
+    assert ReadReply(1, 3, (555, 0, 100)).pdu() == bytes.fromhex("03 06 02 2b 00 00 00 64")
+    assert ReadReply(1, 1, (1, 0, 1, 1, 0, 0, 0, 0, 1)).pdu() == bytes.fromhex("01 02 0d 01")
+    assert WriteReply(1, 6, 0x9C41, 5).pdu() == bytes.fromhex("06 9c 41 00 05")
+    assert WriteReply(1, 16, 0x10, 2).pdu() == bytes.fromhex("10 00 10 00 02")
 
 
 # -- access -------------------------------------------------------------------------

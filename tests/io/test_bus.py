@@ -32,13 +32,12 @@ from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import (
     Framing,
     Table,
-    exception_response,
     read_request,
-    read_response,
     with_crc,
     write_single_request,
 )
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 
 T = TypeVar("T")
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
@@ -83,8 +82,8 @@ class Responder:
         if unit not in self.units:
             return b""
         if fn in (3, 4):
-            return read_response(unit, fn, [(addr + i + self.offset) & 0xFFFF
-                                            for i in range(count)])
+            return ReadReply(unit, fn, tuple([(addr + i + self.offset) & 0xFFFF
+                                            for i in range(count)])).frame()
         if fn in (1, 2):
             n = (count + 7) // 8
             return with_crc(bytes((unit, fn, n)) + bytes([0x55] * n))
@@ -170,7 +169,7 @@ def test_stray_bytes_before_the_reply_are_skipped(peer: Responder, unit: int,
 
 
 def test_wrong_id_reply_together_with_the_right_one(peer: Responder) -> None:
-    foreign = read_response(2, 3, [0xDEAD, 0xBEEF])
+    foreign = ReadReply(2, 3, (0xDEAD, 0xBEEF)).frame()
     peer.scripts = [lambda req, ok: [(0, foreign + ok)]]
 
     async def go() -> tuple[tuple[int, ...], int]:
@@ -196,7 +195,7 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
     from pymodbus.client import AsyncModbusSerialClient
 
     peer.scripts = [lambda req, ok: [(0, b"\x00" + ok)],
-                    lambda req, ok: [(0, read_response(2, 3, [1, 2]) + ok)]]
+                    lambda req, ok: [(0, ReadReply(2, 3, (1, 2)).frame() + ok)]]
 
     async def go() -> list[bool]:
         client = AsyncModbusSerialClient(peer.path, baudrate=115200, timeout=0.15, retries=0)
@@ -221,9 +220,9 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
     (lambda ok: ok[:-1] + bytes([ok[-1] ^ 0xFF]), FrameError, "CRC error"),
     (lambda ok: ok[:5], FrameError, "truncated"),
     (lambda ok: b"\x12\x34\x56\x78\x9a\xbc", FrameError, "garbled"),
-    (lambda ok: read_response(1, 3, [7]), FrameError, "does not match"),
+    (lambda ok: ReadReply(1, 3, (7,)).frame(), FrameError, "does not match"),
     (lambda ok: b"\x00", DeviceTimeout, "no reply"),
-    (lambda ok: read_response(2, 3, [7, 8]), DeviceTimeout, "ignored"),
+    (lambda ok: ReadReply(2, 3, (7, 8)).frame(), DeviceTimeout, "ignored"),
     (lambda ok: b"", DeviceTimeout, "within 0.1 s"),
 ])
 def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
@@ -241,7 +240,7 @@ def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
 
 
 def test_exception_reply(peer: Responder) -> None:
-    peer.scripts = [lambda req, ok: [(0, exception_response(1, 4, 2))]]
+    peer.scripts = [lambda req, ok: [(0, ExceptionReply(1, 4, 2).frame())]]
 
     async def go() -> None:
         async with fast(peer.path) as bus:
@@ -617,14 +616,14 @@ def test_find_reply_and_diagnose() -> None:
     req = read_request(4, Table.HOLDING, 0, 2)
     exp = expect_for(req)
     assert exp is not None and exp.length == 9
-    ok = read_response(4, 3, [1, 2])
+    ok = ReadReply(4, 3, (1, 2)).frame()
     assert find_reply(b"\x00\x04" + ok, exp) == ok  # "00 04" looks like a frame start
-    assert find_reply(read_response(4, 3, [1, 2, 3]) + ok, exp) == ok  # other count
+    assert find_reply(ReadReply(4, 3, (1, 2, 3)).frame() + ok, exp) == ok  # other count
     assert find_reply(ok[:-1], exp) is None
-    exc = exception_response(4, 3, 2)
+    exc = ExceptionReply(4, 3, 2).frame()
     assert find_reply(b"\xff" + exc, exp) == exc
     assert expect_for(write_single_request(0, 1, 1)) is None  # broadcast
-    assert diagnose(read_response(5, 3, [1]) + b"\x00", exp) is None
+    assert diagnose(ReadReply(5, 3, (1,)).frame() + b"\x00", exp) is None
     assert "CRC" in (diagnose(ok[:-1] + b"\x00", exp) or "")
 
 

@@ -30,8 +30,9 @@ from rtupoll.jobs.timeouts import (
     DeviceTiming,
     TimeoutEstimator,
 )
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing, Table, read_request
 from rtupoll.rtu.line import Answer, Line
+from rtupoll.rtu.messages import ReadReply
 from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
@@ -62,7 +63,7 @@ def test_the_line_measures_reply_time_from_the_requests_end_to_the_first_byte() 
     request = read_request(1, Table.HOLDING, 0, 2)
     line.send(request, 10.0)
     end = 10.0 + framing.wire_time(len(request))
-    event = line.receive(read_response(1, 3, [1, 2]), end + 0.042)
+    event = line.receive(ReadReply(1, 3, (1, 2)).frame(), end + 0.042)
     assert isinstance(event, Answer)
     assert event.reply_time == pytest.approx(0.042)
     assert line.reply_time[1] == pytest.approx(0.042)
@@ -75,7 +76,7 @@ def test_a_late_reply_records_its_reply_time() -> None:
     line.send(first, 0.0)
     line.expire(0.1, 0.1)
     line.send(other, 0.3)  # a different request of the same shape: the late reply is not it
-    assert line.receive(read_response(1, 3, [1, 2]), 0.4) is None
+    assert line.receive(ReadReply(1, 3, (1, 2)).frame(), 0.4) is None
     assert line.counts.late[1] == 1
     assert line.late_reply_time[1] == pytest.approx(0.4 - framing.wire_time(len(first)))
 
@@ -117,7 +118,7 @@ def test_the_scheduler_side_keeps_the_profiles_patience() -> None:
 def test_a_reply_faster_than_the_wire_counts_as_zero() -> None:
     line = Line(Framing(1200))  # a simulator or gateway answers before the request "ended"
     line.send(read_request(1, Table.HOLDING, 0, 2), 0.0)
-    event = line.receive(read_response(1, 3, [1, 2]), 0.001)
+    event = line.receive(ReadReply(1, 3, (1, 2)).frame(), 0.001)
     assert isinstance(event, Answer) and event.reply_time == 0.0
 
 

@@ -10,13 +10,14 @@ import random
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing, Table, read_request
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import LATE_FACTOR, Answer, Garbled, Line
+from rtupoll.rtu.messages import ReadReply
 
 
 def reply(unit: int, first: int, count: int = 2) -> bytes:
-    return read_response(unit, 3, [first + i for i in range(count)])
+    return ReadReply(unit, 3, tuple([first + i for i in range(count)])).frame()
 
 
 def req(unit: int, address: int, count: int = 2) -> bytes:

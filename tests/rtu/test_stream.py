@@ -8,14 +8,15 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rtupoll.rtu import Framing, exception_response, read_request, read_response, with_crc
+from rtupoll.rtu import Framing, read_request, with_crc
 from rtupoll.rtu.functions import Table, write_single_request
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 from rtupoll.rtu.stream import Stream, Transaction
 
 F9600 = Framing(9600)
 CHAR = F9600.char_time  # ~1.15 ms
 REQ = read_request(3, Table.INPUT, 0x7536, 2)
-REPLY = read_response(3, 4, [25, 50])
+REPLY = ReadReply(3, 4, (25, 50)).frame()
 
 
 def run(chunks: list[tuple[bytes, float]], *, end: float | None = None,
@@ -71,7 +72,7 @@ def test_a_request_whose_first_bytes_make_a_valid_reply_is_still_a_request() -> 
     (found by the chunking property below)."""
     req = read_request(0x51, Table.HOLDING, 0x02B8, 10)
     assert req == bytes.fromhex("51 03 02 b8 00 0a 48 00")
-    wire = req + read_response(0x51, 3, [0] * 10)
+    wire = req + ReadReply(0x51, 3, tuple([0] * 10)).frame()
     out = run([(wire[i : i + 1], (i + 1) * CHAR) for i in range(len(wire))])
     assert [t.status for t in out] == ["ok"]
     assert out[0].request is not None and out[0].request.data == req
@@ -113,7 +114,7 @@ def test_the_next_request_ends_the_wait_and_a_late_reply_answers_nothing() -> No
 
 
 def test_an_exception_reply_is_reported_with_its_code() -> None:
-    out = run([on_wire(REQ, 0.0), on_wire(exception_response(3, 4, 2), 0.03)])
+    out = run([on_wire(REQ, 0.0), on_wire(ExceptionReply(3, 4, 2).frame(), 0.03)])
     assert [t.status for t in out] == ["exception"]
     assert out[0].exception == 2 and "ILLEGAL DATA ADDRESS" in out[0].note
 
@@ -126,7 +127,7 @@ def test_a_write_echo_is_its_reply_and_a_broadcast_waits_for_nothing() -> None:
 
 
 def test_a_reply_from_another_unit_does_not_answer_the_request() -> None:
-    wrong = read_response(9, 4, [25, 50])
+    wrong = ReadReply(9, 4, (25, 50)).frame()
     out = run([on_wire(REQ, 0.0), on_wire(wrong, 0.03)], end=2.0)
     assert [t.status for t in out] == ["orphan", "timeout"]
 
@@ -171,7 +172,7 @@ def traffic(draw: st.DrawFn) -> tuple[list[tuple[bytes, bytes]], list[tuple[byte
         count = draw(st.integers(1, 12))
         words = draw(st.lists(st.integers(0, 0xFFFF), min_size=count, max_size=count))
         exchanges.append((read_request(unit, table, draw(st.integers(0, 0xFFF0)), count),
-                          read_response(unit, table.read_function, words)))
+                          ReadReply(unit, table.read_function, tuple(words)).frame()))
     wire, times, t = b"", [], 0.0
     for request, reply in exchanges:
         for frame in (request, reply):

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing, Table, read_request
 from rtupoll.rtu.crc import with_crc
-from rtupoll.rtu.functions import MAX_QUANTITY, exception_response
+from rtupoll.rtu.functions import MAX_QUANTITY
 from rtupoll.rtu.line import Line
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
@@ -26,7 +27,7 @@ from rtupoll.rtu.transaction import (
 
 FRAMING = Framing(9600)
 REQ = read_request(3, Table.INPUT, 10, 2)
-GOOD = read_response(3, 4, [7, 8])
+GOOD = ReadReply(3, 4, (7, 8)).frame()
 
 
 def fresh() -> Line:
@@ -100,7 +101,7 @@ def test_a_garbled_reply_is_retried_at_once_and_the_retry_answers() -> None:
 def test_an_exception_reply_is_not_retried() -> None:
     tx = Transaction(fresh(), REQ, timeout=0.5, retries=3)
     at = send(tx)
-    assert tx.received(exception_response(3, 4, 2), at + 0.02)
+    assert tx.received(ExceptionReply(3, 4, 2).frame(), at + 0.02)
     failed = tx.next()
     assert isinstance(failed, Failed) and (failed.kind, failed.code) == ("exception", 2)
     assert tx.attempts == 1

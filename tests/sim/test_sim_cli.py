@@ -19,6 +19,7 @@ from forked_cli import rtupoll_popen
 
 from rtupoll import rtu
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadReply
 
 Raw = Callable[[str], RawPort]
 
@@ -82,7 +83,7 @@ def test_default_bus_lists_its_devices_serves_and_stops_on_ctrl_c(
     assert "line 2 (a serial port: open it at 115200 baud)" in s.out
     port = raw_port(s.port, 9600)
     assert port.transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
-        rtu.read_response(3, 3, [3])
+        ReadReply(3, 3, (3,)).frame()
     rest = s.stop(signal.SIGINT)
     assert s.proc.returncode == 0
     assert "stopped after 1 requests (1 replies)." in rest
@@ -127,7 +128,7 @@ def test_tcp(simulate: Callable[..., Simulator], raw_port: Raw) -> None:
     s = simulate("huiwen-aq@3", "--tcp", "127.0.0.1:0")
     assert s.port.startswith("tcp://127.0.0.1:")
     assert raw_port(s.port).transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
-        rtu.read_response(3, 3, [3])
+        ReadReply(3, 3, (3,)).frame()
     s.stop()
 
 

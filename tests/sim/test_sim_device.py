@@ -11,6 +11,7 @@ import pytest
 from rtupoll import rtu
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 
@@ -27,7 +28,7 @@ def ask(engine: Engine, frame: bytes | str) -> bytes:
 
 
 def exc(unit: int, fc: int, code: int) -> bytes:
-    return rtu.exception_response(unit, fc, code)
+    return ExceptionReply(unit, fc, code).frame()
 
 
 # -- golden frames from the manuals (design.md) -----------------------------------
@@ -62,7 +63,7 @@ def test_huiwen_slave_address_golden_frame() -> None:
 def test_co2meter_any_sensor_address_golden_frame() -> None:
     e = make("co2meter-an117@4", sets=["co2meter-an117@4.co2=400"])
     assert ask(e, "FE 04 00 01 00 01 74 05") == bytes.fromhex("FE 04 02 01 90 AC D8")
-    assert ask(e, rtu.read_request(4, Table.INPUT, 1, 1)) == rtu.read_response(4, 4, [400])
+    assert ask(e, rtu.read_request(4, Table.INPUT, 1, 1)) == ReadReply(4, 4, (400,)).frame()
 
 
 def test_banner_example_a1_golden_frame() -> None:
@@ -75,7 +76,7 @@ def test_banner_example_a1_golden_frame() -> None:
 
 def test_radar_golden_request_is_answered_per_register() -> None:
     e = make("radar-level@1", sets=["radar-level@1.air_gap_cm=123"])
-    assert ask(e, "01 03 00 00 00 01 84 0A") == rtu.read_response(1, 3, [123])
+    assert ask(e, "01 03 00 00 00 01 84 0A") == ReadReply(1, 3, (123,)).frame()
     # the profile reads 2 registers at most: a 2-register block works, 3 is refused
     assert ask(e, "01 03 00 00 00 02 C4 0B")[:3] == bytes.fromhex("01 03 04")
     assert ask(e, rtu.read_request(1, Table.HOLDING, 0, 3)) == exc(1, 3, 3)
@@ -119,7 +120,7 @@ def test_read_limit_is_exception_03() -> None:
 
 def test_irnet_data_structure_1_by_default_and_0_as_an_option() -> None:
     e = make("net-irnet-pro@1")
-    assert ask(e, rtu.read_request(1, Table.INPUT, 0x0400, 1)) == rtu.read_response(1, 4, [1])
+    assert ask(e, rtu.read_request(1, Table.INPUT, 0x0400, 1)) == ReadReply(1, 4, (1,)).frame()
     assert ask(e, rtu.read_request(1, Table.HOLDING, 0x007C, 1))[:3] == bytes.fromhex("01 03 02")
     e0 = make("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"])
     assert ask(e0, rtu.read_request(1, Table.INPUT, 0x0400, 1)) == exc(1, 4, 2)
@@ -132,9 +133,9 @@ def test_reading_a_poll_never_register_resets_it() -> None:
     peak = rtu.read_request(5, Table.INPUT, 30521, 1)
     first = ask(e, peak)
     assert first[:3] == bytes.fromhex("05 04 02") and first[3:5] != b"\x00\x00"
-    assert ask(e, peak) == rtu.read_response(5, 4, [0])  # the read reset it
+    assert ask(e, peak) == ReadReply(5, 4, (0,)).frame()  # the read reset it
     e.devices[0].advance(3)
-    assert ask(e, peak) != rtu.read_response(5, 4, [0])  # and it rises again
+    assert ask(e, peak) != ReadReply(5, 4, (0,)).frame()  # and it rises again
 
 
 # -- writes ----------------------------------------------------------------------
@@ -156,7 +157,7 @@ def test_huiwen_address_change_moves_the_device_with_an_echo() -> None:
     write = rtu.write_single_request(1, 40001, 7)
     assert ask(e, write) == write
     assert ask(e, rtu.read_request(1, Table.HOLDING, 40001, 1)) == b""
-    assert ask(e, rtu.read_request(7, Table.HOLDING, 40001, 1)) == rtu.read_response(7, 3, [7])
+    assert ask(e, rtu.read_request(7, Table.HOLDING, 40001, 1)) == ReadReply(7, 3, (7,)).frame()
 
 
 @pytest.mark.parametrize(("reply", "expected"), [
@@ -177,7 +178,7 @@ def test_banner_address_change_is_fc16_read_modify_write_of_the_low_byte() -> No
     assert ask(e, rtu.write_multiple_request(5, 41000, [new])) == \
         rtu.with_crc(bytes.fromhex("05 10 A0 28 00 01"))
     assert ask(e, rtu.read_request(5, Table.HOLDING, 41000, 1)) == b""
-    assert ask(e, rtu.read_request(9, Table.HOLDING, 41000, 1)) == rtu.read_response(9, 3, [new])
+    assert ask(e, rtu.read_request(9, Table.HOLDING, 41000, 1)) == ReadReply(9, 3, (new,)).frame()
 
 
 def test_radar_address_change_by_fc06() -> None:
@@ -185,7 +186,7 @@ def test_radar_address_change_by_fc06() -> None:
     assert ask(e, rtu.write_single_request(1, 0x03F4, 12)) == rtu.write_single_request(
         1, 0x03F4, 12)
     assert e.devices[0].address == 12
-    assert ask(e, rtu.read_request(12, Table.HOLDING, 0x03F4, 1)) == rtu.read_response(12, 3, [12])
+    assert ask(e, rtu.read_request(12, Table.HOLDING, 0x03F4, 1)) == ReadReply(12, 3, (12,)).frame()
 
 
 def test_broadcast_write_is_applied_without_a_reply() -> None:

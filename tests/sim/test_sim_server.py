@@ -15,6 +15,7 @@ from conftest import RawPort
 
 from rtupoll import rtu
 from rtupoll.rtu import Framing, Table
+from rtupoll.rtu.messages import ReadReply
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 Sim = Callable[..., SimulatedBus]
@@ -41,7 +42,7 @@ def test_link_is_a_stable_name_for_the_pty_and_goes_away_on_stop(tmp_path: Path,
     with simulated_bus(["huiwen-aq@3"], link=str(link), tick=None) as bus:
         assert link.is_symlink() and os.readlink(link) == bus.port
         assert raw_port(str(link)).transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) \
-            == rtu.read_response(3, 3, [3])
+            == ReadReply(3, 3, (3,)).frame()
     assert not link.exists() and not link.is_symlink()
 
 

@@ -15,8 +15,9 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from rtupoll.rtu import Framing, Table, exception_response, read_request, read_response
+from rtupoll.rtu import Framing, Table, read_request
 from rtupoll.rtu.functions import write_single_request
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 from rtupoll.sniff.capfile import CaptureWriter
 
 TSHARK = shutil.which("tshark")
@@ -71,9 +72,9 @@ def test_tshark_reads_every_chunk_with_its_arrival_time_and_the_interface(
 def test_tshark_decodes_the_frames_as_modbus_rtu(tmp_path: Path) -> None:
     """One frame a chunk: a read and its reply, an exception, a write echo, and a reply
     whose CRC is broken, which tshark must call bad where rtupoll calls it garbled."""
-    ok = read_response(3, 3, [0x1234, 0xABCD])
+    ok = ReadReply(3, 3, (0x1234, 0xABCD)).frame()
     frames = [read_request(3, Table.HOLDING, 0x10, 2), ok,
-              exception_response(7, 4, 2), write_single_request(9, 0x9C41, 12),
+              ExceptionReply(7, 4, 2).frame(), write_single_request(9, 0x9C41, 12),
               ok[:-1] + bytes((ok[-1] ^ 0xFF,))]
     capture = tmp_path / "frames.pcapng"
     write(capture, [(T0 + i * 0.05, f) for i, f in enumerate(frames)], Framing(9600))

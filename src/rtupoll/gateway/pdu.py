@@ -8,14 +8,12 @@ code a Modbus server answers for each mistake.
 
 from __future__ import annotations
 
-import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
 from rtupoll.rtu.effects import Effect, effect
-from rtupoll.rtu.functions import READ_FUNCTIONS, pack_bits, request_length
+from rtupoll.rtu.functions import READ_FUNCTIONS, request_length
 from rtupoll.rtu.messages import (
     ILLEGAL_ADDRESS,
     ILLEGAL_FUNCTION,
@@ -27,8 +25,7 @@ from rtupoll.rtu.messages import (
 )
 
 __all__ = ["ILLEGAL_ADDRESS", "ILLEGAL_FUNCTION", "ILLEGAL_VALUE", "PATH_UNAVAILABLE",
-           "TARGET_FAILED", "Ask", "BadRequest",
-           "exception_pdu", "parse", "pdu_length", "read_reply", "write_reply"]
+           "TARGET_FAILED", "Ask", "BadRequest", "parse", "pdu_length"]
 PATH_UNAVAILABLE, TARGET_FAILED = 0x0A, 0x0B
 
 
@@ -84,23 +81,3 @@ def parse(pdu: bytes) -> Ask:
     if isinstance(msg, ReadRequest):
         return Ask(pdu, msg.function, msg.table, msg.address, msg.count)
     return Ask(pdu, msg.function, msg.table, msg.address, msg.count, msg.values)
-
-
-def read_reply(function: int, values: Sequence[int]) -> bytes:
-    """The normal reply PDU to a read: registers (3, 4) or bits (1, 2) packed LSB first."""
-    if function in (3, 4):
-        data = b"".join(struct.pack(">H", v & 0xFFFF) for v in values)
-    else:
-        data = pack_bits(values)
-    return bytes((function, len(data))) + data
-
-
-def write_reply(ask: Ask) -> bytes:
-    """The normal reply PDU to a write: an echo (5, 6) or address and quantity (15, 16)."""
-    if ask.function in (5, 6):
-        return ask.pdu[:5]
-    return struct.pack(">BHH", ask.function, ask.address, ask.count)
-
-
-def exception_pdu(function: int, code: int) -> bytes:
-    return bytes((function | 0x80, code))

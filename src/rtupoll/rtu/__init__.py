@@ -23,10 +23,8 @@ from rtupoll.rtu.functions import (
     FUNCTIONS,
     Table,
     exception_name,
-    exception_response,
     read_frame_sizes,
     read_request,
-    read_response,
     write_coil_request,
     write_multiple_request,
     write_single_request,
@@ -35,7 +33,7 @@ from rtupoll.rtu.timing import Framing, transaction_wire_time
 
 __all__ = [
     "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
-    "exception_name", "exception_response", "read_frame_sizes", "read_request",
-    "read_response", "transaction_wire_time", "with_crc", "write_coil_request",
+    "exception_name", "read_frame_sizes", "read_request",
+    "transaction_wire_time", "with_crc", "write_coil_request",
     "write_multiple_request", "write_single_request",
 ]

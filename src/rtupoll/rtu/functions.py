@@ -201,15 +201,6 @@ def write_multiple_request(unit: int, address: int, values: Sequence[int]) -> by
     return with_crc(body + b"".join(struct.pack(">H", v) for v in values))
 
 
-def read_response(unit: int, function: int, words: Sequence[int]) -> bytes:
-    data = b"".join(struct.pack(">H", w) for w in words)
-    return with_crc(struct.pack(">BBB", unit, function, len(data)) + data)
-
-
-def exception_response(unit: int, function: int, code: int) -> bytes:
-    return with_crc(struct.pack(">BBB", unit, function | 0x80, code))
-
-
 def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
     """Request and normal response sizes (bytes, CRC included) of one read."""
     return 8, 5 + data_bytes(1 if coils else 3, count)

@@ -162,9 +162,12 @@ class ReadReply(_Message):
     values: tuple[int, ...]
 
     def pdu(self) -> bytes:
-        data = pack_bits(self.values) if self.function in (1, 2) else \
-            b"".join(struct.pack(">H", v) for v in self.values)
-        return bytes((self.function, len(data))) + data
+        values = self.values
+        if self.function in (1, 2):
+            data = pack_bits(values)
+            return bytes((self.function, len(data))) + data
+        n = len(values)  # (one struct call: the gateway and the simulator answer with it)
+        return struct.pack(f">BB{n}H", self.function, 2 * n, *values)
 
 
 @dataclass(frozen=True, slots=True)

@@ -45,13 +45,14 @@ from rtupoll.errors import UsageError
 from rtupoll.model.codec import Value, decode
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field, Profile
-from rtupoll.rtu import Table, exception_response, read_response, with_crc
-from rtupoll.rtu.functions import pack_bits
+from rtupoll.rtu import Table, with_crc
 from rtupoll.rtu.messages import (
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
+    ExceptionReply,
     Malformed,
     OtherRequest,
+    ReadReply,
     ReadRequest,
     Request,
     WriteMultiple,
@@ -237,7 +238,7 @@ class SimDevice:
             return self._identify(request)
         if isinstance(request, OtherRequest) and fc == 8 and 8 in self.profile.limits.functions \
                 and request.data[:2] == b"\x00\x00":  # return query data: the request back
-            return with_crc(bytes((unit,)) + request.pdu())
+            return request.frame()
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
             return self._refuse(unit, fc, ILLEGAL_FUNCTION)
         if isinstance(request, Malformed):
@@ -270,7 +271,7 @@ class SimDevice:
     def _refuse(self, unit: int, fc: int, code: int) -> bytes | None:
         if self.profile.limits.silent_on_error and code in (1, 3):
             return None
-        return exception_response(unit, fc, code)
+        return ExceptionReply(unit, fc, code).frame()
 
     def _read(self, req: ReadRequest) -> bytes | None:
         unit, fc, address, count, table = req.unit, req.function, req.address, req.count, \
@@ -280,7 +281,7 @@ class SimDevice:
         regs = range(address, address + count)
         for r in regs:
             if (table, r) in self._exception_at:
-                return exception_response(unit, fc, self._exception_at[table, r])
+                return ExceptionReply(unit, fc, self._exception_at[table, r]).frame()
         if any(r not in self.readable[table] for r in regs) or (
                 table.is_register and any(r in self.holes for r in regs)) or (
                 count == 1 and table.is_register and address in self.shifts):
@@ -295,10 +296,7 @@ class SimDevice:
         for f in {f.name: f for r in regs for f in self._by_register.get((table, r), ())}.values():
             if self.motions[f.name].on_read():  # e.g. a peak that reading resets
                 self._render(f)
-        if fc in (1, 2):
-            data = pack_bits(words)
-            return with_crc(bytes([unit, fc, len(data)]) + data)
-        return read_response(unit, fc, words)  # (the builders: quicker than a ReadReply)
+        return ReadReply(unit, fc, words).frame()
 
     def _write_coil(self, req: WriteSingle) -> bytes | None:
         if any(f.table is Table.COIL for f in self.fields):

@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
-from rtupoll.rtu.functions import READS, Table, exception_response, read_response
+from rtupoll.rtu.functions import READS, Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
@@ -138,13 +139,13 @@ class ReplayEngine(Engine):
         unit, fc = frame[0], frame[1]
         table = READS.get(fc)
         if table is None or not table.is_register or len(frame) != 8:  # registers only
-            return exception_response(unit, fc, 1)
+            return ExceptionReply(unit, fc, 1).frame()
         start, count = int.from_bytes(frame[2:4], "big"), int.from_bytes(frame[4:6], "big")
         regs = self.image[unit]
         words = [regs.get((table, r)) for r in range(start, start + count)]
         if not words or any(w is None for w in words):
-            return exception_response(unit, fc, 2)
-        return read_response(unit, fc, [w for w in words if w is not None])
+            return ExceptionReply(unit, fc, 2).frame()
+        return ReadReply(unit, fc, tuple([w for w in words if w is not None])).frame()
 
 
 def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = False
