@@ -19,7 +19,7 @@ from rtupoll.config.paths import bundled_dir
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Poll, Profile
 from rtupoll.rtu import Table
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest
 from rtupoll.sim.runner import simulated_bus
 
 BUNDLED = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
@@ -235,7 +235,7 @@ def test_every_new_profile_has_a_known_value_test() -> None:
 
 
 def test_the_pzem_manuals_request_is_our_request() -> None:
-    assert rtu.read_request(1, Table.INPUT, 0, 10) == bytes.fromhex("01 04 00 00 00 0A 70 0D")
+    assert ReadRequest(1, 4, 0, 10).frame() == bytes.fromhex("01 04 00 00 00 0A 70 0D")
 
 
 def test_the_family_shares_registers_through_extends() -> None:

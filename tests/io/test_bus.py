@@ -32,12 +32,10 @@ from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import (
     Framing,
     Table,
-    read_request,
     with_crc,
-    write_single_request,
 )
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 
 T = TypeVar("T")
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
@@ -474,7 +472,7 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
             with pytest.raises(asyncio.CancelledError):
                 await waiting
             await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
-            assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
+            assert [req for _, req in peer.requests] == [ReadRequest(5, 3, 0, 1).frame()]
             return await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)
     assert run(go()) == values(8, 1)
 
@@ -492,7 +490,7 @@ def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
             return time.monotonic() - t
     both = run(go())
     assert both >= 0.1  # the next request waited for the devices to act on it
-    assert peer.requests[0][1] == write_single_request(0, 0x10, 5)
+    assert peer.requests[0][1] == WriteSingle(0, 6, 0x10, 5).frame()
 
 
 def test_gateway_reboot_is_survived() -> None:
@@ -525,7 +523,7 @@ def test_writes_check_the_echo(peer: Responder) -> None:
             assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=ANSWERED) is True
             assert await bus.write_registers(1, 0x21, [9], function=6, timeout=ANSWERED) is True
             await bus.write_coil(1, 0xD0, False, timeout=ANSWERED)
-            peer.scripts = [lambda req, ok: [(0, write_single_request(1, 0x21, 8))]] * 3
+            peer.scripts = [lambda req, ok: [(0, WriteSingle(1, 6, 0x21, 8).frame())]] * 3
             with pytest.raises(FrameError, match="does not match"):  # (when its time is up)
                 await judged(lambda t: bus.write_registers(1, 0x21, [9], function=6, timeout=t))
     run(go())
@@ -613,7 +611,7 @@ def test_stats_and_client_cpu_per_transaction(peer: Responder) -> None:
 # -- the pure reply matcher -------------------------------------------------------------
 
 def test_find_reply_and_diagnose() -> None:
-    req = read_request(4, Table.HOLDING, 0, 2)
+    req = ReadRequest(4, 3, 0, 2).frame()
     exp = expect_for(req)
     assert exp is not None and exp.length == 9
     ok = ReadReply(4, 3, (1, 2)).frame()
@@ -622,7 +620,7 @@ def test_find_reply_and_diagnose() -> None:
     assert find_reply(ok[:-1], exp) is None
     exc = ExceptionReply(4, 3, 2).frame()
     assert find_reply(b"\xff" + exc, exp) == exc
-    assert expect_for(write_single_request(0, 1, 1)) is None  # broadcast
+    assert expect_for(WriteSingle(0, 6, 1, 1).frame()) is None  # broadcast
     assert diagnose(ReadReply(5, 3, (1,)).frame() + b"\x00", exp) is None
     assert "CRC" in (diagnose(ok[:-1] + b"\x00", exp) or "")
 

@@ -10,10 +10,10 @@ import random
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request
+from rtupoll.rtu import Framing
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import LATE_FACTOR, Answer, Garbled, Line
-from rtupoll.rtu.messages import ReadReply
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 
 
 def reply(unit: int, first: int, count: int = 2) -> bytes:
@@ -21,7 +21,7 @@ def reply(unit: int, first: int, count: int = 2) -> bytes:
 
 
 def req(unit: int, address: int, count: int = 2) -> bytes:
-    return read_request(unit, Table.HOLDING, address, count)
+    return ReadRequest(unit, 3, address, count).frame()
 
 
 @pytest.mark.parametrize(("baud", "silence"), [(9600, 3.5 * 11 / 9600), (115200, 0.00175)])

@@ -8,14 +8,14 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rtupoll.rtu import Framing, read_request, with_crc
-from rtupoll.rtu.functions import Table, write_single_request
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu import Framing, with_crc
+from rtupoll.rtu.functions import Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
 
 F9600 = Framing(9600)
 CHAR = F9600.char_time  # ~1.15 ms
-REQ = read_request(3, Table.INPUT, 0x7536, 2)
+REQ = ReadRequest(3, 4, 0x7536, 2).frame()
 REPLY = ReadReply(3, 4, (25, 50)).frame()
 
 
@@ -70,7 +70,7 @@ def test_a_request_whose_first_bytes_make_a_valid_reply_is_still_a_request() -> 
     """Unit 0x51, read 10 holding registers at 0x02B8: its first seven bytes happen to
     be a CRC-valid reply (byte count 2). Arriving byte by byte, it must not be cut there
     (found by the chunking property below)."""
-    req = read_request(0x51, Table.HOLDING, 0x02B8, 10)
+    req = ReadRequest(0x51, 3, 0x02B8, 10).frame()
     assert req == bytes.fromhex("51 03 02 b8 00 0a 48 00")
     wire = req + ReadReply(0x51, 3, tuple([0] * 10)).frame()
     out = run([(wire[i : i + 1], (i + 1) * CHAR) for i in range(len(wire))])
@@ -106,7 +106,7 @@ def test_no_reply_within_the_timeout_is_a_timeout() -> None:
 
 
 def test_the_next_request_ends_the_wait_and_a_late_reply_answers_nothing() -> None:
-    other = read_request(4, Table.INPUT, 1, 1)
+    other = ReadRequest(4, 4, 1, 1).frame()
     out = run([on_wire(REQ, 0.0), on_wire(other, 0.3), on_wire(REPLY, 0.31)], end=2.0)
     assert [t.status for t in out] == ["timeout", "orphan", "timeout"]
     assert out[1].reply is not None and out[1].reply.data == REPLY
@@ -120,8 +120,8 @@ def test_an_exception_reply_is_reported_with_its_code() -> None:
 
 
 def test_a_write_echo_is_its_reply_and_a_broadcast_waits_for_nothing() -> None:
-    write = write_single_request(3, 0x9C41, 7)
-    broadcast = write_single_request(0, 0x9C41, 7)
+    write = WriteSingle(3, 6, 0x9C41, 7).frame()
+    broadcast = WriteSingle(0, 6, 0x9C41, 7).frame()
     out = run([on_wire(write, 0.0), on_wire(write, 0.02), on_wire(broadcast, 0.1)])
     assert [t.status for t in out] == ["ok", "broadcast"]
 
@@ -171,7 +171,8 @@ def traffic(draw: st.DrawFn) -> tuple[list[tuple[bytes, bytes]], list[tuple[byte
         table = draw(st.sampled_from([Table.INPUT, Table.HOLDING]))
         count = draw(st.integers(1, 12))
         words = draw(st.lists(st.integers(0, 0xFFFF), min_size=count, max_size=count))
-        exchanges.append((read_request(unit, table, draw(st.integers(0, 0xFFF0)), count),
+        address = draw(st.integers(0, 0xFFF0))
+        exchanges.append((ReadRequest(unit, table.read_function, address, count).frame(),
                           ReadReply(unit, table.read_function, tuple(words)).frame()))
     wire, times, t = b"", [], 0.0
     for request, reply in exchanges:

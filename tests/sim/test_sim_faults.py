@@ -14,15 +14,14 @@ from conftest import RawPort
 
 from rtupoll import rtu
 from rtupoll.errors import FaultSpecError
-from rtupoll.rtu import Table
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest
 from rtupoll.sim.faults import parse_fault
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 Raw = Callable[[str], RawPort]
 
-READ = rtu.read_request(1, Table.INPUT, 0x0006, 2)  # IRNET concentration
+READ = ReadRequest(1, 4, 0x0006, 2).frame()  # IRNET concentration
 GOOD = bytes.fromhex("01 04 04 00 00 A0 C1 42 14")  # -20.0
 PIN = ["net-irnet-pro@1.concentration=-20"]
 
@@ -40,7 +39,7 @@ def test_dead_device_never_answers_and_the_others_still_do(sim: Sim, raw_port: R
     bus = irnet(sim, "1:dead")
     port = raw_port(bus.port)
     assert port.transact(READ, timeout=0.2) == b""
-    assert port.transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
+    assert port.transact(ReadRequest(3, 3, 40001, 1).frame(), 7) == \
         ReadReply(3, 3, (3,)).frame()
     assert [w.data for w in bus.wire if w.direction == "out"] == [ReadReply(3, 3, (3,)).frame()]
 
@@ -102,7 +101,7 @@ def test_lose_first_requests_after_power_up(sim: Sim, raw_port: Raw) -> None:
     bus = sim("co2meter-an117@4", "huiwen-aq@3", faults=["lose-first"],
               sets=["co2meter-an117@4.co2=400"], tick=None)
     port = raw_port(bus.port)
-    co2 = rtu.read_request(4, Table.INPUT, 1, 1)
+    co2 = ReadRequest(4, 4, 1, 1).frame()
     # the profile's limits.lost_after_powerup is 3; huiwen-aq has none, so it loses 3
     assert [port.transact(co2, timeout=0.1) for _ in range(3)] == [b""] * 3
     assert port.transact(co2, 7) == ReadReply(4, 4, (400,)).frame()

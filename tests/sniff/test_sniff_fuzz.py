@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rtupoll.config.library import load_library, load_one
-from rtupoll.rtu import Framing, Table, crc_ok, read_request, with_crc
-from rtupoll.rtu.messages import ReadReply
+from rtupoll.rtu import Framing, Table, crc_ok, with_crc
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.stream import Transaction
 from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
@@ -42,7 +42,8 @@ def frames(draw: st.DrawFn) -> bytes:
     without making sense."""
     unit, kind = draw(UNITS), draw(KINDS)
     if kind == "read":
-        return read_request(unit, draw(TABLES), draw(U16), draw(st.integers(1, 125)))
+        fc, address = draw(TABLES).read_function, draw(U16)
+        return ReadRequest(unit, fc, address, draw(st.integers(1, 125))).frame()
     if kind == "reply":
         n = draw(st.integers(0, 125))
         words = draw(st.binary(min_size=2 * n, max_size=2 * n))

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 from rtupoll.config.library import load_library
-from rtupoll.rtu import Framing, read_request
-from rtupoll.rtu.functions import Table, write_single_request
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.sim.scenario import profile
 from rtupoll.sniff.lines import frame_line
@@ -32,7 +31,7 @@ def transactions(*exchanges: tuple[bytes, bytes | None]) -> list[Transaction]:
 
 def test_a_read_of_a_known_device_gives_poll_records() -> None:
     view = BusView([HUIWEN])
-    [tx] = transactions((read_request(3, Table.INPUT, 30006, 4),
+    [tx] = transactions((ReadRequest(3, 4, 30006, 4).frame(),
                          ReadReply(3, 4, (25, 50, 250, 800)).frame()))
     recs = view.add(tx)
     assert [(r["field"], r["value"], r["unit"]) for r in recs] == [
@@ -47,7 +46,7 @@ def test_a_read_of_a_known_device_gives_poll_records() -> None:
 
 def test_failures_give_records_without_values() -> None:
     view = BusView([HUIWEN])
-    co2 = read_request(3, Table.INPUT, 30009, 1)
+    co2 = ReadRequest(3, 4, 30009, 1).frame()
     txs = transactions((co2, None), (co2, ExceptionReply(3, 4, 4).frame()),
                        (co2, ReadReply(3, 4, (800,)).frame()[:-1] + b"\x00"))
     recs = [r for tx in txs for r in view.add(tx)]
@@ -62,7 +61,7 @@ def test_failures_give_records_without_values() -> None:
 def test_half_a_field_is_not_decoded() -> None:
     view = BusView([Known("irnet", profile("net-irnet-pro"), 1)])
     f = profile("net-irnet-pro").field("concentration")  # a float: two registers
-    [tx] = transactions((read_request(1, Table.INPUT, f.address, 1),
+    [tx] = transactions((ReadRequest(1, 4, f.address, 1).frame(),
                          ReadReply(1, 4, (0x4242,)).frame()))
     assert not [r for r in view.add(tx) if r["field"] == "concentration"]
 
@@ -72,9 +71,9 @@ def test_an_unknown_unit_is_raw_and_looks_like_the_profile_its_answers_fit() -> 
     view = BusView([], library)
     p = profile("huiwen-aq")
     addr, co2 = p.field("slave_address"), p.field("co2")
-    txs = transactions((read_request(7, addr.table, addr.address, 1),
+    txs = transactions((ReadRequest(7, addr.table.read_function, addr.address, 1).frame(),
                         ReadReply(7, 3, (7,)).frame()),
-                       (read_request(7, co2.table, co2.address, 1),
+                       (ReadRequest(7, co2.table.read_function, co2.address, 1).frame(),
                         ReadReply(7, 4, (650,)).frame()))
     recs = [r for tx in txs for r in view.add(tx)]
     assert recs[-1]["profile"] is None and recs[-1]["field"] == "input:30009"
@@ -82,9 +81,9 @@ def test_an_unknown_unit_is_raw_and_looks_like_the_profile_its_answers_fit() -> 
     assert view.units[7].hints[0].startswith("huiwen-aq (")
     # an address register that does not hold its own address: not a Huiwen module
     view2 = BusView([], library)
-    for tx in transactions((read_request(8, addr.table, addr.address, 1),
+    for tx in transactions((ReadRequest(8, addr.table.read_function, addr.address, 1).frame(),
                             ReadReply(8, 3, (9,)).frame()),
-                           (read_request(8, co2.table, co2.address, 1),
+                           (ReadRequest(8, co2.table.read_function, co2.address, 1).frame(),
                             ReadReply(8, 4, (650,)).frame())):
         view2.add(tx)
     assert not any(h.startswith("huiwen-aq") for h in view2.units[8].hints)
@@ -108,8 +107,8 @@ def test_frame_lines_and_the_table_name_what_happened() -> None:
     from rich.console import Console
 
     view = BusView([HUIWEN])
-    write = write_single_request(3, 0x9C41, 3)
-    txs = transactions((read_request(3, Table.INPUT, 30009, 1), ReadReply(3, 4, (800,)).frame()),
+    write = WriteSingle(3, 6, 0x9C41, 3).frame()
+    txs = transactions((ReadRequest(3, 4, 30009, 1).frame(), ReadReply(3, 4, (800,)).frame()),
                        (write, write))
     lines = [frame_line(tx, view, view.add(tx)) for tx in txs]
     assert "air (huiwen-aq@3)  fc04 read input 0x7539 x1  reply 20.0 ms  co2=800 ppm" in lines[0]
@@ -128,7 +127,7 @@ def test_a_float_register_holding_nan_gives_null_not_bare_nan() -> None:
     f = irnet.field("concentration")
     words = field_words(f, float("nan"))
     view = BusView([Known("irnet", irnet, 1)])
-    [tx] = transactions((read_request(1, f.table, f.address, 2),
+    [tx] = transactions((ReadRequest(1, f.table.read_function, f.address, 2).frame(),
                          ReadReply(1, 4, tuple(words)).frame()))
     [rec] = [r for r in view.add(tx) if r["field"] == "concentration"]
     assert rec["value"] is None and rec["text"] == "NaN"

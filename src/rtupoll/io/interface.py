@@ -10,13 +10,21 @@ tests whose subject is not the port) both are one, as python-can's buses are one
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
-from typing import NoReturn, Protocol
+from typing import NoReturn, Protocol, TypeVar
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError, RefusedError, UsageError
 from rtupoll.rtu import Framing, Table
-from rtupoll.rtu.functions import reply_values
 from rtupoll.rtu.line import Line, UnitCounts
+from rtupoll.rtu.messages import (
+    Malformed,
+    ReadReply,
+    ReadRequest,
+    Reply,
+    Request,
+    parse_reply,
+)
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
@@ -28,12 +36,13 @@ from rtupoll.rtu.transaction import (
     Transaction,
     evidence,
     pdu_frame,
-    read_frame,
-    write_coil_frame,
-    write_registers_frame,
+    read_request,
+    write_coil_request,
+    write_registers_request,
 )
 
 REPLY_MODES = ("echo", "none", "malformed", "any")
+R = TypeVar("R")
 
 
 class BusLike(Protocol):
@@ -122,14 +131,14 @@ class LineBus:
                    timeout: float, retries: int = 0) -> tuple[int, ...]:
         """Registers as 16-bit ints; coils and discrete inputs as 0/1."""
         try:
-            request = read_frame(unit, table, address, count)
+            request, frame = _read(unit, table, address, count)
         except Refused as exc:
             raise RefusedError(str(exc)) from None
-        done = await self._transact(request, timeout, retries)
-        values = reply_values(done.frame, count)
-        if len(values) != count:
-            raise FrameError(f"unit {unit} returned {len(values)} values for {count}")
-        return values
+        done = await self._transact(frame, timeout, retries)
+        reply = _reply(request, done.frame)
+        if not isinstance(reply, ReadReply):  # (the line took only a normal reply)
+            raise FrameError(f"unit {unit}: no read reply: {done.frame[:16].hex(' ')}")
+        return reply.values
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
                               function: int = 16, timeout: float, retries: int = 0,
@@ -141,16 +150,20 @@ class LineBus:
         exception reply is always an error."""
         if reply not in REPLY_MODES:
             raise UsageError(f"reply {reply!r} is not one of: {', '.join(REPLY_MODES)}")
-        request = _checked(lambda: write_registers_frame(unit, address, values,
-                                                               function=function))
-        done = await self._transact(request, timeout, retries if reply == "echo" else 0,
-                                    tolerate=reply != "echo")
+        request = _checked(lambda: write_registers_request(unit, address, values,
+                                                           function=function))
+        done = await self._transact(request.frame(), timeout,
+                                    retries if reply == "echo" else 0, tolerate=reply != "echo")
+        if done.frame:
+            _reply(request, done.frame)  # (the line took only the write's confirmation)
         return bool(done.frame)
 
     async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
                          retries: int = 0) -> None:
-        request = _checked(lambda: write_coil_frame(unit, address, on))
-        await self._transact(request, timeout, retries)
+        request = _checked(lambda: write_coil_request(unit, address, on))
+        done = await self._transact(request.frame(), timeout, retries)
+        if done.frame:
+            _reply(request, done.frame)
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
                        retries: int = 0) -> bytes:
@@ -214,12 +227,29 @@ def raise_failed(failed: Failed) -> NoReturn:
     raise DeviceTimeout(failed.why)
 
 
-def _checked(build: Callable[[], bytes]) -> bytes:
+def _checked(build: Callable[[], R]) -> R:
     """The request ``build`` makes, or ``RefusedError`` (nothing is sent)."""
     try:
         return build()
     except Refused as exc:
         raise RefusedError(str(exc)) from None
+
+
+@functools.lru_cache(maxsize=1024)
+def _read(unit: int, table: Table, address: int, count: int) -> tuple[ReadRequest, bytes]:
+    """A checked read request and its frame (a poller asks the same few again and again:
+    built once each)."""
+    request = read_request(unit, table, address, count)
+    return request, request.frame()
+
+
+def _reply(request: Request, frame: bytes) -> Reply:
+    """The typed reply (``rtu.messages.parse_reply``) in the answer ``frame`` the line
+    took (its CRC checked there), or ``FrameError``."""
+    try:
+        return parse_reply(request, frame[1:-2], unit=frame[0])
+    except Malformed as exc:
+        raise FrameError(f"unit {request.unit}: {exc.reason}") from None
 
 
 LineEvidence = LineBus  # the former name

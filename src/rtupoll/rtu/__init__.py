@@ -5,7 +5,7 @@ is given, so every rule is tested in virtual time and reused by the bus (a thin 
 adapter), the simulator's engine, ``decode`` and the sniffer.
 
 - ``functions``: the function table (request and reply lengths per function code,
-  names, exception names), frame builders;
+  names, exception names);
 - ``crc``: the CRC-16;
 - ``timing``: character timing and the 3.5-character silence;
 - ``match``: which bytes answer a request, and why an unanswered attempt failed;
@@ -24,16 +24,10 @@ from rtupoll.rtu.functions import (
     Table,
     exception_name,
     read_frame_sizes,
-    read_request,
-    write_coil_request,
-    write_multiple_request,
-    write_single_request,
 )
 from rtupoll.rtu.timing import Framing, transaction_wire_time
 
 __all__ = [
     "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "Framing", "Table", "crc16", "crc_ok",
-    "exception_name", "read_frame_sizes", "read_request",
-    "transaction_wire_time", "with_crc", "write_coil_request",
-    "write_multiple_request", "write_single_request",
+    "exception_name", "read_frame_sizes", "transaction_wire_time", "with_crc",
 ]

@@ -1,4 +1,4 @@
-"""The Modbus RTU function table: names, frame lengths per function code, frame builders.
+"""The Modbus RTU function table: names, frame lengths per function code, data packing.
 
 The one place that knows how long a frame is. A frame is ``unit, function, data, CRC``;
 its length follows from the function code and, for some, a byte count inside the frame
@@ -15,7 +15,6 @@ import struct
 from collections.abc import Sequence
 
 from rtupoll.frozen import frozen
-from rtupoll.rtu.crc import with_crc
 
 MAX_FRAME = 256  # the RTU maximum, address to CRC
 MAX_PDU = MAX_FRAME - 3  # function and data: the frame without unit and CRC
@@ -60,7 +59,6 @@ EXCEPTION_NAMES: dict[int, str] = {
     10: "GATEWAY PATH UNAVAILABLE",
     11: "GATEWAY TARGET DEVICE FAILED TO RESPOND",
 }
-
 
 
 @frozen
@@ -184,23 +182,6 @@ def exception_name(code: int) -> str:
     return EXCEPTION_NAMES.get(code, "UNKNOWN EXCEPTION")
 
 
-def read_request(unit: int, table: Table, address: int, count: int) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, table.read_function, address, count))
-
-
-def write_single_request(unit: int, address: int, value: int) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, 6, address, value))
-
-
-def write_coil_request(unit: int, address: int, on: bool) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, 5, address, 0xFF00 if on else 0x0000))
-
-
-def write_multiple_request(unit: int, address: int, values: Sequence[int]) -> bytes:
-    body = struct.pack(">BBHHB", unit, 16, address, len(values), 2 * len(values))
-    return with_crc(body + b"".join(struct.pack(">H", v) for v in values))
-
-
 def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
     """Request and normal response sizes (bytes, CRC included) of one read."""
     return 8, 5 + data_bytes(1 if coils else 3, count)
@@ -227,9 +208,3 @@ def pack_bits(values: Sequence[int]) -> bytes:
         if bit:
             packed[i // 8] |= 1 << (i % 8)
     return bytes(packed)
-
-
-def reply_values(frame: bytes, count: int) -> tuple[int, ...]:
-    """The registers (FC03/04) or the first ``count`` bits (FC01/02) a read reply carries."""
-    data = frame[3:-2]
-    return words(data) if frame[1] in (3, 4) else bits(data, count)
