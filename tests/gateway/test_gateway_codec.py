@@ -17,7 +17,7 @@ from rtupoll.gateway.access import Access, line_settings
 from rtupoll.gateway.cache import ReadCache
 from rtupoll.gateway.pdu import BadRequest, parse
 from rtupoll.rtu import Table, with_crc
-from rtupoll.rtu.messages import ReadReply, WriteReply
+from rtupoll.rtu.messages import ReadReply, WriteMultiple, WriteReply, WriteSingle
 
 
 def frame(tid: int, unit: int, pdu: bytes, *, proto: int = 0, length: int | None = None
@@ -77,11 +77,13 @@ def test_parse_understands_reads_and_writes() -> None:
     assert (a.function, a.table, a.address, a.count, a.read, a.write) == \
         (4, Table.INPUT, 0x7536, 5, True, False)
     w = parse(bytes.fromhex("10 00 10 00 02 04 00 01 00 02"))
-    assert (w.table, w.address, w.count, w.values, w.write) == \
-        (Table.HOLDING, 0x10, 2, (1, 2), True)
-    c = parse(bytes.fromhex("0f 00 00 00 0a 02 05 02"))
-    assert c.values == (1, 0, 1, 0, 0, 0, 0, 0, 0, 1)
-    assert parse(bytes.fromhex("05 00 d0 ff 00")).values == (1,)
+    assert (w.table, w.address, w.count, w.write) == (Table.HOLDING, 0x10, 2, True)
+    assert w.message == WriteMultiple(0, 16, 0x10, (1, 2))
+    c = parse(bytes.fromhex("0f 00 00 00 0a 02 05 02"), unit=7)
+    assert c.message == WriteMultiple(7, 15, 0, (1, 0, 1, 0, 0, 0, 0, 0, 0, 1))
+    assert parse(bytes.fromhex("05 00 d0 ff 00")).message == WriteSingle(0, 5, 0xD0, 1)
+    other = parse(bytes.fromhex("08 00 00 12 34"))
+    assert (other.table, other.address, other.count, other.read) == (None, 0, 0, False)
 
 
 @pytest.mark.parametrize(("pdu", "code"), [

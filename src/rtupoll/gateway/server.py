@@ -476,7 +476,7 @@ class Gateway:
         """The reply PDU for one request (None: a broadcast, which has no reply).
         ``ClientGone`` when ``conn``'s client has gone as the request gets its turn."""
         try:
-            ask = parse(pdu)
+            ask = parse(pdu, unit=unit)
         except BadRequest as exc:
             stats.refused += 1
             self.log(stats, f"refused: {exc.reason}", once=exc.reason)

@@ -153,6 +153,8 @@ class OtherRequest(_Message):
 
 
 Request = ReadRequest | WriteSingle | WriteMultiple | OtherRequest
+# the requests that address a run of one table: ``table``, ``address``, ``count``
+TableRequest = ReadRequest | WriteSingle | WriteMultiple
 
 
 # -- replies ----------------------------------------------------------------------------
