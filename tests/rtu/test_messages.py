@@ -206,15 +206,19 @@ def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> 
 
 
 def test_the_sniffer_shows_a_malformed_request_and_gives_it_no_registers() -> None:
+    from rtupoll.sniff.model import describe
     from rtupoll.sniff.model import parse_request as sniffed
 
     bad = with_crc(bytes.fromhex("07 03 00 10 00 C8"))  # a read of 200 registers
     req = sniffed(bad)
-    assert req.table is None and req.message is None
-    assert req.text == "function 0x03: read holding registers: quantity 200 is outside 1..125"
+    assert isinstance(req, Malformed) and req.unit == 7
+    assert describe(req) == \
+        "fc03 function 0x03: read holding registers: quantity 200 is outside 1..125"
     good = sniffed(ReadRequest(7, 3, 0x10, 2).frame())
-    assert (good.table, good.start, good.count) == (Table.HOLDING, 0x10, 2)
-    assert good.text == "read holding 0x0010 x2"
+    assert good == ReadRequest(7, 3, 0x10, 2) and good.table is Table.HOLDING
+    assert describe(good) == "fc03 read holding 0x0010 x2"
+    assert describe(sniffed(WriteSingle(7, 6, 0x9C41, 3).frame())) == \
+        "fc06 write holding 0x9C41 x1"
 
 
 def test_the_gateway_and_the_simulator_answer_the_parsers_code() -> None:

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
 from rtupoll.rtu.functions import READS, Table
-from rtupoll.rtu.messages import ExceptionReply, ReadReply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, TableRequest
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
@@ -174,8 +174,8 @@ def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = Fal
             c.replies += tx.reply is not None
             r = parse_request(req)
             words = carried_words(tx, r)
-            if words is not None and (table := r.table) is not None:
-                regs.update(((table, r.start + i), w) for i, w in enumerate(words))
+            if words is not None and isinstance(r, TableRequest):
+                regs.update(((r.table, r.address + i), w) for i, w in enumerate(words))
 
     for t, data in capture.chunks():  # one pass: the requests and the latest registers
         learn(stream.feed(data, t))
