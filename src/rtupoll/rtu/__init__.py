@@ -12,7 +12,8 @@ adapter), the simulator's engine, ``decode`` and the sniffer.
 - ``line``: the master's line discipline (when a frame may go, drains, late replies);
 - ``stream``: a listen-only tap's bytes split into frames and transactions (sniffing);
 - ``capture``: captured byte streams split into frames and decoded;
-- ``messages``: typed requests and replies, one strict parser for each;
+- ``messages``: typed requests and replies (each encodes itself), one strict parser for
+  each: the one set of message types for master, gateway, simulator and sniffer;
 - ``frames``: where a frame ends (``frame_at``), for every reader of bytes.
 """
 

@@ -16,8 +16,12 @@ Modbus server answers for it (None: a server stays silent, as for a CRC error). 
 exception escapes either parser, whatever the bytes. Every message encodes back to the
 bytes it was parsed from (``pdu()``, ``frame()``).
 
-Each caller keeps its own policy on top: the gateway answers the code, the simulator
-answers it as its device would, the sniffer shows the function with no values.
+The one set of message types, on every side: the master builds its requests as them
+(``rtu.transaction.read_request``, ...) and parses its answers with ``parse_reply``; the
+gateway and the simulator answer with the replies' own ``pdu()``/``frame()`` (the one
+reply encoder); the sniffer and ``decode`` (``rtu.capture``) parse with the same two
+parsers. Each caller keeps its own policy on top: the gateway answers the code, the
+simulator answers it as its device would, the sniffer shows the function with no values.
 """
 
 from __future__ import annotations
