@@ -206,8 +206,11 @@ def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> 
 
 
 def test_the_sniffer_shows_a_malformed_request_and_gives_it_no_registers() -> None:
+    from rtupoll.rtu.stream import Seen, Transaction, WireFrame
     from rtupoll.sniff.model import describe
-    from rtupoll.sniff.model import parse_request as sniffed
+
+    def sniffed(frame: bytes) -> Seen | None:
+        return Transaction("timeout", 0.0, WireFrame(frame, 0.0, 0.0)).asked
 
     bad = with_crc(bytes.fromhex("07 03 00 10 00 C8"))  # a read of 200 registers
     req = sniffed(bad)

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from rtupoll.rtu import Framing, with_crc
 from rtupoll.rtu.functions import Table
-from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
+from rtupoll.rtu.messages import ExceptionReply, Malformed, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
 
 F9600 = Framing(9600)
@@ -199,3 +199,16 @@ def test_any_chunking_and_gaps_give_back_every_transaction(
     assert [t.status for t in out] == ["ok"] * len(exchanges)
     assert [(t.request.data if t.request else b"", t.reply.data if t.reply else b"")
             for t in out] == exchanges
+
+
+def test_a_transaction_carries_its_request_and_reply_as_messages() -> None:
+    [ok] = run([on_wire(REQ, 0.0), on_wire(REPLY, 0.030)])
+    assert ok.asked == ReadRequest(3, 4, 0x7536, 2)
+    assert ok.answer(ok.asked) == ReadReply(3, 4, (25, 50))
+    [refused] = run([on_wire(REQ, 0.0), on_wire(ExceptionReply(3, 4, 2).frame(), 0.03)])
+    assert refused.asked == ReadRequest(3, 4, 0x7536, 2) and refused.answer(refused.asked) is None
+    [lost] = run([on_wire(REQ, 0.0)])
+    assert lost.status == "timeout" and lost.answer(lost.asked) is None
+    big = with_crc(bytes.fromhex("03 04 00 00 00 C8"))  # 200 registers: refused by the parser
+    [odd] = run([on_wire(big, 0.0)])
+    assert isinstance(odd.asked, Malformed) and "quantity 200" in odd.asked.reason

@@ -34,7 +34,7 @@ from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
 from rtupoll.sniff.capfile import CaptureStream
-from rtupoll.sniff.model import carried_words, parse_request
+from rtupoll.sniff.model import carried_words
 
 if TYPE_CHECKING:
     from rtupoll.sim.runner import SimulatedLines
@@ -172,7 +172,7 @@ def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = Fal
             c = captured.setdefault(req, Captured())
             c.asked += 1
             c.replies += tx.reply is not None
-            r = parse_request(req)
+            r = tx.asked
             words = carried_words(tx, r)
             if words is not None and isinstance(r, TableRequest):
                 regs.update(((r.table, r.address + i), w) for i, w in enumerate(words))

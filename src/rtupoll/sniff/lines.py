@@ -11,7 +11,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from rtupoll.rtu.stream import Transaction
-from rtupoll.sniff.model import BusView, describe, function_of, parse_request
+from rtupoll.sniff.model import BusView, describe, function_of
 
 HEADLINE = {"timeout": "NO REPLY", "garbled": "GARBLED REPLY", "exception": "EXCEPTION",
             "orphan": "REPLY TO NO REQUEST", "broken": "BROKEN FRAME", "noise": "STRAY BYTES"}
@@ -42,7 +42,8 @@ def frame_line(tx: Transaction, view: BusView, records: Sequence[Mapping[str, An
     elif unit is not None and unit.known is not None:
         spec = f"{unit.known.profile.id}@{unit.unit}"
         who = spec if unit.known.name == spec else f"{unit.known.name} ({spec})"
-    req = parse_request(tx.request.data)
+    req = tx.asked
+    assert req is not None
     parts = [head, who, describe(req)]
     if tx.reply_time is not None:
         slow = ""

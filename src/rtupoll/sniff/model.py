@@ -24,7 +24,7 @@ from rtupoll.model.profile import Field, Profile
 from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu import messages
 from rtupoll.rtu.functions import Table
-from rtupoll.rtu.stream import Transaction
+from rtupoll.rtu.stream import Seen, Transaction
 from rtupoll.ui.records import failed_record, poll_record, record
 
 RATE_WINDOW = 10.0  # seconds over which the request rate is measured
@@ -38,20 +38,6 @@ class Known:
     name: str
     profile: Profile
     address: int
-
-
-Seen = messages.Request | messages.Malformed
-"""A request seen on the line: its message (``rtu.messages.parse_request``), or why the
-strict parser refused it. A refused one addresses no table, so no register is ever
-attributed to it."""
-
-
-def parse_request(data: bytes) -> Seen:
-    """The request a (CRC-valid: the stream checked it) frame carries, or its refusal."""
-    try:
-        return messages.parse_request(data[1:-2], unit=data[0])
-    except messages.Malformed as bad:
-        return bad
 
 
 def function_of(req: Seen) -> int:
@@ -70,21 +56,14 @@ def describe(req: Seen) -> str:
     return f"fc{fc:02d} function {fc:#04x}{why}"
 
 
-def carried_words(tx: Transaction, req: Seen) -> tuple[int, ...] | None:
+def carried_words(tx: Transaction, req: Seen | None) -> tuple[int, ...] | None:
     """The registers (or bits) a successful transaction carried: read or written.
 
-    ``req`` is ``parse_request`` of the transaction's request (the caller has it already).
-    """
-    if tx.status != "ok" or tx.reply is None:
-        return None
-    if isinstance(req, messages.ReadRequest):
-        try:
-            data = tx.reply.data  # its CRC checked by the stream
-            reply = messages.parse_reply(req, data[1:-2], unit=data[0])
-        except messages.Malformed:
-            return None
-        return reply.values if isinstance(reply, messages.ReadReply) else None
-    if isinstance(req, messages.WriteSingle | messages.WriteMultiple):
+    ``req`` is the transaction's ``asked`` (the caller has it already)."""
+    answer = tx.answer(req)
+    if isinstance(answer, messages.ReadReply):
+        return answer.values
+    if answer is not None and isinstance(req, messages.WriteSingle | messages.WriteMultiple):
         return req.values
     return None
 
@@ -171,7 +150,8 @@ class BusView:
         u.recent.append(tx.time)
         u.rate(tx.time)  # keeps the window's times only
         u.last_seen = end
-        req = parse_request(tx.request.data)
+        req = tx.asked
+        assert req is not None
         if tx.status == "ok":
             u.ok += 1
             if tx.reply_time is not None:
