@@ -51,6 +51,7 @@ from rtupoll.rtu.messages import (
     ILLEGAL_VALUE,
     ExceptionReply,
     Malformed,
+    OtherReply,
     OtherRequest,
     ReadReply,
     ReadRequest,
@@ -238,7 +239,7 @@ class SimDevice:
             return self._identify(request)
         if isinstance(request, OtherRequest) and fc == 8 and 8 in self.profile.limits.functions \
                 and request.data[:2] == b"\x00\x00":  # return query data: the request back
-            return request.frame()
+            return OtherReply(unit, 8, request.data).frame()
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
             return self._refuse(unit, fc, ILLEGAL_FUNCTION)
         if isinstance(request, Malformed):
@@ -304,7 +305,7 @@ class SimDevice:
             if not fs or not all(f.writable for f in fs):
                 return self._refuse(req.unit, req.function, 2)
         self.image[Table.COIL][req.address] = req.value
-        return req.frame()
+        return WriteReply(req.unit, 5, req.address, req.value).frame()
 
     def _write(self, req: WriteSingle | WriteMultiple) -> bytes | None:
         unit, fc, address, values = req.unit, req.function, req.address, req.values
@@ -341,4 +342,5 @@ class SimDevice:
             return WriteReply(unit, 16, address, len(values)).frame()
         if self.write_reply == "short":
             return with_crc(struct.pack(">BBBH", unit, 6, 2, values[0]))
-        return None if self.write_reply == "none" else req.frame()
+        return None if self.write_reply == "none" else \
+            WriteReply(unit, 6, address, values[0]).frame()
