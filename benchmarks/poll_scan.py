@@ -30,7 +30,8 @@ from poll_common import seed_site, simulator, wire_limit
 
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
-from rtupoll.rtu import Framing, read_frame_sizes, read_request, transaction_wire_time
+from rtupoll.rtu import Framing, read_frame_sizes, transaction_wire_time
+from rtupoll.rtu.messages import ReadRequest
 
 
 async def scans(port: str, baud: int, count: int) -> tuple[list[float], int, Scheduler]:
@@ -70,7 +71,7 @@ def raw_scans(port: str, scheduler: Scheduler, framing: Framing, count: int) -> 
             start = time.perf_counter()
             for unit, b in reads:
                 time.sleep(framing.silence)
-                os.write(fd, read_request(unit, b.table, b.address, b.count))
+                os.write(fd, ReadRequest(unit, b.table.read_function, b.address, b.count).frame())
                 want, got = read_frame_sizes(b.count)[1], b""
                 while len(got) < want:
                     select.select([fd], [], [], 1.0)

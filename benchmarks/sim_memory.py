@@ -39,7 +39,8 @@ from poll_common import seed_site
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.planner import plan
-from rtupoll.rtu import Framing, read_request
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 from rtupoll.sniff.capfile import CaptureWriter
@@ -155,7 +156,7 @@ def write_capture(path: Path, megabytes: float, baud: int = 115200) -> int:
     until the file holds ``megabytes``; returns the number of transactions."""
     framing = Framing(baud)
     engine = Engine(build(list(DEVICES)).devices, tick=1.0)
-    reads = [read_request(d.address, b.table, b.address, b.count)
+    reads = [ReadRequest(d.address, b.table.read_function, b.address, b.count).frame()
              for d in engine.devices for b in plan(d.profile.default_fields(), d.profile)]
     writer = CaptureWriter(path, framing, "/dev/ttyUSB0")
     t, n = 1_700_000_000.0, 0

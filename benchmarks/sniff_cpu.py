@@ -38,8 +38,9 @@ from pathlib import Path
 from typing import Any
 
 from rtupoll.config.library import load_library
-from rtupoll.rtu import Framing, read_request, read_response
+from rtupoll.rtu import Framing
 from rtupoll.rtu.functions import Table
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.stream import Transaction
 from rtupoll.sim.scenario import profile
 from rtupoll.sniff.model import BusView, Known
@@ -60,8 +61,9 @@ def saturated(seconds: float, framing: Framing) -> list[tuple[bytes, float, floa
     while t < seconds:
         _, unit, table, address, count = READS[i % len(READS)]
         fc = table.read_function
-        for frame in (read_request(unit, table, address, count),
-                      read_response(unit, fc, [(i * 7 + k) & 0x7FFF for k in range(count)])):
+        for frame in (ReadRequest(unit, table.read_function, address, count).frame(),
+                      ReadReply(unit, fc, tuple([(i * 7 + k) & 0x7FFF
+                                                 for k in range(count)])).frame()):
             end = t + framing.wire_time(len(frame))
             out.append((frame, t, end))
             t = end + framing.silence
@@ -149,7 +151,7 @@ def command(seconds: float) -> tuple[float, float, float]:
             while time.monotonic() - t0 < seconds:
                 _, unit, table, address, n = READS[i % len(READS)]
                 i += 1
-                request = read_request(unit, table, address, n)
+                request = ReadRequest(unit, table.read_function, address, n).frame()
                 os.write(fd, request)
                 want, got = 5 + 2 * n, b""
                 while len(got) < want:

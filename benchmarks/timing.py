@@ -46,7 +46,7 @@ from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.line import Line, UnitCounts
-from rtupoll.rtu.transaction import Reply
+from rtupoll.rtu.transaction import ReadResult
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.faults import parse_fault
@@ -63,7 +63,7 @@ class TimedBus(VirtualBus):
     log: list[tuple[float, bool]] | None = None  # (duration, got a value) per read
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         while self._pending and self._pending[0][0] <= self._clock():
             when, _, data = heapq.heappop(self._pending)
             self.line.receive(data, when)

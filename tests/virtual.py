@@ -28,7 +28,7 @@ from rtupoll.jobs.scheduler import BusPoller, DevicePoller
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.line import Line, UnitCounts
-from rtupoll.rtu.transaction import Evidence, Reply
+from rtupoll.rtu.transaction import Evidence, ReadResult
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 from rtupoll.sim.virtual import VirtualBus, VirtualClock
@@ -133,7 +133,7 @@ class ScriptedBus:
         return heard_nothing(unit)  # no late replies, nothing counted
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         self.calls.append((unit, address, retries))
         what = self.behaviour.get(unit, lambda a, n: "ok")(address, len(self.calls))
         if what == "timeout":
@@ -144,4 +144,4 @@ class ScriptedBus:
             raise FrameError("CRC error")
         if what.startswith("exc"):
             raise DeviceException(int(what[3:]), unit=unit, function=table.read_function)
-        return Reply(tuple(range(count)), Evidence())  # nothing measured
+        return ReadResult(tuple(range(count)), Evidence())  # nothing measured

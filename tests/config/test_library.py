@@ -19,6 +19,7 @@ from rtupoll.config.paths import bundled_dir
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Poll, Profile
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest
 from rtupoll.sim.runner import simulated_bus
 
 BUNDLED = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
@@ -85,7 +86,7 @@ def _decode(p: Profile, table: Table, start: int, words: tuple[int, ...]) -> dic
 
 
 def _reply(unit: int, fc: int, words: list[int]) -> bytes:
-    return rtu.read_response(unit, fc, words)
+    return ReadReply(unit, fc, tuple(words)).frame()
 
 
 def _f32(x: float) -> list[int]:
@@ -234,7 +235,7 @@ def test_every_new_profile_has_a_known_value_test() -> None:
 
 
 def test_the_pzem_manuals_request_is_our_request() -> None:
-    assert rtu.read_request(1, Table.INPUT, 0, 10) == bytes.fromhex("01 04 00 00 00 0A 70 0D")
+    assert ReadRequest(1, 4, 0, 10).frame() == bytes.fromhex("01 04 00 00 00 0A 70 0D")
 
 
 def test_the_family_shares_registers_through_extends() -> None:
@@ -341,7 +342,7 @@ def test_scan_names_an_sdm120_that_answers_every_register_of_its_document(
         reply = sdm120.handle(ReadRequest(5, fc, wire, count))
         assert reply is not None and reply[1] == fc, f"{table.value} {wire:#06x}: {reply!r}"
     sdm230 = SimDevice(SimDeviceConfig(load_one("eastron-sdm230"), 6), tick=None)
-    assert sdm120.handle(ReadRequest(5, 4, 0x0180, 2)) == rtu.exception_response(5, 4, 2)
+    assert sdm120.handle(ReadRequest(5, 4, 0x0180, 2)) == ExceptionReply(5, 4, 2).frame()
     assert sdm230.handle(ReadRequest(6, 4, 0x0180, 2))[1] == 4  # type: ignore[index]
     with simulated_bus(["eastron-sdm120@5", "eastron-sdm230@6", "eastron-sdm630@7"],
                        tcp=True, tick=None) as bus:

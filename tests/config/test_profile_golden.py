@@ -25,6 +25,7 @@ from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.paths import bundled_dir
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 
 GOLDEN = Path(__file__).parents[1] / "fixtures" / "golden"
 LIBRARY = sorted(p.stem for p in bundled_dir().glob("*.yaml"))
@@ -52,7 +53,7 @@ def _stream(case: dict[str, Any]) -> str:
     table = Table(case["table"])
     words = [int(w, 16) for w in str(case["registers"]).split()]
     unit = case.get("unit", 1)
-    request = rtu.read_request(unit, table, case["start"], len(words))
+    request = ReadRequest(unit, table.read_function, case["start"], len(words)).frame()
     body = bytes([unit, request[1], 2 * len(words)]) + b"".join(
         w.to_bytes(2, "big") for w in words)
     return (request + rtu.with_crc(body)).hex(" ")

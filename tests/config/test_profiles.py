@@ -12,6 +12,7 @@ from rtupoll.config.library import load_library, load_one
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.profile import Addressing, Poll, Profile
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest, WriteSingle
 
 SEEDS = ("net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117", "banner-ez-array")
 
@@ -67,7 +68,7 @@ def test_our_requests_are_the_manuals_bytes(pid: str, request_hex: str, response
     req = frame(request_hex)
     unit, function, start, count = struct.unpack(">BBHH", req[:6])
     table = {3: Table.HOLDING, 4: Table.INPUT}[function]
-    assert rtu.read_request(unit, table, start, count) == req
+    assert ReadRequest(unit, table.read_function, start, count).frame() == req
 
 
 def test_huiwen_manual_level_reply_has_a_wrong_byte_count() -> None:
@@ -95,20 +96,20 @@ def test_huiwen_fifth_register_of_the_example_is_not_temperature() -> None:
     ],
 )
 def test_radar_sample_request_crcs(unit: int, address: int, crc: str) -> None:
-    assert rtu.read_request(unit, Table.HOLDING, address, 2)[-2:] == frame(crc)
+    assert ReadRequest(unit, 3, address, 2).frame()[-2:] == frame(crc)
 
 
 def test_radar_manual_row_for_device_4_address_1_is_wrong() -> None:
     # the manual prints 65 9E for 0x0001, which belongs to 0x0002
-    assert rtu.read_request(4, Table.HOLDING, 1, 2)[-2:] != frame("65 9E")
+    assert ReadRequest(4, 3, 1, 2).frame()[-2:] != frame("65 9E")
 
 
 def test_irnet_reset_coil_frame() -> None:
-    assert rtu.write_coil_request(1, 0x00D0, False) == frame("01 05 00 D0 00 00 CC 33")
+    assert WriteSingle(1, 5, 0x00D0, 0).frame() == frame("01 05 00 D0 00 00 CC 33")
 
 
 def test_huiwen_address_write_request_matches_manual() -> None:
-    assert rtu.write_single_request(1, 0x9C41, 1) == frame("01 06 9C 41 00 01 36 4E")
+    assert WriteSingle(1, 6, 0x9C41, 1).frame() == frame("01 06 9C 41 00 01 36 4E")
 
 
 def test_every_seed_profile_is_bundled_and_valid() -> None:

@@ -17,7 +17,7 @@ from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.line import UnitCounts
-from rtupoll.rtu.transaction import Reply
+from rtupoll.rtu.transaction import ReadResult
 
 
 class ScriptedLine:
@@ -33,7 +33,7 @@ class ScriptedLine:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         raise AssertionError("the gateway reads through transact")
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,

@@ -15,8 +15,9 @@ from rtupoll.errors import ConfigError, UsageError
 from rtupoll.gateway import mbap, rtutcp
 from rtupoll.gateway.access import Access, line_settings
 from rtupoll.gateway.cache import ReadCache
-from rtupoll.gateway.pdu import BadRequest, parse, read_reply, write_reply
+from rtupoll.gateway.pdu import BadRequest, parse
 from rtupoll.rtu import Table, with_crc
+from rtupoll.rtu.messages import ReadReply, WriteMultiple, WriteReply, WriteSingle
 
 
 def frame(tid: int, unit: int, pdu: bytes, *, proto: int = 0, length: int | None = None
@@ -76,11 +77,13 @@ def test_parse_understands_reads_and_writes() -> None:
     assert (a.function, a.table, a.address, a.count, a.read, a.write) == \
         (4, Table.INPUT, 0x7536, 5, True, False)
     w = parse(bytes.fromhex("10 00 10 00 02 04 00 01 00 02"))
-    assert (w.table, w.address, w.count, w.values, w.write) == \
-        (Table.HOLDING, 0x10, 2, (1, 2), True)
-    c = parse(bytes.fromhex("0f 00 00 00 0a 02 05 02"))
-    assert c.values == (1, 0, 1, 0, 0, 0, 0, 0, 0, 1)
-    assert parse(bytes.fromhex("05 00 d0 ff 00")).values == (1,)
+    assert (w.table, w.address, w.count, w.write) == (Table.HOLDING, 0x10, 2, True)
+    assert w.message == WriteMultiple(0, 16, 0x10, (1, 2))
+    c = parse(bytes.fromhex("0f 00 00 00 0a 02 05 02"), unit=7)
+    assert c.message == WriteMultiple(7, 15, 0, (1, 0, 1, 0, 0, 0, 0, 0, 0, 1))
+    assert parse(bytes.fromhex("05 00 d0 ff 00")).message == WriteSingle(0, 5, 0xD0, 1)
+    other = parse(bytes.fromhex("08 00 00 12 34"))
+    assert (other.table, other.address, other.count, other.read) == (None, 0, 0, False)
 
 
 @pytest.mark.parametrize(("pdu", "code"), [
@@ -98,12 +101,11 @@ def test_parse_refuses_with_the_servers_exception_code(pdu: bytes, code: int) ->
     assert err.value.code == code
 
 
-def test_replies() -> None:
-    assert read_reply(3, [555, 0, 100]) == bytes.fromhex("03 06 02 2b 00 00 00 64")
-    assert read_reply(1, [1, 0, 1, 1, 0, 0, 0, 0, 1]) == bytes.fromhex("01 02 0d 01")
-    assert write_reply(parse(bytes.fromhex("06 9c 41 00 05"))) == bytes.fromhex("06 9c 41 00 05")
-    assert write_reply(parse(bytes.fromhex("10 00 10 00 02 04 00 01 00 02"))) == \
-        bytes.fromhex("10 00 10 00 02")
+def test_replies_are_the_messages_own_pdus() -> None:
+    assert ReadReply(1, 3, (555, 0, 100)).pdu() == bytes.fromhex("03 06 02 2b 00 00 00 64")
+    assert ReadReply(1, 1, (1, 0, 1, 1, 0, 0, 0, 0, 1)).pdu() == bytes.fromhex("01 02 0d 01")
+    assert WriteReply(1, 6, 0x9C41, 5).pdu() == bytes.fromhex("06 9c 41 00 05")
+    assert WriteReply(1, 16, 0x10, 2).pdu() == bytes.fromhex("10 00 10 00 02")
 
 
 # -- access -------------------------------------------------------------------------

@@ -32,13 +32,10 @@ from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.rtu import (
     Framing,
     Table,
-    exception_response,
-    read_request,
-    read_response,
     with_crc,
-    write_single_request,
 )
 from rtupoll.rtu.match import diagnose, expect_for, find_reply
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 
 T = TypeVar("T")
 Script = Callable[[bytes, bytes], list[tuple[float, bytes]]]  # (request, normal reply)
@@ -83,8 +80,8 @@ class Responder:
         if unit not in self.units:
             return b""
         if fn in (3, 4):
-            return read_response(unit, fn, [(addr + i + self.offset) & 0xFFFF
-                                            for i in range(count)])
+            return ReadReply(unit, fn, tuple([(addr + i + self.offset) & 0xFFFF
+                                            for i in range(count)])).frame()
         if fn in (1, 2):
             n = (count + 7) // 8
             return with_crc(bytes((unit, fn, n)) + bytes([0x55] * n))
@@ -170,7 +167,7 @@ def test_stray_bytes_before_the_reply_are_skipped(peer: Responder, unit: int,
 
 
 def test_wrong_id_reply_together_with_the_right_one(peer: Responder) -> None:
-    foreign = read_response(2, 3, [0xDEAD, 0xBEEF])
+    foreign = ReadReply(2, 3, (0xDEAD, 0xBEEF)).frame()
     peer.scripts = [lambda req, ok: [(0, foreign + ok)]]
 
     async def go() -> tuple[tuple[int, ...], int]:
@@ -196,7 +193,7 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
     from pymodbus.client import AsyncModbusSerialClient
 
     peer.scripts = [lambda req, ok: [(0, b"\x00" + ok)],
-                    lambda req, ok: [(0, read_response(2, 3, [1, 2]) + ok)]]
+                    lambda req, ok: [(0, ReadReply(2, 3, (1, 2)).frame() + ok)]]
 
     async def go() -> list[bool]:
         client = AsyncModbusSerialClient(peer.path, baudrate=115200, timeout=0.15, retries=0)
@@ -221,9 +218,9 @@ def test_control_plain_pymodbus_loses_these_replies(peer: Responder) -> None:
     (lambda ok: ok[:-1] + bytes([ok[-1] ^ 0xFF]), FrameError, "CRC error"),
     (lambda ok: ok[:5], FrameError, "truncated"),
     (lambda ok: b"\x12\x34\x56\x78\x9a\xbc", FrameError, "garbled"),
-    (lambda ok: read_response(1, 3, [7]), FrameError, "does not match"),
+    (lambda ok: ReadReply(1, 3, (7,)).frame(), FrameError, "does not match"),
     (lambda ok: b"\x00", DeviceTimeout, "no reply"),
-    (lambda ok: read_response(2, 3, [7, 8]), DeviceTimeout, "ignored"),
+    (lambda ok: ReadReply(2, 3, (7, 8)).frame(), DeviceTimeout, "ignored"),
     (lambda ok: b"", DeviceTimeout, "within 0.1 s"),
 ])
 def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
@@ -241,7 +238,7 @@ def test_unusable_replies(peer: Responder, reply: Callable[[bytes], bytes],
 
 
 def test_exception_reply(peer: Responder) -> None:
-    peer.scripts = [lambda req, ok: [(0, exception_response(1, 4, 2))]]
+    peer.scripts = [lambda req, ok: [(0, ExceptionReply(1, 4, 2).frame())]]
 
     async def go() -> None:
         async with fast(peer.path) as bus:
@@ -478,7 +475,7 @@ def test_a_request_cancelled_before_the_line_is_quiet_never_goes_out(peer: Respo
             with pytest.raises(asyncio.CancelledError):
                 await waiting
             await asyncio.sleep(0.4)  # past the drain: a frame left behind would be out
-            assert [req for _, req in peer.requests] == [read_request(5, Table.HOLDING, 0, 1)]
+            assert [req for _, req in peer.requests] == [ReadRequest(5, 3, 0, 1).frame()]
             return (await bus.read(1, Table.HOLDING, 8, 1, timeout=ANSWERED)).values
     assert run(go()) == values(8, 1)
 
@@ -496,7 +493,7 @@ def test_broadcast_does_not_wait_for_a_reply(peer: Responder) -> None:
             return time.monotonic() - t
     both = run(go())
     assert both >= 0.1  # the next request waited for the devices to act on it
-    assert peer.requests[0][1] == write_single_request(0, 0x10, 5)
+    assert peer.requests[0][1] == WriteSingle(0, 6, 0x10, 5).frame()
 
 
 def test_gateway_reboot_is_survived() -> None:
@@ -529,7 +526,7 @@ def test_writes_check_the_echo(peer: Responder) -> None:
             assert await bus.write_registers(1, 0x20, [1, 2, 3], timeout=ANSWERED) is True
             assert await bus.write_registers(1, 0x21, [9], function=6, timeout=ANSWERED) is True
             await bus.write_coil(1, 0xD0, False, timeout=ANSWERED)
-            peer.scripts = [lambda req, ok: [(0, write_single_request(1, 0x21, 8))]] * 3
+            peer.scripts = [lambda req, ok: [(0, WriteSingle(1, 6, 0x21, 8).frame())]] * 3
             with pytest.raises(FrameError, match="does not match"):  # (when its time is up)
                 await judged(lambda t: bus.write_registers(1, 0x21, [9], function=6, timeout=t))
     run(go())
@@ -617,17 +614,17 @@ def test_stats_and_client_cpu_per_transaction(peer: Responder) -> None:
 # -- the pure reply matcher -------------------------------------------------------------
 
 def test_find_reply_and_diagnose() -> None:
-    req = read_request(4, Table.HOLDING, 0, 2)
+    req = ReadRequest(4, 3, 0, 2).frame()
     exp = expect_for(req)
     assert exp is not None and exp.length == 9
-    ok = read_response(4, 3, [1, 2])
+    ok = ReadReply(4, 3, (1, 2)).frame()
     assert find_reply(b"\x00\x04" + ok, exp) == ok  # "00 04" looks like a frame start
-    assert find_reply(read_response(4, 3, [1, 2, 3]) + ok, exp) == ok  # other count
+    assert find_reply(ReadReply(4, 3, (1, 2, 3)).frame() + ok, exp) == ok  # other count
     assert find_reply(ok[:-1], exp) is None
-    exc = exception_response(4, 3, 2)
+    exc = ExceptionReply(4, 3, 2).frame()
     assert find_reply(b"\xff" + exc, exp) == exc
-    assert expect_for(write_single_request(0, 1, 1)) is None  # broadcast
-    assert diagnose(read_response(5, 3, [1]) + b"\x00", exp) is None
+    assert expect_for(WriteSingle(0, 6, 1, 1).frame()) is None  # broadcast
+    assert diagnose(ReadReply(5, 3, (1,)).frame() + b"\x00", exp) is None
     assert "CRC" in (diagnose(ok[:-1] + b"\x00", exp) or "")
 
 

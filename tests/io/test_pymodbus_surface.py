@@ -17,7 +17,8 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 
 from rtupoll.io import own_port
 from rtupoll.io.bus import Bus, PortSettings
-from rtupoll.rtu import Table, read_request
+from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -70,7 +71,7 @@ def test_a_serial_port_is_opened_through_pyserials_url_handlers(sim: Sim) -> Non
         transport = proto.transport
         assert isinstance(transport, asyncio.WriteTransport)
         assert transport.get_write_buffer_size() == 0
-        request = read_request(5, Table.INPUT, 1, 1)
+        request = ReadRequest(5, 4, 1, 1).frame()
         proto.send(request)  # the public way; rtupoll writes to its Serial itself
         for _ in range(200):
             await asyncio.sleep(0.005)

@@ -17,7 +17,7 @@ from rtupoll.gateway.server import SilentUnits
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.outputs.mqtt import backoff as mqtt_backoff
 from rtupoll.rtu import Table
-from rtupoll.rtu.transaction import Reply
+from rtupoll.rtu.transaction import ReadResult
 
 
 def test_the_rule_doubles_from_the_first_wait_up_to_the_cap() -> None:
@@ -47,7 +47,7 @@ class PortGone(ScriptedBus):
     """A bus whose adapter was unplugged: every read fails at once for the port."""
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         self.calls.append((unit, address, retries))
         raise PortError("/dev/ttyUSB0: the port is gone")
 

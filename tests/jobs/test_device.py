@@ -20,7 +20,7 @@ from rtupoll.jobs.device import probe_variant, read_block, read_fields, timing
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Profile
 from rtupoll.rtu import Table
-from rtupoll.rtu.transaction import Evidence, Reply
+from rtupoll.rtu.transaction import Evidence, ReadResult
 from rtupoll.sim.runner import SimulatedBus
 
 T = TypeVar("T")
@@ -41,11 +41,11 @@ class Recorder:
         self.fail = fail or {}
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         self.calls.append((unit, table, address, count, timeout, retries))
         if address in self.fail:
             raise self.fail[address]
-        return Reply(tuple((address + i) & 0xFFFF for i in range(count)), Evidence())
+        return ReadResult(tuple((address + i) & 0xFFFF for i in range(count)), Evidence())
 
 
 @pytest.mark.parametrize("pid", sorted(SEEDS))

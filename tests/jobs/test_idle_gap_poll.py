@@ -19,7 +19,7 @@ from rtupoll.config.site import from_specs
 from rtupoll.jobs.scheduler import BusPoller, Scheduler
 from rtupoll.jobs.timeouts import CEILING
 from rtupoll.outputs.metrics import SchedulerCollector
-from rtupoll.rtu import Table, read_request
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 from rtupoll.ui.live import PollView
@@ -63,7 +63,7 @@ def gap_site(gap: float | None) -> tuple[Scheduler, VirtualClock]:
 def test_the_simulated_device_ignores_a_request_sooner_than_its_gap() -> None:
     config = build(["huiwen-aq@3"], faults=(f"3:gap={NEEDS}",), tick=None)
     engine = Engine(config.devices, config.faults, tick=None)
-    request = read_request(3, Table.INPUT, 30009, 1)
+    request = ReadRequest(3, 4, 30009, 1).frame()
     assert engine.handle(request, 1.0, idle=0.049) == []
     assert "gap" in engine.why_silent and "50 ms" in engine.why_silent
     assert len(engine.handle(request, 2.0, idle=0.05)) == 1

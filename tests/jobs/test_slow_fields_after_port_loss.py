@@ -20,7 +20,7 @@ from rtupoll.errors import PortError
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.rtu import Table
-from rtupoll.rtu.transaction import Reply
+from rtupoll.rtu.transaction import ReadResult
 
 SLOW = {"import_active_energy", "export_active_energy", "total_active_energy"}
 
@@ -36,7 +36,7 @@ class Unplugged:
         return getattr(self.bus, name)
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         if self.gone:
             raise PortError("/dev/ttyUSB0: the port is gone")
         return await self.bus.read(unit, table, address, count, timeout=timeout,

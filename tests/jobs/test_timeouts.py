@@ -33,9 +33,10 @@ from rtupoll.jobs.timeouts import (
     DeviceTiming,
     TimeoutEstimator,
 )
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import LATE_FACTOR, Answer, Line, UnitCounts
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.transaction import Evidence
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.sim.engine import Engine
@@ -57,10 +58,10 @@ class Quiet:
 def test_the_line_measures_reply_time_from_the_requests_end_to_the_first_byte() -> None:
     framing = Framing(9600)
     line = Line(framing)
-    request = read_request(1, Table.HOLDING, 0, 2)
+    request = ReadRequest(1, 3, 0, 2).frame()
     line.send(request, 10.0)
     end = 10.0 + framing.wire_time(len(request))
-    event = line.receive(read_response(1, 3, [1, 2]), end + 0.042)
+    event = line.receive(ReadReply(1, 3, (1, 2)).frame(), end + 0.042)
     assert isinstance(event, Answer)
     assert event.reply_time == pytest.approx(0.042)
     assert line.reply_time[1] == pytest.approx(0.042)
@@ -69,18 +70,18 @@ def test_the_line_measures_reply_time_from_the_requests_end_to_the_first_byte() 
 def test_a_late_reply_records_its_reply_time() -> None:
     framing = Framing(9600)
     line = Line(framing)
-    first, other = read_request(1, Table.HOLDING, 0, 2), read_request(1, Table.HOLDING, 8, 2)
+    first, other = ReadRequest(1, 3, 0, 2).frame(), ReadRequest(1, 3, 8, 2).frame()
     line.send(first, 0.0)
     line.expire(0.1, 0.1)
     line.send(other, 0.3)  # a different request of the same shape: the late reply is not it
-    assert line.receive(read_response(1, 3, [1, 2]), 0.4) is None
+    assert line.receive(ReadReply(1, 3, (1, 2)).frame(), 0.4) is None
     assert line.counts.late[1] == 1
     assert line.late_reply_time[1] == pytest.approx(0.4 - framing.wire_time(len(first)))
 
 
 def test_a_short_learned_timeout_does_not_shorten_the_late_window() -> None:
     line = Line(Framing(9600))
-    first, other = read_request(1, Table.HOLDING, 0, 2), read_request(1, Table.HOLDING, 8, 2)
+    first, other = ReadRequest(1, 3, 0, 2).frame(), ReadRequest(1, 3, 8, 2).frame()
     line.send(first, 0.0)
     line.expire(0.03, 0.03)  # a learned 30 ms timeout
     assert line.hazard_until(other, 0.1) == pytest.approx(12 * 0.03)
@@ -112,14 +113,14 @@ def test_a_read_with_a_short_learned_timeout_keeps_the_profiles_patience() -> No
         return sent
 
     sent = asyncio.run(silent())
-    other = read_request(3, Table.INPUT, 30007, 1)  # the same shape: its late reply fits
+    other = ReadRequest(3, 4, 30007, 1).frame()  # the same shape: its late reply fits
     assert bus.line.hazard_until(other, clock.now) == pytest.approx(sent + 12 * 0.5, abs=0.02)
 
 
 def test_a_reply_faster_than_the_wire_counts_as_zero() -> None:
     line = Line(Framing(1200))  # a simulator or gateway answers before the request "ended"
-    line.send(read_request(1, Table.HOLDING, 0, 2), 0.0)
-    event = line.receive(read_response(1, 3, [1, 2]), 0.001)
+    line.send(ReadRequest(1, 3, 0, 2).frame(), 0.0)
+    event = line.receive(ReadReply(1, 3, (1, 2)).frame(), 0.001)
     assert isinstance(event, Answer) and event.reply_time == 0.0
 
 

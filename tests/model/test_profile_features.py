@@ -24,7 +24,7 @@ from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
 from rtupoll.rtu import Table
 from rtupoll.rtu.line import UnitCounts
-from rtupoll.rtu.transaction import Evidence, Reply
+from rtupoll.rtu.transaction import Evidence, ReadResult
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
 from rtupoll.ui.records import CsvWriter, record, to_json
@@ -203,9 +203,9 @@ class CountingTransport:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         self.reads.append((address, count))
-        return Reply((0,) * count, Evidence())  # nothing measured
+        return ReadResult((0,) * count, Evidence())  # nothing measured
 
     adapter_latency = 0.0  # BusLike: no USB adapter
 

@@ -15,9 +15,8 @@ from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.planner import decode_block, plan
 from rtupoll.model.profile import Profile
 from rtupoll.model.scaling import Unscaled, factors, scale, scale_values, with_factors
-from rtupoll.rtu import Table
 from rtupoll.rtu.capture import decode_stream
-from rtupoll.rtu.functions import read_request, read_response
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 
 METER = """\
 id: ct-meter
@@ -170,7 +169,7 @@ def _exchange(p: Profile, start: int, values: dict[str, float | int]) -> list[Ca
     regs = [0] * count
     for f in fields:
         regs[f.address - start:f.end - start] = field_words(f, values[f.name])
-    wire = read_request(1, Table.HOLDING, start, count) + read_response(1, 3, regs)
+    wire = ReadRequest(1, 3, start, count).frame() + ReadReply(1, 3, tuple(regs)).frame()
     _, reply = decode_stream([wire])
     return carried(reply, p)
 
@@ -203,10 +202,10 @@ def test_the_product_is_taken_before_the_fields_precision(meter: Profile) -> Non
 def test_a_capture_scales_a_value_by_the_ratio_read_before_it_by_the_same_unit(
         meter: Profile) -> None:
     cur, ct = meter.field("current"), meter.field("ct")
-    amps = read_request(1, Table.HOLDING, cur.address, 2) + \
-        read_response(1, 3, list(field_words(cur, 0.035)))
-    ratio = read_request(1, Table.HOLDING, ct.address, 1) + read_response(1, 3, [200])
-    other = read_request(2, Table.HOLDING, ct.address, 1) + read_response(2, 3, [5])
+    amps = ReadRequest(1, 3, cur.address, 2).frame() + \
+        ReadReply(1, 3, tuple(list(field_words(cur, 0.035)))).frame()
+    ratio = ReadRequest(1, 3, ct.address, 1).frame() + ReadReply(1, 3, (200,)).frame()
+    other = ReadRequest(2, 3, ct.address, 1).frame() + ReadReply(2, 3, (5,)).frame()
     frames = decode_stream([amps, ratio, other, amps])
     found = [c for fields in carried_in(frames, meter) for c in fields if c.name == "current"]
     # the reply before any ratio: no value; after unit 1's ratio (not unit 2's): 7.0 A

@@ -6,19 +6,20 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing
 from rtupoll.rtu.line import GAP_HALF_LIFE, GAP_MAX, GAP_STEP, Answer, Line
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.transaction import Send, Transaction
 
 FR = Framing(9600)
 
 
 def req(unit: int, address: int = 0, count: int = 2) -> bytes:
-    return read_request(unit, Table.HOLDING, address, count)
+    return ReadRequest(unit, 3, address, count).frame()
 
 
 def reply(unit: int, count: int = 2) -> bytes:
-    return read_response(unit, 3, list(range(count)))
+    return ReadReply(unit, 3, tuple(list(range(count)))).frame()
 
 
 def test_a_unit_with_a_gap_waits_for_it_after_any_devices_last_byte() -> None:

@@ -10,17 +10,18 @@ import random
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import LATE_FACTOR, Answer, Garbled, Line
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 
 
 def reply(unit: int, first: int, count: int = 2) -> bytes:
-    return read_response(unit, 3, [first + i for i in range(count)])
+    return ReadReply(unit, 3, tuple([first + i for i in range(count)])).frame()
 
 
 def req(unit: int, address: int, count: int = 2) -> bytes:
-    return read_request(unit, Table.HOLDING, address, count)
+    return ReadRequest(unit, 3, address, count).frame()
 
 
 @pytest.mark.parametrize(("baud", "silence"), [(9600, 3.5 * 11 / 9600), (115200, 0.00175)])

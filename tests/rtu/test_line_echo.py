@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import ECHO_HINT, Answer, Garbled, Line
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.transaction import Await, Done, Failed, Send, Transaction
 
 FR = Framing(9600)
-REQUEST = read_request(2, Table.HOLDING, 0x10, 5)
-REPLY = read_response(2, 3, [1, 2, 3, 4, 5])
+REQUEST = ReadRequest(2, 3, 0x10, 5).frame()
+REPLY = ReadReply(2, 3, (1, 2, 3, 4, 5)).frame()
 
 
 def paced(line: Line, data: bytes, start: float) -> Answer | Garbled | None:

@@ -8,7 +8,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rtupoll.rtu import read_request, write_multiple_request, write_single_request
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.exception_codes import ExceptionCode
 from rtupoll.rtu.frames import NEED_MORE, NOT_A_FRAME, Direction, frame_at, lengths
@@ -134,10 +133,11 @@ def test_frame_at_says_length_need_more_or_not_a_frame(data: bytes, direction: D
         assert max(lengths(data[:11], direction)) > len(data)
 
 
-def test_the_messages_are_the_frames_the_builders_make() -> None:
-    assert ReadRequest(1, 3, 0x10, 2).frame() == read_request(1, Table.HOLDING, 0x10, 2)
-    assert WriteSingle(1, 6, 7, 0xBEEF).frame() == write_single_request(1, 7, 0xBEEF)
-    assert WriteMultiple(1, 16, 7, (1, 2)).frame() == write_multiple_request(1, 7, [1, 2])
+def test_the_messages_encode_their_own_frames() -> None:
+    assert ReadRequest(1, 3, 0x10, 2).frame() == bytes.fromhex("01 03 00 10 00 02 C5 CE")
+    assert WriteSingle(1, 6, 7, 0xBEEF).frame() == bytes.fromhex("01 06 00 07 BE EF 08 27")
+    assert WriteMultiple(1, 16, 7, (1, 2)).frame() == \
+        bytes.fromhex("01 10 00 07 00 02 04 00 01 00 02 62 48")
     assert parse_request(bytes.fromhex("0F 00 13 00 0A 02 CD 01"), unit=0x11) == \
         WriteMultiple(0x11, 15, 0x13, (1, 0, 1, 1, 0, 0, 1, 1, 1, 0))  # the standard's
 
@@ -164,7 +164,7 @@ def test_a_refused_request_says_why_and_which_code(pdu: bytes, code: int, words:
 
 
 def test_a_frame_is_refused_for_its_crc_with_no_code() -> None:
-    frame = bytearray(read_request(1, Table.INPUT, 0, 1))
+    frame = bytearray(ReadRequest(1, 4, 0, 1).frame())
     frame[-1] ^= 1
     with pytest.raises(Malformed, match="CRC error") as got:
         parse_request(bytes(frame))
@@ -192,7 +192,7 @@ def test_a_write_reply_must_be_its_confirmation() -> None:
 
 
 def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> None:
-    req = write_multiple_request(1, 0, [1, 2, 3])
+    req = WriteMultiple(1, 16, 0, (1, 2, 3)).frame()
     assert frame_at(req[:5], direction=Direction.REQUEST) == NEED_MORE  # no count byte yet
     assert frame_at(req[:-1], direction=Direction.REQUEST) == NEED_MORE
     assert frame_at(req[:-1], direction=Direction.REQUEST, final=True) == NOT_A_FRAME
@@ -200,21 +200,28 @@ def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> 
     assert frame_at(req, direction=Direction.REPLY) == NOT_A_FRAME  # not 8 bytes of echo
     assert frame_at(b"\x01\x63\x00\x00", direction=Direction.REQUEST) == NOT_A_FRAME
     reply = ReadReply(1, 4, (5,)).frame()
-    read = read_request(1, Table.INPUT, 0, 1)
+    read = ReadRequest(1, 4, 0, 1).frame()
     assert frame_at(reply + read, direction=Direction.REPLY, answering=read) == len(reply)
     assert lengths(read[:11], Direction.EITHER) == (8, 5 + read[2])
 
 
 def test_the_sniffer_shows_a_malformed_request_and_gives_it_no_registers() -> None:
-    from rtupoll.sniff.model import parse_request as sniffed
+    from rtupoll.rtu.stream import Seen, Transaction, WireFrame
+    from rtupoll.sniff.model import describe
+
+    def sniffed(frame: bytes) -> Seen | None:
+        return Transaction("timeout", 0.0, WireFrame(frame, 0.0, 0.0)).asked
 
     bad = with_crc(bytes.fromhex("07 03 00 10 00 C8"))  # a read of 200 registers
     req = sniffed(bad)
-    assert req.table is None and req.message is None
-    assert req.text == "function 0x03: read holding registers: quantity 200 is outside 1..125"
-    good = sniffed(read_request(7, Table.HOLDING, 0x10, 2))
-    assert (good.table, good.start, good.count) == (Table.HOLDING, 0x10, 2)
-    assert good.text == "read holding 0x0010 x2"
+    assert isinstance(req, Malformed) and req.unit == 7
+    assert describe(req) == \
+        "fc03 function 0x03: read holding registers: quantity 200 is outside 1..125"
+    good = sniffed(ReadRequest(7, 3, 0x10, 2).frame())
+    assert good == ReadRequest(7, 3, 0x10, 2) and good.table is Table.HOLDING
+    assert describe(good) == "fc03 read holding 0x0010 x2"
+    assert describe(sniffed(WriteSingle(7, 6, 0x9C41, 3).frame())) == \
+        "fc06 write holding 0x9C41 x1"
 
 
 def test_the_gateway_and_the_simulator_answer_the_parsers_code() -> None:

@@ -8,14 +8,15 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rtupoll.rtu import Framing, exception_response, read_request, read_response, with_crc
-from rtupoll.rtu.functions import Table, write_single_request
+from rtupoll.rtu import Framing, with_crc
+from rtupoll.rtu.functions import Table
+from rtupoll.rtu.messages import ExceptionReply, Malformed, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
 
 F9600 = Framing(9600)
 CHAR = F9600.char_time  # ~1.15 ms
-REQ = read_request(3, Table.INPUT, 0x7536, 2)
-REPLY = read_response(3, 4, [25, 50])
+REQ = ReadRequest(3, 4, 0x7536, 2).frame()
+REPLY = ReadReply(3, 4, (25, 50)).frame()
 
 
 def run(chunks: list[tuple[bytes, float]], *, end: float | None = None,
@@ -69,9 +70,9 @@ def test_a_request_whose_first_bytes_make_a_valid_reply_is_still_a_request() -> 
     """Unit 0x51, read 10 holding registers at 0x02B8: its first seven bytes happen to
     be a CRC-valid reply (byte count 2). Arriving byte by byte, it must not be cut there
     (found by the chunking property below)."""
-    req = read_request(0x51, Table.HOLDING, 0x02B8, 10)
+    req = ReadRequest(0x51, 3, 0x02B8, 10).frame()
     assert req == bytes.fromhex("51 03 02 b8 00 0a 48 00")
-    wire = req + read_response(0x51, 3, [0] * 10)
+    wire = req + ReadReply(0x51, 3, tuple([0] * 10)).frame()
     out = run([(wire[i : i + 1], (i + 1) * CHAR) for i in range(len(wire))])
     assert [t.status for t in out] == ["ok"]
     assert out[0].request is not None and out[0].request.data == req
@@ -105,7 +106,7 @@ def test_no_reply_within_the_timeout_is_a_timeout() -> None:
 
 
 def test_the_next_request_ends_the_wait_and_a_late_reply_answers_nothing() -> None:
-    other = read_request(4, Table.INPUT, 1, 1)
+    other = ReadRequest(4, 4, 1, 1).frame()
     out = run([on_wire(REQ, 0.0), on_wire(other, 0.3), on_wire(REPLY, 0.31)], end=2.0)
     assert [t.status for t in out] == ["timeout", "orphan", "timeout"]
     assert out[1].reply is not None and out[1].reply.data == REPLY
@@ -113,20 +114,20 @@ def test_the_next_request_ends_the_wait_and_a_late_reply_answers_nothing() -> No
 
 
 def test_an_exception_reply_is_reported_with_its_code() -> None:
-    out = run([on_wire(REQ, 0.0), on_wire(exception_response(3, 4, 2), 0.03)])
+    out = run([on_wire(REQ, 0.0), on_wire(ExceptionReply(3, 4, 2).frame(), 0.03)])
     assert [t.status for t in out] == ["exception"]
     assert out[0].exception == 2 and "ILLEGAL DATA ADDRESS" in out[0].note
 
 
 def test_a_write_echo_is_its_reply_and_a_broadcast_waits_for_nothing() -> None:
-    write = write_single_request(3, 0x9C41, 7)
-    broadcast = write_single_request(0, 0x9C41, 7)
+    write = WriteSingle(3, 6, 0x9C41, 7).frame()
+    broadcast = WriteSingle(0, 6, 0x9C41, 7).frame()
     out = run([on_wire(write, 0.0), on_wire(write, 0.02), on_wire(broadcast, 0.1)])
     assert [t.status for t in out] == ["ok", "broadcast"]
 
 
 def test_a_reply_from_another_unit_does_not_answer_the_request() -> None:
-    wrong = read_response(9, 4, [25, 50])
+    wrong = ReadReply(9, 4, (25, 50)).frame()
     out = run([on_wire(REQ, 0.0), on_wire(wrong, 0.03)], end=2.0)
     assert [t.status for t in out] == ["orphan", "timeout"]
 
@@ -170,8 +171,9 @@ def traffic(draw: st.DrawFn) -> tuple[list[tuple[bytes, bytes]], list[tuple[byte
         table = draw(st.sampled_from([Table.INPUT, Table.HOLDING]))
         count = draw(st.integers(1, 12))
         words = draw(st.lists(st.integers(0, 0xFFFF), min_size=count, max_size=count))
-        exchanges.append((read_request(unit, table, draw(st.integers(0, 0xFFF0)), count),
-                          read_response(unit, table.read_function, words)))
+        address = draw(st.integers(0, 0xFFF0))
+        exchanges.append((ReadRequest(unit, table.read_function, address, count).frame(),
+                          ReadReply(unit, table.read_function, tuple(words)).frame()))
     wire, times, t = b"", [], 0.0
     for request, reply in exchanges:
         for frame in (request, reply):
@@ -197,3 +199,16 @@ def test_any_chunking_and_gaps_give_back_every_transaction(
     assert [t.status for t in out] == ["ok"] * len(exchanges)
     assert [(t.request.data if t.request else b"", t.reply.data if t.reply else b"")
             for t in out] == exchanges
+
+
+def test_a_transaction_carries_its_request_and_reply_as_messages() -> None:
+    [ok] = run([on_wire(REQ, 0.0), on_wire(REPLY, 0.030)])
+    assert ok.asked == ReadRequest(3, 4, 0x7536, 2)
+    assert ok.answer(ok.asked) == ReadReply(3, 4, (25, 50))
+    [refused] = run([on_wire(REQ, 0.0), on_wire(ExceptionReply(3, 4, 2).frame(), 0.03)])
+    assert refused.asked == ReadRequest(3, 4, 0x7536, 2) and refused.answer(refused.asked) is None
+    [lost] = run([on_wire(REQ, 0.0)])
+    assert lost.status == "timeout" and lost.answer(lost.asked) is None
+    big = with_crc(bytes.fromhex("03 04 00 00 00 C8"))  # 200 registers: refused by the parser
+    [odd] = run([on_wire(big, 0.0)])
+    assert isinstance(odd.asked, Malformed) and "quantity 200" in odd.asked.reason

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.crc import with_crc
-from rtupoll.rtu.functions import MAX_QUANTITY, exception_response
+from rtupoll.rtu.functions import MAX_QUANTITY
 from rtupoll.rtu.line import Line
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
@@ -18,14 +19,14 @@ from rtupoll.rtu.transaction import (
     Send,
     Transaction,
     pdu_frame,
-    read_frame,
-    write_coil_frame,
-    write_registers_frame,
+    read_request,
+    write_coil_request,
+    write_registers_request,
 )
 
 FRAMING = Framing(9600)
-REQ = read_request(3, Table.INPUT, 10, 2)
-GOOD = read_response(3, 4, [7, 8])
+REQ = ReadRequest(3, 4, 10, 2).frame()
+GOOD = ReadReply(3, 4, (7, 8)).frame()
 
 
 def fresh() -> Line:
@@ -78,7 +79,7 @@ def test_timeouts_are_retried_after_the_silence_and_the_last_failure_says_tries(
     assert failed.why == "no reply from unit 3 to read input registers within 0.2 s (3 tries)"
     assert tx.outcome == "timeout" and tx.attempts == 3
     # the next transaction waits for the drain: the line was quiet for the timeout
-    later = Transaction(line, read_request(4, Table.INPUT, 0, 1), timeout=0.2)
+    later = Transaction(line, ReadRequest(4, 4, 0, 1).frame(), timeout=0.2)
     assert later.ready_at() >= tx.deadline + 0.2
 
 
@@ -100,7 +101,7 @@ def test_a_garbled_reply_is_retried_at_once_and_the_retry_answers() -> None:
 def test_an_exception_reply_is_not_retried() -> None:
     tx = Transaction(fresh(), REQ, timeout=0.5, retries=3)
     at = send(tx)
-    assert tx.received(exception_response(3, 4, 2), at + 0.02)
+    assert tx.received(ExceptionReply(3, 4, 2).frame(), at + 0.02)
     failed = tx.next()
     assert isinstance(failed, Failed) and (failed.kind, failed.code) == ("exception", 2)
     assert tx.attempts == 1
@@ -116,7 +117,7 @@ def test_a_broadcast_is_done_when_sent_and_gives_the_devices_time() -> None:
 
 
 def test_a_tolerated_write_without_echo_is_unconfirmed_not_failed() -> None:
-    write = write_registers_frame(3, 0x10, [1], function=6)
+    write = write_registers_request(3, 0x10, [1], function=6).frame()
     tx = Transaction(fresh(), write, timeout=0.1, tolerate=True)
     at = send(tx)
     tx.expired(at + tx.limit)
@@ -125,24 +126,25 @@ def test_a_tolerated_write_without_echo_is_unconfirmed_not_failed() -> None:
 
 def test_requests_are_checked_before_anything_is_sent() -> None:
     with pytest.raises(Refused, match=r"1\.\.255"):
-        read_frame(0, Table.HOLDING, 0, 1)
+        read_request(0, Table.HOLDING, 0, 1)
     with pytest.raises(Refused, match=rf"1\.\.{MAX_QUANTITY[3]}"):
-        read_frame(1, Table.HOLDING, 0, MAX_QUANTITY[3] + 1)
-    assert read_frame(1, Table.COIL, 0, MAX_QUANTITY[1])
+        read_request(1, Table.HOLDING, 0, MAX_QUANTITY[3] + 1)
+    assert read_request(1, Table.COIL, 0, MAX_QUANTITY[1]) == ReadRequest(1, 1, 0, MAX_QUANTITY[1])
+    assert write_coil_request(1, 7, True).frame() == WriteSingle(1, 5, 7, 1).frame()
     with pytest.raises(Refused):
-        read_frame(1, Table.COIL, 0, MAX_QUANTITY[1] + 1)
+        read_request(1, Table.COIL, 0, MAX_QUANTITY[1] + 1)
     with pytest.raises(Refused):
-        read_frame(1, Table.HOLDING, 0xFFFF, 2)  # past the end of the table
+        read_request(1, Table.HOLDING, 0xFFFF, 2)  # past the end of the table
     with pytest.raises(Refused):
-        write_registers_frame(1, 0, [0x10000])
+        write_registers_request(1, 0, [0x10000])
     with pytest.raises(Refused):
-        write_registers_frame(1, 0, [1] * (MAX_QUANTITY[16] + 1))
+        write_registers_request(1, 0, [1] * (MAX_QUANTITY[16] + 1))
     with pytest.raises(Refused):
-        write_registers_frame(1, 0, [1, 2], function=6)
+        write_registers_request(1, 0, [1, 2], function=6)
     with pytest.raises(Refused):
-        write_coil_frame(1, 0x10000, True)
+        write_coil_request(1, 0x10000, True)
     with pytest.raises(Refused, match="not a request"):
         pdu_frame(1, bytes((3, 0, 0)))  # too short for FC03
-    assert pdu_frame(1, bytes((3, 0, 0, 0, 1))) == read_request(1, Table.HOLDING, 0, 1)
+    assert pdu_frame(1, bytes((3, 0, 0, 0, 1))) == ReadRequest(1, 3, 0, 1).frame()
     with pytest.raises(Refused, match="make no sense"):
         Transaction(fresh(), REQ, timeout=0)

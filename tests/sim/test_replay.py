@@ -13,8 +13,8 @@ import pytest
 from forked_cli import rtupoll_popen
 
 from rtupoll.errors import UsageError
-from rtupoll.rtu import Framing, exception_response, read_request, read_response
-from rtupoll.rtu.functions import Table
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest
 from rtupoll.sim.replay import load_replay
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sniff.capfile import CaptureWriter
@@ -22,8 +22,8 @@ from rtupoll.sniff.capfile import CaptureWriter
 Sim = Callable[..., SimulatedBus]
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
 F = Framing(9600)
-CO2 = read_request(3, Table.INPUT, 30009, 1)
-BLOCK = read_request(3, Table.INPUT, 30006, 4)
+CO2 = ReadRequest(3, 4, 30009, 1).frame()
+BLOCK = ReadRequest(3, 4, 30006, 4).frame()
 
 
 def write_capture(path: Path, exchanges: list[tuple[bytes, bytes | None, float]]) -> None:
@@ -55,24 +55,24 @@ def values(out: str) -> list[int]:
 
 def test_the_engine_answers_each_request_as_captured_in_order(tmp_path: Path) -> None:
     path = tmp_path / "cap.pcapng"
-    write_capture(path, [(CO2, read_response(3, 4, [650]), 0.030),
+    write_capture(path, [(CO2, ReadReply(3, 4, (650,)).frame(), 0.030),
                          (CO2, None, 0.0),
-                         (CO2, read_response(3, 4, [700]), 0.045),
-                         (BLOCK, read_response(3, 4, [25, 50, 250, 700]), 0.020)])
+                         (CO2, ReadReply(3, 4, (700,)).frame(), 0.045),
+                         (BLOCK, ReadReply(3, 4, (25, 50, 250, 700)).frame(), 0.020)])
     engine, line = load_replay(path)
     assert line.baudrate == 9600
     first = engine.handle(CO2)
-    assert [t.data for t in first] == [read_response(3, 4, [650])]
+    assert [t.data for t in first] == [ReadReply(3, 4, (650,)).frame()]
     assert first[0].turnaround == pytest.approx(0.030, abs=2e-3) and first[0].explicit
     assert engine.handle(CO2) == []  # it did not answer the second time
-    assert [t.data for t in engine.handle(CO2)] == [read_response(3, 4, [700])]
-    assert [t.data for t in engine.handle(CO2)] == [read_response(3, 4, [650])]  # cycles
+    assert [t.data for t in engine.handle(CO2)] == [ReadReply(3, 4, (700,)).frame()]
+    assert [t.data for t in engine.handle(CO2)] == [ReadReply(3, 4, (650,)).frame()]  # cycles
     # not captured as such, but every register is known: the latest values
-    part = read_request(3, Table.INPUT, 30007, 2)
-    assert [t.data for t in engine.handle(part)] == [read_response(3, 4, [50, 250])]
-    unknown = read_request(3, Table.INPUT, 40, 1)
-    assert [t.data for t in engine.handle(unknown)] == [exception_response(3, 4, 2)]
-    assert engine.handle(read_request(9, Table.INPUT, 1, 1)) == []  # no such unit
+    part = ReadRequest(3, 4, 30007, 2).frame()
+    assert [t.data for t in engine.handle(part)] == [ReadReply(3, 4, (50, 250)).frame()]
+    unknown = ReadRequest(3, 4, 40, 1).frame()
+    assert [t.data for t in engine.handle(unknown)] == [ExceptionReply(3, 4, 2).frame()]
+    assert engine.handle(ReadRequest(9, 4, 1, 1).frame()) == []  # no such unit
 
 
 def test_a_capture_without_requests_is_refused(tmp_path: Path) -> None:
@@ -84,9 +84,9 @@ def test_a_capture_without_requests_is_refused(tmp_path: Path) -> None:
 
 def test_a_replayed_capture_answers_mbpoll_with_the_captured_values(tmp_path: Path) -> None:
     path = tmp_path / "cap.pcapng"
-    write_capture(path, [(CO2, read_response(3, 4, [650]), 0.02),
-                         (BLOCK, read_response(3, 4, [25, 50, 250, 650]), 0.02),
-                         (read_request(3, Table.INPUT, 30100, 1), exception_response(3, 4, 2),
+    write_capture(path, [(CO2, ReadReply(3, 4, (650,)).frame(), 0.02),
+                         (BLOCK, ReadReply(3, 4, (25, 50, 250, 650)).frame(), 0.02),
+                         (ReadRequest(3, 4, 30100, 1).frame(), ExceptionReply(3, 4, 2).frame(),
                           0.02)])
     proc = subprocess.Popen([RTUPOLL, "simulate", "--replay", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

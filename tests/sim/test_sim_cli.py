@@ -17,8 +17,7 @@ from cli_runner import rtupoll
 from conftest import ANSWERED, RawPort
 from forked_cli import rtupoll_popen
 
-from rtupoll import rtu
-from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 
 Raw = Callable[[str], RawPort]
 
@@ -81,8 +80,8 @@ def test_default_bus_lists_its_devices_serves_and_stops_on_ctrl_c(
     assert f"rtupoll read -p {s.port} -b 9600 net-irnet-pro@1" in s.out
     assert "line 2 (a serial port: open it at 115200 baud)" in s.out
     port = raw_port(s.port, 9600)
-    assert port.transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
-        rtu.read_response(3, 3, [3])
+    assert port.transact(ReadRequest(3, 3, 40001, 1).frame(), 7) == \
+        ReadReply(3, 3, (3,)).frame()
     rest = s.stop(signal.SIGINT)
     assert s.proc.returncode == 0
     assert "stopped after 1 requests (1 replies)." in rest
@@ -115,7 +114,7 @@ def test_verbose_prints_the_frames_and_faults(simulate: Callable[..., Simulator]
                                               raw_port: Raw) -> None:
     s = simulate("net-irnet-pro@1", "-v", "--fault", "1:crc@2", "--tick", "0")
     port = raw_port(s.port, 4800)
-    read = rtu.read_request(1, Table.INPUT, 6, 2)
+    read = ReadRequest(1, 4, 6, 2).frame()
     port.transact(read, 9)
     port.transact(read, 9)
     out = s.until("(crc)")
@@ -126,8 +125,8 @@ def test_verbose_prints_the_frames_and_faults(simulate: Callable[..., Simulator]
 def test_tcp(simulate: Callable[..., Simulator], raw_port: Raw) -> None:
     s = simulate("huiwen-aq@3", "--tcp", "127.0.0.1:0")
     assert s.port.startswith("tcp://127.0.0.1:")
-    assert raw_port(s.port).transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
-        rtu.read_response(3, 3, [3])
+    assert raw_port(s.port).transact(ReadRequest(3, 3, 40001, 1).frame(), 7) == \
+        ReadReply(3, 3, (3,)).frame()
     s.stop()
 
 

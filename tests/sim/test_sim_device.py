@@ -11,6 +11,7 @@ import pytest
 from rtupoll import rtu
 from rtupoll.errors import RefusedError, UsageError
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteMultiple, WriteSingle
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
 
@@ -27,7 +28,7 @@ def ask(engine: Engine, frame: bytes | str) -> bytes:
 
 
 def exc(unit: int, fc: int, code: int) -> bytes:
-    return rtu.exception_response(unit, fc, code)
+    return ExceptionReply(unit, fc, code).frame()
 
 
 # -- golden frames from the manuals (design.md) -----------------------------------
@@ -62,7 +63,7 @@ def test_huiwen_slave_address_golden_frame() -> None:
 def test_co2meter_any_sensor_address_golden_frame() -> None:
     e = make("co2meter-an117@4", sets=["co2meter-an117@4.co2=400"])
     assert ask(e, "FE 04 00 01 00 01 74 05") == bytes.fromhex("FE 04 02 01 90 AC D8")
-    assert ask(e, rtu.read_request(4, Table.INPUT, 1, 1)) == rtu.read_response(4, 4, [400])
+    assert ask(e, ReadRequest(4, 4, 1, 1).frame()) == ReadReply(4, 4, (400,)).frame()
 
 
 def test_banner_example_a1_golden_frame() -> None:
@@ -75,88 +76,88 @@ def test_banner_example_a1_golden_frame() -> None:
 
 def test_radar_golden_request_is_answered_per_register() -> None:
     e = make("radar-level@1", sets=["radar-level@1.air_gap_cm=123"])
-    assert ask(e, "01 03 00 00 00 01 84 0A") == rtu.read_response(1, 3, [123])
+    assert ask(e, "01 03 00 00 00 01 84 0A") == ReadReply(1, 3, (123,)).frame()
     # the profile reads 2 registers at most: a 2-register block works, 3 is refused
     assert ask(e, "01 03 00 00 00 02 C4 0B")[:3] == bytes.fromhex("01 03 04")
-    assert ask(e, rtu.read_request(1, Table.HOLDING, 0, 3)) == exc(1, 3, 3)
+    assert ask(e, ReadRequest(1, 3, 0, 3).frame()) == exc(1, 3, 3)
 
 
 # -- the map and the limits ------------------------------------------------------
 
 def test_absent_unit_gets_silence_not_exception_04() -> None:
-    assert ask(make("net-irnet-pro@1"), rtu.read_request(9, Table.INPUT, 6, 2)) == b""
+    assert ask(make("net-irnet-pro@1"), ReadRequest(9, 4, 6, 2).frame()) == b""
 
 
 def test_outside_the_map_is_exception_02() -> None:
     e = make("net-irnet-pro@1", "banner-ez-array@5")
-    assert ask(e, rtu.read_request(1, Table.INPUT, 0x0010, 1)) == exc(1, 4, 2)
+    assert ask(e, ReadRequest(1, 4, 0x0010, 1).frame()) == exc(1, 4, 2)
     # 0x0004..0x000F is mapped end to end; one register more is not
-    assert ask(e, rtu.read_request(1, Table.INPUT, 4, 12))[:3] == bytes.fromhex("01 04 18")
-    assert ask(e, rtu.read_request(1, Table.INPUT, 4, 13)) == exc(1, 4, 2)
+    assert ask(e, ReadRequest(1, 4, 4, 12).frame())[:3] == bytes.fromhex("01 04 18")
+    assert ask(e, ReadRequest(1, 4, 4, 13).frame()) == exc(1, 4, 2)
     # Banner: 30002 -> 30026 is a gap of 23 > max_gap 8; 30028 -> 30030 may be bridged
-    assert ask(e, rtu.read_request(5, Table.INPUT, 30002, 2)) == exc(5, 4, 2)
-    assert ask(e, rtu.read_request(5, Table.INPUT, 30028, 3))[:3] == bytes.fromhex("05 04 06")
+    assert ask(e, ReadRequest(5, 4, 30002, 2).frame()) == exc(5, 4, 2)
+    assert ask(e, ReadRequest(5, 4, 30028, 3).frame())[:3] == bytes.fromhex("05 04 06")
 
 
 def test_unsupported_function_is_exception_01() -> None:
     e = make("radar-level@2", "banner-ez-array@5")
-    assert ask(e, rtu.read_request(2, Table.INPUT, 0, 1)) == exc(2, 4, 1)
-    assert ask(e, rtu.write_single_request(5, 41000, 7)) == exc(5, 6, 1)
+    assert ask(e, ReadRequest(2, 4, 0, 1).frame()) == exc(2, 4, 1)
+    assert ask(e, WriteSingle(5, 6, 41000, 7).frame()) == exc(5, 6, 1)
 
 
 def test_co2meter_is_silent_for_unsupported_and_malformed_but_not_for_unmapped() -> None:
     e = make("co2meter-an117@4")
-    assert ask(e, rtu.read_request(4, Table.COIL, 0, 1)) == b""  # FC01: not supported
-    assert ask(e, rtu.read_request(4, Table.INPUT, 1, 9)) == b""  # over 8 registers
-    assert ask(e, rtu.read_request(4, Table.INPUT, 2, 1)) == exc(4, 4, 2)  # AN117: 02
+    assert ask(e, ReadRequest(4, 1, 0, 1).frame()) == b""  # FC01: not supported
+    assert ask(e, ReadRequest(4, 4, 1, 9).frame()) == b""  # over 8 registers
+    assert ask(e, ReadRequest(4, 4, 2, 1).frame()) == exc(4, 4, 2)  # AN117: 02
 
 
 def test_read_limit_is_exception_03() -> None:
     e = make("huiwen-aq@3")
-    assert ask(e, rtu.read_request(3, Table.INPUT, 30006, 126)) == exc(3, 4, 3)
-    assert ask(e, rtu.read_request(3, Table.INPUT, 30006, 0)) == exc(3, 4, 3)
+    assert ask(e, ReadRequest(3, 4, 30006, 126).frame()) == exc(3, 4, 3)
+    assert ask(e, ReadRequest(3, 4, 30006, 0).frame()) == exc(3, 4, 3)
 
 
 def test_irnet_data_structure_1_by_default_and_0_as_an_option() -> None:
     e = make("net-irnet-pro@1")
-    assert ask(e, rtu.read_request(1, Table.INPUT, 0x0400, 1)) == rtu.read_response(1, 4, [1])
-    assert ask(e, rtu.read_request(1, Table.HOLDING, 0x007C, 1))[:3] == bytes.fromhex("01 03 02")
+    assert ask(e, ReadRequest(1, 4, 0x0400, 1).frame()) == ReadReply(1, 4, (1,)).frame()
+    assert ask(e, ReadRequest(1, 3, 0x007C, 1).frame())[:3] == bytes.fromhex("01 03 02")
     e0 = make("net-irnet-pro@1", options=["net-irnet-pro@1.variant=0"])
-    assert ask(e0, rtu.read_request(1, Table.INPUT, 0x0400, 1)) == exc(1, 4, 2)
-    assert ask(e0, rtu.read_request(1, Table.HOLDING, 0x007C, 1)) == exc(1, 3, 2)
-    assert ask(e0, rtu.read_request(1, Table.HOLDING, 0x0200, 2)) == exc(1, 3, 2)
+    assert ask(e0, ReadRequest(1, 4, 0x0400, 1).frame()) == exc(1, 4, 2)
+    assert ask(e0, ReadRequest(1, 3, 0x007C, 1).frame()) == exc(1, 3, 2)
+    assert ask(e0, ReadRequest(1, 3, 0x0200, 2).frame()) == exc(1, 3, 2)
 
 
 def test_reading_a_poll_never_register_resets_it() -> None:
     e = make("banner-ez-array@5", sets=["banner-ez-array@5.analog_2_dac=300"])
-    peak = rtu.read_request(5, Table.INPUT, 30521, 1)
+    peak = ReadRequest(5, 4, 30521, 1).frame()
     first = ask(e, peak)
     assert first[:3] == bytes.fromhex("05 04 02") and first[3:5] != b"\x00\x00"
-    assert ask(e, peak) == rtu.read_response(5, 4, [0])  # the read reset it
+    assert ask(e, peak) == ReadReply(5, 4, (0,)).frame()  # the read reset it
     e.devices[0].advance(3)
-    assert ask(e, peak) != rtu.read_response(5, 4, [0])  # and it rises again
+    assert ask(e, peak) != ReadReply(5, 4, (0,)).frame()  # and it rises again
 
 
 # -- writes ----------------------------------------------------------------------
 
 def test_write_to_read_only_register_is_exception_02() -> None:
     e = make("net-irnet-pro@1")
-    assert ask(e, rtu.write_multiple_request(1, 0x0016, [5])) == exc(1, 16, 2)
+    assert ask(e, WriteMultiple(1, 16, 0x0016, (5,)).frame()) == exc(1, 16, 2)
 
 
 def test_write_out_of_range_is_exception_03_and_changes_nothing() -> None:
     e = make("huiwen-aq@3")
-    assert ask(e, rtu.write_single_request(3, 40001, 0)) == exc(3, 6, 3)
-    assert ask(e, rtu.write_single_request(3, 40001, 300)) == exc(3, 6, 3)
+    assert ask(e, WriteSingle(3, 6, 40001, 0).frame()) == exc(3, 6, 3)
+    assert ask(e, WriteSingle(3, 6, 40001, 300).frame()) == exc(3, 6, 3)
     assert e.devices[0].address == 3
 
 
 def test_huiwen_address_change_moves_the_device_with_an_echo() -> None:
     e = make("huiwen-aq@1")
-    write = rtu.write_single_request(1, 40001, 7)
+    write = WriteSingle(1, 6, 40001, 7).frame()
     assert ask(e, write) == write
-    assert ask(e, rtu.read_request(1, Table.HOLDING, 40001, 1)) == b""
-    assert ask(e, rtu.read_request(7, Table.HOLDING, 40001, 1)) == rtu.read_response(7, 3, [7])
+    assert ask(e, ReadRequest(1, 3, 40001, 1).frame()) == b""
+    assert ask(e, ReadRequest(7, 3, 40001, 1).frame()) == ReadReply(7, 3, (7,)).frame()
 
 
 @pytest.mark.parametrize(("reply", "expected"), [
@@ -170,27 +171,26 @@ def test_huiwen_fc06_reply_options(reply: str, expected: str) -> None:
 
 def test_banner_address_change_is_fc16_read_modify_write_of_the_low_byte() -> None:
     e = make("banner-ez-array@5")
-    before = ask(e, rtu.read_request(5, Table.HOLDING, 41000, 1))
+    before = ask(e, ReadRequest(5, 3, 41000, 1).frame())
     word = int.from_bytes(before[3:5], "big")
     assert word & 0xFF == 5 and word >> 8 != 0  # the high byte holds something to keep
     new = (word & 0xFF00) | 9
-    assert ask(e, rtu.write_multiple_request(5, 41000, [new])) == \
+    assert ask(e, WriteMultiple(5, 16, 41000, (new,)).frame()) == \
         rtu.with_crc(bytes.fromhex("05 10 A0 28 00 01"))
-    assert ask(e, rtu.read_request(5, Table.HOLDING, 41000, 1)) == b""
-    assert ask(e, rtu.read_request(9, Table.HOLDING, 41000, 1)) == rtu.read_response(9, 3, [new])
+    assert ask(e, ReadRequest(5, 3, 41000, 1).frame()) == b""
+    assert ask(e, ReadRequest(9, 3, 41000, 1).frame()) == ReadReply(9, 3, (new,)).frame()
 
 
 def test_radar_address_change_by_fc06() -> None:
     e = make("radar-level@1", "co2meter-an117@4")
-    assert ask(e, rtu.write_single_request(1, 0x03F4, 12)) == rtu.write_single_request(
-        1, 0x03F4, 12)
+    assert ask(e, WriteSingle(1, 6, 0x03F4, 12).frame()) == WriteSingle(1, 6, 0x03F4, 12).frame()
     assert e.devices[0].address == 12
-    assert ask(e, rtu.read_request(12, Table.HOLDING, 0x03F4, 1)) == rtu.read_response(12, 3, [12])
+    assert ask(e, ReadRequest(12, 3, 0x03F4, 1).frame()) == ReadReply(12, 3, (12,)).frame()
 
 
 def test_broadcast_write_is_applied_without_a_reply() -> None:
     e = make("huiwen-aq@3")
-    assert ask(e, rtu.write_single_request(0, 40001, 9)) == b""
+    assert ask(e, WriteSingle(0, 6, 40001, 9).frame()) == b""
     assert e.devices[0].address == 9
 
 

@@ -14,14 +14,14 @@ from conftest import RawPort
 
 from rtupoll import rtu
 from rtupoll.errors import FaultSpecError
-from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest
 from rtupoll.sim.faults import parse_fault
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 Raw = Callable[[str], RawPort]
 
-READ = rtu.read_request(1, Table.INPUT, 0x0006, 2)  # IRNET concentration
+READ = ReadRequest(1, 4, 0x0006, 2).frame()  # IRNET concentration
 GOOD = bytes.fromhex("01 04 04 00 00 A0 C1 42 14")  # -20.0
 PIN = ["net-irnet-pro@1.concentration=-20"]
 
@@ -39,9 +39,9 @@ def test_dead_device_never_answers_and_the_others_still_do(sim: Sim, raw_port: R
     bus = irnet(sim, "1:dead")
     port = raw_port(bus.port)
     assert port.transact(READ, timeout=0.2) == b""
-    assert port.transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) == \
-        rtu.read_response(3, 3, [3])
-    assert [w.data for w in bus.wire if w.direction == "out"] == [rtu.read_response(3, 3, [3])]
+    assert port.transact(ReadRequest(3, 3, 40001, 1).frame(), 7) == \
+        ReadReply(3, 3, (3,)).frame()
+    assert [w.data for w in bus.wire if w.direction == "out"] == [ReadReply(3, 3, (3,)).frame()]
 
 
 def test_slow_reply_misses_the_timeout_then_arrives_late(sim: Sim, raw_port: Raw) -> None:
@@ -94,18 +94,18 @@ def test_reply_from_the_wrong_id_together_with_the_right_one(sim: Sim, raw_port:
 @pytest.mark.parametrize(("spec", "code"), [("1:exception", 4), ("1:exception=6", 6)])
 def test_exception_reply(sim: Sim, raw_port: Raw, spec: str, code: int) -> None:
     bus = irnet(sim, spec)
-    assert raw_port(bus.port).transact(READ, 5) == rtu.exception_response(1, 4, code)
+    assert raw_port(bus.port).transact(READ, 5) == ExceptionReply(1, 4, code).frame()
 
 
 def test_lose_first_requests_after_power_up(sim: Sim, raw_port: Raw) -> None:
     bus = sim("co2meter-an117@4", "huiwen-aq@3", faults=["lose-first"],
               sets=["co2meter-an117@4.co2=400"], tick=None)
     port = raw_port(bus.port)
-    co2 = rtu.read_request(4, Table.INPUT, 1, 1)
+    co2 = ReadRequest(4, 4, 1, 1).frame()
     # the profile's limits.lost_after_powerup is 3; huiwen-aq has none, so it loses 3
     assert [port.transact(co2, timeout=0.1) for _ in range(3)] == [b""] * 3
-    assert port.transact(co2, 7) == rtu.read_response(4, 4, [400])
-    assert port.transact(co2, 7) == rtu.read_response(4, 4, [400])
+    assert port.transact(co2, 7) == ReadReply(4, 4, (400,)).frame()
+    assert port.transact(co2, 7) == ReadReply(4, 4, (400,)).frame()
 
 
 def test_lose_first_n_for_one_device(sim: Sim, raw_port: Raw) -> None:
@@ -147,7 +147,7 @@ def test_garbage_before_a_request_is_skipped_byte_by_byte(sim: Sim, raw_port: Ra
 def test_unknown_function_gets_exception_01(sim: Sim, raw_port: Raw) -> None:
     bus = irnet(sim)
     report_id = rtu.with_crc(b"\x01\x11")  # FC17 report server id
-    assert raw_port(bus.port).transact(report_id, 5) == rtu.exception_response(1, 0x11, 1)
+    assert raw_port(bus.port).transact(report_id, 5) == ExceptionReply(1, 0x11, 1).frame()
 
 
 # -- the spec syntax --------------------------------------------------------------

@@ -9,10 +9,10 @@ import serial
 from conftest import ANSWERED
 
 from rtupoll import rtu
-from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.runner import simulated_bus
 
-REQUEST = rtu.read_request(3, Table.INPUT, 30006, 1)
+REQUEST = ReadRequest(3, 4, 30006, 1).frame()
 
 
 def exchange(port: str, baudrate: int, timeout: float = ANSWERED) -> bytes:

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from rtupoll.model.planner import plan
-from rtupoll.rtu import Framing, read_request
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.replay import AHEAD, load_replay
 from rtupoll.sim.scenario import build
@@ -29,7 +30,7 @@ DEVICES = ["net-irnet-pro@1", "radar-level@2", "huiwen-aq@3", "banner-ez-array@5
 
 def requests(engine: Engine) -> list[bytes]:
     """The reads a poller of the engine's devices sends, one scan."""
-    return [read_request(d.address, b.table, b.address, b.count)
+    return [ReadRequest(d.address, b.table.read_function, b.address, b.count).frame()
             for d in engine.devices for b in plan(d.profile.default_fields(), d.profile)]
 
 

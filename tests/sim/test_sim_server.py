@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 from conftest import RawPort
 
-from rtupoll import rtu
-from rtupoll.rtu import Framing, Table
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.sim.runner import SimulatedBus, running, simulated_bus
 
 Sim = Callable[..., SimulatedBus]
 Raw = Callable[..., RawPort]
-READ = rtu.read_request(1, Table.INPUT, 0x0006, 2)
+READ = ReadRequest(1, 4, 0x0006, 2).frame()
 
 
 def test_a_client_can_close_and_reopen_the_pty(sim: Sim, raw_port: Raw) -> None:
@@ -40,8 +40,8 @@ def test_link_is_a_stable_name_for_the_pty_and_goes_away_on_stop(tmp_path: Path,
     link = tmp_path / "rtu0"
     with simulated_bus(["huiwen-aq@3"], link=str(link), tick=None) as bus:
         assert link.is_symlink() and os.readlink(link) == bus.port
-        assert raw_port(str(link)).transact(rtu.read_request(3, Table.HOLDING, 40001, 1), 7) \
-            == rtu.read_response(3, 3, [3])
+        assert raw_port(str(link)).transact(ReadRequest(3, 3, 40001, 1).frame(), 7) \
+            == ReadReply(3, 3, (3,)).frame()
     assert not link.exists() and not link.is_symlink()
 
 
@@ -180,7 +180,7 @@ def test_stopping_a_tcp_bus_hangs_up_on_its_clients() -> None:
     with simulated_bus(["huiwen-aq@3"], tcp=True, tick=None) as bus:
         host, _, port = bus.port[len("tcp://"):].rpartition(":")
         client = socket.create_connection((host, int(port)), timeout=30)  # (a hang guard)
-        client.sendall(rtu.read_request(3, Table.HOLDING, 40001, 1))
+        client.sendall(ReadRequest(3, 3, 40001, 1).frame())
         assert len(client.recv(64)) == 7
     try:
         assert client.recv(64) == b""  # end-of-file: the "gateway" went away

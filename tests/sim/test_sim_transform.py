@@ -13,9 +13,8 @@ from collections.abc import Callable
 import pytest
 from cli_runner import rtupoll
 
-from rtupoll import rtu
 from rtupoll.errors import RefusedError
-from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
@@ -31,7 +30,7 @@ def make(*sets: str) -> Engine:
 def test_the_register_holds_a_code_that_unfolds_to_the_value_set() -> None:
     e = make(f"{IEM}.total_power_factor=-0.7")
     # register 3084 (one-based) is wire 3083: a big-endian Float32 in -1..+1
-    reply = b"".join(t.data for t in e.handle(rtu.read_request(1, Table.HOLDING, 3083, 2)))
+    reply = b"".join(t.data for t in e.handle(ReadRequest(1, 3, 3083, 2).frame()))
     (stored,) = struct.unpack(">f", reply[3:7])
     assert stored == pytest.approx(-0.7, abs=1e-6)
 

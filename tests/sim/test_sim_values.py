@@ -12,7 +12,7 @@ from collections.abc import Callable
 import pytest
 
 from rtupoll.model.planner import plan
-from rtupoll.rtu import read_request
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
@@ -83,7 +83,7 @@ def test_energy_counters_integrate_the_power(sim: Sim) -> None:
 def test_a_rate_fault_shows_within_its_first_one_over_rate_requests() -> None:
     engine = Engine(build(["huiwen-aq@3"], faults=["3:crc@20%"]).devices, tick=None)
     d = engine.devices[0]
-    request = next(read_request(3, b.table, b.address, b.count)
+    request = next(ReadRequest(3, b.table.read_function, b.address, b.count).frame()
                    for b in plan(d.profile.default_fields(), d.profile))
     notes = [tx.notes for _ in range(5) for tx in engine.handle(request)]
     assert any("crc" in n for n in notes), notes  # the default seed's first draw was #23

@@ -21,7 +21,8 @@ import pytest
 from cli_runner import rtupoll
 from conftest import ANSWERED
 
-from rtupoll.rtu import Framing, Table, read_request, read_response
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.sim.replay import load_replay
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sniff.capfile import CaptureWriter, read_capture
@@ -33,8 +34,8 @@ NO_BYTECODE = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
 
 Sim = Callable[..., SimulatedBus]
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))
-REQ = read_request(3, Table.INPUT, 0x7536, 2)
-REPLY = read_response(3, 4, [25, 50])
+REQ = ReadRequest(3, 4, 0x7536, 2).frame()
+REPLY = ReadReply(3, 4, (25, 50)).frame()
 
 
 def capture(path: Path, n: int = 6) -> list[int]:

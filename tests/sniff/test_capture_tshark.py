@@ -15,8 +15,8 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from rtupoll.rtu import Framing, Table, exception_response, read_request, read_response
-from rtupoll.rtu.functions import write_single_request
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.sniff.capfile import CaptureWriter
 
 TSHARK = shutil.which("tshark")
@@ -49,7 +49,7 @@ def test_tshark_reads_every_chunk_with_its_arrival_time_and_the_interface(
         tmp_path: Path) -> None:
     """Chunks as an adapter delivers them: a frame split in two, lengths 1 to 255 (every
     padding to 4 bytes), an all-0xFF chunk; none is lost, re-split or shifted."""
-    request = read_request(3, Table.HOLDING, 0x10, 2)
+    request = ReadRequest(3, 3, 0x10, 2).frame()
     chunks = [(T0, request[:3]), (T0 + 0.000_997, request[3:]), (T0 + 1.5, b"\xff" * 7)]
     chunks += [(T0 + 2 + i / 1000, bytes((i + k) & 0xFF for k in range(i)))
                for i in (1, 2, 3, 4, 5, 255)]
@@ -71,9 +71,9 @@ def test_tshark_reads_every_chunk_with_its_arrival_time_and_the_interface(
 def test_tshark_decodes_the_frames_as_modbus_rtu(tmp_path: Path) -> None:
     """One frame a chunk: a read and its reply, an exception, a write echo, and a reply
     whose CRC is broken, which tshark must call bad where rtupoll calls it garbled."""
-    ok = read_response(3, 3, [0x1234, 0xABCD])
-    frames = [read_request(3, Table.HOLDING, 0x10, 2), ok,
-              exception_response(7, 4, 2), write_single_request(9, 0x9C41, 12),
+    ok = ReadReply(3, 3, (0x1234, 0xABCD)).frame()
+    frames = [ReadRequest(3, 3, 0x10, 2).frame(), ok,
+              ExceptionReply(7, 4, 2).frame(), WriteSingle(9, 6, 0x9C41, 12).frame(),
               ok[:-1] + bytes((ok[-1] ^ 0xFF,))]
     capture = tmp_path / "frames.pcapng"
     write(capture, [(T0 + i * 0.05, f) for i, f in enumerate(frames)], Framing(9600))

@@ -30,6 +30,7 @@ from rtupoll.model.interpret import interpret
 from rtupoll.model.planner import plan
 from rtupoll.model.profile import Field, Poll
 from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import DEFAULT_DEVICES, parse_device, profile
 
@@ -313,13 +314,12 @@ def test_on_a_terminal_the_default_is_the_live_table(sim: Sim, tmp_path: Path) -
 
 def test_the_simulators_tap_hears_every_byte_in_order(sim: Sim, raw_port: Callable[..., Any],
                                                       tmp_path: Path) -> None:
-    from rtupoll.rtu import read_request
 
     bus = sim("huiwen-aq@3", tick=None, tap=str(tmp_path / "tap"))
     assert bus.tap_port.startswith("/dev/pts/")
     tap = raw_port(str(tmp_path / "tap"))
     master = raw_port(bus.port)
-    request = read_request(3, Table.INPUT, 30009, 1)
+    request = ReadRequest(3, 4, 30009, 1).frame()
     reply = master.transact(b"\x55\xaa" + request, 7)
     heard = tap.read(2 + len(request) + len(reply))
     assert heard == b"\x55\xaa" + request + reply

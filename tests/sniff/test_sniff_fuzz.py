@@ -14,7 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rtupoll.config.library import load_library, load_one
-from rtupoll.rtu import Framing, Table, crc_ok, read_request, read_response, with_crc
+from rtupoll.rtu import Framing, Table, crc_ok, with_crc
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.stream import Transaction
 from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
@@ -41,12 +42,13 @@ def frames(draw: st.DrawFn) -> bytes:
     without making sense."""
     unit, kind = draw(UNITS), draw(KINDS)
     if kind == "read":
-        return read_request(unit, draw(TABLES), draw(U16), draw(st.integers(1, 125)))
+        fc, address = draw(TABLES).read_function, draw(U16)
+        return ReadRequest(unit, fc, address, draw(st.integers(1, 125))).frame()
     if kind == "reply":
         n = draw(st.integers(0, 125))
         words = draw(st.binary(min_size=2 * n, max_size=2 * n))
-        return read_response(unit, draw(st.sampled_from([3, 4])),
-                             list(struct.unpack(f">{n}H", words)))
+        fc = draw(st.sampled_from([3, 4]))
+        return ReadReply(unit, fc, struct.unpack(f">{n}H", words)).frame()
     if kind == "huge":  # more than any reply can carry: 126..0xFFFF registers
         return with_crc(struct.pack(">BBHH", unit, draw(st.sampled_from([1, 2, 3, 4])),
                                     draw(U16), draw(st.integers(126, 0xFFFF))))

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from rtupoll.config.library import load_library
-from rtupoll.rtu import Framing, exception_response, read_request, read_response
-from rtupoll.rtu.functions import Table, write_single_request
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.sim.scenario import profile
 from rtupoll.sniff.lines import frame_line
@@ -31,8 +31,8 @@ def transactions(*exchanges: tuple[bytes, bytes | None]) -> list[Transaction]:
 
 def test_a_read_of_a_known_device_gives_poll_records() -> None:
     view = BusView([HUIWEN])
-    [tx] = transactions((read_request(3, Table.INPUT, 30006, 4),
-                         read_response(3, 4, [25, 50, 250, 800])))
+    [tx] = transactions((ReadRequest(3, 4, 30006, 4).frame(),
+                         ReadReply(3, 4, (25, 50, 250, 800)).frame()))
     recs = view.add(tx)
     assert [(r["field"], r["value"], r["unit"]) for r in recs] == [
         ("pm25", 25, "µg/m³"), ("tvoc", 0.05, "ppm"), ("hcho", 0.25, "ppm"), ("co2", 800, "ppm")]
@@ -46,9 +46,9 @@ def test_a_read_of_a_known_device_gives_poll_records() -> None:
 
 def test_failures_give_records_without_values() -> None:
     view = BusView([HUIWEN])
-    co2 = read_request(3, Table.INPUT, 30009, 1)
-    txs = transactions((co2, None), (co2, exception_response(3, 4, 4)),
-                       (co2, read_response(3, 4, [800])[:-1] + b"\x00"))
+    co2 = ReadRequest(3, 4, 30009, 1).frame()
+    txs = transactions((co2, None), (co2, ExceptionReply(3, 4, 4).frame()),
+                       (co2, ReadReply(3, 4, (800,)).frame()[:-1] + b"\x00"))
     recs = [r for tx in txs for r in view.add(tx)]
     assert [(r["field"], r["status"], r["value"], r["raw"]) for r in recs] == [
         ("co2", "timeout", None, None), ("co2", "exception", None, None),
@@ -61,8 +61,8 @@ def test_failures_give_records_without_values() -> None:
 def test_half_a_field_is_not_decoded() -> None:
     view = BusView([Known("irnet", profile("net-irnet-pro"), 1)])
     f = profile("net-irnet-pro").field("concentration")  # a float: two registers
-    [tx] = transactions((read_request(1, Table.INPUT, f.address, 1),
-                         read_response(1, 4, [0x4242])))
+    [tx] = transactions((ReadRequest(1, 4, f.address, 1).frame(),
+                         ReadReply(1, 4, (0x4242,)).frame()))
     assert not [r for r in view.add(tx) if r["field"] == "concentration"]
 
 
@@ -71,19 +71,20 @@ def test_an_unknown_unit_is_raw_and_looks_like_the_profile_its_answers_fit() -> 
     view = BusView([], library)
     p = profile("huiwen-aq")
     addr, co2 = p.field("slave_address"), p.field("co2")
-    txs = transactions((read_request(7, addr.table, addr.address, 1), read_response(7, 3, [7])),
-                       (read_request(7, co2.table, co2.address, 1),
-                        read_response(7, 4, [650])))
+    txs = transactions((ReadRequest(7, addr.table.read_function, addr.address, 1).frame(),
+                        ReadReply(7, 3, (7,)).frame()),
+                       (ReadRequest(7, co2.table.read_function, co2.address, 1).frame(),
+                        ReadReply(7, 4, (650,)).frame()))
     recs = [r for tx in txs for r in view.add(tx)]
     assert recs[-1]["profile"] is None and recs[-1]["field"] == "input:30009"
     assert recs[-1]["value"] == 650
     assert view.units[7].hints[0].startswith("huiwen-aq (")
     # an address register that does not hold its own address: not a Huiwen module
     view2 = BusView([], library)
-    for tx in transactions((read_request(8, addr.table, addr.address, 1),
-                            read_response(8, 3, [9])),
-                           (read_request(8, co2.table, co2.address, 1),
-                            read_response(8, 4, [650]))):
+    for tx in transactions((ReadRequest(8, addr.table.read_function, addr.address, 1).frame(),
+                            ReadReply(8, 3, (9,)).frame()),
+                           (ReadRequest(8, co2.table.read_function, co2.address, 1).frame(),
+                            ReadReply(8, 4, (650,)).frame())):
         view2.add(tx)
     assert not any(h.startswith("huiwen-aq") for h in view2.units[8].hints)
 
@@ -91,7 +92,7 @@ def test_an_unknown_unit_is_raw_and_looks_like_the_profile_its_answers_fit() -> 
 def test_line_troubles_are_counted_and_shown() -> None:
     view = BusView([HUIWEN])
     s = Stream(F)
-    txs = s.feed(b"\x00", T0) + s.feed(read_response(9, 4, [1]), T0 + 0.1) + s.close()
+    txs = s.feed(b"\x00", T0) + s.feed(ReadReply(9, 4, (1,)).frame(), T0 + 0.1) + s.close()
     for tx in txs:
         view.add(tx)
     assert (view.noise, view.orphans) == (1, 1)
@@ -106,8 +107,8 @@ def test_frame_lines_and_the_table_name_what_happened() -> None:
     from rich.console import Console
 
     view = BusView([HUIWEN])
-    write = write_single_request(3, 0x9C41, 3)
-    txs = transactions((read_request(3, Table.INPUT, 30009, 1), read_response(3, 4, [800])),
+    write = WriteSingle(3, 6, 0x9C41, 3).frame()
+    txs = transactions((ReadRequest(3, 4, 30009, 1).frame(), ReadReply(3, 4, (800,)).frame()),
                        (write, write))
     lines = [frame_line(tx, view, view.add(tx)) for tx in txs]
     assert "air (huiwen-aq@3)  fc04 read input 0x7539 x1  reply 20.0 ms  co2=800 ppm" in lines[0]
@@ -126,7 +127,8 @@ def test_a_float_register_holding_nan_gives_null_not_bare_nan() -> None:
     f = irnet.field("concentration")
     words = field_words(f, float("nan"))
     view = BusView([Known("irnet", irnet, 1)])
-    [tx] = transactions((read_request(1, f.table, f.address, 2), read_response(1, 4, words)))
+    [tx] = transactions((ReadRequest(1, f.table.read_function, f.address, 2).frame(),
+                         ReadReply(1, 4, tuple(words)).frame()))
     [rec] = [r for r in view.add(tx) if r["field"] == "concentration"]
     assert rec["value"] is None and rec["text"] == "NaN"
     assert "NaN" not in to_json({k: v for k, v in rec.items() if k != "text"})

@@ -4,8 +4,8 @@ values once the sniffer has seen its ratio read, and no value (``unscaled``) bef
 from __future__ import annotations
 
 from rtupoll.model.interpret import field_words
-from rtupoll.rtu import Framing, read_request, read_response
-from rtupoll.rtu.functions import Table
+from rtupoll.rtu import Framing
+from rtupoll.rtu.messages import ReadReply, ReadRequest
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.sim.scenario import profile
 from rtupoll.sniff.model import BusView, Known
@@ -28,9 +28,9 @@ def transactions(*exchanges: tuple[bytes, bytes]) -> list[Transaction]:
 def test_a_current_is_unscaled_until_the_ratio_is_seen_then_primary() -> None:
     p = METER.profile
     cur, ratios = p.field("current_l1"), p.field("current_ratio")
-    amps = read_request(1, Table.HOLDING, cur.address, 2), \
-        read_response(1, 3, list(field_words(cur, 0.035)))
-    ratio = read_request(1, Table.HOLDING, ratios.address, 2), read_response(1, 3, [200, 10])
+    amps = ReadRequest(1, 3, cur.address, 2).frame(), \
+        ReadReply(1, 3, tuple(list(field_words(cur, 0.035)))).frame()
+    ratio = ReadRequest(1, 3, ratios.address, 2).frame(), ReadReply(1, 3, (200, 10)).frame()
     view = BusView([METER])
     recs = [r for tx in transactions(amps, ratio, amps) for r in view.add(tx)]
     by = [(r["field"], r["status"], r["value"]) for r in recs]

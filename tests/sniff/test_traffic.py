@@ -15,7 +15,8 @@ from cli_runner import rtupoll
 from rtupoll.io import taps
 from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus
-from rtupoll.rtu import Table, read_request, with_crc
+from rtupoll.rtu import with_crc
+from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -39,7 +40,7 @@ def test_read_shows_its_request_and_the_reply_in_hex_with_their_meaning(sim: Sim
     assert run.returncode == 0, run.stderr
     assert "800" in run.stdout  # the table as without --traffic
     sent, heard = run.stderr.splitlines()
-    request = read_request(3, Table.INPUT, 30009, 1).hex(" ").upper()
+    request = ReadRequest(3, 4, 30009, 1).frame().hex(" ").upper()
     assert f"-> {bus.port} {request}  unit 3 read input registers input 30009" in sent
     reply = with_crc(bytes.fromhex("03 04 02 03 20")).hex(" ").upper()
     assert f"<- {bus.port} {reply}  unit 3 read input registers input 30009 = 800" in heard
@@ -52,7 +53,7 @@ def test_traffic_as_json_and_a_garbled_reply_shown_as_it_came(sim: Sim) -> None:
     assert run.returncode == 7, run.stderr
     records = [json.loads(line) for line in run.stderr.splitlines() if line.startswith("{")]
     assert [r["direction"] for r in records] == ["tx", "rx"]
-    assert records[0]["hex"] == read_request(3, Table.INPUT, 30009, 1).hex(" ").upper()
+    assert records[0]["hex"] == ReadRequest(3, 4, 30009, 1).frame().hex(" ").upper()
     assert records[1]["crc_ok"] is False and "CRC ERROR" in records[1]["decoded"]
 
 

@@ -18,8 +18,9 @@ import struct
 from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
-from rtupoll.gateway.pdu import exception_pdu, pdu_length
+from rtupoll.gateway.pdu import pdu_length
 from rtupoll.rtu.functions import MAX_PDU
+from rtupoll.rtu.messages import ExceptionReply
 
 HEADER = 7  # transaction id, protocol id, length, unit id
 
@@ -73,4 +74,4 @@ def encode(tid: int, unit: int, pdu: bytes) -> bytes:
 
 
 def encode_exception(tid: int, unit: int, function: int, code: int) -> bytes:
-    return encode(tid, unit, exception_pdu(function, code))
+    return encode(tid, unit, ExceptionReply(unit, function, code).pdu())

@@ -1,31 +1,30 @@
-"""What a client's request PDU asks for, whether it is well formed, and replies, pure.
+"""A client's request PDU, understood or refused, pure.
 
-A PDU is ``function, data`` (Modbus TCP and RTU share it; no unit, no CRC). Lengths
-come from the one function table (``rtupoll.rtu.functions``); this module adds what a
-server checks before it acts (quantities, ranges, byte counts), with the exception
-code a Modbus server answers for each mistake.
+A PDU is ``function, data`` (Modbus TCP and RTU share it; no unit, no CRC). It is
+parsed by the one strict request parser (``rtupoll.rtu.messages.parse_request``: the
+quantities, ranges and byte counts a server checks before it acts, with the exception
+code a Modbus server answers for each mistake); ``Ask`` holds the message and the PDU
+as it came, and replies are the reply messages' own ``pdu()``.
 """
 
 from __future__ import annotations
 
-import struct
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 from rtupoll.errors import ClientError
 from rtupoll.rtu import Table
 from rtupoll.rtu.effects import Effect, effect
 from rtupoll.rtu.exception_codes import ExceptionCode
-from rtupoll.rtu.functions import READ_FUNCTIONS, pack_bits, request_length
+from rtupoll.rtu.functions import request_length
 from rtupoll.rtu.messages import (
     Malformed,
-    OtherRequest,
     ReadRequest,
+    Request,
+    TableRequest,
     parse_request,
 )
 
-__all__ = ["Ask", "BadRequest",
-           "exception_pdu", "parse", "pdu_length", "read_reply", "write_reply"]
+__all__ = ["Ask", "BadRequest", "parse", "pdu_length"]
 
 
 class BadRequest(ClientError):
@@ -36,16 +35,33 @@ class BadRequest(ClientError):
         self.code, self.reason = code, reason
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Ask:
-    """A request PDU, understood: which table and registers, and whether it writes."""
+    """A client's request: its message (``rtu.messages``) and the PDU it came as, which
+    goes to the line as it is."""
 
+    message: Request
     pdu: bytes
-    function: int
-    table: Table | None = None  # None: a function with no table (diagnostics, ids, ...)
-    address: int = 0
-    count: int = 0
-    values: tuple[int, ...] = ()  # written registers (6, 16) or bits (5, 15)
+
+    @property
+    def function(self) -> int:
+        return self.message.function
+
+    @property
+    def table(self) -> Table | None:
+        """None: a function with no table (diagnostics, ids, ...)."""
+        m = self.message
+        return m.table if isinstance(m, TableRequest) else None
+
+    @property
+    def address(self) -> int:
+        m = self.message
+        return m.address if isinstance(m, TableRequest) else 0
+
+    @property
+    def count(self) -> int:
+        m = self.message
+        return m.count if isinstance(m, TableRequest) else 0
 
     @property
     def write(self) -> bool:
@@ -54,11 +70,7 @@ class Ask:
 
     @property
     def read(self) -> bool:
-        return self.function in READ_FUNCTIONS
-
-    def touches(self, table: Table, lo: int, hi: int) -> bool:
-        """Whether it reads or writes any of ``table``'s registers lo..hi-1."""
-        return self.table is table and self.address < hi and lo < self.address + self.count
+        return type(self.message) is ReadRequest
 
 
 def pdu_length(pdu: bytes) -> int | None:
@@ -68,35 +80,10 @@ def pdu_length(pdu: bytes) -> int | None:
     return None if n is None else n - 3
 
 
-def parse(pdu: bytes) -> Ask:
-    """Understand a complete request PDU, or raise ``BadRequest`` with the code to answer
-    (the checks are ``rtupoll.rtu.messages.parse_request``'s)."""
+def parse(pdu: bytes, *, unit: int = 0) -> Ask:
+    """Understand a complete request PDU to ``unit``, or raise ``BadRequest`` with the
+    code to answer (the checks are ``rtupoll.rtu.messages.parse_request``'s)."""
     try:
-        msg = parse_request(pdu, unit=0)
+        return Ask(parse_request(pdu, unit=unit), pdu)
     except Malformed as exc:
         raise BadRequest(exc.code or ExceptionCode.ILLEGAL_VALUE, exc.reason) from None
-    if isinstance(msg, OtherRequest):
-        return Ask(pdu, msg.function)
-    if isinstance(msg, ReadRequest):
-        return Ask(pdu, msg.function, msg.table, msg.address, msg.count)
-    return Ask(pdu, msg.function, msg.table, msg.address, msg.count, msg.values)
-
-
-def read_reply(function: int, values: Sequence[int]) -> bytes:
-    """The normal reply PDU to a read: registers (3, 4) or bits (1, 2) packed LSB first."""
-    if function in (3, 4):
-        data = b"".join(struct.pack(">H", v & 0xFFFF) for v in values)
-    else:
-        data = pack_bits(values)
-    return bytes((function, len(data))) + data
-
-
-def write_reply(ask: Ask) -> bytes:
-    """The normal reply PDU to a write: an echo (5, 6) or address and quantity (15, 16)."""
-    if ask.function in (5, 6):
-        return ask.pdu[:5]
-    return struct.pack(">BHH", ask.function, ask.address, ask.count)
-
-
-def exception_pdu(function: int, code: int) -> bytes:
-    return bytes((function | 0x80, code))

@@ -49,15 +49,14 @@ from rtupoll.gateway.clients import ClientStats
 from rtupoll.gateway.pdu import (
     Ask,
     BadRequest,
-    exception_pdu,
     parse,
-    read_reply,
 )
 from rtupoll.gateway.turns import Places, Turns
 from rtupoll.jobs.stats import State
 from rtupoll.refusals import Refusals, watch
 from rtupoll.rtu.effects import Effect, effect, writes
 from rtupoll.rtu.exception_codes import ExceptionCode
+from rtupoll.rtu.messages import ExceptionReply, ReadReply
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import BusPoller, DevicePoller
@@ -392,9 +391,9 @@ class Gateway:
                         stats.busy += 1
                         self.log(stats, f"queue full ({self.config.queue} requests): "
                                  "answered 0x0A", once="queue")
-                        conn.queue.put_nowait(
-                            (frame, 0.0, exception_pdu(frame.pdu[0],
-                                                       ExceptionCode.PATH_UNAVAILABLE)))
+                        busy = ExceptionReply(frame.unit, frame.pdu[0],
+                                              ExceptionCode.PATH_UNAVAILABLE)
+                        conn.queue.put_nowait((frame, 0.0, busy.pdu()))
                         continue
                     self.pending += 1
                     conn.queue.put_nowait((frame, self._clock(), None))
@@ -476,27 +475,27 @@ class Gateway:
         """The reply PDU for one request (None: a broadcast, which has no reply).
         ``ClientGone`` when ``conn``'s client has gone as the request gets its turn."""
         try:
-            ask = parse(pdu)
+            ask = parse(pdu, unit=unit)
         except BadRequest as exc:
             stats.refused += 1
             self.log(stats, f"refused: {exc.reason}", once=exc.reason)
-            return exception_pdu(pdu[0] if pdu else 0, exc.code)
+            return ExceptionReply(unit, pdu[0] if pdu else 0, exc.code).pdu()
         refusal = self.access.check(unit, ask)
         if refusal is not None:
             stats.refused += 1
             self.log(stats, f"refused: {refusal.reason}", once=refusal.reason)
-            return exception_pdu(ask.function, refusal.code)
+            return ExceptionReply(unit, ask.function, refusal.code).pdu()
         dev = self.units.get(unit)
         if (dev is not None and dev.stats.state is State.OFFLINE) or \
                 (dev is None and self.silent.held(unit, self._clock())):
             stats.timeouts += 1
-            return exception_pdu(ask.function, ExceptionCode.TARGET_FAILED)
+            return ExceptionReply(unit, ask.function, ExceptionCode.TARGET_FAILED).pdu()
         if ask.read and self.cache is not None and ask.table is not None:
             got = self.cache.get(unit, ask.table, ask.address, ask.count, self._clock())
             if got is not None:
                 stats.answered += 1
                 stats.cached += 1
-                return read_reply(ask.function, got)
+                return ReadReply(unit, ask.function, got).pdu()
         reply = await self._on_line(unit, ask, stats, queued, dev, conn)
         return None if unit == 0 else reply
 
@@ -536,15 +535,15 @@ class Gateway:
                 self.silent.timed_out(unit, self._clock())
             failed = True
             stats.timeouts += 1
-            return exception_pdu(ask.function, ExceptionCode.TARGET_FAILED)
+            return ExceptionReply(unit, ask.function, ExceptionCode.TARGET_FAILED).pdu()
         except RefusedError as exc:  # a function the bus cannot build
             stats.refused += 1
             self.log(stats, f"refused: {exc}", once=f"fc{ask.function}")
-            return exception_pdu(ask.function, ExceptionCode.ILLEGAL_FUNCTION)
+            return ExceptionReply(unit, ask.function, ExceptionCode.ILLEGAL_FUNCTION).pdu()
         except PortError as exc:
             stats.busy += 1
             self.log(stats, f"answered 0x0A: {exc}", once="port")
-            return exception_pdu(ask.function, ExceptionCode.PATH_UNAVAILABLE)
+            return ExceptionReply(unit, ask.function, ExceptionCode.PATH_UNAVAILABLE).pdu()
         finally:
             end = self._clock()
             self.poller.load.add(end, end - start, failed=failed)

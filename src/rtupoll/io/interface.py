@@ -8,7 +8,7 @@ tests whose subject is not the port) both are one, as python-can's buses are one
 ``FrameError``, ``DeviceException``, ``PortError``, ``RefusedError``.
 
 **Timing is in the values.** A read returns its values and its evidence as one value
-(``Reply``: the reply time, the unit's late replies so far, the attempts); a bus error
+(``ReadResult``: the reply time, the unit's late replies so far, the attempts); a bus error
 carries its transaction's (``BusError.evidence``). How long a late reply stays expected
 is passed with the request (``patience``). What the line heard from a unit between its
 requests (late replies to requests that timed out) is a live view, ``unit_counts``.
@@ -16,8 +16,9 @@ requests (late replies to requests that timed out) is a live view, ``unit_counts
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
-from typing import NoReturn, Protocol
+from typing import NoReturn, Protocol, TypeVar
 
 from rtupoll.errors import (
     BusError,
@@ -28,24 +29,32 @@ from rtupoll.errors import (
     UsageError,
 )
 from rtupoll.rtu import Framing, Table
-from rtupoll.rtu.functions import reply_values
 from rtupoll.rtu.line import Line, UnitCounts
+from rtupoll.rtu.messages import (
+    Malformed,
+    ReadReply,
+    ReadRequest,
+    Reply,
+    Request,
+    parse_reply,
+)
 from rtupoll.rtu.transaction import (
     Await,
     BusStats,
     Done,
     Failed,
+    ReadResult,
     Refused,
-    Reply,
     Send,
     Transaction,
     pdu_frame,
-    read_frame,
-    write_coil_frame,
-    write_registers_frame,
+    read_request,
+    write_coil_request,
+    write_registers_request,
 )
 
 REPLY_MODES = ("echo", "none", "malformed", "any")
+R = TypeVar("R")
 
 
 class BusLike(Protocol):
@@ -57,7 +66,7 @@ class BusLike(Protocol):
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and the
         evidence; ``patience``: how long a late reply stays expected, when longer than
         ``timeout``."""
@@ -135,23 +144,26 @@ class LineBus:
         return tx
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> Reply:
+                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
         """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and
         the transaction's evidence, as one value. ``patience``: how long a late reply
         stays expected when longer than ``timeout`` (a learned timeout does not shorten
         it: ``Line.expire``)."""
         try:
-            request = read_frame(unit, table, address, count)
+            request, frame = _read(unit, table, address, count)
         except Refused as exc:
             raise RefusedError(str(exc)) from None
-        tx = await self._transact(request, timeout, retries, patience=patience)
+        tx = await self._transact(frame, timeout, retries, patience=patience)
         assert isinstance(tx.result, Done)
-        values = reply_values(tx.result.frame, count)
-        if len(values) != count:
-            error = FrameError(f"unit {unit} returned {len(values)} values for {count}")
+        try:
+            reply = _reply(request, tx.result.frame)
+            if not isinstance(reply, ReadReply):  # (the line took only a normal reply)
+                raise FrameError(f"unit {unit}: no read reply: "
+                                 f"{tx.result.frame[:16].hex(' ')}")
+        except FrameError as error:
             error.evidence = tx.evidence()
-            raise error
-        return Reply(values, tx.evidence())
+            raise
+        return ReadResult(reply.values, tx.evidence())
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
                               function: int = 16, timeout: float, retries: int = 0,
@@ -163,17 +175,22 @@ class LineBus:
         exception reply is always an error."""
         if reply not in REPLY_MODES:
             raise UsageError(f"reply {reply!r} is not one of: {', '.join(REPLY_MODES)}")
-        request = _checked(lambda: write_registers_frame(unit, address, values,
-                                                               function=function))
-        tx = await self._transact(request, timeout, retries if reply == "echo" else 0,
-                                  tolerate=reply != "echo")
+        request = _checked(lambda: write_registers_request(unit, address, values,
+                                                           function=function))
+        tx = await self._transact(request.frame(), timeout,
+                                  retries if reply == "echo" else 0, tolerate=reply != "echo")
         assert isinstance(tx.result, Done)
+        if tx.result.frame:
+            _reply(request, tx.result.frame)  # (the line took only the write's confirmation)
         return bool(tx.result.frame)
 
     async def write_coil(self, unit: int, address: int, on: bool, *, timeout: float,
                          retries: int = 0) -> None:
-        request = _checked(lambda: write_coil_frame(unit, address, on))
-        await self._transact(request, timeout, retries)
+        request = _checked(lambda: write_coil_request(unit, address, on))
+        tx = await self._transact(request.frame(), timeout, retries)
+        assert isinstance(tx.result, Done)
+        if tx.result.frame:
+            _reply(request, tx.result.frame)
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
                        retries: int = 0) -> bytes:
@@ -219,12 +236,29 @@ def raise_failed(failed: Failed) -> NoReturn:
     raise DeviceTimeout(failed.why)
 
 
-def _checked(build: Callable[[], bytes]) -> bytes:
+def _checked(build: Callable[[], R]) -> R:
     """The request ``build`` makes, or ``RefusedError`` (nothing is sent)."""
     try:
         return build()
     except Refused as exc:
         raise RefusedError(str(exc)) from None
+
+
+@functools.lru_cache(maxsize=1024)
+def _read(unit: int, table: Table, address: int, count: int) -> tuple[ReadRequest, bytes]:
+    """A checked read request and its frame (a poller asks the same few again and again:
+    built once each)."""
+    request = read_request(unit, table, address, count)
+    return request, request.frame()
+
+
+def _reply(request: Request, frame: bytes) -> Reply:
+    """The typed reply (``rtu.messages.parse_reply``) in the answer ``frame`` the line
+    took (its CRC checked there), or ``FrameError``."""
+    try:
+        return parse_reply(request, frame[1:-2], unit=frame[0])
+    except Malformed as exc:
+        raise FrameError(f"unit {request.unit}: {exc.reason}") from None
 
 
 LineEvidence = LineBus  # the former name

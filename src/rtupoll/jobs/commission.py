@@ -27,7 +27,6 @@ from collections.abc import Awaitable, Callable, Collection
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from rtupoll import rtu
 from rtupoll.errors import (
     DeviceException,
     DeviceTimeout,
@@ -46,6 +45,7 @@ from rtupoll.model.codec import DataType
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.rtu.functions import WRITE_DATA_AT
+from rtupoll.rtu.messages import ReadRequest, WriteMultiple, WriteSingle
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike
@@ -107,13 +107,13 @@ def dry_run(change: Change) -> list[tuple[str, str]]:
     """The frames a change would send, as (hex, why); ``??`` marks bytes read first."""
     f = refuse(change)
     p, old, new = change.profile, change.old, change.new
-    read_old = rtu.read_request(old, f.table, f.address, f.words)
-    out = [(_hex(rtu.read_request(new, f.table, f.address, f.words)),
+    read_old = ReadRequest(old, f.table.read_function, f.address, f.words).frame()
+    out = [(_hex(ReadRequest(new, f.table.read_function, f.address, f.words).frame()),
             f"probe {new}: must be silent (nothing may answer there yet)"),
            (_hex(read_old), f"read {f.name} at {old}: the device must answer")]
     if change.check:
         cf = p.field(change.check[0])
-        out.append((_hex(rtu.read_request(old, cf.table, cf.address, cf.words)),
+        out.append((_hex(ReadRequest(old, cf.table.read_function, cf.address, cf.words).frame()),
                     f"identity: {cf.name} must read {change.check[1]}"))
     words = field_words(f, new, (0,))
     function = p.set_address.function
@@ -123,16 +123,16 @@ def dry_run(change: Change) -> list[tuple[str, str]]:
         at = WRITE_DATA_AT[function]  # the register's high byte; its low byte follows
         unknown = {at if f.layout.byte == "low" else at + 1}  # the byte kept, read first
     if function == 6:
-        frame = rtu.write_single_request(old, f.address, words[0])
+        frame = WriteSingle(old, 6, f.address, words[0]).frame()
     else:
-        frame = rtu.write_multiple_request(old, f.address, words)
+        frame = WriteMultiple(old, 16, f.address, tuple(words)).frame()
     reply = {"echo": "an echo", "none": "no reply", "malformed": "a malformed reply",
              "any": "any reply, or none"}[p.set_address.reply]
     crc = {len(frame) - 2, len(frame) - 1} if unknown else set()
     out.append((_hex(frame, unknown | crc),
                 f"write {new} to {f.name} with FC{p.set_address.function:02d} "
                 f"(expects {reply}; verification decides)"))
-    out.append((_hex(rtu.read_request(new, f.table, f.address, f.words)),
+    out.append((_hex(ReadRequest(new, f.table.read_function, f.address, f.words).frame()),
                 f"verify: {f.name} at {new} must read {new}"))
     if old != p.addresses.any:
         out.append((_hex(read_old), f"verify: {old} must be silent now"))

@@ -22,7 +22,8 @@ from rtupoll.errors import BusError, DeviceTimeout
 from rtupoll.io import clock
 from rtupoll.io.latency import LATENCY_OK, latency_timer, latency_warning
 from rtupoll.io.syncbus import SyncBus
-from rtupoll.rtu import Table, read_request
+from rtupoll.rtu import Table
+from rtupoll.rtu.messages import ReadRequest
 
 ECHO_UNIT = 247  # the highest address a device may have: rarely given, so rarely there
 PROBE_TIMEOUT = 0.3  # seconds an echo probe waits
@@ -115,7 +116,7 @@ class Doctor:
     async def _echo(self) -> Finding:
         """A request to an address no device should have: what comes back of it."""
         bus = self.bus
-        request = read_request(ECHO_UNIT, Table.HOLDING, 0, 1)
+        request = ReadRequest(ECHO_UNIT, 3, 0, 1).frame()
         _, chunks = await self._read(ECHO_UNIT, Table.HOLDING, 0, 1, PROBE_TIMEOUT)
         got = b"".join(d for _, d in chunks[1:])
         expected = bus.settings.echo
@@ -176,7 +177,7 @@ class Doctor:
                                       f"up to {GAPS[-1]:g} s later", "check power and "
                                       "wiring: it answers only now and then")]
         times, pauses = [], []
-        request = read_request(unit, table, address, count)
+        request = ReadRequest(unit, table.read_function, address, count).frame()
         for _ in range(READS):
             answered, rx = await read(gap * 1.5)
             reply = _reply(rx, request)

@@ -30,7 +30,7 @@ The rules (``TimeoutEstimator``, pure, times as arguments):
 
 ``DeviceTiming`` is one device's: ``before`` gives the next read's timeout, ``patience``
 goes with the read, and ``learn`` takes the read's evidence (``rtu.transaction.Evidence``,
-in the read's ``Reply`` or its bus error).
+in the read's ``ReadResult`` or its bus error).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ is given, so every rule is tested in virtual time and reused by the bus (a thin 
 adapter), the simulator's engine, ``decode`` and the sniffer.
 
 - ``functions``: the function table (request and reply lengths per function code,
-  names), frame builders;
+  names);
 - ``exception_codes``: ``ExceptionCode``, the exception codes by name;
 - ``crc``: the CRC-16;
 - ``timing``: character timing and the 3.5-character silence;
@@ -13,7 +13,8 @@ adapter), the simulator's engine, ``decode`` and the sniffer.
 - ``line``: the master's line discipline (when a frame may go, drains, late replies);
 - ``stream``: a listen-only tap's bytes split into frames and transactions (sniffing);
 - ``capture``: captured byte streams split into frames and decoded;
-- ``messages``: typed requests and replies, one strict parser for each;
+- ``messages``: typed requests and replies (each encodes itself), one strict parser for
+  each: the one set of message types for master, gateway, simulator and sniffer;
 - ``frames``: where a frame ends (``frame_at``), for every reader of bytes.
 """
 
@@ -23,20 +24,12 @@ from rtupoll.rtu.functions import (
     FUNCTION_NAMES,
     FUNCTIONS,
     Table,
-    exception_response,
     read_frame_sizes,
-    read_request,
-    read_response,
-    write_coil_request,
-    write_multiple_request,
-    write_single_request,
 )
 from rtupoll.rtu.timing import Framing, transaction_wire_time
 
 __all__ = [
     "EXCEPTION_NAMES", "FUNCTIONS", "FUNCTION_NAMES", "ExceptionCode", "Framing", "Table",
     "crc16", "crc_ok",
-    "exception_name", "exception_response", "read_frame_sizes", "read_request",
-    "read_response", "transaction_wire_time", "with_crc", "write_coil_request",
-    "write_multiple_request", "write_single_request",
+    "exception_name", "read_frame_sizes", "transaction_wire_time", "with_crc",
 ]

@@ -7,6 +7,12 @@ point of looking at it) and says which CRC it should carry. RTU has no direction
 bit either: request or reply is inferred from the structure and from the frame
 before it, and a guess is marked as one.
 
+The decoding is the one strict parser's (``rtu.messages``: ``parse_request``, and
+``parse_reply`` against the request before it), on the frame's PDU whatever its CRC;
+a ``Frame`` holds the message it took (``message``) and what only a capture has (its
+offset, CRC, kind and notes). What the parser refuses is shown as its bytes are laid
+out, with the parser's reason.
+
 Imports neither pymodbus nor rich, so ``decode --format json`` starts fast. The values
 of a profile's fields in a frame are ``rtupoll.model.carried``'s (a layer above).
 """
@@ -16,9 +22,10 @@ from __future__ import annotations
 import re
 import struct
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
-from rtupoll.rtu.crc import crc16, crc_ok, with_crc
+from rtupoll.rtu import messages
+from rtupoll.rtu.crc import crc16, crc_ok
 from rtupoll.rtu.frames import Direction, lengths
 from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
@@ -32,7 +39,6 @@ from rtupoll.rtu.functions import (
     exception_name,
     words,
 )
-from rtupoll.rtu.messages import Malformed, parse_request
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,8 @@ class Frame:
     values: tuple[int, ...] = ()  # registers (or bits) read or written
     exception: int | None = None
     notes: tuple[str, ...] = ()
+    # the typed message (``rtu.messages``) where the strict parser takes the frame
+    message: messages.Request | messages.Reply | None = field(default=None, compare=False)
 
     @property
     def function_name(self) -> str:
@@ -191,7 +199,11 @@ def decode_stream(chunks: Sequence[bytes], *, start: int | None = None) -> list[
 
 def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None, *,
                  offset: int = 0, start: int | None = None) -> Frame:
-    """One frame. ``kind`` is what the splitter saw; ``prev`` the frame just before it."""
+    """One frame. ``kind`` is what the splitter saw; ``prev`` the frame just before it.
+
+    What the one strict parser (``rtu.messages``) takes is decoded from its message (the
+    frame's ``message``), whatever its CRC, which the frame shows apart; what it refuses
+    is still shown as its bytes are laid out, with the parser's reason."""
     if kind == "noise" or len(raw) < 4:
         what = "stray byte(s) between frames (typical of RS-485 direction switching)" \
             if kind == "noise" else "too short for a frame (address, function, CRC)"
@@ -203,6 +215,8 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
     base = Frame(offset, raw, "unknown", unit, fc, ok, expected)
     pending = prev if prev is not None and prev.kind == "request" and prev.unit == unit \
         and prev.function == (fc & 0x7F) else None
+    asked = pending.message if pending is not None and isinstance(
+        pending.message, messages.TableRequest) else None
     body = raw[2:-2]
     if fc & 0x80:
         code = body[0] if body else None
@@ -212,40 +226,56 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
             notes.append(f"{fc:#04x} is an exception to {fc & 0x7F:#04x}, not a standard function")
         if prev is not None and prev.kind == "request" and prev.unit == unit \
                 and prev.function != fc & 0x7F and prev.function is not None:
-            right = with_crc(bytes([unit, prev.function | 0x80, body[0] if body else 0]))
+            right = messages.ExceptionReply(unit, prev.function, body[0] if body else 0)
             notes.append(f"the request before it was function {prev.function:#04x}: an exception "
                          f"reply to that carries {prev.function | 0x80:#04x}, not {fc:#04x} "
-                         f"({right.hex(' ').upper()})")
+                         f"({right.frame().hex(' ').upper()})")
         if code is not None:
             notes.append(f"exception {code:02d}: {exception_name(code)}")
-        return replace(base, kind="exception", exception=code, notes=tuple(notes))
+        return replace(base, kind="exception", exception=code, notes=tuple(notes),
+                       message=messages.ExceptionReply(unit, fc & 0x7F, code)
+                       if len(raw) == 5 and code is not None else None)
     if fc in READS:
-        return _read(raw, kind, pending, notes, base, start)
+        return _read(raw, kind, pending, asked, notes, base, start)
     if fc in (5, 6):
         if len(raw) != 8:
             notes.append(_odd_write_reply(raw, fc))
             return replace(base, kind="response" if pending else "unknown", notes=tuple(notes),
                            values=words(body[1:]) if len(body) >= 1 else ())
-        address, value = struct.unpack(">HH", body)
-        echo = pending is not None and pending.raw == raw
+        request = _request(raw, notes)  # a request and its echo are the same bytes
+        reply = _reply(asked, raw)
+        # (both CRCs good: an echo is the very frame; a refused request's: its bytes again)
+        echo = isinstance(reply, messages.WriteReply) and ok and pending is not None and \
+            pending.crc_ok if asked is not None else pending is not None and pending.raw == raw
         if echo:
-            notes.append("an echo of the request: the write was accepted")
+            notes.insert(len(notes) - (request is None), "an echo of the request: the write "
+                         "was accepted")
         elif pending is None:
-            notes.append("a write request, or its echo (the reply repeats the request)")
+            notes.insert(len(notes) - (request is None), "a write request, or its echo (the "
+                         "reply repeats the request)")
         else:
-            notes.append("not an echo of the request before it")
-        notes += _refused(raw)  # a request and its echo are the same bytes
-        vals = ((1 if value == 0xFF00 else 0),) if fc == 5 else (value,)
+            notes.insert(len(notes) - (request is None), "not an echo of the request before it")
+        address, value = struct.unpack(">HH", body)
+        vals = request.values if isinstance(request, messages.WriteSingle) else \
+            ((1 if value == 0xFF00 else 0),) if fc == 5 else (value,)
         return replace(base, kind="response" if pending else "request", table=WRITES[fc],
-                       start=address, count=1, values=vals, notes=tuple(notes))
+                       start=address, count=1, values=vals, notes=tuple(notes),
+                       message=reply if pending else request)
     if fc in (15, 16):
         table = WRITES[fc]
-        address, qty = struct.unpack(">HH", body[:4]) if len(body) >= 4 else (None, None)
         if len(raw) == 8:
+            reply = _reply(asked, raw)
+            address, qty = struct.unpack(">HH", body[:4])
             return replace(base, kind="response", table=table, start=address, count=qty,
-                           notes=tuple(notes))
+                           notes=tuple(notes), message=reply)
+        request = _request(raw, notes)
+        if isinstance(request, messages.WriteMultiple):
+            return replace(base, kind="request", table=table, start=request.address,
+                           count=request.count, values=request.values, notes=tuple(notes),
+                           message=request)
+        # refused: laid out as it is
+        address, qty = struct.unpack(">HH", body[:4]) if len(body) >= 4 else (None, None)
         data = body[5:]
-        notes += _refused(raw)
         data_values = bits(data, qty or 0) if fc == 15 else words(data)
         return replace(base, kind="request", table=table, start=address, count=qty,
                        values=data_values, notes=tuple(notes))
@@ -253,28 +283,49 @@ def decode_frame(raw: bytes, kind: str | None = None, prev: Frame | None = None,
     return replace(base, kind="unknown", notes=tuple(notes))
 
 
-def _refused(raw: bytes) -> list[str]:
-    """Why the one request parser (``rtu.messages``) refuses the frame's PDU, if it does:
-    decode still shows a refused request's bytes as they are laid out, with the reason."""
+def _request(raw: bytes, notes: list[str]) -> messages.Request | None:
+    """The request the frame's PDU is (the one strict parser, ``rtu.messages``; its CRC
+    is the frame's own business), or None with the parser's reason in ``notes``."""
     try:
-        parse_request(raw[1:-2], unit=raw[0])
-    except Malformed as bad:
-        return [bad.reason]
-    return []
+        return messages.parse_request(raw[1:-2], unit=raw[0])
+    except messages.Malformed as bad:
+        notes.append(bad.reason)
+        return None
 
 
-def _read(raw: bytes, kind: str | None, pending: Frame | None, notes: list[str],
-          base: Frame, start: int | None) -> Frame:
+def _reply(asked: messages.Request | None, raw: bytes) -> messages.Reply | None:
+    """The reply the frame is to the request before it (``messages.parse_reply``), or
+    None: no request, or no answer to it."""
+    if asked is None:
+        return None
+    try:
+        return messages.parse_reply(asked, raw[1:-2], unit=raw[0])
+    except messages.Malformed:
+        return None
+
+
+def _read(raw: bytes, kind: str | None, pending: Frame | None,
+          asked: messages.Request | None, notes: list[str], base: Frame, start: int | None
+          ) -> Frame:
     fc, body = raw[1], raw[2:-2]
     table = READS[fc]
     as_request = len(raw) == 8 and (kind == "request" or (kind is None and pending is None))
     if as_request:
-        address, qty = struct.unpack(">HH", body)
-        notes += _refused(raw)
+        request = _request(raw, notes)
+        if isinstance(request, messages.ReadRequest):
+            address, qty = request.address, request.count
+        else:  # refused: laid out as it is
+            address, qty = struct.unpack(">HH", body)
         if not table.is_register and kind == "request" and pending is None and 5 + raw[2] == 8:
             notes.append("could also be a reply carrying 3 bytes of bits")
         return replace(base, kind="request", table=table, start=address, count=qty,
-                       notes=tuple(notes))
+                       notes=tuple(notes), message=request)
+    reply = _reply(asked, raw)
+    if isinstance(reply, messages.ReadReply) and isinstance(asked, messages.ReadRequest):
+        return replace(base, kind="response", table=table, start=asked.address,
+                       count=asked.count, values=reply.values, notes=tuple(notes),
+                       message=reply)
+    # no request before it, or no answer to it: laid out as it is
     nbytes, data = (body[0], body[1:]) if body else (0, b"")
     if nbytes != len(data):
         notes.append(f"byte count says {nbytes}, {len(data)} data bytes follow")

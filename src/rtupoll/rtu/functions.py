@@ -1,4 +1,4 @@
-"""The Modbus RTU function table: names, frame lengths per function code, frame builders.
+"""The Modbus RTU function table: names, frame lengths per function code, data packing.
 
 The one place that knows how long a frame is. A frame is ``unit, function, data, CRC``;
 its length follows from the function code and, for some, a byte count inside the frame
@@ -15,7 +15,6 @@ import struct
 from collections.abc import Sequence
 
 from rtupoll.frozen import frozen
-from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.exception_codes import EXCEPTION_NAMES as EXCEPTION_NAMES  # (re-exported)
 from rtupoll.rtu.exception_codes import exception_name as exception_name
 
@@ -48,6 +47,7 @@ class Table(str, enum.Enum):
     def modicon_base(self) -> int:
         """The Modicon reference prefix: 0xxxx coils, 1xxxx, 3xxxx inputs, 4xxxx holding."""
         return {"coil": 0, "discrete": 10000, "input": 30000, "holding": 40000}[self.value]
+
 
 
 @frozen
@@ -168,32 +168,6 @@ def data_bytes(function: int, count: int) -> int:
     return (count + 7) // 8 if function in (1, 2) else 2 * count
 
 
-def read_request(unit: int, table: Table, address: int, count: int) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, table.read_function, address, count))
-
-
-def write_single_request(unit: int, address: int, value: int) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, 6, address, value))
-
-
-def write_coil_request(unit: int, address: int, on: bool) -> bytes:
-    return with_crc(struct.pack(">BBHH", unit, 5, address, 0xFF00 if on else 0x0000))
-
-
-def write_multiple_request(unit: int, address: int, values: Sequence[int]) -> bytes:
-    body = struct.pack(">BBHHB", unit, 16, address, len(values), 2 * len(values))
-    return with_crc(body + b"".join(struct.pack(">H", v) for v in values))
-
-
-def read_response(unit: int, function: int, words: Sequence[int]) -> bytes:
-    data = b"".join(struct.pack(">H", w) for w in words)
-    return with_crc(struct.pack(">BBB", unit, function, len(data)) + data)
-
-
-def exception_response(unit: int, function: int, code: int) -> bytes:
-    return with_crc(struct.pack(">BBB", unit, function | 0x80, code))
-
-
 def read_frame_sizes(count: int, *, coils: bool = False) -> tuple[int, int]:
     """Request and normal response sizes (bytes, CRC included) of one read."""
     return 8, 5 + data_bytes(1 if coils else 3, count)
@@ -220,9 +194,3 @@ def pack_bits(values: Sequence[int]) -> bytes:
         if bit:
             packed[i // 8] |= 1 << (i % 8)
     return bytes(packed)
-
-
-def reply_values(frame: bytes, count: int) -> tuple[int, ...]:
-    """The registers (FC03/04) or the first ``count`` bits (FC01/02) a read reply carries."""
-    data = frame[3:-2]
-    return words(data) if frame[1] in (3, 4) else bits(data, count)

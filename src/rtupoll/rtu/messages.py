@@ -16,8 +16,12 @@ Modbus server answers for it (None: a server stays silent, as for a CRC error). 
 exception escapes either parser, whatever the bytes. Every message encodes back to the
 bytes it was parsed from (``pdu()``, ``frame()``).
 
-Each caller keeps its own policy on top: the gateway answers the code, the simulator
-answers it as its device would, the sniffer shows the function with no values.
+The one set of message types, on every side: the master builds its requests as them
+(``rtu.transaction.read_request``, ...) and parses its answers with ``parse_reply``; the
+gateway and the simulator answer with the replies' own ``pdu()``/``frame()`` (the one
+reply encoder); the sniffer and ``decode`` (``rtu.capture``) parse with the same two
+parsers. Each caller keeps its own policy on top: the gateway answers the code, the
+simulator answers it as its device would, the sniffer shows the function with no values.
 """
 
 from __future__ import annotations
@@ -86,6 +90,10 @@ class ReadRequest(_Message):
     def pdu(self) -> bytes:
         return struct.pack(">BHH", self.function, self.address, self.count)
 
+    def frame(self) -> bytes:  # (one struct call: the master sends one a transaction)
+        return with_crc(struct.pack(">BBHH", self.unit, self.function, self.address,
+                                    self.count))
+
 
 @dataclass(frozen=True, slots=True)
 class WriteSingle(_Message):
@@ -149,6 +157,8 @@ class OtherRequest(_Message):
 
 
 Request = ReadRequest | WriteSingle | WriteMultiple | OtherRequest
+# the requests that address a run of one table: ``table``, ``address``, ``count``
+TableRequest = ReadRequest | WriteSingle | WriteMultiple
 
 
 # -- replies ----------------------------------------------------------------------------
@@ -162,9 +172,12 @@ class ReadReply(_Message):
     values: tuple[int, ...]
 
     def pdu(self) -> bytes:
-        data = pack_bits(self.values) if self.function in (1, 2) else \
-            b"".join(struct.pack(">H", v) for v in self.values)
-        return bytes((self.function, len(data))) + data
+        values = self.values
+        if self.function in (1, 2):
+            data = pack_bits(values)
+            return bytes((self.function, len(data))) + data
+        n = len(values)  # (one struct call: the gateway and the simulator answer with it)
+        return struct.pack(f">BB{n}H", self.function, 2 * n, *values)
 
 
 @dataclass(frozen=True, slots=True)
@@ -284,38 +297,41 @@ def parse_reply(request: Request, data: bytes, *, unit: int | None = None) -> Re
     ``request``; ``Malformed`` when it is no answer to it (``code`` None: a master
     answers nothing, it only refuses the reply)."""
     got, pdu = _split(data, unit, "reply")
-
-    def bad(reason: str) -> Malformed:
-        return Malformed(reason, None, unit=got, function=pdu[0] if pdu else None)
-
     if got != request.unit:
-        raise bad(f"unit {got} answers a request to unit {request.unit}")
+        raise _refused(f"unit {got} answers a request to unit {request.unit}", got, pdu)
     if not pdu:
-        raise bad("empty PDU")
+        raise _refused("empty PDU", got, pdu)
     fc = pdu[0]
+    if fc == request.function and type(request) is ReadRequest:  # (the master's every read)
+        n = request.count
+        size = 2 * n if fc > 2 else (n + 7) // 8
+        if len(pdu) != 2 + size or pdu[1] != size:
+            raise _refused(f"a reply to a read of {n} carries {size} data bytes, this has "
+                           f"{len(pdu) - 2} (byte count {pdu[1] if len(pdu) > 1 else '-'})",
+                           got, pdu)
+        return ReadReply(got, fc, struct.unpack_from(f">{n}H", pdu, 2) if fc > 2
+                         else bits(pdu[2:], n))
     if fc == request.function | 0x80:
         if len(pdu) != 2:
-            raise bad(f"an exception reply is 2 PDU bytes, this is {len(pdu)}")
+            raise _refused(f"an exception reply is 2 PDU bytes, this is {len(pdu)}", got, pdu)
         return ExceptionReply(got, request.function, pdu[1])
     if fc != request.function:
-        raise bad(f"function {fc} does not answer function {request.function}")
-    if isinstance(request, ReadRequest):
-        size = data_bytes(fc, request.count)
-        if len(pdu) != 2 + size or pdu[1] != size:
-            raise bad(f"a reply to a read of {request.count} carries {size} data bytes, "
-                      f"this has {len(pdu) - 2} (byte count {pdu[1] if len(pdu) > 1 else '-'})")
-        body = pdu[2:]
-        return ReadReply(got, fc, words(body) if fc in (3, 4) else bits(body, request.count))
+        raise _refused(f"function {fc} does not answer function {request.function}", got, pdu)
     if isinstance(request, WriteSingle | WriteMultiple):
         expected = request.pdu()[:5]
         if pdu != expected:
-            raise bad(f"not the confirmation of the write ({expected.hex(' ')}): "
-                      f"{pdu[:24].hex(' ')}")
+            raise _refused(f"not the confirmation of the write ({expected.hex(' ')}): "
+                           f"{pdu[:24].hex(' ')}", got, pdu)
         return WriteReply(got, fc, request.address,
                           request.value if isinstance(request, WriteSingle) else request.count)
     length = FUNCTIONS[fc].reply
     want = length.of(b"\x00" + pdu[:3])
     if length.known and (want is None or want - 3 != len(pdu)):
-        raise bad(f"{FUNCTIONS[fc].name}: {len(pdu)} reply bytes, the function takes "
-                  f"{'more' if want is None else want - 3}")
+        raise _refused(f"{FUNCTIONS[fc].name}: {len(pdu)} reply bytes, the function takes "
+                       f"{'more' if want is None else want - 3}", got, pdu)
     return OtherReply(got, fc, pdu[1:])
+
+
+def _refused(reason: str, unit: int, pdu: bytes) -> Malformed:
+    """A reply refused: a master answers nothing (``code`` None)."""
+    return Malformed(reason, None, unit=unit, function=pdu[0] if pdu else None)

@@ -22,6 +22,10 @@ that arrives after another request went out, or after ``timeout``, is never take
 as the answer to anything else. A broken frame that starts like the awaited reply is
 that reply, garbled: the transaction fails, it never yields a value.
 
+Messages: a ``Transaction`` is bytes with their times; its request and reply as
+messages (``asked``, ``answer``) are the strict parsers' (``rtu.messages``), parsed
+when asked for.
+
 Times: every byte's arrival is estimated from its chunk's arrival (the chunk's last
 byte) and the character time, so a frame has a start and an end on the wire, and a
 reply time is from the end of the request to the start of the reply (the device's
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from rtupoll.rtu import messages
 from rtupoll.rtu.crc import crc_ok
 from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at, lengths
 from rtupoll.rtu.functions import (
@@ -49,6 +54,9 @@ from rtupoll.rtu.timing import Framing
 
 HOLD = 0.1  # seconds an incomplete frame waits for its rest before it is called broken
 TIMEOUT = 1.0  # seconds after which an unanswered request counts as timed out
+
+# a request seen on the line: its message, or why the strict parser refused it
+Seen = messages.Request | messages.Malformed
 
 
 @dataclass(frozen=True)
@@ -105,6 +113,33 @@ class Transaction:
     def exception(self) -> int | None:
         r = self.reply
         return r.data[2] if self.status == "exception" and r is not None else None
+
+    @property
+    def asked(self) -> Seen | None:
+        """The request's message (``rtu.messages.parse_request``; the stream checked its
+        CRC), or the parser's ``Malformed``: a refused request addresses no table, so no
+        register is ever attributed to it. None without a request. (Parsed at each call:
+        take it once.)"""
+        r = self.request
+        if r is None:
+            return None
+        try:
+            return messages.parse_request(r.data[1:-2], unit=r.data[0])
+        except messages.Malformed as bad:
+            return bad
+
+    def answer(self, asked: Seen | None) -> messages.Reply | None:
+        """The reply's message (``rtu.messages.parse_reply``) when the transaction is
+        ``ok`` and the strict parser takes the reply as the answer to ``asked`` (this
+        transaction's ``asked``)."""
+        r = self.reply
+        if self.status != "ok" or r is None or asked is None or \
+                isinstance(asked, messages.Malformed):
+            return None
+        try:
+            return messages.parse_reply(asked, r.data[1:-2], unit=r.data[0])
+        except messages.Malformed:
+            return None
 
 
 class Stream:

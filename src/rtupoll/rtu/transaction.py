@@ -34,12 +34,13 @@ gives the devices ``turnaround`` to act on it.
 ``Failed.reply_time``) is the answer's reply time (``Answer.reply_time``), and
 ``Transaction.evidence`` what the transaction tells of its unit's timing as one value
 (``Evidence``: that reply time, the unit's late replies so far, the attempts made), which
-a read returns with its values (``Reply``). How long a late reply to the request stays
+a read returns with its values (``ReadResult``). How long a late reply to the request stays
 expected is the request's own (``patience``, ``Line.expire``), not the line's state.
 
-**Request checks** (``read_frame``, ``write_registers_frame``, ``write_coil_frame``,
-``pdu_frame``) build a request or raise ``Refused`` (nothing is sent): the quantity
-limits are ``rtu.functions.MAX_QUANTITY``.
+**Request checks** (``read_request``, ``write_registers_request``,
+``write_coil_request``: a message of ``rtu.messages``, which encodes its own frame;
+``pdu_frame``: any other request PDU, passed through as bytes) build a request or raise
+``Refused`` (nothing is sent): the quantity limits are ``rtu.functions.MAX_QUANTITY``.
 """
 
 from __future__ import annotations
@@ -55,13 +56,10 @@ from rtupoll.rtu.functions import (
     MAX_QUANTITY,
     Table,
     answer_length,
-    read_request,
     request_length,
-    write_coil_request,
-    write_multiple_request,
-    write_single_request,
 )
 from rtupoll.rtu.line import Answer, Garbled, Line
+from rtupoll.rtu.messages import ReadRequest, WriteMultiple, WriteSingle
 
 # BusStats.outcomes keys: one per transaction ("unconfirmed": a tolerated write without echo)
 OUTCOMES = ("ok", "timeout", "frame", "exception", "port", "broadcast", "unconfirmed")
@@ -293,7 +291,7 @@ class Evidence:
 
 
 @dataclass(slots=True)  # made per read: plain, not frozen (CPU)
-class Reply:
+class ReadResult:
     """A read's outcome as one value: the values (registers as 16-bit ints, coils and
     discrete inputs as 0/1) and the transaction's ``Evidence``."""
 
@@ -310,18 +308,18 @@ def check_unit(unit: int, *, broadcast: bool) -> None:
         raise Refused(f"unit {unit} is outside {what}")
 
 
-def read_frame(unit: int, table: Table, address: int, count: int) -> bytes:
+def read_request(unit: int, table: Table, address: int, count: int) -> ReadRequest:
     """A read request, or ``Refused``."""
     check_unit(unit, broadcast=False)
     most = MAX_QUANTITY[table.read_function]
     if not 1 <= count <= most or not address >= 0 or address + count > 0x10000:
         raise Refused(f"cannot read {count} {table.value} from 0x{address:X} "
                       f"(1..{most} within 0..65535)")
-    return read_request(unit, table, address, count)
+    return ReadRequest(unit, table.read_function, address, count)
 
 
-def write_registers_frame(unit: int, address: int, values: Sequence[int], *,
-                          function: int = 16) -> bytes:
+def write_registers_request(unit: int, address: int, values: Sequence[int], *,
+                            function: int = 16) -> WriteSingle | WriteMultiple:
     """A write of registers (FC06: one value, FC16), or ``Refused``."""
     check_unit(unit, broadcast=True)
     vals = [int(v) for v in values]
@@ -329,15 +327,15 @@ def write_registers_frame(unit: int, address: int, values: Sequence[int], *,
             not 1 <= len(vals) <= MAX_QUANTITY[16] or address < 0 or \
             address + len(vals) > 0x10000 or any(not 0 <= v <= 0xFFFF for v in vals):
         raise Refused(f"cannot write {vals} at 0x{address:X} with function {function}")
-    return write_single_request(unit, address, vals[0]) if function == 6 else \
-        write_multiple_request(unit, address, vals)
+    return WriteSingle(unit, 6, address, vals[0]) if function == 6 else \
+        WriteMultiple(unit, 16, address, tuple(vals))
 
 
-def write_coil_frame(unit: int, address: int, on: bool) -> bytes:
+def write_coil_request(unit: int, address: int, on: bool) -> WriteSingle:
     check_unit(unit, broadcast=True)
     if not 0 <= address <= 0xFFFF:
         raise Refused(f"coil address {address} is outside 0..65535")
-    return write_coil_request(unit, address, on)
+    return WriteSingle(unit, 5, address, int(on))
 
 
 def pdu_frame(unit: int, pdu: bytes) -> bytes:

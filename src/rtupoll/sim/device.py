@@ -45,12 +45,14 @@ from rtupoll.errors import UsageError
 from rtupoll.model.codec import Value, decode
 from rtupoll.model.interpret import FieldValue, field_words, interpret
 from rtupoll.model.profile import Field, Profile
-from rtupoll.rtu import Table, exception_response, read_response, with_crc
+from rtupoll.rtu import Table, with_crc
 from rtupoll.rtu.exception_codes import ExceptionCode
-from rtupoll.rtu.functions import pack_bits
 from rtupoll.rtu.messages import (
+    ExceptionReply,
     Malformed,
+    OtherReply,
     OtherRequest,
+    ReadReply,
     ReadRequest,
     Request,
     WriteMultiple,
@@ -236,7 +238,7 @@ class SimDevice:
             return self._identify(request)
         if isinstance(request, OtherRequest) and fc == 8 and 8 in self.profile.limits.functions \
                 and request.data[:2] == b"\x00\x00":  # return query data: the request back
-            return with_crc(bytes((unit,)) + request.pdu())
+            return OtherReply(unit, 8, request.data).frame()
         if fc not in self.profile.limits.functions or fc not in (1, 2, 3, 4, 5, 6, 16):
             return self._refuse(unit, fc, ExceptionCode.ILLEGAL_FUNCTION)
         if isinstance(request, Malformed):
@@ -272,7 +274,7 @@ class SimDevice:
         if self.profile.limits.silent_on_error and code in (ExceptionCode.ILLEGAL_FUNCTION,
                                                        ExceptionCode.ILLEGAL_VALUE):
             return None
-        return exception_response(unit, fc, code)
+        return ExceptionReply(unit, fc, code).frame()
 
     def _read(self, req: ReadRequest) -> bytes | None:
         unit, fc, address, count, table = req.unit, req.function, req.address, req.count, \
@@ -282,7 +284,7 @@ class SimDevice:
         regs = range(address, address + count)
         for r in regs:
             if (table, r) in self._exception_at:
-                return exception_response(unit, fc, self._exception_at[table, r])
+                return ExceptionReply(unit, fc, self._exception_at[table, r]).frame()
         if any(r not in self.readable[table] for r in regs) or (
                 table.is_register and any(r in self.holes for r in regs)) or (
                 count == 1 and table.is_register and address in self.shifts):
@@ -297,10 +299,7 @@ class SimDevice:
         for f in {f.name: f for r in regs for f in self._by_register.get((table, r), ())}.values():
             if self.motions[f.name].on_read():  # e.g. a peak that reading resets
                 self._render(f)
-        if fc in (1, 2):
-            data = pack_bits(words)
-            return with_crc(bytes([unit, fc, len(data)]) + data)
-        return read_response(unit, fc, words)  # (the builders: quicker than a ReadReply)
+        return ReadReply(unit, fc, words).frame()
 
     def _write_coil(self, req: WriteSingle) -> bytes | None:
         if any(f.table is Table.COIL for f in self.fields):
@@ -308,7 +307,7 @@ class SimDevice:
             if not fs or not all(f.writable for f in fs):
                 return self._refuse(req.unit, req.function, ExceptionCode.ILLEGAL_ADDRESS)
         self.image[Table.COIL][req.address] = req.value
-        return req.frame()
+        return WriteReply(req.unit, 5, req.address, req.value).frame()
 
     def _write(self, req: WriteSingle | WriteMultiple) -> bytes | None:
         unit, fc, address, values = req.unit, req.function, req.address, req.values
@@ -345,4 +344,5 @@ class SimDevice:
             return WriteReply(unit, 16, address, len(values)).frame()
         if self.write_reply == "short":
             return with_crc(struct.pack(">BBBH", unit, 6, 2, values[0]))
-        return None if self.write_reply == "none" else req.frame()
+        return None if self.write_reply == "none" else \
+            WriteReply(unit, 6, address, values[0]).frame()

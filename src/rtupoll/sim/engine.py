@@ -21,10 +21,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from rtupoll.rtu import ExceptionCode, crc_ok, exception_response
+from rtupoll.rtu import ExceptionCode, crc_ok
 from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at
 from rtupoll.rtu.functions import FUNCTIONS, WRITE_FUNCTIONS
-from rtupoll.rtu.messages import Malformed, Request, parse_request
+from rtupoll.rtu.messages import ExceptionReply, Malformed, Request, parse_request
 from rtupoll.sim.device import SimDevice, SimDeviceConfig
 from rtupoll.sim.faults import SILENT, Fault, FaultSet, mangle
 
@@ -158,7 +158,7 @@ class Engine:
             at = d.address
             if exc is not None:
                 code = int(exc.arg) if exc.arg is not None else ExceptionCode.DEVICE_FAILURE
-                reply: bytes | None = exception_response(unit, fc, code)
+                reply: bytes | None = ExceptionReply(unit, fc, code).frame()
             else:
                 reply = d.handle(request)
             if reply is None or broadcast:

@@ -29,12 +29,13 @@ from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
 from rtupoll.rtu.exception_codes import ExceptionCode
-from rtupoll.rtu.functions import READS, Table, exception_response, read_response
+from rtupoll.rtu.functions import READS, Table
+from rtupoll.rtu.messages import ExceptionReply, ReadReply, TableRequest
 from rtupoll.rtu.stream import Stream, Transaction
 from rtupoll.rtu.timing import Framing
 from rtupoll.sim.engine import Engine, Transmission
 from rtupoll.sniff.capfile import CaptureStream
-from rtupoll.sniff.model import carried_words, parse_request
+from rtupoll.sniff.model import carried_words
 
 if TYPE_CHECKING:
     from rtupoll.sim.runner import SimulatedLines
@@ -139,13 +140,13 @@ class ReplayEngine(Engine):
         unit, fc = frame[0], frame[1]
         table = READS.get(fc)
         if table is None or not table.is_register or len(frame) != 8:  # registers only
-            return exception_response(unit, fc, ExceptionCode.ILLEGAL_FUNCTION)
+            return ExceptionReply(unit, fc, ExceptionCode.ILLEGAL_FUNCTION).frame()
         start, count = int.from_bytes(frame[2:4], "big"), int.from_bytes(frame[4:6], "big")
         regs = self.image[unit]
         words = [regs.get((table, r)) for r in range(start, start + count)]
         if not words or any(w is None for w in words):
-            return exception_response(unit, fc, ExceptionCode.ILLEGAL_ADDRESS)
-        return read_response(unit, fc, [w for w in words if w is not None])
+            return ExceptionReply(unit, fc, ExceptionCode.ILLEGAL_ADDRESS).frame()
+        return ReadReply(unit, fc, tuple([w for w in words if w is not None])).frame()
 
 
 def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = False
@@ -172,10 +173,10 @@ def load_replay(path: Path, *, framing: Framing | None = None, timed: bool = Fal
             c = captured.setdefault(req, Captured())
             c.asked += 1
             c.replies += tx.reply is not None
-            r = parse_request(req)
+            r = tx.asked
             words = carried_words(tx, r)
-            if words is not None and (table := r.table) is not None:
-                regs.update(((table, r.start + i), w) for i, w in enumerate(words))
+            if words is not None and isinstance(r, TableRequest):
+                regs.update(((r.table, r.address + i), w) for i, w in enumerate(words))
 
     for t, data in capture.chunks():  # one pass: the requests and the latest registers
         learn(stream.feed(data, t))

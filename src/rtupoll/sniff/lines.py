@@ -11,7 +11,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from rtupoll.rtu.stream import Transaction
-from rtupoll.sniff.model import BusView, parse_request
+from rtupoll.sniff.model import BusView, describe, function_of
 
 HEADLINE = {"timeout": "NO REPLY", "garbled": "GARBLED REPLY", "exception": "EXCEPTION",
             "orphan": "REPLY TO NO REQUEST", "broken": "BROKEN FRAME", "noise": "STRAY BYTES"}
@@ -42,8 +42,9 @@ def frame_line(tx: Transaction, view: BusView, records: Sequence[Mapping[str, An
     elif unit is not None and unit.known is not None:
         spec = f"{unit.known.profile.id}@{unit.unit}"
         who = spec if unit.known.name == spec else f"{unit.known.name} ({spec})"
-    req = parse_request(tx.request.data)
-    parts = [head, who, f"fc{req.function:02d} {req.text}"]
+    req = tx.asked
+    assert req is not None
+    parts = [head, who, describe(req)]
     if tx.reply_time is not None:
         slow = ""
         if unit is not None and unit.known is not None \
@@ -59,7 +60,7 @@ def frame_line(tx: Transaction, view: BusView, records: Sequence[Mapping[str, An
         elif ok:
             parts.append(" ".join(f"{r['field']}={r['text']}" + (f" {r['unit']}" if r["unit"]
                                                                   else "") for r in ok))
-        elif req.function in (5, 6, 15, 16):
+        elif function_of(req) in (5, 6, 15, 16):
             parts.append("written (echoed)")
     if unit is not None and unit.hints and tx.status == "ok":
         parts.append(f"looks like {unit.hints[0].split(' ')[0]}")

@@ -24,8 +24,8 @@ from rtupoll.model.profile import Field, Profile
 from rtupoll.model.record import failed_record, poll_record, record
 from rtupoll.model.scaling import Unscaled, scale
 from rtupoll.rtu import messages
-from rtupoll.rtu.functions import READ_FUNCTIONS, Table
-from rtupoll.rtu.stream import Transaction
+from rtupoll.rtu.functions import Table
+from rtupoll.rtu.stream import Seen, Transaction
 
 RATE_WINDOW = 10.0  # seconds over which the request rate is measured
 REPLY_WINDOW = 1000  # reply times kept for the percentiles
@@ -40,56 +40,31 @@ class Known:
     address: int
 
 
-@dataclass(frozen=True)
-class Request:
-    """What a request asks for (``rtu.messages.parse_request``): a table run, or for any
-    other function (or a malformed request: ``problem`` says why) only the function."""
-
-    function: int
-    table: Table | None
-    start: int
-    count: int
-    message: messages.Request | None = None
-    problem: str = ""
-
-    @property
-    def text(self) -> str:
-        if self.table is None:
-            return f"function {self.function:#04x}" + (f": {self.problem}" if self.problem
-                                                        else "")
-        verb = "read" if self.function in READ_FUNCTIONS else "write"
-        return f"{verb} {self.table.value} 0x{self.start:04X} x{self.count}"
+def function_of(req: Seen) -> int:
+    """The request's function code (a refused one's without the exception bit)."""
+    return (req.function or 0) & 0x7F
 
 
-def parse_request(data: bytes) -> Request:
-    """The request a (CRC-valid) frame carries; one the parser refuses carries no table,
-    so no register is ever attributed to it."""
-    try:
-        msg = messages.parse_request(data[1:-2], unit=data[0])  # the stream checked the CRC
-    except messages.Malformed as bad:
-        return Request(data[1] & 0x7F if len(data) > 1 else 0, None, 0, 0, problem=bad.reason)
-    if isinstance(msg, messages.OtherRequest):
-        return Request(msg.function, None, 0, 0, msg)
-    return Request(msg.function, msg.table, msg.address, msg.count, msg)
+def describe(req: Seen) -> str:
+    """What the request asks, as the sniffer's lines say it: ``fc03 read holding 0x0010
+    x2``, or for any other function (or a refused request: why) only the function."""
+    fc = function_of(req)
+    if isinstance(req, messages.TableRequest):
+        verb = "read" if isinstance(req, messages.ReadRequest) else "write"
+        return f"fc{fc:02d} {verb} {req.table.value} 0x{req.address:04X} x{req.count}"
+    why = f": {req.reason}" if isinstance(req, messages.Malformed) else ""
+    return f"fc{fc:02d} function {fc:#04x}{why}"
 
 
-def carried_words(tx: Transaction, req: Request) -> tuple[int, ...] | None:
+def carried_words(tx: Transaction, req: Seen | None) -> tuple[int, ...] | None:
     """The registers (or bits) a successful transaction carried: read or written.
 
-    ``req`` is ``parse_request`` of the transaction's request (the caller has it already).
-    """
-    msg = req.message
-    if tx.status != "ok" or tx.reply is None or msg is None:
-        return None
-    if isinstance(msg, messages.ReadRequest):
-        try:
-            data = tx.reply.data  # its CRC checked by the stream
-            reply = messages.parse_reply(msg, data[1:-2], unit=data[0])
-        except messages.Malformed:
-            return None
-        return reply.values if isinstance(reply, messages.ReadReply) else None
-    if isinstance(msg, messages.WriteSingle | messages.WriteMultiple):
-        return msg.values
+    ``req`` is the transaction's ``asked`` (the caller has it already)."""
+    answer = tx.answer(req)
+    if isinstance(answer, messages.ReadReply):
+        return answer.values
+    if answer is not None and isinstance(req, messages.WriteSingle | messages.WriteMultiple):
+        return req.values
     return None
 
 
@@ -175,19 +150,22 @@ class BusView:
         u.recent.append(tx.time)
         u.rate(tx.time)  # keeps the window's times only
         u.last_seen = end
-        req = parse_request(tx.request.data)
+        req = tx.asked
+        assert req is not None
         if tx.status == "ok":
             u.ok += 1
             if tx.reply_time is not None:
                 u.reply_times.append(tx.reply_time)
-            if req.function not in u.answered:
-                u.answered.add(req.function)
+            fc = function_of(req)
+            if fc not in u.answered:
+                u.answered.add(fc)
                 u.hints_stale = True
         elif tx.status == "exception":
             code = tx.exception or 0
             u.exceptions[code] += 1
-            if req.table is not None and u.refused.get((req.table, req.start)) != code:
-                u.refused[req.table, req.start] = code
+            if isinstance(req, messages.TableRequest) and \
+                    u.refused.get((req.table, req.address)) != code:
+                u.refused[req.table, req.address] = code
                 u.hints_stale = True
         elif tx.status == "timeout":
             u.timeouts += 1
@@ -195,14 +173,14 @@ class BusView:
             u.garbled += 1
         got = carried_words(tx, req)
         if got is not None:
-            assert req.table is not None
-            block = (req.table, req.start, req.count)
-            if req.function in READ_FUNCTIONS and block not in u.reads:
+            assert isinstance(req, messages.TableRequest)
+            block = (req.table, req.address, req.count)
+            if isinstance(req, messages.ReadRequest) and block not in u.reads:
                 u.reads.add(block)
                 u.hints_stale = True
             for i, w in enumerate(got):
-                if u.image.get((req.table, req.start + i)) != w:
-                    u.image[req.table, req.start + i] = w
+                if u.image.get((req.table, req.address + i)) != w:
+                    u.image[req.table, req.address + i] = w
                     u.hints_stale = True
         if u.known is None:
             # the hints follow from answered, reads, image and refused alone
@@ -213,21 +191,22 @@ class BusView:
         return self._records(u, tx, req, got, end)
 
     # -- records --------------------------------------------------------------
-    def _records(self, u: Unit, tx: Transaction, req: Request,
+    def _records(self, u: Unit, tx: Transaction, req: Seen,
                  got: tuple[int, ...] | None, end: float) -> list[dict[str, Any]]:
         k = u.known
         assert k is not None
-        if req.table is None or req.function not in READ_FUNCTIONS:
+        if not isinstance(req, messages.ReadRequest):
             return []
+        start = req.address
         fields = [f for f in k.profile.fields if f.table is req.table
-                  and f.address < req.start + req.count and f.end > req.start]
+                  and f.address < start + req.count and f.end > start]
         fields.sort(key=lambda f: bool(f.scale_by))  # a frame's factors before what they scale
         out: list[dict[str, Any]] = []
         stamp = iso_time(end)
         for f in fields:
-            inside = f.address >= req.start and f.end <= req.start + req.count
+            inside = f.address >= start and f.end <= start + req.count
             if got is not None and inside:
-                fv = interpret(f, got[f.address - req.start : f.end - req.start])
+                fv = interpret(f, got[f.address - start : f.end - start])
                 # scale_by: times the factors' latest values seen (the other master reads them)
                 scaled = scale(fv, {n: v for n, (_, v) in u.latest.items()})
                 if isinstance(scaled, Unscaled):
@@ -248,15 +227,14 @@ class BusView:
             # else only part of the field was read: nothing to say about it
         return out
 
-    def _raw_records(self, u: Unit, tx: Transaction, req: Request,
+    def _raw_records(self, u: Unit, tx: Transaction, req: Seen,
                      got: tuple[int, ...] | None, end: float) -> list[dict[str, Any]]:
         """A unit with no profile: one record per register read, ``TABLE:ADDRESS``."""
-        if got is None or req.function not in READ_FUNCTIONS:
+        if got is None or not isinstance(req, messages.ReadRequest):
             return []
-        assert req.table is not None
         stamp = iso_time(end)
         return [{"time": stamp, "device": u.name, "profile": None, "address": u.unit,
-                 "field": f"{req.table.value}:{req.start + i}", "value": w, "unit": "",
+                 "field": f"{req.table.value}:{req.address + i}", "value": w, "unit": "",
                  "raw": [w], "severity": "ok", "text": f"0x{w:04X}", "status": "ok",
                  "error": ""} for i, w in enumerate(got)]
 
