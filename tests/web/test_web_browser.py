@@ -345,7 +345,8 @@ def info(gateway: str, devices: dict[str, dict[str, Any]]) -> str:
 
 AIR = {"profile": "huiwen-aq", "address": 3, "bus": "line1", "fields": {
     "co2": {"label": "CO2", "unit": "ppm", "kind": "number", "precision": 0},
-    "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None},
+    "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None,
+                  "severities": {"GOOD": "ok", "POOR": "warning"}, "unlisted": "warning"},
     "temperature": {"label": "temperature", "unit": "°C", "kind": "number", "precision": 1}}}
 
 
@@ -374,7 +375,7 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
         assert (a["gateway"], b["gateway"]) == ("building-a", "building-b")
         assert a["fields"] == {"co2": "612ppm", "co2_level": "GOOD", "temperature": "21.5°C"}
         assert b["fields"]["co2"] == "1480ppm" and b["fields"]["temperature"] == "23.4°C"
-        assert b["badges"]["co2_level"][0].startswith("POOR:badge")
+        assert b["badges"]["co2_level"] == ["POOR:badge sev-warning"]  # bridge/info's
         assert "2 gateways · 2 of 2 devices online" in browser.find_element("id", "summary").text
         # live: a new reading of one building, that building's card only
         publish(broker, "rtupoll/building-b/huiwen-aq_3", json.dumps(
