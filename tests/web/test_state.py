@@ -1,14 +1,18 @@
 """The dashboard of a polling process (``web.state``) and the fleet page (``web.fleet``,
 from what a gateway publishes) show one field alike: its label, unit, kind and
 precision come from one home (``model.interpret.field_kind``/``shown_precision``,
-``Field.title``), and so do its value and text; and both name the gateway by the one
-host-name rule MQTT publishes under (``config.mqtt_settings.default_gateway_id``)."""
+``Field.title``), and so do its value and text, and its severity and its badges'
+(``model.interpret.reading_severity``, the fleet page's from the names' severities
+``bridge/info`` carries); and both name the gateway by the one host-name rule MQTT
+publishes under (``config.mqtt_settings.default_gateway_id``)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import socket
+from collections import Counter
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
@@ -19,48 +23,82 @@ from rtupoll.config.mqtt_settings import MqttSettings, default_gateway_id
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.interpret import interpret
+from rtupoll.model.profile import Field, Profile
 from rtupoll.outputs.fleet import bridge_info
 from rtupoll.outputs.mqtt_commands import value_of
 from rtupoll.web.fleet import Fleet
 from rtupoll.web.service import WebService
 from rtupoll.web.state import field_state
 
-SHOWN = ("label", "unit", "kind", "precision", "value", "text", "status")
+SHOWN = ("label", "unit", "kind", "precision", "value", "text", "status", "severity",
+         "badges")
+
+
+def pages(profile: Profile, fields: tuple[Field, ...], raw: Callable[[Field], int]
+          ) -> Iterator[tuple[Field, dict[str, Any], dict[str, Any]]]:
+    """Each of ``fields`` of a device of ``profile`` holding ``raw(field)`` in its last
+    register: the dashboard's field and the fleet page's, made from the gateway's
+    ``bridge/info`` and state message as a broker carries them."""
+    site = from_specs("/dev/null", [(profile.id, 1)])
+    bus = site.buses[0]
+    dev = dataclasses.replace(bus.devices[0], fields=fields)
+    fleet = Fleet("rtupoll", clock=lambda: 1.8e9)
+    info = bridge_info("gw", "rtupoll/gw", [(bus, dev)], {dev.name: "dev"}, "1")
+    assert fleet.handle("rtupoll/gw/bridge/info", json.dumps(info).encode())
+    dashboard: dict[str, dict[str, Any]] = {}
+    state: dict[str, Any] = {}
+    for f in dev.fields:
+        fv = interpret(f, (0,) * (f.words - 1) + (raw(f),))
+        dashboard[f.name] = field_state(f, Reading(1.8e9, dev, f, fv), None)
+        state[f.name] = value_of(fv)  # as the state message carries it
+    assert fleet.handle("rtupoll/gw/dev", json.dumps(state).encode())
+    (gw,) = fleet.snapshot()["gateways"]
+    ((shown,),) = [b["devices"] for b in gw["buses"]]
+    page = {f["name"]: f for f in shown["fields"]}
+    assert list(page) == [f.name for f in dev.fields], profile.id
+    for f in dev.fields:
+        yield f, {k: dashboard[f.name].get(k) for k in SHOWN}, \
+            {k: page[f.name].get(k) for k in SHOWN}
 
 
 def test_the_dashboard_and_the_fleet_page_show_every_bundled_field_alike() -> None:
-    """Every field of every bundled profile, holding a raw 7 in its last register: the
-    dashboard's field against the fleet page's, made from the gateway's ``bridge/info``
-    and state message as a broker carries them."""
+    """Every field of every bundled profile, holding a raw 7 in its last register, is
+    shown alike, severity and badges too."""
     compared, told = 0, 0
     kinds: set[str] = set()
+    severity: Counter[str] = Counter()
     for profile in load_library().profiles.values():
-        site = from_specs("/dev/null", [(profile.id, 1)])
-        bus = site.buses[0]
-        dev = dataclasses.replace(bus.devices[0], fields=profile.fields)  # every field
-        fleet = Fleet("rtupoll", clock=lambda: 1.8e9)
-        info = bridge_info("gw", "rtupoll/gw", [(bus, dev)], {dev.name: "dev"}, "1")
-        assert fleet.handle("rtupoll/gw/bridge/info", json.dumps(info).encode())
-        dashboard: dict[str, dict[str, Any]] = {}
-        state: dict[str, Any] = {}
-        for f in dev.fields:
-            fv = interpret(f, (0,) * (f.words - 1) + (7,))
-            dashboard[f.name] = field_state(f, Reading(1.8e9, dev, f, fv), None)
-            state[f.name] = value_of(fv)  # as the state message carries it
-        assert fleet.handle("rtupoll/gw/dev", json.dumps(state).encode())
-        (gw,) = fleet.snapshot()["gateways"]
-        ((shown,),) = [b["devices"] for b in gw["buses"]]
-        page = {f["name"]: f for f in shown["fields"]}
-        assert list(page) == [f.name for f in dev.fields], profile.id
-        for f in dev.fields:
-            ours = {k: dashboard[f.name].get(k) for k in SHOWN}
-            theirs = {k: page[f.name].get(k) for k in SHOWN}
+        for f, ours, theirs in pages(profile, profile.fields, lambda f: 7):
             assert ours == theirs, (profile.id, f.name)
             compared += 1
             kinds.add(ours["kind"])
             told += ours["precision"] is not None
+            if ours["kind"] in ("enum", "flags"):
+                severity[ours["severity"]] += 1
     assert compared > 1000 and kinds == {"number", "enum", "flags", "text"}
     assert told > 500  # scaled registers are told their decimals on both pages
+    # enum codes and flags of every severity, not the neutral "info" of no severities
+    assert severity["warning"] > 50 and severity["error"] > 5 and severity["ok"] > 10, severity
+
+
+def test_every_enum_value_and_flag_has_the_dashboards_severity_on_the_fleet_page() -> None:
+    """Every enum code and flag of every bundled profile, an undocumented code or bit,
+    and none set: the fleet page's severity and badges are the dashboard's."""
+    seen: Counter[str] = Counter()
+    for profile in load_library().profiles.values():
+        fields = tuple(f for f in profile.fields if f.enum or f.flags)
+        if not fields:
+            continue
+        raws: set[int] = {0, 1 << 15 | 1 << 14}  # none set, and undocumented bits or codes
+        for f in fields:
+            raws |= {c for c in (*f.enum, *f.flags) if 0 <= c < 1 << 16}
+            raws.add(sum(m for m in f.flags if 0 <= m < 1 << 16))  # every flag at once
+        for raw in sorted(raws):
+            for f, ours, theirs in pages(profile, fields, lambda f, raw=raw: raw):
+                assert ours == theirs, (profile.id, f.name, raw)
+                seen[ours["severity"]] += 1
+                seen.update(b["severity"] for b in ours["badges"])
+    assert seen["ok"] and seen["info"] and seen["warning"] and seen["error"], seen
 
 
 AWKWARD = ["pi_lab-01", "Pi-Lab-01", "pi.lab 01", "PUMP-HOUSE.example.com", "-edge-",

@@ -345,7 +345,8 @@ def info(gateway: str, devices: dict[str, dict[str, Any]]) -> str:
 
 AIR = {"profile": "huiwen-aq", "address": 3, "bus": "line1", "fields": {
     "co2": {"label": "CO2", "unit": "ppm", "kind": "number", "precision": 0},
-    "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None},
+    "co2_level": {"label": "CO2 level", "unit": "", "kind": "enum", "precision": None,
+                  "severities": {"GOOD": "ok", "POOR": "warning"}, "unlisted": "warning"},
     "temperature": {"label": "temperature", "unit": "°C", "kind": "number", "precision": 1}}}
 
 
@@ -374,7 +375,7 @@ def test_the_fleet_two_gateways_on_one_broker(browser: Any, broker: Broker,
         assert (a["gateway"], b["gateway"]) == ("building-a", "building-b")
         assert a["fields"] == {"co2": "612ppm", "co2_level": "GOOD", "temperature": "21.5°C"}
         assert b["fields"]["co2"] == "1480ppm" and b["fields"]["temperature"] == "23.4°C"
-        assert b["badges"]["co2_level"][0].startswith("POOR:badge")
+        assert b["badges"]["co2_level"] == ["POOR:badge sev-warning"]  # bridge/info's
         assert "2 gateways · 2 of 2 devices online" in browser.find_element("id", "summary").text
         # live: a new reading of one building, that building's card only
         publish(broker, "rtupoll/building-b/huiwen-aq_3", json.dumps(
@@ -461,3 +462,52 @@ def test_the_fleet_page_with_hostile_retained_messages(browser: Any, broker: Bro
         until(lambda: shown(browser)["rtupoll/good/probe"]["fields"]["temperature"] ==
               "22.5°C", "the good gateway's next reading")
         browser.save_screenshot(str(tmp_path / "fleet-hostile.png"))
+
+
+# each enum's or flag set's row and badges as drawn: severity class and colours
+SEVERITIES = """
+const out = {};
+for (const r of document.querySelectorAll('tr.field')) {
+  const badges = Array.from(r.querySelectorAll('.badge')).map(b => {
+    const s = getComputedStyle(b);
+    return [b.textContent, b.className, s.backgroundColor, s.color];
+  });
+  if (badges.length && !r.querySelector('.badge.none')) out[r.dataset.field] =
+    {row: Array.from(r.classList).filter(c => c.startsWith('sev-')), badges: badges,
+     value: getComputedStyle(r.querySelector('td.val')).color};
+}
+return out;
+"""
+
+
+def test_the_fleet_page_colours_readings_as_the_gateways_dashboard(
+        browser: Any, broker: Broker, sim: Callable[..., SimulatedBus],
+        tmp_path: Path) -> None:
+    """A real gateway (``poll --mqtt --http``) polling a Huiwen whose CO2 level is
+    MODERATE (a warning) and whose CO2 sensor is SENSOR_ABNORMAL (an error), and ``web
+    --mqtt`` on the same broker: the fleet page's rows and badges have the dashboard's
+    severities and colours, from what the gateway publishes."""
+    bus = sim("huiwen-aq@3", tcp=True, tick=None)
+    bus.set(3, "co2_level", "MODERATE")
+    bus.set(3, "co2_failure", "SENSOR_ABNORMAL")
+    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "-o",
+                  str(tmp_path / "east.jsonl"), "--mqtt", broker.url, "--mqtt-id", "east",
+                  "--http", "127.0.0.1:0", "huiwen-aq@3"], tmp_path, name="east",
+                 fresh=True) as east, \
+            running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
+                    name="web", fresh=True) as web:
+        pages = {}
+        for name, p in (("dashboard", east), ("fleet", web)):
+            browser.get(p.url)
+            pages[name] = until(lambda: (s := browser.execute_script(SEVERITIES)).get(
+                "co2_failure") and s["co2_failure"]["badges"][0][0] == "SENSOR_ABNORMAL"
+                and s, f"the {name}'s CO2 sensor abnormal", limit=90)
+            browser.save_screenshot(str(tmp_path / f"severity-{name}.png"))
+        ours, theirs = pages["dashboard"], pages["fleet"]
+        assert ours["co2_level"]["row"] == ["sev-warning"]
+        assert ours["co2_level"]["badges"][0][:2] == ["MODERATE", "badge sev-warning"]
+        assert ours["co2_failure"]["row"] == ["sev-error"]
+        assert ours["co2_failure"]["badges"][0][:2] == ["SENSOR_ABNORMAL", "badge sev-error"]
+        assert ours["pm25_failure"]["badges"][0][:2] == ["NO_FAULT", "badge sev-ok"]
+        assert len(ours) >= 9  # the Huiwen's nine enums
+        assert theirs == ours  # every enum's row, badges and colours

@@ -521,3 +521,43 @@ def test_a_gateways_trends_outlive_its_info_again_but_not_its_devices() -> None:
     assert fleet.trend("rtupoll/site/a", "t")["v"] == []
     assert fleet.trend("rtupoll/site/x/y", "t")["v"] == [1.5]
     assert fleet.fields == 1
+
+
+def test_the_fleet_colours_readings_by_the_severities_bridge_info_carries(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Each name's severity as ``bridge/info`` says, ``unlisted`` for one it does not
+    list; a gateway that sends none gets neutral badges; what is not a severity, or
+    past the limits, is left out (and counted)."""
+    from rtupoll.web.fleet import MAX_NAMES, Fleet
+    fleet = Fleet("rtupoll", "mqtt://broker:1883/rtupoll")
+    device: dict[str, Any] = INFO["devices"]["huiwen-aq@3"]  # type: ignore[index]
+    fields = device["fields"]
+    level = {**fields["co2_level"], "unlisted": "warning", "severities": {
+        "GOOD": "ok", "POOR": "error", "MILD": "purple"}}
+    alarms = {**fields["alarms"], "unlisted": "warning", "severities": {
+        "fan": "info", "door": "error", "lamp": "ok"}}
+    many = {**fields["alarms"], "unlisted": "warning",
+            "severities": {f"f{i}": "error" for i in range(MAX_NAMES + 1)}}
+    info = {**INFO, "devices": {"huiwen-aq@3": {**device, "fields": {
+        "co2_level": level, "alarms": alarms, "many": many, "old": fields["alarms"]}}}}
+    with caplog.at_level(logging.WARNING, "rtupoll.web"):
+        assert feed(fleet, "rtupoll/a/bridge/info", info)
+
+    def shown(state: dict[str, Any]) -> dict[str, Any]:
+        assert feed(fleet, "rtupoll/a/huiwen-aq_3", state)
+        dev = fleet.snapshot()["gateways"][0]["buses"][0]["devices"][0]
+        return {f["name"]: (f["severity"], [(b["name"], b["severity"]) for b in f["badges"]])
+                for f in dev["fields"]}
+
+    got = shown({"co2_level": "POOR", "alarms": ["fan", "lamp"], "many": ["f1"],
+                 "old": ["fan"]})
+    assert got == {"co2_level": ("error", [("POOR", "error")]),
+                   "alarms": ("info", [("fan", "info"), ("lamp", "ok")]),
+                   "many": ("ok", [("f1", "info")]),  # past MAX_NAMES: none, neutral
+                   "old": ("ok", [("fan", "info")])}  # an older gateway's: neutral
+    got = shown({"co2_level": "MILD", "alarms": ["door", "bit 3"], "many": [], "old": []})
+    assert got["co2_level"] == ("warning", [("MILD", "warning")])  # "purple": unlisted
+    assert got["alarms"] == ("error", [("door", "error"), ("bit 3", "warning")])
+    assert shown({"co2_level": "unknown (9)", "alarms": [], "many": [], "old": []})[
+        "co2_level"] == ("warning", [("unknown (9)", "warning")])
+    assert "severities past the limits" in caplog.text

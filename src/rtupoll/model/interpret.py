@@ -8,7 +8,7 @@ go through ``interpret`` / ``field_words`` so they agree.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 from rtupoll.frozen import frozen
 from rtupoll.model.codec import (
@@ -71,20 +71,54 @@ def interpret(field: Field, words: Sequence[int]) -> FieldValue:
     value = _rounded(field, raw)
     if field.enum and isinstance(value, int):
         choice = field.enum.get(value)
-        if choice is None:
-            if field.other:
-                other = field.other
-                return FieldValue(field, f"{other.name} ({value})", raw, value, other.severity)
-            return FieldValue(field, enum_name(value, {}), raw, value, Severity.WARNING)
-        return FieldValue(field, choice.name, raw, value, choice.severity)
+        name = choice.name if choice is not None else \
+            f"{field.other.name} ({value})" if field.other else enum_name(value, {})
+        return FieldValue(field, name, raw, value,
+                          reading_severity(name, severities(field), unlisted_severity(field)))
     if field.flags and isinstance(value, int):
         names = active_flags(value, {m: c.name for m, c in field.flags.items()})
-        sev = max((c.severity for m, c in field.flags.items() if m and value & m == m),
-                  key=lambda s: s.rank, default=Severity.OK)
-        if any(n.startswith("bit ") for n in names):
-            sev = max(sev, Severity.WARNING, key=lambda s: s.rank)
-        return FieldValue(field, names, raw, value, sev)
+        return FieldValue(field, names, raw, value,
+                          reading_severity(names, severities(field), Severity.WARNING))
     return FieldValue(field, value, raw)
+
+
+_SEVERITIES: dict[int, tuple[Field, dict[str, Severity]]] = {}  # id(field) -> its names'
+
+
+def severities(field: Field) -> Mapping[str, Severity]:
+    """Each name an enum or flags field's reading can hold (its enum values', its
+    flags'), with its severity in the profile; empty for any other field. What a fleet
+    viewer is told in ``bridge/info`` (outputs.fleet) to colour readings as the
+    dashboard does (``reading_severity``)."""
+    got = _SEVERITIES.get(id(field))
+    if got is None or got[0] is not field:
+        if len(_SEVERITIES) > 100_000:  # profiles reloaded again and again: start afresh
+            _SEVERITIES.clear()
+        got = _SEVERITIES[id(field)] = (field, {
+            c.name: c.severity for c in (*field.enum.values(), *field.flags.values())})
+    return got[1]
+
+
+def unlisted_severity(field: Field) -> Severity:
+    """The severity of a name ``severities`` does not list: an enum code the manual
+    does not list (``unknown (9)``) or the catch-all's (``other:``, its severity), an
+    undocumented flag bit (``bit 3``): warning, but for a catch-all's own."""
+    return field.other.severity if field.enum and field.other else Severity.WARNING
+
+
+def reading_severity(value: object, named: Mapping[str, Severity], unlisted: Severity
+                     ) -> Severity:
+    """The one rule for a reading's severity, from the names it holds (an enum's value,
+    or one flag's: a str; a flag set's active names: a list): each name's in ``named``
+    (``severities``), ``unlisted`` for a name not there (``unlisted_severity``); a flag
+    set's is its worst name's, ok with none set. ``interpret``, the dashboard's badges
+    and the fleet page (from ``bridge/info`` and a state message) all go by it."""
+    worst = Severity.OK
+    for name in value if isinstance(value, list) else (value,):
+        sev = named.get(name, unlisted) if isinstance(name, str) else unlisted
+        if sev.rank > worst.rank:
+            worst = sev
+    return worst
 
 
 def field_words(field: Field, value: Value, current: Sequence[int] | None = None

@@ -6,7 +6,8 @@ lower-cased, every character other than ``[a-z0-9_-]`` as ``_``), which names it
 default base topic (``rtupoll/<gateway_id>``) and its Home Assistant ids
 (``rtupoll_<gateway_id>_<device>``). ``BASE/bridge/info`` (retained) says who it is
 and what its devices and fields are, with each field's label, unit, kind and
-precision: what a fleet viewer (``rtupoll web --mqtt``) needs to show it.
+precision, and an enum's or flag set's names with their severities: what a fleet viewer
+(``rtupoll web --mqtt``) needs to show it as the gateway's own dashboard does.
 
 Pure: no MQTT library, no I/O but the host name.
 """
@@ -16,7 +17,12 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.model.interpret import field_kind, shown_precision
+from rtupoll.model.interpret import (
+    field_kind,
+    severities,
+    shown_precision,
+    unlisted_severity,
+)
 from rtupoll.model.profile import first_clause
 
 if TYPE_CHECKING:
@@ -37,9 +43,17 @@ def choice_label(choice: Choice) -> str:
 
 def field_info(field: Field) -> dict[str, Any]:
     """A field as ``bridge/info`` tells a fleet viewer of it: its title, the device's
-    unit, and the kind and precision every screen goes by (``model.interpret``)."""
-    return {"label": field.title, "unit": field.unit, "kind": field_kind(field),
-            "precision": shown_precision(field)}
+    unit, and the kind and precision every screen goes by (``model.interpret``); for an
+    enum or flags field, ``severities``: each name it can hold with its severity, and
+    ``unlisted``: the severity of a name not there (``unknown (9)``, ``bit 3``), from
+    which a reading's severity is ``model.interpret.reading_severity``'s."""
+    kind = field_kind(field)
+    out: dict[str, Any] = {"label": field.title, "unit": field.unit, "kind": kind,
+                           "precision": shown_precision(field)}
+    if kind in ("enum", "flags"):
+        out["severities"] = {n: s.value for n, s in severities(field).items()}
+        out["unlisted"] = unlisted_severity(field).value
+    return out
 
 
 def bridge_info(gateway_id: str, base: str, devices: Iterable[tuple[BusConfig, DeviceConfig]],

@@ -3,7 +3,8 @@
 The viewer has no bus of its own. It subscribes to ``PREFIX/#`` and finds gateways by
 their retained ``BASE/bridge/info`` (docs/mqtt.md: the gateway's id, version, base
 topic, and each device's profile, address, bus and fields with label, unit, kind and
-precision). Under each known BASE it reads::
+precision, and an enum's or flag set's names with their severities). Under each known
+BASE it reads::
 
     BASE/bridge/state           online | offline     the gateway itself (its last will)
     BASE/DEVICE/availability    online | offline     the device
@@ -16,14 +17,17 @@ and bytes) until it comes. The page and its events have the shape of ``poll --ht
 topic, ``BASE/LEVEL`` (LEVEL: its one topic level, no ``/``), unique by construction:
 two buildings' devices at the same address never mix, nor a device ``x/y`` of base
 ``site`` (level ``x_y``) and a device ``y`` of base ``site/x``. Numeric fields get the
-same trend rings, from the state messages as they arrive.
+same trend rings, from the state messages as they arrive; an enum's or flag set's
+reading has the severity the dashboard gives it (``model.interpret.reading_severity``,
+from the names in the state message and their severities in ``bridge/info``).
 
 Every message is handled on its own (``handle``): one that cannot be (not JSON, a
 number too large, the wrong types, too big) is dropped, counted in one log line a
 minute, and the session goes on. Every size is bounded (docs/web.md, "Limits"):
 ``MAX_MESSAGE`` bytes a message, ``MAX_GATEWAYS``, ``MAX_DEVICES`` and ``MAX_FIELDS``
-a gateway, ``MAX_FLEET_FIELDS`` in all, ``MAX_PRECISION`` decimals, ``MAX_TEXT``
-characters of a name, label, unit or text value.
+a gateway, ``MAX_FLEET_FIELDS`` in all, ``MAX_PRECISION`` decimals, ``MAX_NAMES`` names
+with a severity a field and ``MAX_GATEWAY_NAMES`` a gateway, ``MAX_TEXT`` characters of
+a name, label, unit or text value.
 """
 
 from __future__ import annotations
@@ -37,8 +41,8 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from rtupoll.model.interpret import DISPLAY_UNITS, KINDS, shown_number
-from rtupoll.model.profile import is_difference
+from rtupoll.model.interpret import DISPLAY_UNITS, KINDS, reading_severity, shown_number
+from rtupoll.model.profile import Severity, is_difference
 from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
 from rtupoll.outputs.mqtt_state import topic_name
 from rtupoll.refusals import Refusals
@@ -56,6 +60,8 @@ MAX_DEVICES = 1_000  # per gateway
 MAX_FIELDS = 2_000  # per gateway (each numeric one has a trend ring, 15 kB at most)
 MAX_FLEET_FIELDS = 10_000  # in all: trends of 152 MB at most
 MAX_PRECISION = 6  # decimals a number is shown with at most
+MAX_NAMES = 256  # names with a severity a field (an enum's values, a flag set's flags)
+MAX_GATEWAY_NAMES = 20_000  # and a gateway (some 2 MB at most)
 MAX_TEXT = 200  # characters of a name, label, unit, error or text value shown
 INFO, BRIDGE, AVAIL = "/bridge/info", "/bridge/state", "/availability"
 
@@ -209,6 +215,7 @@ class Fleet:
         room = min(MAX_FIELDS, MAX_FLEET_FIELDS - self.fields + (sum(
             len(d.info["fields"]) for d in old.devices.values()) if old else 0))
         cut = 0
+        names = [MAX_GATEWAY_NAMES]  # names with a severity this gateway may still have
         for name, d in devices.items():
             if not isinstance(d, dict):
                 continue
@@ -218,9 +225,10 @@ class Fleet:
             if len(gw.devices) >= MAX_DEVICES or len(level) > MAX_TEXT:
                 cut += 1
                 continue
-            fields = _field_infos(d.get("fields"), room)
+            fields = _field_infos(d.get("fields"), room, names)
             cut += max(0, (len(d["fields"]) if isinstance(d.get("fields"), dict) else 0)
                        - len(fields))
+            cut += sum(f.pop("cut", 0) for f in fields.values())
             room -= len(fields)
             meta = {"profile": short(d.get("profile") or ""), "bus": short(d.get("bus") or ""),
                     "address": d.get("address") if isinstance(d.get("address"), int) and
@@ -231,8 +239,10 @@ class Fleet:
             gw.devices[level] = Device(shown, meta, level) if prev is None else \
                 Device(shown, meta, level, prev.availability, prev.values, prev.time, prev.at)
         if cut:
-            self.dropped.refused(f"devices or fields past the limits ({MAX_DEVICES} devices, "
-                                 f"{MAX_FIELDS} fields a gateway, {MAX_FLEET_FIELDS} in all)")
+            self.dropped.refused(f"devices, fields or severities past the limits ({MAX_DEVICES} "
+                                 f"devices, {MAX_FIELDS} fields a gateway, {MAX_FLEET_FIELDS} "
+                                 f"in all, {MAX_NAMES} names a field, {MAX_GATEWAY_NAMES} "
+                                 "a gateway)")
         self._replace(base, gw)
         for topic in [t for t in self.waiting if t.startswith(base + "/")]:
             held = self.waiting.pop(topic)
@@ -310,9 +320,11 @@ def _value(v: object) -> object:
     return None
 
 
-def _field_infos(got: object, room: int) -> dict[str, dict[str, Any]]:
+def _field_infos(got: object, room: int, names: list[int]) -> dict[str, dict[str, Any]]:
     """A device's fields from its bridge/info, at most ``room``, each with its label,
-    unit, kind and precision checked and bounded."""
+    unit, kind, precision and (an enum, a flag set) names' severities checked and
+    bounded (``names``: how many names the gateway may still have; a field whose names
+    do not fit has none, and ``cut``)."""
     out: dict[str, dict[str, Any]] = {}
     if not isinstance(got, dict):
         return out
@@ -326,8 +338,26 @@ def _field_infos(got: object, room: int) -> dict[str, dict[str, Any]]:
             not isinstance(p, bool) else None
         kind = v.get("kind") if v.get("kind") in KINDS else "number"
         out[short(k)] = {"label": short(v.get("label") or ""), "unit": short(v.get("unit") or ""),
-                         "kind": kind, "precision": precision}
+                         "kind": kind, "precision": precision, **_severities(v, names)}
     return out
+
+
+_SEVERITY = {s.value: s for s in Severity}
+
+
+def _severities(v: dict[str, Any], room: list[int]) -> dict[str, Any]:
+    """A field's ``severities`` (name -> severity) and ``unlisted`` from its bridge/info,
+    checked; none from a gateway that sends none (its badges are ``info``), nor past
+    the limits (``cut``: 1)."""
+    got, unlisted = v.get("severities"), _SEVERITY.get(str(v.get("unlisted")))
+    if not isinstance(got, dict) or unlisted is None:
+        return {}
+    if len(got) > min(MAX_NAMES, room[0]):
+        return {"cut": 1}
+    room[0] -= len(got)
+    named = {name: s for name, sev in got.items()
+             if (s := _SEVERITY.get(str(sev))) is not None and len(name) <= MAX_TEXT}
+    return {"severities": named, "unlisted": unlisted}
 
 
 def _fields(dev: Device) -> dict[str, dict[str, Any]]:
@@ -368,7 +398,8 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
         for f in fields:
             if f["status"] == "ok":
                 f["last"] = {"text": f["text"], "time": dev.at}
-                f.update(value=None, text="offline", status="offline", badges=[])
+                f.update(value=None, text="offline", status="offline", severity="ok",
+                         badges=[])
     info = dev.info
     return {"key": f"{gw.base}/{dev.level}", "name": dev.name,
             "profile": str(info.get("profile") or ""), "model": "",
@@ -407,7 +438,7 @@ def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: floa
         return out
     out["time"] = at
     if name not in values:
-        out["status"], out["text"] = "absent", "not published"
+        out["status"], out["text"], out["severity"] = "absent", "not published", "info"
         return out
     value = values[name]
     if value is None:
@@ -415,11 +446,19 @@ def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: floa
         return out
     value = shown_value(name, meta, value)
     out["status"], out["value"] = "ok", json_value(value)
+    named: dict[str, Severity] | None = meta.get("severities")
+    unlisted: Severity = meta.get("unlisted", Severity.WARNING)
+
+    def severity(names: object) -> str:  # without bridge/info's severities: neutral
+        return "info" if named is None else reading_severity(names, named, unlisted).value
+
+    if kind in ("enum", "flags") and named is not None:
+        out["severity"] = severity(value)
     if kind == "flags" and isinstance(value, list):
-        out["badges"] = [{"name": str(n), "severity": "info"} for n in value]
+        out["badges"] = [{"name": str(n), "severity": severity(n)} for n in value]
         out["text"] = ", ".join(map(str, value)) or "none"
     elif kind == "enum":
-        out["badges"] = [{"name": str(value), "severity": "info"}]
+        out["badges"] = [{"name": str(value), "severity": severity(value)}]
         out["text"] = str(value)
     elif isinstance(value, float) and precision is not None and math.isfinite(value):
         out["text"] = f"{value:.{max(precision, 0)}f}"

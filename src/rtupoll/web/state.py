@@ -34,7 +34,10 @@ from rtupoll.model.interpret import (
     display_unit,
     display_value,
     field_kind,
+    reading_severity,
+    severities,
     shown_precision,
+    unlisted_severity,
 )
 
 if TYPE_CHECKING:
@@ -119,8 +122,9 @@ def field_state(f: Field, latest: Reading | None, last_good: Reading | None, *,
         return out
     out["value"] = json_value(value)
     if f.flags and isinstance(fv.value, list):
-        sev = {c.name: c.severity.value for c in f.flags.values()}
-        out["badges"] = [{"name": n, "severity": sev.get(n, "warning")} for n in fv.value]
+        named, unlisted = severities(f), unlisted_severity(f)
+        out["badges"] = [{"name": n, "severity": reading_severity(n, named, unlisted).value}
+                         for n in fv.value]
     elif f.enum and isinstance(fv.value, str):
         out["badges"] = [{"name": fv.value, "severity": fv.severity.value}]
     return out
