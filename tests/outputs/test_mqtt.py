@@ -280,7 +280,7 @@ def test_poll_now_and_submit_run_ahead_of_the_schedule() -> None:
         calls = len(fake.calls)
         got = await bp.submit(lambda transport: transport.read(
             4, Table.INPUT, 1, 1, timeout=0.1))
-        assert got == (0,) and len(fake.calls) == calls + 1
+        assert got.values == (0,) and len(fake.calls) == calls + 1
         stop.set()
         await task
 
