@@ -4,8 +4,8 @@ the wire's ints, and the specification's names for each."""
 from __future__ import annotations
 
 from rtupoll.errors import DeviceException
-from rtupoll.rtu import EXCEPTION_NAMES, ExceptionCode, exception_name, exception_response
-from rtupoll.rtu.functions import exception_name as table_name
+from rtupoll.rtu import EXCEPTION_NAMES, ExceptionCode, exception_name
+from rtupoll.rtu.messages import ExceptionReply
 
 
 def test_every_code_is_the_wire_int_and_has_the_specifications_name() -> None:
@@ -16,11 +16,10 @@ def test_every_code_is_the_wire_int_and_has_the_specifications_name() -> None:
     assert exception_name(ExceptionCode.TARGET_FAILED) == \
         "GATEWAY TARGET DEVICE FAILED TO RESPOND"
     assert exception_name(9) == "UNKNOWN EXCEPTION"
-    assert table_name is exception_name  # the function table's is the same, not a copy
 
 
 def test_a_code_goes_on_the_wire_and_into_words_as_its_number() -> None:
-    assert exception_response(1, 3, ExceptionCode.ILLEGAL_ADDRESS)[:3] == b"\x01\x83\x02"
+    assert ExceptionReply(1, 3, ExceptionCode.ILLEGAL_ADDRESS).frame()[:3] == b"\x01\x83\x02"
     exc = DeviceException(ExceptionCode.ILLEGAL_ADDRESS, unit=7, function=3)
     assert str(exc) == "device 7 answered to function 0x03 with exception 02 ILLEGAL DATA ADDRESS"
     assert exc.code == 2 and f"{exc.code}" == "2"

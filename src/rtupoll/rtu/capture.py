@@ -26,6 +26,7 @@ from dataclasses import dataclass, field, replace
 
 from rtupoll.rtu import messages
 from rtupoll.rtu.crc import crc16, crc_ok
+from rtupoll.rtu.exception_codes import exception_name
 from rtupoll.rtu.frames import Direction, lengths
 from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
@@ -36,7 +37,6 @@ from rtupoll.rtu.functions import (
     WRITES,
     Table,
     bits,
-    exception_name,
     words,
 )
 

@@ -15,8 +15,6 @@ import struct
 from collections.abc import Sequence
 
 from rtupoll.frozen import frozen
-from rtupoll.rtu.exception_codes import EXCEPTION_NAMES as EXCEPTION_NAMES  # (re-exported)
-from rtupoll.rtu.exception_codes import exception_name as exception_name
 
 MAX_FRAME = 256  # the RTU maximum, address to CRC
 MAX_PDU = MAX_FRAME - 3  # function and data: the frame without unit and CRC

@@ -30,7 +30,7 @@ import struct
 from dataclasses import dataclass
 
 from rtupoll.rtu.crc import crc_ok, with_crc
-from rtupoll.rtu.exception_codes import ExceptionCode
+from rtupoll.rtu.exception_codes import ExceptionCode, exception_name
 from rtupoll.rtu.functions import (
     FUNCTIONS,
     MAX_QUANTITY,
@@ -39,7 +39,6 @@ from rtupoll.rtu.functions import (
     Table,
     bits,
     data_bytes,
-    exception_name,
     pack_bits,
     words,
 )

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 from rtupoll.rtu import messages
 from rtupoll.rtu.crc import crc_ok
+from rtupoll.rtu.exception_codes import exception_name
 from rtupoll.rtu.frames import NOT_A_FRAME, Direction, frame_at, lengths
 from rtupoll.rtu.functions import (
     EXCEPTION_LENGTH,
@@ -45,7 +46,6 @@ from rtupoll.rtu.functions import (
     MAX_FRAME,
     READ_FUNCTIONS,
     answer_length,
-    exception_name,
     reply_length,
     request_length,
 )
