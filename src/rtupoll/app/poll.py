@@ -102,6 +102,7 @@ def run(job: PollRun, *, stop: Callable[[], asyncio.Event],
             console.print(view.render(width=console.width))
         _echo_found(scheduler, say)
         return failures(site, readings)
+    return Outcome()  # the records' reader left (a broken pipe, ``| head``): done
 
 
 def record_format(fmt: str, site: Site, *, header: bool = True) -> RecordFormat:
