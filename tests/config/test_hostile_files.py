@@ -23,7 +23,7 @@ from typing import Any
 
 import click
 import pytest
-from cli_runner import RTUPOLL, Ran, rtupoll, rtupoll_process
+from cli_runner import RTUPOLL, Ran, rtupoll
 from click.testing import CliRunner
 from forked_cli import rtupoll_popen, rtupoll_run
 
@@ -442,7 +442,8 @@ def test_the_installed_command_gives_a_hostile_files_line(case: str, tmp_path: P
     content = WHOLE_FILES[case][0]
     path.write_bytes(content.encode() if isinstance(content, str) else content)
     cpu = children_cpu()
-    proc = rtupoll_process("poll", "-c", str(path), "--once", fresh=True)
+    proc = subprocess.run([RTUPOLL, "poll", "-c", str(path), "--once"], capture_output=True,
+                          text=True, timeout=60)
     assert children_cpu() - cpu < LIMIT + 5  # the whole command, start-up included
     assert_gives_its_line(proc, path)
 
