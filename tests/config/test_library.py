@@ -13,11 +13,10 @@ from pathlib import Path
 from typing import Any, cast
 
 import pytest
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 from virtual import START, VirtualBus, VirtualClock
 
 from rtupoll import rtu
-from rtupoll.cli import cli
 from rtupoll.config.library import load_library, load_one, load_profile
 from rtupoll.config.paths import bundled_dir
 from rtupoll.errors import DeviceTimeout
@@ -36,8 +35,8 @@ SEEDS = {"net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117", "banner-
 README = Path(__file__).resolve().parents[2] / "README.md"
 
 
-def run(*args: str) -> Result:
-    return CliRunner().invoke(cli, list(args))
+def run(*args: str) -> Ran:
+    return rtupoll(*args)
 
 
 def test_the_library_has_fifteen_more_profiles_than_the_seeds() -> None:
@@ -49,7 +48,7 @@ def test_the_library_has_fifteen_more_profiles_than_the_seeds() -> None:
 def test_every_bundled_profile_passes_check_and_says_where_it_comes_from(pid: str) -> None:
     path = bundled_dir() / f"{pid}.yaml"
     result = run("profiles", "check", str(path))
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     p = load_profile(path)
     assert p.kind and p.vendor and p.manual
     header = path.read_text(encoding="utf-8").split("\nid:")[0]
@@ -66,7 +65,7 @@ def test_every_bundled_profile_is_polled_against_the_simulator(pid: str) -> None
     with simulated_bus([f"{pid}@{unit}"], tcp=True, tick=None) as bus:
         result = run("poll", "--port", bus.port, "--once", "--format", "json",
                      f"{pid}@{unit}")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     recs = [json.loads(line) for line in result.stdout.splitlines()]
     assert [r["field"] for r in recs] == [f.name for f in p.default_fields()]
     for r in recs:
@@ -270,7 +269,7 @@ def test_energy_totals_are_counters_polled_every_minute() -> None:
 
 def test_profiles_list_groups_by_kind_then_vendor() -> None:
     result = run("profiles", "list", "--format", "json")
-    assert result.exit_code == 0
+    assert result.returncode == 0
     rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert {r["id"] for r in rows} >= set(BUNDLED)
     keys = [(r["kind"], r["vendor"].lower()) for r in rows]
@@ -297,7 +296,7 @@ def test_profiles_list_groups_by_kind_then_vendor() -> None:
 def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str],
                                                        why: str) -> None:
     result = run("profiles", "search", text, "--format", "json")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert {r["id"] for r in rows} == found
     assert all(r["match"] == why for r in rows)
@@ -305,7 +304,7 @@ def test_profiles_search_by_vendor_model_kind_or_field(text: str, found: set[str
 
 def test_profiles_search_without_a_match_is_a_usage_error() -> None:
     result = run("profiles", "search", "no-such-device-anywhere")
-    assert result.exit_code == 2
+    assert result.returncode == 2
     assert "no profile matches 'no-such-device-anywhere'" in result.stderr
 
 
@@ -356,7 +355,7 @@ def test_scan_names_an_sdm120_that_answers_every_register_of_its_document(
     with simulated_bus(["eastron-sdm120@5", "eastron-sdm230@6", "eastron-sdm630@7"],
                        tcp=True, tick=None) as bus:
         result = run("scan", "--port", bus.port, "--baudrate", "9600", "--addresses", "5-7")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     found = dict(re.findall(r"^ +(\d+) +9600 8N1 +([a-z0-9-]+)", result.stdout, re.M))
     assert found == {"5": "eastron-sdm120", "6": "eastron-sdm230", "7": "eastron-sdm630"}
 
@@ -377,7 +376,7 @@ def test_growatt_waits_the_850_ms_its_document_asks_for_between_commands() -> No
                        on_wire=wire.append) as bus:
         result = run("poll", "--port", bus.port, "--once", "--format", "json",
                      "growatt-inverter@1")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     frames = [f for f in wire if f.direction in ("in", "out")]
     assert len(frames) >= 4 and [f.direction for f in frames] == ["in", "out"] * (
         len(frames) // 2)
@@ -399,7 +398,7 @@ def test_scan_tells_every_new_profile_apart() -> None:
     with simulated_bus([f"{pid}@{u}" for pid, u in units.items()], tcp=True, tick=None) as bus:
         result = run("scan", "--port", bus.port, "--baudrate", "9600", "--turnaround", "2",
                      "--addresses", ",".join(map(str, units.values())))
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     found = dict(re.findall(r"^ +(\d+) +9600 8N1 +([a-z0-9-]+)", result.stdout, re.M))
     assert found == {str(u): pid for pid, u in units.items()}
 
