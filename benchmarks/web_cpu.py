@@ -26,6 +26,7 @@ from pathlib import Path
 from poll_common import simulator
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # its helpers' own imports
 from tests.web_helpers import running
 
 CLIENTS = 10

@@ -18,8 +18,8 @@ files' contents) and the unverified profiles already warned about (once a proces
 tests/cli/test_cli_runner.py proves two runs do not leak into each other.
 
 Standard input, output and error are not terminals (as in a subprocess with pipes).
-What needs a process stays a process (``rtupoll_process``, the same arguments; forked
-from a server that imported rtupoll once, tests/forked_cli.py, or ``fresh=True``): a
+What needs a process stays a process (``forked_cli.rtupoll_popen``/``rtupoll_run``:
+forked from a server that imported rtupoll once; ``subprocess`` for a fresh one): a
 signal from outside, a terminal, a closed or full descriptor, the process's own exit;
 imports at start-up and an early Ctrl-C need a fresh one. Tests keep at least one of
 those per command and per fault family.
@@ -32,7 +32,6 @@ import contextlib
 import logging
 import os
 import signal
-import subprocess
 import sys
 import time
 import warnings
@@ -42,13 +41,12 @@ from pathlib import Path
 from typing import Any
 
 from click.testing import CliRunner
-from forked_cli import rtupoll_run
 
 # imported once, here: under ``python -m pytest`` importing it sets the early-signal
 # handler of the console script (rtupoll/cli/__init__.py), which is then the process's
 from rtupoll.cli import main
 
-__all__ = ["RTUPOLL", "Ran", "isolated", "rtupoll", "rtupoll_process"]
+__all__ = ["RTUPOLL", "Ran", "isolated", "rtupoll"]
 
 RTUPOLL = str(Path(sys.executable).with_name("rtupoll"))  # the console script
 # every signal a command may handle (SIGKILL and SIGSTOP cannot be)
@@ -152,11 +150,3 @@ def rtupoll(*args: str, input: str | bytes | None = None,
     return Ran(tuple(args), code, stdout.decode("utf-8", "replace"),
                stderr.decode("utf-8", "replace"), cpu)
 
-
-def rtupoll_process(*args: str, timeout: float = 60, fresh: bool = False, **kw: Any
-                    ) -> subprocess.CompletedProcess[str]:
-    """Run ``rtupoll ARGS`` as a process of its own (the console script), output
-    captured: forked from the test process's fork server (tests/forked_cli.py), or
-    (``fresh``) a new interpreter, start-up and imports included."""
-    run = subprocess.run if fresh else rtupoll_run
-    return run([RTUPOLL, *args], capture_output=True, text=True, timeout=timeout, **kw)

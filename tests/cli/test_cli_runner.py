@@ -8,13 +8,14 @@ import json
 import logging
 import os
 import signal
+import subprocess
 import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from cli_runner import _SIGNALS, rtupoll, rtupoll_process
+from cli_runner import _SIGNALS, RTUPOLL, rtupoll
 
 from rtupoll.sim.runner import SimulatedBus
 
@@ -79,7 +80,8 @@ def test_in_process_and_as_a_process_the_command_says_the_same(
                  ["read", "-p", bus.port, "--timeout", "0.2", "--retries", "0",
                   "huiwen-aq@4", "co2"]):
         inside = rtupoll(*args, env={k: None for k in os.environ if k.startswith("RTUPOLL_")})
-        outside = rtupoll_process(*args, env=env, fresh=True)
+        outside = subprocess.run([RTUPOLL, *args], env=env, capture_output=True, text=True,
+                                 timeout=60)
         assert (inside.returncode, inside.stderr) == (outside.returncode, outside.stderr), args
         # a record's time stamp is the only thing that may differ
         assert [line.split(",", 1)[-1] for line in inside.stdout.splitlines()] == \

@@ -7,9 +7,8 @@ import subprocess
 import sys
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.model.carried import carried
 from rtupoll.rtu.capture import decode_stream, parse_hex, split
@@ -20,8 +19,8 @@ def frames(text: str, **kw: int):  # type: ignore[no-untyped-def]
 
 
 def run(*args: str, input: str | None = None) -> tuple[int, str]:
-    result = CliRunner().invoke(cli, list(args), input=input)
-    return result.exit_code, result.output
+    result = rtupoll(*args, input=input)
+    return result.returncode, (result.stdout + result.stderr)
 
 
 # --- frames that are right --------------------------------------------------------------

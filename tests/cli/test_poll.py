@@ -1,7 +1,7 @@
 """``rtupoll poll``: one-shot scans, output formats, site files, the simulator, and errors.
 
-These run the real command in-process (``CliRunner`` through the ``rtupoll`` group,
-which maps errors to exit codes) against simulated buses. Streaming under faults
+These run the real command in-process (``cli_runner.rtupoll``: the console script's
+entry point, which maps errors to exit codes) against simulated buses. Streaming under faults
 and signals is in ``test_poll_faults.py``.
 """
 
@@ -15,19 +15,18 @@ from pathlib import Path
 from typing import Any
 
 import serial
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 from conftest import ANSWERED, PATIENT, live_and_dead
 
-from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.records import POLL_KEYS
 
 
-def poll(*args: str) -> Result:
-    return CliRunner().invoke(cli, ["poll", *args])
+def poll(*args: str) -> Ran:
+    return rtupoll("poll", *args)
 
 
-def records(result: Result) -> list[dict[str, Any]]:
+def records(result: Ran) -> list[dict[str, Any]]:
     return [json.loads(line) for line in result.stdout.splitlines()]
 
 
@@ -38,7 +37,7 @@ def test_once_json_gives_one_record_per_field_with_the_poll_keys(
     bus.set(4, "air_gap_cm", 123)
     result = poll("--port", bus.port, "--once", "--format", "json", *PATIENT, "huiwen-aq@3",
                   "radar-level@4")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     recs = records(result)
     assert all(tuple(r) == POLL_KEYS for r in recs)
     assert [(r["device"], r["field"]) for r in recs][:2] == [("huiwen-aq@3", "pm25"),
@@ -56,7 +55,7 @@ def test_once_with_a_dead_device_names_it_and_exits_9(sim: Callable[..., Simulat
     bus = sim("huiwen-aq@3", "radar-level@4", faults=["4:dead"])
     result = poll("--config", str(live_and_dead(tmp_path, bus.port)), "--once", "--format",
                   "json")
-    assert result.exit_code == 9
+    assert result.returncode == 9
     assert result.stderr.splitlines() == [
         "rtupoll: radar-level@4: timeout: no reply from unit 4 to read holding registers "
         "within 0.1 s (2 tries) (5 of 5 fields not read)",
@@ -75,7 +74,7 @@ def test_once_exception_and_garbled_replies_are_each_one_line(
     # (both answer, known as the answers come: not asked within a short timeout)
     result = poll("--port", bus.port, "--once", *PATIENT, "huiwen-aq@3",
                   "radar-level@4")
-    assert result.exit_code == 9
+    assert result.returncode == 9
     lines = result.stderr.splitlines()
     assert len(lines) == 3 and lines[-1] == "rtupoll: 2 of 2 devices failed"
     assert lines[0].startswith("rtupoll: huiwen-aq@3: exception: device 3 answered to "
@@ -93,10 +92,9 @@ def test_once_table_shows_names_of_enums_flags_and_unknown_codes(
     bus.set(3, "co2_level", "MODERATE")
     bus.set(3, "pm25_level", 9)  # not in the manual's table
     bus.set(4, "status", 7)  # the profile's 'other' code
-    result = CliRunner(env={"COLUMNS": "160"}).invoke(
-        cli, ["poll", "--port", bus.port, "--baudrate", "9600", "--once", *PATIENT,
-              "net-irnet-pro@1", "huiwen-aq@3", "radar-level@4"])
-    assert result.exit_code == 0, result.stderr
+    result = rtupoll("poll", "--port", bus.port, "--baudrate", "9600", "--once", *PATIENT,
+                     "net-irnet-pro@1", "huiwen-aq@3", "radar-level@4", env={"COLUMNS": "160"})
+    assert result.returncode == 0, result.stderr
     rows = {tuple(line.split()[:1] + line.split()[-3:]) for line in result.stdout.splitlines()}
     text = result.stdout
     assert "WARMUP_WARNING, INVALID_READINGS_WARNING" in text
@@ -118,7 +116,7 @@ def test_csv_to_a_file_appends_with_one_header(sim: Callable[..., SimulatedBus],
     for _ in range(2):
         result = poll("--port", bus.port, "--once", "--format", "csv", "--output", str(out),
                       *PATIENT, "radar-level@4")
-        assert result.exit_code == 0, result.stderr
+        assert result.returncode == 0, result.stderr
         assert result.stdout == ""
     rows = list(csv.DictReader(io.StringIO(out.read_text())))
     assert len(rows) == 10 and tuple(rows[0]) == POLL_KEYS
@@ -146,7 +144,7 @@ buses:
       - {{name: tank-b, profile: radar-level, address: 5, fields: [air_gap_cm]}}
 """)
     result = poll("--config", str(site), "--once", "--format", "json")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     recs = records(result)
     assert [(r["device"], r["field"]) for r in recs] == [
         ("air", "co2"), ("air", "temperature"),
@@ -157,7 +155,7 @@ buses:
 
 def test_simulate_once_reads_the_five_seed_devices() -> None:
     result = poll("--simulate", "--once", "--format", "json", *PATIENT)
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     profiles = {r["profile"] for r in records(result)}
     assert profiles == {"net-irnet-pro", "radar-level", "huiwen-aq", "co2meter-an117",
                         "banner-ez-array"}
@@ -166,14 +164,14 @@ def test_simulate_once_reads_the_five_seed_devices() -> None:
 
 def test_simulate_with_a_fault_reports_that_device() -> None:
     result = poll("--simulate", "--once", "--fault", "3:dead", "--format", "json")
-    assert result.exit_code == 9
+    assert result.returncode == 9
     assert result.stderr.splitlines()[0].startswith("rtupoll: huiwen-aq@3: timeout: ")
     assert result.stderr.splitlines()[-1] == "rtupoll: 1 of 5 devices failed"
 
 
 def test_a_missing_port_is_exit_3_in_one_line() -> None:
     result = poll("--port", "/dev/ttyNOPE0", "--once", "radar-level@1")
-    assert result.exit_code == 3
+    assert result.returncode == 3
     assert len(result.stderr.splitlines()) == 1
     assert result.stderr.startswith("rtupoll: ") and "/dev/ttyNOPE0" in result.stderr
     assert "Traceback" not in result.stderr
@@ -183,7 +181,7 @@ def test_a_busy_port_is_exit_3_in_one_line(sim: Callable[..., SimulatedBus]) -> 
     bus = sim("radar-level@1")
     with serial.Serial(bus.port, exclusive=True):
         result = poll("--port", bus.port, "--once", "radar-level@1")
-    assert result.exit_code == 3
+    assert result.returncode == 3
     assert len(result.stderr.splitlines()) == 1 and "busy" in result.stderr
 
 
@@ -206,7 +204,7 @@ def test_usage_mistakes_are_exit_2() -> None:
     }
     for args, message in cases.items():
         result = poll(*args)
-        assert (result.exit_code, result.stderr.strip()) == (2, message), args
+        assert (result.returncode, result.stderr.strip()) == (2, message), args
 
 
 def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
@@ -216,7 +214,7 @@ def test_fields_a_devices_variant_lacks_are_reported_absent_not_failed(
     bus.set(2, "calibration_gas_level", 50.0)
     result = poll("--port", bus.port, "--once", "--format", "json", *PATIENT, "--fields",
                   "concentration,calibration_gas_level", "net-irnet-pro@1", "net-irnet-pro@2")
-    assert result.exit_code == 0, result.stderr
+    assert result.returncode == 0, result.stderr
     by = {(r["address"], r["field"]): r for r in records(result)}
     old = by[1, "calibration_gas_level"]
     assert (old["status"], old["value"], old["error"], old["severity"]) == (
@@ -258,5 +256,5 @@ def test_an_even_parity_device_polls_on_the_simulators_pty() -> None:
     it after its first open), so the simulator's port is opened without one."""
     for _ in range(2):  # the second open is the one Linux refused
         result = poll("--simulate", "abb-b23@1", "--once", "--format", "json", *PATIENT)
-        assert result.exit_code == 0, result.output
+        assert result.returncode == 0, (result.stdout + result.stderr)
         assert all(r["status"] == "ok" for r in records(result))

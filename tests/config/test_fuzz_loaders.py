@@ -19,7 +19,8 @@ from typing import Any
 
 import pytest
 import yaml
-from cli_runner import Ran, rtupoll, rtupoll_process
+from cli_runner import RTUPOLL, Ran, rtupoll
+from forked_cli import rtupoll_run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -248,7 +249,8 @@ def test_commands_given_mutated_files(kind: str, data: st.DataObject) -> None:
             proc: subprocess.CompletedProcess[str] | Ran = rtupoll(*args)
         else:
             try:  # a served scenario is stopped after 8 s
-                proc = rtupoll_process(*args, timeout=8)
+                proc = rtupoll_run([RTUPOLL, *args], capture_output=True, text=True,
+                                   timeout=8)
             except subprocess.TimeoutExpired:
                 return  # a valid scenario is served until stopped
     assert "Traceback" not in proc.stderr, proc.stderr

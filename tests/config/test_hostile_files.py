@@ -23,12 +23,10 @@ from typing import Any
 
 import click
 import pytest
-from cli_runner import RTUPOLL, Ran, rtupoll, rtupoll_process
-from click.testing import CliRunner
+from cli_runner import RTUPOLL, Ran, rtupoll
 from forked_cli import rtupoll_popen, rtupoll_run
 
 import rtupoll.cli as rtupoll_cli
-from rtupoll.cli import cli
 from rtupoll.config.address_plan import load_plan
 from rtupoll.config.library import load_profile
 from rtupoll.config.profile_file import MAX_FIELDS
@@ -356,22 +354,21 @@ def test_csv_cells_of_nan_are_empty() -> None:
 
 def test_read_json_of_a_nan_register_is_strict_json(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("net-irnet-pro@1", tick=None, sets=["net-irnet-pro@1.concentration=nan"])
-    result = CliRunner().invoke(cli, ["read", "-p", bus.port, "--format", "json",
-                                      "net-irnet-pro@1", "concentration"])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("read", "-p", bus.port, "--format", "json", "net-irnet-pro@1",
+                     "concentration")
+    assert result.returncode == 0, result.stderr
     rec = json.loads(result.stdout, parse_constant=lambda c: pytest.fail(f"bare {c}"))
     assert rec["value"] is None and rec["text"] == "NaN"
-    csv = CliRunner().invoke(cli, ["read", "-p", bus.port, "--format", "csv",
-                                   "net-irnet-pro@1", "concentration"])
+    csv = rtupoll("read", "-p", bus.port, "--format", "csv", "net-irnet-pro@1", "concentration")
     row = csv.stdout.splitlines()[1]
     assert ",concentration,,ppm," in row and row.endswith(",NaN")  # value empty, text NaN
 
 
 def test_poll_json_of_a_nan_register_is_strict_json(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("net-irnet-pro@1", tick=None, sets=["net-irnet-pro@1.concentration=-inf"])
-    result = CliRunner().invoke(cli, ["poll", "-p", bus.port, "-b", "4800", "--once",
-                                      "--format", "json", "net-irnet-pro@1"])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("poll", "-p", bus.port, "-b", "4800", "--once", "--format", "json",
+                     "net-irnet-pro@1")
+    assert result.returncode == 0, result.stderr
     recs = [json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}"))
             for line in result.stdout.splitlines()]
     conc = next(r for r in recs if r["field"] == "concentration")
@@ -442,7 +439,8 @@ def test_the_installed_command_gives_a_hostile_files_line(case: str, tmp_path: P
     content = WHOLE_FILES[case][0]
     path.write_bytes(content.encode() if isinstance(content, str) else content)
     cpu = children_cpu()
-    proc = rtupoll_process("poll", "-c", str(path), "--once", fresh=True)
+    proc = subprocess.run([RTUPOLL, "poll", "-c", str(path), "--once"], capture_output=True,
+                          text=True, timeout=60)
     assert children_cpu() - cpu < LIMIT + 5  # the whole command, start-up included
     assert_gives_its_line(proc, path)
 

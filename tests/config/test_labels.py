@@ -8,9 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.paths import bundled_dir
 from rtupoll.config.profile_file import read_profile
 from rtupoll.errors import ProfileError
@@ -88,8 +87,8 @@ def test_a_label_that_breaks_the_rules_is_an_error_at_its_line(
     with pytest.raises(ProfileError) as exc:
         read_profile(path)
     assert str(exc.value) == f"{path}:{line}: {message}"
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 2
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 2
     assert result.stderr.splitlines()[0] == f"{path}:{line}: {message}"
 
 
@@ -106,8 +105,8 @@ def test_a_user_profile_with_doubtful_titles_loads_and_check_warns(tmp_path: Pat
                  + "     label: Water level (mm), description: Water level}\n")
     profile, _ = read_profile(path)
     assert [f.title for f in profile.fields][:2] == ["KWh", "KWh"]
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert result.stdout == f"{path}: ok (meter, 6 fields, 4 warnings)\n"
     assert result.stderr.splitlines() == [
         f"{path}:7: fields[0].description: warning: a is titled 'KWh', only a unit; "

@@ -5,10 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 from forked_cli import rtupoll_run
-
-from rtupoll.cli import cli
 
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "profiles"
 
@@ -45,17 +43,17 @@ def test_every_fixture_has_an_expectation() -> None:
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_check_reports_file_line_and_field(name: str) -> None:
     path = FIXTURES / f"{name}.yaml"
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code != 0
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode != 0
     first = result.stderr.splitlines()[0]
     assert first == f"{path}:{EXPECTED[name]}"
-    assert "Traceback" not in result.output
+    assert "Traceback" not in (result.stdout + result.stderr)
 
 
 def test_check_passes_good_profiles_and_counts_bad_ones() -> None:
     bundled = sorted(Path(__file__).parents[2].joinpath("profiles").glob("*.yaml"))
     bad = FIXTURES / "overlap.yaml"
-    result = CliRunner().invoke(cli, ["profiles", "check", *map(str, bundled), str(bad)])
+    result = rtupoll("profiles", "check", *map(str, bundled), str(bad))
     assert result.stdout.count(": ok (") == len(bundled) >= 20
     assert f"1 of {len(bundled) + 1} profile(s) have errors" in result.stderr
 
@@ -75,17 +73,17 @@ def test_check_exit_code_through_main(tmp_path: Path) -> None:
 def test_bad_user_profile_directory_fails_listing_with_its_error(tmp_path: Path) -> None:
     (tmp_path / "mine.yaml").write_text((FIXTURES / "unknown-key.yaml").read_text()
                                         .replace("id: unknown-key", "id: mine"))
-    result = CliRunner().invoke(cli, ["profiles", "list", "--profiles", str(tmp_path)])
-    assert result.exit_code == 2
+    result = rtupoll("profiles", "list", "--profiles", str(tmp_path))
+    assert result.returncode == 2
     assert result.stderr == f"rtupoll: {tmp_path}/mine.yaml:7: fields[0].unti: unknown key " \
                             "(did you mean 'unit'?)\n"
 
 
 @pytest.mark.parametrize("columns", ["80", "140"])
 def test_show_prints_wire_and_manual_addresses_flags_and_codes(columns: str) -> None:
-    result = CliRunner().invoke(cli, ["profiles", "show", "banner-ez-array"],
-                                env={"COLUMNS": columns})
-    assert result.exit_code == 0
+    result = rtupoll("profiles", "show", "banner-ez-array",
+                     env={"COLUMNS": columns})
+    assert result.returncode == 0
     out = result.stdout
     words = " ".join(out.split())  # descriptions may wrap
     assert "hr 40001 = 0x9C41" in out and "ir 30521 = 0x7739" in out  # never cut

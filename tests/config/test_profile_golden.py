@@ -18,10 +18,9 @@ from typing import Any
 
 import pytest
 import yaml
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
 from rtupoll import rtu
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.paths import bundled_dir
 from rtupoll.rtu import Table
@@ -61,11 +60,11 @@ def _stream(case: dict[str, Any]) -> str:
 
 def _decoded(pid: str, stream: str) -> tuple[dict[str, Any], set[str]]:
     """The values the frames carry, and every field they carry or ask for."""
-    result = CliRunner().invoke(cli, ["decode", "--profile", pid, "--format", "json", stream])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("decode", "--profile", pid, "--format", "json", stream)
+    assert result.returncode == 0, (result.stdout + result.stderr)
     values: dict[str, Any] = {}
     named: set[str] = set()
-    for line in result.output.splitlines():
+    for line in result.stdout.splitlines():
         for f in json.loads(line)["fields"]:
             named.add(f["field"])
             if f["value"] is not None:

@@ -250,19 +250,18 @@ def test_modicon_profiles_take_the_6_digit_form_past_9999(written: int, wire: in
 
 def test_a_6_digit_modicon_field_loads_shows_and_a_5_digit_past_49999_is_refused(
         tmp_path: Path) -> None:
-    from click.testing import CliRunner
+    from cli_runner import rtupoll
 
-    from rtupoll.cli import cli
     from rtupoll.config.library import load_profile
 
     path = tmp_path / "six.yaml"
     path.write_text(SIX_DIGITS)
     p = load_profile(path)
     assert p.field("meter_code").address == 0xFC02 and p.field("far").address == 9998
-    show = CliRunner().invoke(cli, ["profiles", "show", str(path)], env={"COLUMNS": "120"})
+    show = rtupoll("profiles", "show", str(path), env={"COLUMNS": "120"})
     assert "464515" in show.stdout and "0xFC02" in show.stdout
     path.write_text(SIX_DIGITS.replace("address: 49999", "address: 50001"))
-    bad = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert bad.exit_code == 2
+    bad = rtupoll("profiles", "check", str(path))
+    assert bad.returncode == 2
     assert ("fields[2].address: 50001 is not a holding register reference (40001..49999, "
             "or 400001..465536)") in bad.stderr

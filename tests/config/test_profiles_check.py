@@ -8,9 +8,7 @@ import os
 from pathlib import Path
 
 from cli_runner import rtupoll
-from click.testing import CliRunner
 
-from rtupoll.cli import cli
 from rtupoll.config.paths import bundled_dir
 
 
@@ -43,8 +41,8 @@ def test_every_error_in_a_directory_is_reported_whatever_breaks_first(tmp_path: 
     good = profile(tmp_path, "ddd")
     fifo = tmp_path / "eee.yaml"
     os.mkfifo(fifo)
-    result = CliRunner().invoke(cli, ["profiles", "check", str(tmp_path)])
-    assert result.exit_code == 2
+    result = rtupoll("profiles", "check", str(tmp_path))
+    assert result.returncode == 2
     err = result.stderr.splitlines()
     assert err[0].startswith(f"{broken}:") and "YAML syntax" in err[0]
     assert err[1].startswith(f"{wrong}:") and "'u17' is not one of" in err[1]
@@ -57,8 +55,8 @@ def test_every_error_in_a_directory_is_reported_whatever_breaks_first(tmp_path: 
 def test_a_complex_key_is_named_in_words(tmp_path: Path) -> None:
     path = profile(tmp_path, "fff")
     path.write_text(path.read_text() + "? [x, y]\n: 1\n")
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 2
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 2
     first = result.stderr.splitlines()[0]
     assert "a key must be a plain name, not a list or a mapping" in first
     assert "ScalarNode" not in result.stderr
@@ -66,6 +64,6 @@ def test_a_complex_key_is_named_in_words(tmp_path: Path) -> None:
 
 
 def test_the_bundled_profiles_check_as_a_directory() -> None:
-    result = CliRunner().invoke(cli, ["profiles", "check", str(bundled_dir())])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("profiles", "check", str(bundled_dir()))
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert len(result.stdout.splitlines()) == len(list(bundled_dir().glob("*.yaml")))

@@ -8,9 +8,7 @@ from pathlib import Path
 
 import pytest
 from cli_runner import rtupoll
-from click.testing import CliRunner
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.model.profile import Verification
 from rtupoll.sim.runner import simulated_bus
@@ -36,8 +34,8 @@ ONE = "    - {title: TH1 Modbus manual, version: rev 3, where: https://example.c
 def _check(tmp_path: Path, text: str) -> tuple[int, str]:
     path = tmp_path / "mine.yaml"
     path.write_text(text)
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    return result.exit_code, result.stderr.splitlines()[0] if result.stderr else ""
+    result = rtupoll("profiles", "check", str(path))
+    return result.returncode, result.stderr.splitlines()[0] if result.stderr else ""
 
 
 @pytest.mark.parametrize(("level", "sources", "line", "message"), [
@@ -64,12 +62,12 @@ def test_good_provenance_is_shown_by_show_and_list(tmp_path: Path) -> None:
     (tmp_path / "mine.yaml").write_text(GOOD.format(level="vendor document", sources=ONE))
     code, _ = _check(tmp_path, GOOD.format(level="vendor document", sources=ONE))
     assert code == 0
-    show = CliRunner().invoke(cli, ["profiles", "show", "mine", "--profiles", str(tmp_path)],
-                              env={"COLUMNS": "200"})
+    show = rtupoll("profiles", "show", "mine", "--profiles", str(tmp_path),
+                   env={"COLUMNS": "200"})
     assert "verified    vendor document" in show.stdout
     assert "source      TH1 Modbus manual (rev 3) <https://example.com/th1.pdf>" in show.stdout
-    listed = CliRunner().invoke(cli, ["profiles", "list", "--format", "json",
-                                      "--profiles", str(tmp_path)])
+    listed = rtupoll("profiles", "list", "--format", "json",
+                     "--profiles", str(tmp_path))
     recs = {r["id"]: r for r in map(json.loads, listed.stdout.splitlines())}
     assert recs["mine"]["verification"] == "vendor document"
     assert recs["mine"]["sources"] == ["TH1 Modbus manual (rev 3) <https://example.com/th1.pdf>"]
@@ -80,13 +78,13 @@ def test_a_profile_without_provenance_is_shown_as_unverified(tmp_path: Path) -> 
     text = GOOD.format(level="unverified", sources="").replace(
         "provenance:\n  level: unverified\n  sources:\n", "")
     (tmp_path / "mine.yaml").write_text(text)
-    show = CliRunner().invoke(cli, ["profiles", "show", "mine", "--profiles", str(tmp_path)],
-                              env={"COLUMNS": "200"})
+    show = rtupoll("profiles", "show", "mine", "--profiles", str(tmp_path),
+                   env={"COLUMNS": "200"})
     assert "verified    unverified (no provenance): its values may be wrong" in show.stdout
 
 
 def test_list_table_shows_each_level() -> None:
-    out = CliRunner().invoke(cli, ["profiles", "list"], env={"COLUMNS": "200"}).stdout
+    out = rtupoll("profiles", "list", env={"COLUMNS": "200"}).stdout
     rows = {line.split()[0]: line for line in out.splitlines()
             if line.startswith("   ") and line.strip()}
     assert rows["eastron-sdm630"].rstrip().endswith("vendor doc")
@@ -112,8 +110,8 @@ def test_using_an_unverified_profile_warns_once_in_one_line() -> None:
 
 def test_scan_shows_the_level_of_the_profile_it_found() -> None:
     with simulated_bus(["eastron-sdm630@2"], tcp=True, tick=None) as bus:
-        result = CliRunner().invoke(cli, ["scan", "--port", bus.port, "--baudrate", "9600",
-                                          "--addresses", "2", "--format", "json"])
-    assert result.exit_code == 0, result.output
+        result = rtupoll("scan", "--port", bus.port, "--baudrate", "9600",
+                         "--addresses", "2", "--format", "json")
+    assert result.returncode == 0, (result.stdout + result.stderr)
     rec = json.loads(result.stdout.splitlines()[0])
     assert rec["profile"] == "eastron-sdm630" and rec["verification"] == "vendor document"

@@ -7,9 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config import compiled
 from rtupoll.config.library import load_one, load_profile
 from rtupoll.model.transforms import Transform
@@ -34,9 +33,9 @@ def profile(tmp: Path, *, mode: str = "", pf: str = "") -> Path:
 
 
 def check(path: Path) -> str:
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 2, result.output
-    assert "Traceback" not in result.output
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 2, (result.stdout + result.stderr)
+    assert "Traceback" not in (result.stdout + result.stderr)
     return result.stderr.splitlines()[0]
 
 
@@ -84,6 +83,6 @@ def test_a_decoded_field_comes_back_from_the_profile_cache(tmp_path: Path,
 def test_the_iem3155_reads_its_power_factor_through_the_vendors_encoding() -> None:
     f = load_one("schneider-iem3155").field("total_power_factor")
     assert f.transform is Transform.FOUR_QUADRANT_PF and f.written == "3084" and not f.writable
-    result = CliRunner().invoke(cli, ["profiles", "show", "schneider-iem3155"],
-                                env={"COLUMNS": "160"})
-    assert result.exit_code == 0 and "decode four_quadrant_pf" in result.output
+    result = rtupoll("profiles", "show", "schneider-iem3155",
+                     env={"COLUMNS": "160"})
+    assert result.returncode == 0 and "decode four_quadrant_pf" in (result.stdout + result.stderr)

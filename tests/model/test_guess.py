@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 import struct
 
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.model.guess import interpretations, parse_words
 
 
@@ -73,16 +72,15 @@ def test_nan_and_absurd_exponents_rank_last() -> None:
 
 def test_parse_words_accepts_hex_words_and_refuses_wider_ones() -> None:
     assert parse_words(["0000", "0xA0C1,1"]) == (0, 0xA0C1, 1)
-    runner = CliRunner()
-    result = runner.invoke(cli, ["guess", "--words", "12345"])
-    assert result.exit_code == 2 and "16 bits" in result.output
+    result = rtupoll("guess", "--words", "12345")
+    assert result.returncode == 2 and "16 bits" in (result.stdout + result.stderr)
 
 
 def test_cli_offline_words_json_best_first() -> None:
-    result = CliRunner().invoke(cli, ["guess", "--words", "0000", "A0C1", "input:6",
-                                      "--format", "json", "--top", "3"])
-    assert result.exit_code == 0, result.output
-    rows = [json.loads(line) for line in result.output.splitlines()]
+    result = rtupoll("guess", "--words", "0000", "A0C1", "input:6",
+                     "--format", "json", "--top", "3")
+    assert result.returncode == 0, (result.stdout + result.stderr)
+    rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert len(rows) == 3
     assert rows[0]["type"] == "f32" and rows[0]["order"] == "DCBA" and rows[0]["value"] == -20.0
     assert rows[0]["table"] == "input" and rows[0]["address"] == 6
@@ -90,12 +88,12 @@ def test_cli_offline_words_json_best_first() -> None:
 
 
 def test_cli_table_suggests_a_profile_field() -> None:
-    result = CliRunner().invoke(cli, ["guess", "--words", "0000", "A0C1", "input:6"])
-    assert result.exit_code == 0
+    result = rtupoll("guess", "--words", "0000", "A0C1", "input:6")
+    assert result.returncode == 0
     assert "{name: value_0006, table: input, address: 0x0006, type: f32, order: DCBA}" \
-        in result.output
+        in (result.stdout + result.stderr)
 
 
 def test_cli_needs_port_and_address_without_words() -> None:
-    result = CliRunner().invoke(cli, ["guess", "input:6"])
-    assert result.exit_code == 2 and "--port and --address" in result.output
+    result = rtupoll("guess", "input:6")
+    assert result.returncode == 2 and "--port and --address" in (result.stdout + result.stderr)

@@ -10,10 +10,9 @@ from pathlib import Path
 from textwrap import dedent
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 from virtual import heard_nothing
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one, load_profile
 from rtupoll.config.site import DeviceConfig
 from rtupoll.errors import EncodeError, ProfileError
@@ -300,15 +299,15 @@ def test_an_inherited_mistake_points_at_the_parent_file(tmp_path: Path) -> None:
 def test_extends_mistakes(meter: Path, extends: str, without: str, message: str) -> None:
     path = meter.parent / "acme-m2.yaml"
     path.write_text(f"id: acme-m2\nextends: {extends}\nwithout: {without}\n", encoding="utf-8")
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 2
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 2
     assert message in result.stderr.splitlines()[0]
     assert result.stderr.startswith(f"{path}:")
 
 
 def test_profiles_show_lists_the_new_attributes(meter: Path) -> None:
-    result = CliRunner().invoke(cli, ["profiles", "show", str(meter)], env={"COLUMNS": "160"})
-    assert result.exit_code == 0, result.stderr
+    result = rtupoll("profiles", "show", str(meter), env={"COLUMNS": "160"})
+    assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "ir 0x0005 bits 4-7" in out
     assert "[counter] [every 60 s]" in out
@@ -337,10 +336,10 @@ def test_the_simulator_can_show_a_sentinel_and_poll_reports_it(meter: Path) -> N
 
     with simulated_bus(["acme-m1@1"], tcp=True, tick=None, profile_dirs=[meter.parent]) as bus:
         bus.set(1, "temperature", "SENSOR_ERROR")
-        result = CliRunner().invoke(cli, ["poll", "--profiles", str(meter.parent), "--port",
-                                          bus.port, "--once", "--format", "json",
-                                          "acme-m1@1"])
-    assert result.exit_code == 0, result.stderr
+        result = rtupoll("poll", "--profiles", str(meter.parent), "--port",
+                         bus.port, "--once", "--format", "json",
+                         "acme-m1@1")
+    assert result.returncode == 0, result.stderr
     recs = {r["field"]: r for r in map(json.loads, result.stdout.splitlines())}
     temp = recs["temperature"]
     assert (temp["value"], temp["text"], temp["severity"], temp["raw"], temp["status"]) == \

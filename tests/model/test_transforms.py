@@ -10,9 +10,8 @@ from pathlib import Path
 from textwrap import dedent
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_profile
 from rtupoll.errors import EncodeError
 from rtupoll.model.codec import encode_raw
@@ -112,9 +111,9 @@ def test_a_code_outside_the_table_decodes_to_no_value() -> None:
     """Register 3084 of the bundled iEM3155 holding 3.0 (no quadrant of the vendor's
     table): ``decode`` gives no value, never 3.0 or -1.0 as a power factor."""
     frames = "01 03 0c 0b 00 02 b6 99 01 03 04 40 40 00 00 ee 27"
-    out = CliRunner().invoke(cli, ["decode", "--profile", "schneider-iem3155", "--format",
-                                   "json", frames])
-    assert out.exit_code == 0, out.output
-    (field,) = json.loads(out.output.splitlines()[-1])["fields"]
+    out = rtupoll("decode", "--profile", "schneider-iem3155", "--format",
+                  "json", frames)
+    assert out.returncode == 0, (out.stdout + out.stderr)
+    (field,) = json.loads(out.stdout.splitlines()[-1])["fields"]
     assert field["field"] == "total_power_factor" and field["value"] is None
     assert field["text"] == "NaN" and field["raw"] == [0x4040, 0]

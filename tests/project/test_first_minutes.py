@@ -19,12 +19,10 @@ from pathlib import Path
 
 import pytest
 from cli_runner import Ran, rtupoll
-from click.testing import CliRunner
 from conftest import ANSWERED, dead_at
 from forked_cli import rtupoll_popen
 from rich.console import Console
 
-from rtupoll.cli import cli
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.scheduler import Scheduler
 from rtupoll.sim.runner import SimulatedBus, SimulatedLines, simulated_lines
@@ -155,10 +153,10 @@ PATIENT = ("--turnaround", "0.15")
 
 
 def test_scan_of_a_demo_line_lists_each_device_once(demo: SimulatedLines) -> None:
-    result = CliRunner().invoke(cli, ["scan", "-p", demo.lines[0].port, "--format", "json",
-                                      "--addresses", "1-5", "--baudrate", "4800,9600",
-                                      *PATIENT])
-    assert result.exit_code == 0, result.stderr
+    result = rtupoll("scan", "-p", demo.lines[0].port, "--format", "json",
+                     "--addresses", "1-5", "--baudrate", "4800,9600",
+                     *PATIENT)
+    assert result.returncode == 0, result.stderr
     found = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(f["address"], f["baudrate"], f["profile"]) for f in found] == [
         (1, 9600, "net-irnet-pro"), (2, 9600, "radar-level"), (3, 9600, "huiwen-aq"),
@@ -168,10 +166,10 @@ def test_scan_of_a_demo_line_lists_each_device_once(demo: SimulatedLines) -> Non
 def test_scan_of_a_line_that_answers_any_speed_says_so_and_lists_each_once(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3", "radar-level@2", tick=None)  # in-process: any speed
-    result = CliRunner().invoke(cli, ["scan", "-p", bus.port, "--format", "json",
-                                      "--addresses", "1-3", "--baudrate", "4800,9600",
-                                      *PATIENT])
-    assert result.exit_code == 0, result.stderr
+    result = rtupoll("scan", "-p", bus.port, "--format", "json",
+                     "--addresses", "1-3", "--baudrate", "4800,9600",
+                     *PATIENT)
+    assert result.returncode == 0, result.stderr
     assert "answered at every baud rate scanned (4800, 9600)" in result.stderr
     found = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(f["address"], f["baudrate"]) for f in found] == [(2, 9600), (3, 9600)]
@@ -299,25 +297,25 @@ def test_live_table_columns_do_not_shrink_when_a_value_gets_shorter(
 # -- messages ----------------------------------------------------------------------------
 
 def test_poll_with_devices_and_no_port_asks_for_the_port() -> None:
-    result = CliRunner().invoke(cli, ["poll", "huiwen-aq@3", "--once"], env={
+    result = rtupoll("poll", "huiwen-aq@3", "--once", env={
         "RTUPOLL_PORT": ""})
-    assert result.exit_code == 2
+    assert result.returncode == 2
     assert "which port is huiwen-aq@3 on? give --port PORT (or $RTUPOLL_PORT)" in \
         result.stderr
 
 
 def test_read_without_a_port_mentions_the_environment_variable() -> None:
-    result = CliRunner().invoke(cli, ["read", "huiwen-aq@3"], env={"RTUPOLL_PORT": ""})
-    assert result.exit_code == 2
+    result = rtupoll("read", "huiwen-aq@3", env={"RTUPOLL_PORT": ""})
+    assert result.returncode == 2
     assert "$RTUPOLL_PORT" in result.stderr and len(result.stderr.splitlines()) == 1
 
 
 def test_a_raw_write_is_headed_by_the_unit_it_went_to(
         sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("radar-level@2", tick=None)
-    result = CliRunner(env={"COLUMNS": "100"}).invoke(
-        cli, ["write", "-p", bus.port, "--raw", "--yes", "2", "holding:0x03F6=192"])
-    assert result.exit_code == 0, result.stderr
+    result = rtupoll("write", "-p", bus.port, "--raw", "--yes", "2", "holding:0x03F6=192",
+                     env={"COLUMNS": "100"})
+    assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[0] == "unit 2 after writing (read back)"
     assert bus.get(2, "baud_rate").value == 19200
 

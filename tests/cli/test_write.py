@@ -12,22 +12,21 @@ from collections.abc import Callable
 from typing import Any
 
 import conftest
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 from forked_cli import rtupoll_popen
 
-from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
 PATIENT = (*conftest.PATIENT, "--retries", "0")
 
 
-def run(*args: str, stdin: str | None = None) -> Result:
-    return CliRunner().invoke(cli, list(args), input=stdin)
+def run(*args: str, stdin: str | None = None) -> Ran:
+    return rtupoll(*args, input=stdin)
 
 
-def records(result: Result) -> list[dict[str, Any]]:
-    assert result.exit_code == 0, result.output
+def records(result: Ran) -> list[dict[str, Any]]:
+    assert result.returncode == 0, (result.stdout + result.stderr)
     return [json.loads(line) for line in result.stdout.splitlines()]
 
 
@@ -69,7 +68,7 @@ def test_irnet_float_write_uses_fc16_in_its_byte_order(sim: Sim) -> None:
 def test_write_shows_the_read_back_as_a_table(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("write", "-p", bus.port, *PATIENT, "--yes", "radar-level@1", "baud_rate=9600")
-    assert result.exit_code == 0, result.output
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert "after writing (read back)" in result.stdout
     row = next(line for line in result.stdout.splitlines() if "baud_rate" in line)
     assert "9600" in row and "baud" in row
@@ -81,7 +80,7 @@ def test_read_only_and_out_of_range_are_refused_before_sending(sim: Sim) -> None
     big = run("write", "-p", bus.port, *PATIENT, "--yes", "banner-ez-array@2",
               "measurement_1_mode=99")
     bad = run("write", "-p", bus.port, *PATIENT, "--yes", "radar-level@1", "baud_rate=12345")
-    assert (ro.exit_code, big.exit_code, bad.exit_code) == (8, 8, 8)
+    assert (ro.returncode, big.returncode, bad.returncode) == (8, 8, 8)
     assert "co2 is read-only" in ro.stderr
     assert "'99' is not one of: DISABLED" in big.stderr
     assert "resolution" in bad.stderr
@@ -91,14 +90,14 @@ def test_read_only_and_out_of_range_are_refused_before_sending(sim: Sim) -> None
 def test_the_address_field_is_left_to_set_address(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", tick=None)
     result = run("write", "-p", bus.port, *PATIENT, "--yes", "huiwen-aq@1", "slave_address=5")
-    assert result.exit_code == 8 and "rtupoll set-address huiwen-aq@1 NEW" in result.stderr
+    assert result.returncode == 8 and "rtupoll set-address huiwen-aq@1 NEW" in result.stderr
     assert functions(bus) == []
 
 
 def test_without_a_terminal_and_without_yes_nothing_is_written(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("write", "-p", bus.port, *PATIENT, "radar-level@1", "baud_rate=9600")
-    assert result.exit_code == 8 and "add --yes" in result.stderr
+    assert result.returncode == 8 and "add --yes" in result.stderr
     assert functions(bus) == []
 
 
@@ -132,13 +131,13 @@ def test_a_function_the_device_lacks_gets_its_exception_named(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("write", "-p", bus.port, *PATIENT, "--yes", "--raw", "--function", "16", "1",
                  "holding:0x03F6=0x60")
-    assert result.exit_code == 5 and "ILLEGAL FUNCTION" in result.stderr
+    assert result.returncode == 5 and "ILLEGAL FUNCTION" in result.stderr
 
 
 def test_raw_write_to_a_read_only_register_gets_the_devices_exception(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("write", "-p", bus.port, *PATIENT, "--yes", "--raw", "1", "holding:0=5")
-    assert result.exit_code == 5 and "ILLEGAL DATA ADDRESS" in result.stderr
+    assert result.returncode == 5 and "ILLEGAL DATA ADDRESS" in result.stderr
 
 
 # -- confirmation on a real terminal ----------------------------------------------------
@@ -188,13 +187,13 @@ def test_a_baud_rate_the_device_cannot_run_at_is_refused_before_sending(
         sim: Callable[..., SimulatedBus]) -> None:
     # the read-back would match and the radar would be unreachable after a power cycle
     bus = sim("radar-level@1", tick=None)
-    bad = CliRunner().invoke(cli, ["write", "-p", bus.port, "--yes", "radar-level@1",
-                                   "baud_rate=600"])
-    assert bad.exit_code == 8
+    bad = rtupoll("write", "-p", bus.port, "--yes", "radar-level@1",
+                  "baud_rate=600")
+    assert bad.returncode == 8
     assert bad.stderr == ("rtupoll: baud_rate: 600 is not one of the values it takes: 9600, "
                           "19200, 38400, 57600, 115200\n")
     assert not [f for f in bus.wire if f.direction == "in" and f.data[1] == 6]  # nothing sent
-    good = CliRunner().invoke(cli, ["write", "-p", bus.port, "--yes", "--format", "json",
-                                    "radar-level@1", "baud_rate=19200"])
-    assert good.exit_code == 0, good.stderr
+    good = rtupoll("write", "-p", bus.port, "--yes", "--format", "json",
+                   "radar-level@1", "baud_rate=19200")
+    assert good.returncode == 0, good.stderr
     assert bus.registers(1, "holding", 0x03F6, 1) == (192,)

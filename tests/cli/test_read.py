@@ -9,10 +9,8 @@ from typing import Any
 
 import conftest
 import pytest
-from cli_runner import rtupoll
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.records import READ_KEYS
@@ -22,12 +20,12 @@ Sim = Callable[..., SimulatedBus]
 PATIENT = (*conftest.PATIENT, "--retries", "0")
 
 
-def run(*args: str) -> Result:
-    return CliRunner().invoke(cli, list(args))
+def run(*args: str) -> Ran:
+    return rtupoll(*args)
 
 
-def records(result: Result) -> list[dict[str, Any]]:
-    assert result.exit_code == 0, result.output
+def records(result: Ran) -> list[dict[str, Any]]:
+    assert result.returncode == 0, (result.stdout + result.stderr)
     return [json.loads(line) for line in result.stdout.splitlines()]
 
 
@@ -79,7 +77,7 @@ def test_csv_has_the_json_keys_as_header(sim: Sim) -> None:
     result = run("read", "-p", bus.port, *PATIENT, "--format", "csv", "net-irnet-pro@1",
                  "warning", "temperature")
     lines = result.stdout.splitlines()
-    assert result.exit_code == 0 and lines[0] == ",".join(READ_KEYS)
+    assert result.returncode == 0 and lines[0] == ",".join(READ_KEYS)
     assert lines[1].startswith("net-irnet-pro@1,net-irnet-pro,1,warning,,")  # no flags: empty
     assert len(lines) == 3
 
@@ -87,7 +85,7 @@ def test_csv_has_the_json_keys_as_header(sim: Sim) -> None:
 def test_table_for_people_names_device_fields_and_units(sim: Sim) -> None:
     bus = sim("huiwen-aq@1", sets=["huiwen-aq@1.temperature=-5"], tick=None)
     result = run("read", "-p", bus.port, *PATIENT, "--hex", "huiwen-aq@1", "temperature", "co2")
-    assert result.exit_code == 0, result.output
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert "huiwen-aq@1" in result.stdout and "°C" in result.stdout
     row = next(line for line in result.stdout.splitlines() if "temperature" in line)
     assert "-5" in row and "FFFB" in row and "input 30012" in row
@@ -137,14 +135,14 @@ def test_raw_read_with_a_profile_takes_its_byte_order_and_splits_at_its_limit(si
     bus = sim("co2meter-an117@0x68", tick=None)
     result = run("read", "-p", bus.port, *PATIENT, "--format", "json", "--raw",
                  "co2meter-an117@0x68", "input:1:1")
-    assert result.exit_code == 0, result.output
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert len(requests(bus)) == 1
 
 
 def test_raw_table_with_hex_shows_the_words(sim: Sim) -> None:
     bus = sim("radar-level@1", sets=["radar-level@1.level_cm=255"], tick=None)
     result = run("read", "-p", bus.port, *PATIENT, "--raw", "--hex", "1", "holding:0x2")
-    assert result.exit_code == 0, result.output
+    assert result.returncode == 0, (result.stdout + result.stderr)
     assert "holding:0x0002" in result.stdout and "00FF" in result.stdout
 
 
@@ -157,7 +155,7 @@ def test_a_never_polled_field_is_refused_unless_forced(sim: Sim) -> None:
     assert requests(bus) == []
     forced = run("read", "-p", bus.port, *PATIENT, "--force", "--format", "json",
                  "banner-ez-array@1", "analog_1_peak")
-    assert refused.exit_code == 8
+    assert refused.returncode == 8
     assert "analog_1_peak is never read unless forced" in refused.stderr
     assert "RESETS THE PEAK" in refused.stderr and "--force" in refused.stderr
     assert records(forced)[0]["field"] == "analog_1_peak"
@@ -194,31 +192,31 @@ def test_on_a_newer_data_structure_the_same_field_is_read(sim: Sim) -> None:
 
 def test_unknown_field_or_profile_is_exit_2_with_a_hint() -> None:
     result = run("read", "-p", "/dev/null", "huiwen-aq@1", "co3")
-    assert result.exit_code == 2 and "has no field 'co3' (did you mean 'co2'?)" in result.stderr
+    assert result.returncode == 2 and "has no field 'co3' (did you mean 'co2'?)" in result.stderr
     result = run("read", "-p", "/dev/null", "huiwen@1")
-    assert result.exit_code == 2 and "did you mean 'huiwen-aq'" in result.stderr
+    assert result.returncode == 2 and "did you mean 'huiwen-aq'" in result.stderr
     result = run("read", "-p", "/dev/null", "huiwen-aq@1", "input:3")
-    assert result.exit_code == 2 and "add --raw" in result.stderr
+    assert result.returncode == 2 and "add --raw" in result.stderr
 
 
 def test_no_response_is_exit_4(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("read", "-p", bus.port, "--timeout", "0.3", "--retries", "0", "radar-level@9",
                  "level_cm")
-    assert result.exit_code == 4, result.output
+    assert result.returncode == 4, (result.stdout + result.stderr)
 
 
 def test_exception_reply_is_exit_5_and_named(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)
     result = run("read", "-p", bus.port, *PATIENT, "--raw", "1", "holding:0x0100")
-    assert result.exit_code == 5, result.output
+    assert result.returncode == 5, (result.stdout + result.stderr)
     assert "ILLEGAL DATA ADDRESS" in result.stderr
 
 
 def test_garbled_reply_is_exit_7(sim: Sim) -> None:
     bus = sim("radar-level@1", faults=["1:crc"], tick=None)
     result = run("read", "-p", bus.port, *PATIENT, "radar-level@1", "level_cm")
-    assert result.exit_code == 7, result.output
+    assert result.returncode == 7, (result.stdout + result.stderr)
 
 
 def test_missing_port_is_exit_3_one_line_no_traceback() -> None:
