@@ -41,7 +41,6 @@ TESTED_BY = {
     "jobs.commission": "config/test_commission_plan.py",
     "jobs.hole_services": "jobs/test_holes.py",
     "jobs.services": "app/test_service_reload.py",
-    "jobs.stats": "gateway/test_gateway_sim.py",
     "model.addressing": "config/test_commission_plan.py",
     "model.carried": "cli/test_decode.py",
     "model.interpret": "config/test_library.py",
@@ -50,7 +49,6 @@ TESTED_BY = {
     "numbers": "rtu/test_rtu.py",
     "outputs.fleet": "model/test_decimals.py",
     "outputs.mqtt_commands": "outputs/test_mqtt.py",
-    "rtu.capture": "cli/test_decode.py",
     "rtu.crc": "cli/test_send.py",
     "rtu.effects": "gateway/test_gateway_guard.py",
     "rtu.frames": "rtu/test_messages.py",
@@ -70,7 +68,6 @@ TESTED_BY = {
     "web.fleet": "web/test_web_units.py",
     "web.server": "web/test_web_units.py",
     "web.service": "app/test_services.py",
-    "web.state": "jobs/test_idle_gap_poll.py",
     "web.trend": "web/test_web_units.py",
 }
 
