@@ -16,10 +16,6 @@ SOURCE = TESTS.parent / "src" / "rtupoll"
 
 # module -> the test file that tests it (it imports the module)
 TESTED_BY = {
-    "config.address_plan": "config/test_commission_plan.py",
-    "config.compiled": "config/test_profile_cache.py",
-    "config.http_settings": "outputs/test_metrics.py",
-    "config.mqtt_settings": "outputs/test_mqtt.py",
     "config.paths": "config/test_labels.py",
     "config.profile_file": "config/test_hostile_files.py",
     "config.yamlsrc": "config/test_hostile_files.py",
@@ -34,16 +30,13 @@ TESTED_BY = {
     "jobs.commission": "config/test_commission_plan.py",
     "jobs.hole_services": "jobs/test_holes.py",
     "jobs.services": "app/test_service_reload.py",
-    "model.addressing": "config/test_commission_plan.py",
     "model.carried": "cli/test_decode.py",
     "model.interpret": "config/test_library.py",
     "model.profile": "config/test_library.py",
     "model.raw": "config/test_profiles.py",
     "numbers": "rtu/test_rtu.py",
     "outputs.fleet": "model/test_decimals.py",
-    "outputs.mqtt_commands": "outputs/test_mqtt.py",
     "rtu.crc": "cli/test_send.py",
-    "rtu.frames": "rtu/test_messages.py",
     "rtu.functions": "cli/test_send.py",
     "rtu.match": "cli/test_send.py",
     "sim.engine": "config/test_library.py",
@@ -57,10 +50,7 @@ TESTED_BY = {
     "ui.records": "cli/test_poll.py",
     "ui.systemd": "app/test_services.py",
     "ui.trend": "ui/test_poll_view.py",
-    "web.fleet": "web/test_web_units.py",
-    "web.server": "web/test_web_units.py",
     "web.service": "app/test_services.py",
-    "web.trend": "web/test_web_units.py",
 }
 
 # module -> why no test file imports it: it is run through what uses it

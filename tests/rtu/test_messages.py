@@ -1,4 +1,4 @@
-"""rtu.messages and rtu.frames: typed requests and replies, and where a frame ends."""
+"""rtu.messages: typed requests and replies, parsed from and encoded to frames."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.exception_codes import ExceptionCode
-from rtupoll.rtu.frames import NEED_MORE, NOT_A_FRAME, Direction, frame_at, lengths
+from rtupoll.rtu.frames import Direction, frame_at
 from rtupoll.rtu.functions import FUNCTIONS, MAX_QUANTITY, Table, data_bytes
 from rtupoll.rtu.messages import (
     ExceptionReply,
@@ -121,18 +121,6 @@ def test_any_bytes_answer_a_request_or_are_refused(req: Request, data: bytes,
         assert parse_reply(req, reply.frame()) == reply
 
 
-@settings(max_examples=max(300, settings().max_examples))
-@given(st.binary(max_size=300), st.sampled_from(Direction), st.booleans())
-def test_frame_at_says_length_need_more_or_not_a_frame(data: bytes, direction: Direction,
-                                                        final: bool) -> None:
-    n = frame_at(data, direction=direction, final=final)
-    assert n in (NEED_MORE, NOT_A_FRAME) or 4 <= n <= len(data)
-    if final:
-        assert n != NEED_MORE
-    if n == NEED_MORE:
-        assert max(lengths(data[:11], direction)) > len(data)
-
-
 def test_the_messages_encode_their_own_frames() -> None:
     assert ReadRequest(1, 3, 0x10, 2).frame() == bytes.fromhex("01 03 00 10 00 02 C5 CE")
     assert WriteSingle(1, 6, 7, 0xBEEF).frame() == bytes.fromhex("01 06 00 07 BE EF 08 27")
@@ -189,20 +177,6 @@ def test_a_write_reply_must_be_its_confirmation() -> None:
     short = with_crc(bytes.fromhex("01 06 02 00 2A"))  # laid out like a read reply
     with pytest.raises(Malformed, match="not the confirmation"):
         parse_reply(req, short)
-
-
-def test_frame_at_waits_for_the_likelier_length_and_takes_the_expected_one() -> None:
-    req = WriteMultiple(1, 16, 0, (1, 2, 3)).frame()
-    assert frame_at(req[:5], direction=Direction.REQUEST) == NEED_MORE  # no count byte yet
-    assert frame_at(req[:-1], direction=Direction.REQUEST) == NEED_MORE
-    assert frame_at(req[:-1], direction=Direction.REQUEST, final=True) == NOT_A_FRAME
-    assert frame_at(b"\xff" + req, 1, direction=Direction.REQUEST) == len(req)
-    assert frame_at(req, direction=Direction.REPLY) == NOT_A_FRAME  # not 8 bytes of echo
-    assert frame_at(b"\x01\x63\x00\x00", direction=Direction.REQUEST) == NOT_A_FRAME
-    reply = ReadReply(1, 4, (5,)).frame()
-    read = ReadRequest(1, 4, 0, 1).frame()
-    assert frame_at(reply + read, direction=Direction.REPLY, answering=read) == len(reply)
-    assert lengths(read[:11], Direction.EITHER) == (8, 5 + read[2])
 
 
 def test_the_sniffer_shows_a_malformed_request_and_gives_it_no_registers() -> None:

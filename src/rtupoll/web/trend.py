@@ -9,7 +9,7 @@ least ``SPAN`` seconds, whatever the poll interval: a field costs at most
 ``BYTES_PER_FIELD`` bytes of points (14,400), plus the two arrays' headers; a field
 read every 10 s fills only a fifth of that in an hour, as the columns grow to their
 bound and then wrap around. The bound holds for any number of readings
-(``tests/web/test_web_units.py``; ``benchmarks/web_trends.py`` measures 2,000 fields).
+(``tests/web/test_web_trend.py``; ``benchmarks/web_trends.py`` measures 2,000 fields).
 """
 
 from __future__ import annotations
