@@ -35,7 +35,6 @@ from rtupoll.config.yamlsrc import MAX_BYTES
 from rtupoll.errors import Interrupted, ProfileError
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.sim.scenario import build
-from rtupoll.ui.records import CsvWriter, finite, json_safe, nonfinite_text, to_json
 
 BUNDLED = Path(__file__).parents[2] / "profiles"
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "hostile"
@@ -331,25 +330,6 @@ def test_a_missing_site_profile_file_has_a_line(tmp_path: Path) -> None:
 
 
 # -- NaN and infinities in JSON and CSV --------------------------------------------
-
-def test_finite_and_json_safe_turn_nan_and_inf_into_null() -> None:
-    assert finite(float("nan")) is None and finite(float("-inf")) is None
-    assert finite(1.5) == 1.5 and finite("NaN") == "NaN"
-    assert [nonfinite_text(v) for v in (float("nan"), float("inf"), float("-inf"), 1.0)] == \
-        ["NaN", "+inf", "-inf", None]
-    nested = {"a": [float("nan"), {"b": float("inf")}], "c": (1, float("-inf"))}
-    assert json_safe(nested) == {"a": [None, {"b": None}], "c": [1, None]}
-    line = to_json({"value": float("nan"), "raw": [1, 2]})
-    assert json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}")) == \
-        {"value": None, "raw": [1, 2]}
-
-
-def test_csv_cells_of_nan_are_empty() -> None:
-    import io
-
-    out = io.StringIO()
-    CsvWriter(out, ("value", "text")).write({"value": float("nan"), "text": "NaN"})
-    assert out.getvalue().splitlines() == ["value,text", ",NaN"]
 
 
 def test_read_json_of_a_nan_register_is_strict_json(sim: Callable[..., SimulatedBus]) -> None:
@@ -653,4 +633,3 @@ def test_a_raw_write_of_an_unreachable_address_is_refused(
     assert proc.returncode == 8
     assert "outside its range 1..247" in one_line(proc)
     assert bus.addresses() == {"huiwen-aq@3": 3}
-

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rich.console import Console, RenderableType
 from rich.text import Text
-from test_poll_view import SEEDS, scanned
+from test_live import SEEDS, scanned
 
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.grid import Column, Grid

@@ -19,7 +19,7 @@ from rtupoll.model.interpret import display_value, field_words, interpret
 from rtupoll.sim.runner import SimulatedBus
 from rtupoll.ui.live import PollView
 from rtupoll.web.state import poll_state
-from tests.ui.test_poll_view import scanned, show
+from tests.ui.test_live import scanned, show
 from tests.web_helpers import devices, field, get_json, running, until
 
 KELVIN = 296.67  # 23.52 °C

@@ -1,4 +1,5 @@
-"""Raw register specs: the three addressing forms, types and how reads are split."""
+"""Raw register specs: the three addressing forms, types and how reads are split
+(rtupoll.model.raw)."""
 
 from __future__ import annotations
 

@@ -77,25 +77,6 @@ def test_a_tall_terminal_gets_one_row_per_field_with_status_and_age(
     assert lines[0].split(" · ")[2] == "10 scans"
 
 
-def test_a_trend_sparkline_of_the_last_minutes() -> None:
-    from rtupoll.ui.trend import BINS, BLOCKS, Trend
-
-    t = Trend()
-    assert t.line(0) == ""  # one reading is no trend
-    for i, v in enumerate([10, 12, 14, 16, 18]):
-        t.add(100 + 15 * i, v)
-    line = t.line(100 + 15 * 4)
-    assert len(line) == BINS
-    assert line[-5:] == "".join(BLOCKS[round(k * 7 / 4)] for k in range(5))  # ▁▃▅▆█
-    assert line[:-5] == " " * (BINS - 5)  # no readings before: blank, not zero
-    flat = Trend()
-    flat.add(0, 5.0)
-    flat.add(20, 5.0)
-    assert set(flat.line(20).strip()) == {BLOCKS[3]}  # a value that did not move
-    late = t.line(100 + 15 * 4 + 15 * BINS)  # five minutes later, nothing new
-    assert late == ""  # the window moved on
-
-
 def test_the_trend_column_draws_what_the_readings_did(sim: Callable[..., SimulatedBus]) -> None:
 
     from rtupoll.model.interpret import field_words, interpret

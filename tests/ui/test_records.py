@@ -1,12 +1,15 @@
 """``JsonRecords``: ``poll``'s JSON lines from pre-encoded fragments are byte for byte the
 records ``to_json(reading_record(r))`` makes, for every field of every bundled profile,
-whatever its registers hold (sentinels, enums, flags, NaN and infinities, text)."""
+whatever its registers hold (sentinels, enums, flags, NaN and infinities, text); NaN and
+infinities as JSON nulls and empty CSV cells (rtupoll.ui.records)."""
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -15,7 +18,15 @@ from rtupoll.config.site import DeviceConfig, from_specs
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field
-from rtupoll.ui.records import JsonRecords, reading_record, to_json
+from rtupoll.ui.records import (
+    CsvWriter,
+    JsonRecords,
+    finite,
+    json_safe,
+    nonfinite_text,
+    reading_record,
+    to_json,
+)
 
 
 @functools.cache
@@ -118,3 +129,23 @@ def test_a_field_redefined_by_a_reload_reads_anew_from_the_same_registers() -> N
     after = Reading(1.0, device, rescaled, interpret(rescaled, [100]), Status.OK)
     assert records.line(before) == _expected(before)
     assert records.line(after) == _expected(after) != _expected(before)
+
+
+def test_finite_and_json_safe_turn_nan_and_inf_into_null() -> None:
+    assert finite(float("nan")) is None and finite(float("-inf")) is None
+    assert finite(1.5) == 1.5 and finite("NaN") == "NaN"
+    assert [nonfinite_text(v) for v in (float("nan"), float("inf"), float("-inf"), 1.0)] == \
+        ["NaN", "+inf", "-inf", None]
+    nested = {"a": [float("nan"), {"b": float("inf")}], "c": (1, float("-inf"))}
+    assert json_safe(nested) == {"a": [None, {"b": None}], "c": [1, None]}
+    line = to_json({"value": float("nan"), "raw": [1, 2]})
+    assert json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c}")) == \
+        {"value": None, "raw": [1, 2]}
+
+
+def test_csv_cells_of_nan_are_empty() -> None:
+    import io
+
+    out = io.StringIO()
+    CsvWriter(out, ("value", "text")).write({"value": float("nan"), "text": "NaN"})
+    assert out.getvalue().splitlines() == ["value,text", ",NaN"]
