@@ -15,10 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 from conftest import live_and_dead
 
-from rtupoll.cli import cli
 from rtupoll.config.site import BusConfig, Site, from_specs
 from rtupoll.jobs.stats import Reading
 from rtupoll.model.interpret import FieldValue, interpret
@@ -141,8 +140,8 @@ def test_escaping_of_tags_fields_and_strings_round_trips() -> None:
                       "error": 'no reply, "x"'}
 
 
-def poll(*args: str) -> Result:
-    return CliRunner().invoke(cli, ["poll", *args])
+def poll(*args: str) -> Ran:
+    return rtupoll("poll", *args)
 
 
 def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Path) -> None:
@@ -154,7 +153,7 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     out = tmp_path / "readings.lp"
     result = poll("-c", str(site), "--once", "--format", "influx", "-o", str(out))
     after = time.time_ns()
-    assert result.exit_code == 9, result.stderr
+    assert result.returncode == 9, result.stderr
     text = out.read_text()
     assert text.endswith("\n")
     parsed = [parse_line(x) for x in text.splitlines()]
@@ -174,7 +173,7 @@ def test_once_with_a_dead_device(sim: Callable[..., SimulatedBus], tmp_path: Pat
     assert status["radar-level@4"]["state"] in ("retrying", "offline", "starting")
 
     again = poll("-c", str(site), "--once", "--format", "influx", "-o", str(out))
-    assert again.exit_code == 9
+    assert again.returncode == 9
     assert out.read_text().startswith(text)  # appended, not overwritten
 
 

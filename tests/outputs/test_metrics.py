@@ -18,16 +18,14 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import Ran, rtupoll
 from forked_cli import rtupoll_popen
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 from virtual import simulated
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
 from rtupoll.errors import install_command
@@ -237,14 +235,14 @@ def test_listen_addresses() -> None:
     assert parse_listen("[::]:9100") == ("::", 9100)
 
 
-def poll(*args: str) -> Any:
-    return CliRunner().invoke(cli, ["poll", *args])
+def poll(*args: str) -> Ran:
+    return rtupoll("poll", *args)
 
 
 def test_a_bad_or_busy_address_is_one_line_exit_2(sim: Callable[..., SimulatedBus]) -> None:
     bus = sim("huiwen-aq@3")
     bad = poll("-p", bus.port, "--once", "--metrics", "localhost", "huiwen-aq@3")
-    assert bad.exit_code == 2
+    assert bad.returncode == 2
     assert bad.stderr.strip() == ("rtupoll: --metrics 'localhost': expected [HOST:]PORT, "
                                   "e.g. 127.0.0.1:9464")
     with socket.socket() as taken:
@@ -252,7 +250,7 @@ def test_a_bad_or_busy_address_is_one_line_exit_2(sim: Callable[..., SimulatedBu
         taken.listen()
         port = taken.getsockname()[1]
         busy = poll("-p", bus.port, "--once", "--metrics", f"127.0.0.1:{port}", "huiwen-aq@3")
-    assert busy.exit_code == 2
+    assert busy.returncode == 2
     assert busy.stderr.startswith(f"rtupoll: --metrics: cannot listen on 127.0.0.1:{port}: ")
     assert len(busy.stderr.splitlines()) == 1
 
@@ -262,7 +260,7 @@ def test_without_prometheus_client_it_says_what_to_install(
     bus = sim("huiwen-aq@3")
     monkeypatch.setitem(sys.modules, "prometheus_client", None)  # import fails
     result = poll("-p", bus.port, "--once", "--metrics", "127.0.0.1:0", "huiwen-aq@3")
-    assert result.exit_code == 2
+    assert result.returncode == 2
     assert result.stderr.strip() == ("rtupoll: --metrics needs prometheus_client: "
                                      + install_command("metrics")[1])
 

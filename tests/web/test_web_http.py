@@ -14,9 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import Ran, rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import free_port
 from tests.web_helpers import Events, devices, field, get, get_json, merge, running, until
@@ -208,8 +207,8 @@ def test_the_site_files_http_section(sim: Callable[..., SimulatedBus], tmp_path:
         assert list(devices(state)) == ["huiwen-aq@3"]
 
 
-def run_cli(*args: str) -> Any:
-    return CliRunner().invoke(cli, list(args))
+def run_cli(*args: str) -> Ran:
+    return rtupoll(*args)
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -233,8 +232,8 @@ def test_bad_http_options_are_one_line_exit_2(sim: Callable[..., SimulatedBus],
                                               args: list[str], message: str) -> None:
     bus = sim("huiwen-aq@3")
     got = run_cli("poll", "-p", bus.port, *args, "huiwen-aq@3")
-    assert got.exit_code == 2, got.output
-    assert got.output.strip().splitlines()[-1] == f"rtupoll: {message}"
+    assert got.returncode == 2, got.stderr
+    assert got.stderr.strip().splitlines()[-1] == f"rtupoll: {message}"
 
 
 def test_a_busy_port_is_one_line_exit_2(sim: Callable[..., SimulatedBus],
@@ -245,28 +244,28 @@ def test_a_busy_port_is_one_line_exit_2(sim: Callable[..., SimulatedBus],
         port = first.url.rsplit(":", 1)[1].rstrip("/")
         got = run_cli("poll", "-p", other.port, "--format", "json", "--http",
                       f"127.0.0.1:{port}", "huiwen-aq@3")
-    assert got.exit_code == 2, got.output
-    assert got.output.strip().splitlines()[-1] == (
+    assert got.returncode == 2, got.stderr
+    assert got.stderr.strip().splitlines()[-1] == (
         f"rtupoll: --http: cannot listen on 127.0.0.1:{port}: Address already in use")
 
 
 def test_rtupoll_web_without_a_broker_is_one_line_exit_10() -> None:
     port = free_port()  # nothing listens there
     got = run_cli("web", "--mqtt", f"mqtt://127.0.0.1:{port}", "--http", "127.0.0.1:0")
-    assert got.exit_code == 10, got.output
-    assert got.output.strip().splitlines() == [
+    assert got.returncode == 10, got.stderr
+    assert got.stderr.strip().splitlines() == [
         f"rtupoll: --mqtt mqtt://127.0.0.1:{port}: connection refused (is the broker "
         f"running on port {port}?)"]
 
 
 def test_rtupoll_web_bad_arguments_are_one_line_exit_2() -> None:
     got = run_cli("web", "--mqtt", "http://broker")
-    assert got.exit_code == 2
-    assert got.output.strip().splitlines()[-1].startswith("rtupoll: --mqtt http://broker: "
+    assert got.returncode == 2
+    assert got.stderr.strip().splitlines()[-1].startswith("rtupoll: --mqtt http://broker: "
                                                           "expected mqtt://")
     got = run_cli("web", "--mqtt", "mqtt://broker", "--http", "nowhere")
-    assert got.exit_code == 2
-    assert got.output.strip().splitlines()[-1] == (
+    assert got.returncode == 2
+    assert got.stderr.strip().splitlines()[-1] == (
         "rtupoll: --http 'nowhere': expected [HOST:]PORT, e.g. 127.0.0.1:8080")
 
 
