@@ -1,7 +1,7 @@
 """The capture format read by an independent reader: tshark (Wireshark's dissectors).
 
 ``rtupoll sniff --capture`` writes pcapng with link type 250 (RTAC serial), and
-tests/sniff/test_sniff_capfile.py reads it back with rtupoll's own reader: a bug both share
+tests/sniff/test_capfile.py reads it back with rtupoll's own reader: a bug both share
 (a wrong block length, a timestamp in the wrong unit, a header off by a byte) would
 pass there. Here tshark reads what ``CaptureWriter`` wrote: every chunk's bytes and
 arrival time, the interface's name and description, and, decoded as Modbus RTU (the

@@ -1,6 +1,6 @@
 """One device cycle's rules, sans-IO: ``DevicePoller.cycle`` reads the blocks and hands
 each block's outcome to a ``CyclePolicy``, which says what comes next. No bus, no clock:
-the rules are tested alone (tests/jobs/test_cycle_policy.py).
+the rules are tested alone (tests/jobs/test_cycle.py).
 
 - A device that failed its last cycle is probed: its first block gets no immediate
   retries (a dead device costs one timeout, not ``1 + retries``); once it answers, the
