@@ -22,7 +22,7 @@ Sim = Callable[..., SimulatedBus]
 # each silent address probed costs the timeout three times, and its drain; a live device
 # that answers late (a busy machine's simulator thread answered later than 0.1 s, and at
 # load 10 later than 0.2 s: "no device answers at 1") has its late reply taken as a
-# retry's answer (a retry repeats the request): 0.3 s in all, as test_address_cli.py's
+# retry's answer (a retry repeats the request): 0.3 s in all, as tests/cli/test_address.py's
 # one 0.3 s timeout (whose drain costs 0.3 s more)
 FAST = ("--timeout", "0.1", "--retries", "2")
 PLAN = Path(__file__).parents[1] / "fixtures" / "commission" / "three.csv"

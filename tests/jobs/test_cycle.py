@@ -1,6 +1,6 @@
 """A device cycle's rules (``rtupoll.jobs.cycle.CyclePolicy``), without a bus or a clock:
 which retries a block gets, when the rest of a cycle is skipped, where the next cycle
-resumes, and whether the cycle counts as answered. ``tests/test_scheduler.py`` shows
+resumes, and whether the cycle counts as answered. ``tests/jobs/test_scheduler.py`` shows
 the same rules through ``DevicePoller.cycle`` in virtual time."""
 
 from __future__ import annotations

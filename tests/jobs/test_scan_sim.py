@@ -40,7 +40,7 @@ RTUPOLL = [sys.executable, "-m", "rtupoll"]
 
 # the simulator's thread may answer 100 ms late on a busy machine: twice the default
 # turnaround margin, so identification does not depend on the machine's load (the
-# derived margins themselves are exact in virtual time, tests/jobs/test_scan_plan.py)
+# derived margins themselves are exact in virtual time, tests/jobs/test_jobs_scan.py)
 PATIENT = ("--turnaround", "0.15")
 
 
@@ -109,7 +109,7 @@ def test_an_empty_range_costs_no_more_than_the_derived_timeouts(sim: Sim) -> Non
     derived = 10 * probe_timeout(framing, 1, margin)
     assert found == []
     # never less than the derived timeouts (that it is not more is a rule about time:
-    # exact in virtual time, tests/jobs/test_scan_plan.py; here a busy machine adds to it)
+    # exact in virtual time, tests/jobs/test_jobs_scan.py; here a busy machine adds to it)
     assert derived * 0.95 <= elapsed
     assert len([w for w in bus.wire if w.direction == "in"]) == 10  # one probe each
 
