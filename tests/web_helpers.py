@@ -78,6 +78,19 @@ def running(args: list[str], tmp: Path, *, name: str = "rtupoll", fresh: bool = 
         p.stop()
 
 
+@contextlib.contextmanager
+def gateway_and_fleet(broker: str, port: str, device: str, tmp: Path, *, ident: str = "east"
+                      ) -> Iterator[tuple[Proc, Proc]]:
+    """A real gateway (``poll --mqtt --mqtt-id IDENT --http``, polling ``device`` on
+    ``port``) and the fleet page (``web --mqtt``) on the same broker: (gateway, fleet)."""
+    with running(["poll", "-p", port, "-b", "9600", "--format", "json", "-o",
+                  str(tmp / f"{ident}.jsonl"), "--mqtt", broker, "--mqtt-id", ident,
+                  "--http", "127.0.0.1:0", device], tmp, name=ident, fresh=True) as gateway, \
+            running(["web", "--mqtt", broker, "--http", "127.0.0.1:0"], tmp, name="web",
+                    fresh=True) as fleet:
+        yield gateway, fleet
+
+
 def get(url: str, headers: dict[str, str] | None = None) -> tuple[int, dict[str, str], bytes]:
     req = urllib.request.Request(url, headers=headers or {})
     try:

@@ -31,6 +31,7 @@ from tests.web_helpers import (
     color_scheme,
     console_errors,
     devices,
+    gateway_and_fleet,
     get_json,
     have_chromium,
     phone,
@@ -490,12 +491,7 @@ def test_the_fleet_page_colours_readings_as_the_gateways_dashboard(
     bus = sim("huiwen-aq@3", tcp=True, tick=None)
     bus.set(3, "co2_level", "MODERATE")
     bus.set(3, "co2_failure", "SENSOR_ABNORMAL")
-    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "-o",
-                  str(tmp_path / "east.jsonl"), "--mqtt", broker.url, "--mqtt-id", "east",
-                  "--http", "127.0.0.1:0", "huiwen-aq@3"], tmp_path, name="east",
-                 fresh=True) as east, \
-            running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
-                    name="web", fresh=True) as web:
+    with gateway_and_fleet(broker.url, bus.port, "huiwen-aq@3", tmp_path) as (east, web):
         pages = {}
         for name, p in (("dashboard", east), ("fleet", web)):
             browser.get(p.url)

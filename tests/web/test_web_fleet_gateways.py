@@ -14,7 +14,7 @@ from typing import Any
 
 from rtupoll.sim.runner import SimulatedBus
 from tests.brokers import Broker, broker_fixture  # noqa: F401  (the broker fixture)
-from tests.web_helpers import Proc, get_json, running, until
+from tests.web_helpers import Proc, gateway_and_fleet, get_json, running, until
 
 
 def gateway(broker: Broker, bus: SimulatedBus, ident: str, tmp: Path) -> Proc:
@@ -73,12 +73,7 @@ def test_a_gateways_own_dashboard_names_it_as_the_fleet_page_does(
     """``--mqtt-id``: the id the gateway publishes under is its dashboard's too (the host
     name's id otherwise, which the fleet page would not know it by)."""
     bus = sim("huiwen-aq@3", tcp=True, tick=None)
-    with running(["poll", "-p", bus.port, "-b", "9600", "--format", "json", "-o",
-                  str(tmp_path / "east.jsonl"), "--mqtt", broker.url, "--mqtt-id", "east",
-                  "--http", "127.0.0.1:0", "huiwen-aq@3"], tmp_path, name="east",
-                 fresh=True) as east, \
-            running(["web", "--mqtt", broker.url, "--http", "127.0.0.1:0"], tmp_path,
-                    name="web", fresh=True) as web:
+    with gateway_and_fleet(broker.url, bus.port, "huiwen-aq@3", tmp_path) as (east, web):
         fleet = until(lambda: [gw["id"] for gw in get_json(web.url + "api/state")["gateways"]]
                       or None, "the gateway on the fleet page", limit=90)
         own = [gw["id"] for gw in get_json(east.url + "api/state")["gateways"]]
