@@ -110,7 +110,7 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import field
+from dataclasses import dataclass, field
 
 from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok
@@ -133,23 +133,18 @@ ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose rec
               "so with --echo (echo: true on the bus in a site file)")
 
 
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Outstanding:
-    """A request whose answer has not been identified yet. (Plain classes with slots, not
-    dataclasses, here: made per attempt, and a dataclass costs every start-up the
-    compiling of its generated methods. Equal only to itself: an entry is one request
-    sent once.)"""
+    """A request whose answer has not been identified yet."""
 
-    __slots__ = ("expect", "expires", "idle", "request", "retry", "sent", "silent", "suspect")
-
-    def __init__(self, request: bytes, expect: Expect, sent: float, expires: float,
-                 idle: float = 0.0, retry: bool = False) -> None:
-        self.request, self.expect = request, expect
-        self.sent = sent  # when its first byte went out
-        self.expires = expires  # after this no answer to it is expected any more
-        self.idle = idle  # the silence on the line before it went
-        self.retry = retry  # a retry of the same request within one transaction
-        self.silent = False  # its attempt ended with nothing received at all
-        self.suspect = False  # taken for not heard by the device (``Line._unheard``)
+    request: bytes
+    expect: Expect
+    sent: float  # when its first byte went out
+    expires: float  # after this no answer to it is expected any more
+    idle: float = 0.0  # the silence on the line before it went
+    retry: bool = False  # a retry of the same request within one transaction
+    silent: bool = False  # its attempt ended with nothing received at all
+    suspect: bool = False  # taken for not heard by the device (``Line._unheard``)
 
 
 @frozen
@@ -166,32 +161,27 @@ class Garbled:
     final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
+@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
 class Attempt:
     """The request in flight (its outstanding entry) and what has arrived for it."""
 
-    __slots__ = ("entry", "rx")
-
-    def __init__(self, entry: Outstanding) -> None:
-        self.entry = entry
-        self.rx = bytearray()  # every byte received during it
+    entry: Outstanding
+    rx: bytearray = field(default_factory=bytearray)  # every byte received during it
 
 
+@dataclass
 class LineCounts:
     """What the line saw, per unit where it is a unit's: every attempt is counted once,
     by how it ended (answered, ``garbled`` or ``timeouts``; an echo seen with echo off
     counts in ``echoes`` only)."""
 
-    __slots__ = ("echoes", "gap_raised", "garbled", "late", "retried", "timeouts",
-                 "unsolicited")
-
-    def __init__(self) -> None:
-        self.late: Counter[int] = Counter()  # late replies, per unit
-        self.unsolicited = 0  # frames and bursts that answered nothing we asked
-        self.echoes = 0  # requests that came back with echo off (the adapter echoes)
-        self.gap_raised: Counter[int] = Counter()  # learned idle gap raises
-        self.garbled: Counter[int] = Counter()  # attempts ended by a garbled reply
-        self.timeouts: Counter[int] = Counter()  # attempts that got no reply
-        self.retried: Counter[int] = Counter()  # answered only by a retry
+    late: Counter[int] = field(default_factory=Counter)  # late replies, per unit
+    unsolicited: int = 0  # frames and bursts that answered nothing we asked
+    echoes: int = 0  # requests that came back with echo off (the adapter echoes)
+    gap_raised: Counter[int] = field(default_factory=Counter)  # learned idle gap raises
+    garbled: Counter[int] = field(default_factory=Counter)  # attempts ended by a garbled reply
+    timeouts: Counter[int] = field(default_factory=Counter)  # attempts that got no reply
+    retried: Counter[int] = field(default_factory=Counter)  # answered only by a retry
 
 
 class UnitCounts:
