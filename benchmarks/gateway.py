@@ -4,7 +4,7 @@ hammering client costs the poller -- measured in one run.
 The simulator runs as ``rtupoll simulate --baud N`` in its own process (turnaround 0),
 and so does the Modbus TCP client (pymodbus's plain synchronous client, reading the
 Huiwen module's four input registers at 30006 in a loop), so the gateway's process
-does only the gateway's and the poller's work. Four phases on the same simulator:
+does only the gateway's and the poller's work. Five phases on the same simulator:
 
 0. bare: the least any master could take on this rig: a few lines of ``os.write`` and
    ``select`` on the pty, the request sent exactly 3.5 characters after the last reply
