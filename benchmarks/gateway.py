@@ -4,8 +4,12 @@ hammering client costs the poller -- measured in one run.
 The simulator runs as ``rtupoll simulate --baud N`` in its own process (turnaround 0),
 and so does the Modbus TCP client (pymodbus's plain synchronous client, reading the
 Huiwen module's four input registers at 30006 in a loop), so the gateway's process
-does only the gateway's and the poller's work. Four phases on the same simulator:
+does only the gateway's and the poller's work. Five phases on the same simulator:
 
+0. bare: the least any master could take on this rig: a few lines of ``os.write`` and
+   ``select`` on the pty, the request sent exactly 3.5 characters after the last reply
+   byte arrived, the reply read by its known length (no checks, no event loop): the
+   transactions/s the simulator and the pty allow, against the wire limit;
 1. direct: rtupoll's own bus reads the same four registers (no gateway): the floor
    rtupoll's RTU master sets on this machine;
 2. gateway alone (``poll --serve`` with no devices): the client's latency through
@@ -21,11 +25,16 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import itertools
 import json
+import os
+import select
 import statistics
 import subprocess
 import sys
+import termios
 import time
+import tty
 
 from poll_common import simulator
 
@@ -36,6 +45,7 @@ from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table, transaction_wire_time
+from rtupoll.rtu.functions import read_request
 
 DEVICES = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3")
 UNIT, ADDRESS, COUNT = 3, 0x7536, 4  # Huiwen: PM2.5, TVOC, HCHO, CO2
@@ -59,6 +69,38 @@ def client(port: int, seconds: float) -> None:
     print(json.dumps(lat))
 
 
+def bare(port: str, baud: int, n: int) -> tuple[float, float]:
+    """A bare master on the pty, ``n`` transactions in a row: (median, mean) seconds from
+    one request's write to the next's (the mean as the client's answers/s count it)."""
+    request = read_request(UNIT, Table.INPUT, ADDRESS, COUNT)
+    length, silence = 5 + 2 * COUNT, Framing(baud).silence
+    fd = os.open(port, os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        attrs = termios.tcgetattr(fd)  # at the bus's speed (the simulator checks it)
+        attrs[4] = attrs[5] = getattr(termios, f"B{baud}")
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        termios.tcflush(fd, termios.TCIOFLUSH)
+        last, writes = time.monotonic(), []
+        for _ in range(n + 1):
+            while (wait := last + silence - time.monotonic()) > 0:
+                if select.select([fd], [], [], wait)[0]:  # a stray byte: silence again
+                    os.read(fd, 256)
+                    last = time.monotonic()
+            writes.append(time.monotonic())
+            os.write(fd, request)
+            got = b""
+            while len(got) < length:
+                if not select.select([fd], [], [], 0.5)[0]:
+                    raise SystemExit("bare master: no reply")
+                got += os.read(fd, 256)
+            last = time.monotonic()
+        cycles = [b - a for a, b in itertools.pairwise(writes)]
+        return statistics.median(cycles), statistics.mean(cycles)
+    finally:
+        os.close(fd)
+
+
 async def direct(port: str, baud: int, n: int) -> list[float]:
     lat = []
     async with Bus(PortSettings(port, baud)) as bus:
@@ -74,8 +116,10 @@ async def served(site: Site, seconds: float, hammer: bool) -> tuple[Scheduler, l
     service = GatewayService()
 
     def sink(dev: DevicePoller, readings: list[Reading]) -> None:
-        if any(not r.ok for r in readings):
-            raise SystemExit(f"{dev.config.name}: {readings[0].error}")
+        bad = [r for r in readings if not r.ok]
+        if bad:
+            raise SystemExit(f"{dev.config.name}: {bad[0].field.name}: {bad[0].status.value}: "
+                             f"{bad[0].error}")
 
     stop = asyncio.Event()
     await scheduler.open()
@@ -113,6 +157,7 @@ def run(baud: int, seconds: float) -> None:
     wire = transaction_wire_time(framing, 8, 5 + 2 * COUNT)
     serve = ServeConfig("127.0.0.1", 0)
     with simulator(baud, DEVICES) as port:
+        floor, floor_mean = bare(port, baud, 300)
         d = asyncio.run(direct(port, baud, 100))
         gw_only = Site((BusConfig("gw", port, baud, serve=serve),))
         _, alone = asyncio.run(served(gw_only, seconds, hammer=True))
@@ -124,11 +169,18 @@ def run(baud: int, seconds: float) -> None:
     med_d, med_g = statistics.median(d), statistics.median(alone)
     print(f"{baud} baud; transaction (FC04, 4 registers) on the wire with two silences: "
           f"{ms(wire)}")
+    print(f"bare master (os.write and select on the pty, silence kept): median {ms(floor)} "
+          f"per transaction = {wire / floor:.2f} of the wire limit (mean {ms(floor_mean)}: "
+          f"{1 / floor_mean:.1f}/s, {wire / floor_mean:.2f})")
     print(f"direct read (rtupoll's bus, no gateway): median {ms(med_d)} = "
           f"{med_d / wire:.2f}x the wire time")
     print(f"through the gateway (pymodbus TCP client, no poller): median {ms(med_g)} = "
           f"{med_g / wire:.2f}x the wire time; added by the gateway over the direct read: "
           f"{ms(med_g - med_d)}")
+    a = len(alone) / seconds
+    print(f"answers/s through the gateway (one client, no poller): {a:.1f} = {a * wire:.2f} "
+          f"of the silence-keeping wire limit ({1 / wire:.1f}/s), {a * floor_mean:.2f} of the "
+          "bare master's")
     r0 = requests(poller_only) / seconds
     r1 = requests(shared) / seconds
     c1 = len(both) / seconds

@@ -14,7 +14,15 @@ After ``--seconds`` of polling each process's resident memory (VmRSS, and its pe
 VmHWM) is read from /proc; the figure is rtupoll's over the peer's (the goal: at most
 1.1), per round and as the median.
 
-Run: .venv/bin/python benchmarks/poll_rss.py [--seconds 20] [--rounds 2]
+Both run on one interpreter: a plain install of rtupoll, as users have it (the venv
+``read_vs_mbpoll.plain_install`` builds, its dependencies this environment's), with
+bytecode caching on (an installed package has its .pyc files, as the peer's pymodbus
+has; with PYTHONDONTWRITEBYTECODE the checkout's modules would be compiled at every
+start, and the compiler's transient memory stays in the process's RSS), after a
+warm-up poll that fills the profile cache (a temporary one). ``--checkout`` runs
+rtupoll from this checkout's editable install instead, with the environment as it is.
+
+Run: .venv/bin/python benchmarks/poll_rss.py [--seconds 20] [--rounds 2] [--checkout]
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -30,6 +39,7 @@ import time
 from pathlib import Path
 
 from poll_common import seed_site, simulator
+from read_vs_mbpoll import plain_install
 
 from rtupoll.model.planner import plan
 
@@ -94,10 +104,11 @@ def memory(pid: int) -> tuple[float, float]:
     return (int(status["VmRSS"].split()[0]) / 1024, int(status["VmHWM"].split()[0]) / 1024)
 
 
-def run_for(argv: list[str], seconds: float, out: Path | None = None) -> tuple[float, float]:
+def run_for(argv: list[str], seconds: float, out: Path | None = None,
+            env: dict[str, str] | None = None) -> tuple[float, float]:
     with contextlib.ExitStack() as stack:
         sink = stack.enter_context(out.open("w")) if out else subprocess.DEVNULL
-        proc = subprocess.Popen(argv, stdout=sink, stderr=subprocess.PIPE)
+        proc = subprocess.Popen(argv, stdout=sink, stderr=subprocess.PIPE, env=env)
         try:
             time.sleep(seconds)
             if proc.poll() is not None:
@@ -116,6 +127,9 @@ def main() -> None:
     ap.add_argument("--before", metavar="PYTHON",
                     help="also poll with this interpreter's rtupoll (another checkout's venv) "
                          "in each round: before and after in the same run")
+    ap.add_argument("--checkout", action="store_true",
+                    help="run rtupoll from this checkout (editable install, environment as "
+                         "it is), not from a plain install with bytecode caching")
     args = ap.parse_args()
     ratios, ours, theirs, before = [], [], [], []
     with contextlib.ExitStack() as stack:
@@ -124,11 +138,18 @@ def main() -> None:
         site = tmp / "site.yaml"
         site.write_text(site_yaml(ports))
         spec = json.dumps({"baud": BAUD, "buses": planned_reads(ports)})
+        python, env = Path(sys.executable), None
+        if not args.checkout:
+            env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+            env["XDG_CACHE_HOME"] = str(tmp / "cache")  # its own profile cache
+            python = plain_install(tmp / "venv", env)
+            run_for([str(python), "-m", "rtupoll", "poll", "-c", str(site), "--format", "json",
+                     "-o", str(tmp / "warm-up.jsonl")], 3.0, env=env)
         for r in range(args.rounds):
-            peer = run_for([sys.executable, "-c", PEER, spec], args.seconds)
+            peer = run_for([str(python), "-c", PEER, spec], args.seconds, env=env)
             records = tmp / f"readings{r}.jsonl"
-            mine = run_for([sys.executable, "-m", "rtupoll", "poll", "-c", str(site),
-                            "--format", "json", "-o", str(records)], args.seconds)
+            mine = run_for([str(python), "-m", "rtupoll", "poll", "-c", str(site),
+                            "--format", "json", "-o", str(records)], args.seconds, env=env)
             polled = {json.loads(line)["device"] for line in records.read_text().splitlines()}
             if len(polled) != BUSES * PER_BUS:
                 raise SystemExit(f"rtupoll polled {len(polled)} devices, not {BUSES * PER_BUS}")
@@ -140,7 +161,7 @@ def main() -> None:
             if args.before:
                 then = run_for([args.before, "-m", "rtupoll", "poll", "-c", str(site),
                                 "--format", "json", "-o", str(tmp / "before.jsonl")],
-                               args.seconds)
+                               args.seconds, env=env)
                 before.append(then[0] / peer[0])
                 print(f"  before: rtupoll {then[0]:.1f} MB (peak {then[1]:.1f}): "
                       f"x{before[-1]:.2f}", flush=True)

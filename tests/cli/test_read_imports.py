@@ -1,5 +1,7 @@
 """A one-shot read imports only what it uses: no simulator, scheduler or live table, no
-rich on the machine-readable paths, no csv module but for the csv format, no YAML parser
+rich on the machine-readable paths, no csv module but for the csv format, no logging
+(nothing logs on a read that goes well, and the end does not import it to shut it down),
+no YAML parser
 (nor pickle.py: the C unpickler alone) once the profile is in the compiled profile
 cache, and no event loop or async transport (asyncio, pymodbus): it reads on the
 blocking bus (measured with ``python -X importtime``)."""
@@ -16,7 +18,7 @@ from rtupoll.config.library import load_one
 from rtupoll.sim.runner import SimulatedBus
 
 UNUSED = ("rich", "rtupoll.sim", "rtupoll.jobs.scheduler", "rtupoll.ui.live", "rtupoll.config.site",
-          "rtupoll.jobs.commission", "yaml", "asyncio", "pymodbus", "rtupoll.io.bus")
+          "rtupoll.jobs.commission", "yaml", "asyncio", "pymodbus", "rtupoll.io.bus", "logging")
 
 
 def imported(*argv: str) -> set[str]:

@@ -63,14 +63,14 @@ def _leave(code: int) -> None:
     straight out, without the interpreter's teardown (tens of milliseconds, during
     which Python runs no signal handler: a Ctrl-C there killed the process silently,
     after a write's table, as if the write had been cut short)."""
-    import logging
-
     _interrupted_late(code)
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             if stream is not None:
                 stream.flush()
-    logging.shutdown()
+    logging = sys.modules.get("logging")  # never imported: no handler to flush (and a
+    if logging is not None:  # one-shot read does not import it just to end)
+        logging.shutdown()
     if hasattr(_signal, "pthread_sigmask"):  # one held by _hold runs its handler now
         _signal.pthread_sigmask(_signal.SIG_UNBLOCK, {_signal.SIGINT, _signal.SIGTERM})
     os._exit(code)
