@@ -33,7 +33,7 @@ import tempfile
 import time
 from typing import IO
 
-from rtupoll.figures import quantile
+from rtupoll.percentiles import quantile
 
 HALF = b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\nUser-Agent: slow"
 

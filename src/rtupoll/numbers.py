@@ -1,4 +1,5 @@
-"""Numbers as people write them in manuals and on command lines: ``254``, ``0xFE``, ``FEh``."""
+"""Numbers in people's words: read as manuals and command lines write them (``254``,
+``0xFE``, ``FEh``), and a count written with its noun (``1 device``, ``3 devices``)."""
 
 from __future__ import annotations
 
@@ -20,3 +21,9 @@ def parse_unit(text: str) -> int:
     if not 0 <= unit <= 255:
         raise ValueError(f"address {unit} is outside 0..255")
     return unit
+
+
+def count(n: int, noun: str, plural: str = "") -> str:
+    """``n`` and its noun, singular for exactly one: "1 device", "0 devices", "3 devices"
+    (``plural`` where adding "s" is not the plural)."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"

@@ -18,8 +18,8 @@ import serial
 from cli_runner import Ran, rtupoll
 from conftest import ANSWERED, PATIENT, live_and_dead
 
+from rtupoll.model.record import POLL_KEYS
 from rtupoll.sim.runner import SimulatedBus
-from rtupoll.ui.records import POLL_KEYS
 
 
 def poll(*args: str) -> Ran:

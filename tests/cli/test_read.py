@@ -12,8 +12,8 @@ import pytest
 from cli_runner import Ran, rtupoll
 
 from rtupoll.config.library import load_one
+from rtupoll.model.record import READ_KEYS
 from rtupoll.sim.runner import SimulatedBus
-from rtupoll.ui.records import READ_KEYS
 
 Sim = Callable[..., SimulatedBus]
 

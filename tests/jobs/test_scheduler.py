@@ -15,9 +15,9 @@ import pytest
 from virtual import START, ScriptedBus, VirtualClock, polled, run_virtual
 
 from rtupoll.config.site import BusConfig, DeviceConfig, from_specs
-from rtupoll.figures import quantile
 from rtupoll.jobs.scheduler import Backoff, BusPoller, DevicePoller
 from rtupoll.jobs.stats import BusLoad, Reading, State
+from rtupoll.percentiles import quantile
 
 
 def radar(address: int = 2, interval: float = 1.0) -> DeviceConfig:

@@ -22,7 +22,6 @@ from virtual import heard_nothing, polled, run_virtual
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
 from rtupoll.errors import DeviceTimeout
-from rtupoll.figures import quantile
 from rtupoll.io.latency import latency_timer, latency_warning
 from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.jobs.stats import State
@@ -33,6 +32,7 @@ from rtupoll.jobs.timeouts import (
     DeviceTiming,
     TimeoutEstimator,
 )
+from rtupoll.percentiles import quantile
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.line import LATE_FACTOR, Answer, Line, UnitCounts
@@ -456,17 +456,6 @@ def test_the_ceiling_bounds_what_is_learned() -> None:
     timing.before(None, 1, ceiling=0.8)
     timing.estimator.answered(2.0)
     assert timing.timeout == 0.8
-
-
-def test_quantile_is_the_nearest_rank_whatever_the_shortcut() -> None:
-    import random
-
-    rnd = random.Random(7)
-    for n in (1, 2, 5, 99, 100, 101, 128):
-        data = [rnd.random() for _ in range(n)]
-        for q in (50, 90, 99, 100):
-            rank = max(1, -(-n * q // 100))
-            assert quantile(data, q) == sorted(data)[int(rank) - 1], (n, q)
 
 
 def test_the_estimators_sorted_window_gives_the_percentile_of_its_last_samples() -> None:

@@ -21,12 +21,13 @@ from rtupoll.jobs.stats import BusLoad
 from rtupoll.model.codec import DataType, Layout, decode, encode
 from rtupoll.model.interpret import field_words, interpret
 from rtupoll.model.planner import plan
+from rtupoll.model.record import record
 from rtupoll.rtu import Table
 from rtupoll.rtu.line import UnitCounts
 from rtupoll.rtu.transaction import Evidence, ReadResult
 from rtupoll.sim.device import SimDevice
 from rtupoll.sim.device import SimDeviceConfig as SimConfig
-from rtupoll.ui.records import CsvWriter, record, to_json
+from rtupoll.ui.records import CsvWriter, to_json
 
 HEADER = """\
 id: {id}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rtupoll.config.library import load_library
+from rtupoll.model.record import POLL_KEYS
 from rtupoll.rtu import Framing
 from rtupoll.rtu.messages import ExceptionReply, ReadReply, ReadRequest, WriteSingle
 from rtupoll.rtu.stream import Stream, Transaction
@@ -10,7 +11,6 @@ from rtupoll.sim.scenario import profile
 from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
 from rtupoll.sniff.render import render
-from rtupoll.ui.records import POLL_KEYS
 
 F = Framing(9600)
 HUIWEN = Known("air", profile("huiwen-aq"), 3)

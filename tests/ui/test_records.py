@@ -18,15 +18,8 @@ from rtupoll.config.site import DeviceConfig, from_specs
 from rtupoll.jobs.stats import Reading, Status
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field
-from rtupoll.ui.records import (
-    CsvWriter,
-    JsonRecords,
-    finite,
-    json_safe,
-    nonfinite_text,
-    reading_record,
-    to_json,
-)
+from rtupoll.model.record import finite, nonfinite_text
+from rtupoll.ui.records import CsvWriter, JsonRecords, json_safe, reading_record, to_json
 
 
 @functools.cache

@@ -19,9 +19,10 @@ from rtupoll.cli.options import format_option, profiles_option
 from rtupoll.errors import FrameError, UsageError
 from rtupoll.model.carried import Carried, carried_in
 from rtupoll.model.profile import Profile
+from rtupoll.model.record import finite, nonfinite_text
 from rtupoll.numbers import parse_int
 from rtupoll.rtu.capture import Frame, decode_stream, parse_hex
-from rtupoll.ui.records import finite, json_safe, nonfinite_text
+from rtupoll.ui.records import json_safe
 
 EPILOG = """\b
 Examples:

@@ -321,7 +321,7 @@ def _mqtt(site: Site, url: str | None, allow_writes: bool, remove: bool, once: b
                        f"Assistant discovery config of gateway {settings.gateway_id!r} and "
                        f"no retained topic under {settings.base}", err=True)
         else:
-            from rtupoll.figures import count
+            from rtupoll.numbers import count
 
             configs = count(len(gone.configs), "Home Assistant discovery config")
             click.echo(f"rtupoll: removed {configs} ({settings.discovery_prefix}/device/...)"

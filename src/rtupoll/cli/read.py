@@ -30,8 +30,8 @@ from rtupoll.jobs.device import timing as device_timing
 from rtupoll.model.codec import ByteOrder, words_to_hex
 from rtupoll.model.interpret import FieldValue, display, display_unit, interpret
 from rtupoll.model.profile import Addressing, Field, Poll, Profile
+from rtupoll.model.record import READ_KEYS, record
 from rtupoll.rtu.functions import MAX_REGISTERS
-from rtupoll.ui.records import READ_KEYS, record
 
 if TYPE_CHECKING:
     from rtupoll.model.raw import RegisterSpec

@@ -6,7 +6,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from rtupoll.figures import quantile
+from rtupoll.percentiles import quantile
 
 WAIT_WINDOW = 1000  # queue waits kept for the percentiles
 

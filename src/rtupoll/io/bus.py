@@ -35,11 +35,11 @@ and the line's clock (``rtupoll.io.clock``).
   stray byte, and cost CPU the line has already spent).
 - **DTR, RS-485 direction**: ``deassert_dtr`` opens the port with DTR and RTS low;
   ``rs485`` drives the transceiver's direction (kernel RS-485 mode, else RTS around
-  each frame); both on rtupoll's ``Serial`` (``rtupoll.io.serialport``).
+  each frame); both on rtupoll's ``Serial`` (``rtupoll.io.own_port``).
 - **Echo**: ``echo`` tells the line that the adapter echoes each request.
 - **Reconnect**: pymodbus's reconnect loop is off; a vanished port is reopened by the
   next transaction (``PortError`` while it is gone; the reason -- missing, busy,
-  permission, refused, unreachable -- named by ``rtupoll.io.serialport``).
+  permission, refused, unreachable -- named by ``rtupoll.io.port_diagnosis``).
 
 pymodbus's ``pymodbus`` logger is silenced on import unless the application set a
 level on it (``pymodbus_logging`` turns it on).
@@ -59,11 +59,11 @@ from pymodbus.transport import CommParams, CommType, ModbusProtocol
 from pymodbus.transport.serialtransport import SerialTransport
 
 from rtupoll.errors import PortError
-from rtupoll.io import clock, serialport, taps
+from rtupoll.io import clock, own_port, port_diagnosis, port_names, pty_parity, taps
 from rtupoll.io.interface import LineBus, raise_failed
 from rtupoll.io.latency import latency_timer
 from rtupoll.io.port_errors import gateway_error
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import (
     OUTCOMES,
@@ -122,9 +122,9 @@ class Bus(LineBus):
         self._gateway = settings.gateway
         # pymodbus opens the port by this URL, through rtupoll's pyserial URL handler, so
         # that the Serial object is rtupoll's (``slot.port``) and written to at once
-        self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr,
-                                                 parity=settings.parity)
+        self._url, self._slot = own_port.claim(settings.port, rs485=settings.rs485,
+                                               deassert_dtr=settings.deassert_dtr,
+                                               parity=settings.parity)
         self._connect_timeout = connect_timeout
         self.broadcast_turnaround = broadcast_turnaround
         self._lock = asyncio.Lock()
@@ -173,7 +173,7 @@ class Bus(LineBus):
         else:
             params = CommParams(comm_type=CommType.SERIAL, host=self._url, baudrate=s.baudrate,
                                 bytesize=s.bytesize, stopbits=s.stopbits,
-                                parity=serialport.line_parity(s.port, s.parity), **common)
+                                parity=pty_parity.line_parity(s.port, s.parity), **common)
         return _Port(params, self._received)
 
     async def _connect(self) -> None:
@@ -200,15 +200,15 @@ class Bus(LineBus):
         if why is None and self._slot is not None and self._slot.error:
             why = self._slot.error  # it opened, but cannot be used as asked (--rs485)
         if why is None and self._gateway:
-            why = await serialport.diagnose_gateway(*self._gateway, self._connect_timeout)
+            why = await port_diagnosis.diagnose_gateway(*self._gateway, self._connect_timeout)
         elif why is None:
             s = self.settings
-            url = serialport.port_url(serialport.device_path(s.port),
+            url = port_names.port_url(port_names.device_path(s.port),
                                       deassert_dtr=s.deassert_dtr or
                                       s.port.lower().startswith("nodtr://"))
-            why = serialport.diagnose_serial(url, baudrate=s.baudrate, bytesize=s.bytesize,
-                                             parity=serialport.line_parity(s.port, s.parity),
-                                             stopbits=s.stopbits)
+            why = port_diagnosis.diagnose_serial(url, baudrate=s.baudrate, bytesize=s.bytesize,
+                                                 parity=pty_parity.line_parity(s.port, s.parity),
+                                                 stopbits=s.stopbits)
         raise PortError(why or f"cannot open {self.settings.port} (it opens now: retry)")
 
     # -- one transaction (rtu.transaction says what; this drives it) ----------------

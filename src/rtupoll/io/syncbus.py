@@ -2,7 +2,7 @@
 
 ``rtupoll read`` asks a device once and exits, so it needs no event loop and no
 async transport: this driver does what ``rtupoll.rtu.transaction.Transaction``
-says with pyserial's ``Serial`` (opened through ``rtupoll.io.serialport``, so DTR,
+says with pyserial's ``Serial`` (opened through ``rtupoll.io.own_port``, so DTR,
 ``--rs485`` and the error wording are the port's own) or a plain socket to an
 RTU-over-TCP gateway, waiting in ``rtupoll.io.waits`` and reading the line's clock. The
 rules -- checks, attempts, retries, the silence, the drain, resynchronisation, late
@@ -36,10 +36,10 @@ from typing import Any, TypeVar
 
 from rtupoll.errors import PortError
 from rtupoll.io import clock as line_clock
-from rtupoll.io import serialport, taps, waits
+from rtupoll.io import own_port, port_names, pty_parity, taps, waits
 from rtupoll.io.interface import LineBus
 from rtupoll.io.latency import latency_timer
-from rtupoll.io.serialport import PortSettings
+from rtupoll.io.port_settings import PortSettings
 from rtupoll.rtu.line import Line
 from rtupoll.rtu.transaction import Await, BusStats, Done, Send, Transaction
 
@@ -83,9 +83,9 @@ class SyncBus(LineBus):
         self.line.tap = taps.tap_for(settings.port, self.framing)
         self.adapter_latency = latency_timer(settings.port) or 0.0
         self._gateway = settings.gateway
-        self._url, self._slot = serialport.claim(settings.port, rs485=settings.rs485,
-                                                 deassert_dtr=settings.deassert_dtr,
-                                                 parity=settings.parity)
+        self._url, self._slot = own_port.claim(settings.port, rs485=settings.rs485,
+                                               deassert_dtr=settings.deassert_dtr,
+                                               parity=settings.parity)
         self._connect_timeout = connect_timeout
         self._port: Any = None  # pyserial's Serial, or a socket to a gateway
         self._take: waits.Wait | None = None  # the port's wait (rtupoll.io.waits)
@@ -157,14 +157,14 @@ class SyncBus(LineBus):
         try:
             return serial.serial_for_url(
                 self._url, exclusive=True, baudrate=s.baudrate, bytesize=s.bytesize,
-                parity=serialport.line_parity(s.port, s.parity), stopbits=s.stopbits,
+                parity=pty_parity.line_parity(s.port, s.parity), stopbits=s.stopbits,
                 timeout=waits.SLICE)  # (PortWait's; FdWait reads the descriptor itself)
         except (OSError, ValueError) as exc:  # SerialException is an OSError
             from rtupoll.io.port_errors import open_error
 
             if self._slot is not None and self._slot.error:
                 raise PortError(self._slot.error) from None  # opens, but not as asked
-            raise PortError(open_error(serialport.device_path(self._url), exc)) from None
+            raise PortError(open_error(port_names.device_path(self._url), exc)) from None
 
     def _open_gateway(self, host: str, port: int) -> Any:
         import socket

@@ -44,7 +44,6 @@ from rtupoll.errors import (
     PortError,
     RtupollError,
 )
-from rtupoll.figures import count
 from rtupoll.io.interface import BusLike
 from rtupoll.jobs.cycle import CyclePolicy
 from rtupoll.jobs.device import (
@@ -65,6 +64,7 @@ from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, plan
 from rtupoll.model.profile import Field
 from rtupoll.model.scaling import scale
+from rtupoll.numbers import count
 from rtupoll.rtu import ExceptionCode, Framing, Table, read_frame_sizes, transaction_wire_time
 from rtupoll.rtu.transaction import Evidence
 

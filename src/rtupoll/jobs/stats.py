@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 from rtupoll.config.site import DeviceConfig
-from rtupoll.figures import quantile
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field
+from rtupoll.percentiles import quantile
 
 if TYPE_CHECKING:
     from rtupoll.rtu.line import UnitCounts

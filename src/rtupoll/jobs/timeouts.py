@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import UsageError
-from rtupoll.figures import nearest_rank
+from rtupoll.percentiles import nearest_rank
 
 if TYPE_CHECKING:
     from rtupoll.io.interface import BusLike

@@ -8,6 +8,7 @@ One record per field reading. ``read --format json`` prints exactly ``READ_KEYS`
 NaN and infinities are not JSON: a float register holding one gives ``value`` null
 and ``text`` ``"NaN"``, ``"+inf"`` or ``"-inf"`` (``finite``, ``nonfinite_text``); every
 output (JSON, CSV, MQTT, metrics, Influx) takes a value through ``finite`` for this.
+Its time is spelled by ``iso_time``, as logs, MQTT and the sniffer spell a time too.
 Pure: no I/O, no clock.
 """
 
@@ -15,6 +16,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from datetime import UTC, datetime
+from functools import lru_cache
 from typing import Any
 
 from rtupoll.model.interpret import FieldValue
@@ -64,3 +67,26 @@ def poll_record(time: str, rec: Mapping[str, Any], status: str = "ok", error: st
                 ) -> dict[str, Any]:
     """``rec`` (``record`` or ``failed_record``) as ``poll`` writes it: POLL_KEYS, in order."""
     return {"time": time, **rec, "status": status, "error": error}
+
+
+@lru_cache(maxsize=64)  # the readings of one block share their time
+def iso_time(t: float) -> str:
+    """UTC, millisecond precision, ``Z`` suffix: sorts as text and parses everywhere.
+
+    ``datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds")`` with ``Z``,
+    character for character (tests/model/test_record.py), without building a datetime per
+    stamp: ``t`` is rounded to the microsecond half to even, as ``fromtimestamp`` rounds
+    it, and cut to the millisecond, as ``isoformat`` cuts it; the date and time to the
+    second are made once a second."""
+    fraction, whole = math.modf(t)
+    micro = round(fraction * 1e6)
+    if micro >= 1_000_000:
+        micro, whole = micro - 1_000_000, whole + 1
+    elif micro < 0:  # before 1970
+        micro, whole = micro + 1_000_000, whole - 1
+    return f"{_seconds(int(whole))}.{micro // 1000:03d}Z"
+
+
+@lru_cache(maxsize=4)
+def _seconds(whole: int) -> str:
+    return datetime.fromtimestamp(whole, UTC).isoformat(timespec="seconds")[:-6]  # +00:00

@@ -41,7 +41,7 @@ from rtupoll.jobs.writes import WriteOp, plan_write, read_back, verify, write
 from rtupoll.model.codec import DataType, value_range
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.profile import Field, Poll, Profile
-from rtupoll.ui.records import finite
+from rtupoll.model.record import finite
 
 if TYPE_CHECKING:
     from rtupoll.config.site import DeviceConfig
@@ -232,7 +232,7 @@ async def apply_get(bus: BusLike, dev: DevicePoller, fields: Sequence[Field],
 
 
 def value_of(fv: FieldValue) -> Any:
-    """A field's value as every JSON output gives it (``ui.records.record``'s ``value``:
+    """A field's value as every JSON output gives it (``model.record.record``'s ``value``:
     null for a sentinel, NaN or infinity)."""
     return finite(fv.output)
 

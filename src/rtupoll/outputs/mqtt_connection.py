@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from rtupoll.backoff import after_failures
 from rtupoll.errors import BrokerError
-from rtupoll.figures import count
+from rtupoll.numbers import count
 from rtupoll.outputs.mqtt_client import (
     CONNECT_TIMEOUT,
     aiomqtt_module,

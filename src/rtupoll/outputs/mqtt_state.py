@@ -26,8 +26,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rtupoll.figures import iso_time
 from rtupoll.jobs.stats import Status
+from rtupoll.model.record import iso_time
 from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
 from rtupoll.outputs.mqtt_commands import value_of
 from rtupoll.ui.records import to_json

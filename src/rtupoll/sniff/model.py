@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rtupoll.errors import DeviceException
-from rtupoll.figures import iso_time, quantile
 from rtupoll.model.identify import check_passes
 from rtupoll.model.interpret import FieldValue, interpret
 from rtupoll.model.profile import Field, Profile
-from rtupoll.model.record import failed_record, poll_record, record
+from rtupoll.model.record import failed_record, iso_time, poll_record, record
 from rtupoll.model.scaling import Unscaled, scale
+from rtupoll.percentiles import quantile
 from rtupoll.rtu import messages
 from rtupoll.rtu.functions import Table
 from rtupoll.rtu.stream import Seen, Transaction

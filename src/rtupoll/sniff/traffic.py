@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import TextIO
 
-from rtupoll.figures import iso_time
+from rtupoll.model.record import iso_time
 from rtupoll.rtu.capture import Frame, decode_frame
 from rtupoll.rtu.crc import crc_ok
 from rtupoll.rtu.functions import MAX_FRAME, reply_length

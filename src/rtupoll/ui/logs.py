@@ -18,8 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.figures import count, iso_time
 from rtupoll.jobs.services import Service
+from rtupoll.model.record import iso_time
+from rtupoll.numbers import count
 from rtupoll.rtu.line import ECHO_FOUND
 from rtupoll.ui.records import to_json
 

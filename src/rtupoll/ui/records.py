@@ -13,18 +13,16 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, TextIO
 
-from rtupoll.figures import iso_time
 from rtupoll.model.interpret import FieldValue
-
-# the record's shape is model.record's: re-exported only until the rooms move (issue 50)
-# points its importers there (rooms-move.sh), which removes these lines
-from rtupoll.model.record import POLL_KEYS as POLL_KEYS
-from rtupoll.model.record import READ_KEYS as READ_KEYS
-from rtupoll.model.record import failed_record as failed_record
-from rtupoll.model.record import finite as finite
-from rtupoll.model.record import nonfinite_text as nonfinite_text
-from rtupoll.model.record import poll_record as poll_record
-from rtupoll.model.record import record as record
+from rtupoll.model.record import (
+    POLL_KEYS,
+    failed_record,
+    finite,
+    iso_time,
+    nonfinite_text,
+    poll_record,
+    record,
+)
 
 if TYPE_CHECKING:
     from rtupoll.config.site import Site

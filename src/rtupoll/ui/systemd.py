@@ -17,8 +17,8 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
-from rtupoll.figures import count
 from rtupoll.jobs.services import Service
+from rtupoll.numbers import count
 
 if TYPE_CHECKING:
     from rtupoll.jobs.scheduler import DevicePoller, Scheduler

@@ -1,4 +1,4 @@
-"""``figures.iso_time``: the one spelling of a time in records, character for character
+"""``model.record.iso_time``: the one spelling of a time in records, character for character
 what ``datetime`` spells (rounded to the microsecond half to even, cut to the
 millisecond), without a datetime per stamp."""
 
@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from rtupoll.figures import iso_time
+from rtupoll.model.record import iso_time
 
 
 def _datetime_spelling(t: float) -> str:
