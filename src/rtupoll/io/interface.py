@@ -261,4 +261,3 @@ def _reply(request: Request, frame: bytes) -> Reply:
         raise FrameError(f"unit {request.unit}: {exc.reason}") from None
 
 
-LineEvidence = LineBus  # the former name
