@@ -259,5 +259,3 @@ def _reply(request: Request, frame: bytes) -> Reply:
         return parse_reply(request, frame[1:-2], unit=frame[0])
     except Malformed as exc:
         raise FrameError(f"unit {request.unit}: {exc.reason}") from None
-
-
