@@ -133,7 +133,8 @@ class ScriptedBus:
         return heard_nothing(unit)  # no late replies, nothing counted
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         self.calls.append((unit, address, retries))
         what = self.behaviour.get(unit, lambda a, n: "ok")(address, len(self.calls))
         if what == "timeout":

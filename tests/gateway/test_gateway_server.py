@@ -33,7 +33,8 @@ class ScriptedLine:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         raise AssertionError("the gateway reads through transact")
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,

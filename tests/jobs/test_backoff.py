@@ -47,7 +47,8 @@ class PortGone(ScriptedBus):
     """A bus whose adapter was unplugged: every read fails at once for the port."""
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         self.calls.append((unit, address, retries))
         raise PortError("/dev/ttyUSB0: the port is gone")
 

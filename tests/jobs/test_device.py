@@ -41,7 +41,8 @@ class Recorder:
         self.fail = fail or {}
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         self.calls.append((unit, table, address, count, timeout, retries))
         if address in self.fail:
             raise self.fail[address]
@@ -74,7 +75,8 @@ def test_irnet_variant_probe(sim: Sim) -> None:
 
     async def go() -> tuple[int | None, int | None, list[str]]:
         async with Bus(PortSettings(bus_sim.port, baudrate=4800)) as bus:
-            new, old = await probe_variant(bus, p, 1), await probe_variant(bus, p, 2)
+            new, old = (await probe_variant(bus, p, 1)).number, \
+                (await probe_variant(bus, p, 2)).number
             wanted = [p.field("full_scale"), p.field("calibration_gas_level")]
             got = await read_fields(bus, p, 2, wanted, variant=old)
             assert got.missing == {"calibration_gas_level": "not present (data structure 0)"}
@@ -89,12 +91,17 @@ def test_irnet_variant_probe(sim: Sim) -> None:
 
 
 def test_probe_variant_without_a_variant_and_other_errors() -> None:
-    assert run(probe_variant(Recorder(), load_one("huiwen-aq"), 3)) is None
+    none = run(probe_variant(Recorder(), load_one("huiwen-aq"), 3))
+    assert (none.number, none.evidence) == (None, None)  # nothing asked
     p = load_one("net-irnet-pro")
     with pytest.raises(DeviceException):  # exception 04 is not listed in on_exception
         run(probe_variant(Recorder({0x400: DeviceException(4, unit=1)}), p, 1))
-    assert run(probe_variant(Recorder({0x400: DeviceException(2, unit=1)}), p, 1)) == 0
-    assert run(probe_variant(Recorder(), p, 1)) == 0x400  # the register's value
+    refused = DeviceException(2, unit=1)
+    refused.evidence = Evidence(0.004, attempts=1)  # an exception reply's reply time
+    zero = run(probe_variant(Recorder({0x400: refused}), p, 1))
+    assert (zero.number, zero.evidence) == (0, refused.evidence)  # an answer: its evidence
+    value = run(probe_variant(Recorder(), p, 1))
+    assert value.number == 0x400 and value.evidence == Evidence()  # the register's value
 
 
 def test_timing_defaults_come_from_the_profile() -> None:

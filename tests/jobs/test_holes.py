@@ -86,10 +86,11 @@ class Reads(VirtualBus):
     exceptions: int = 0
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         try:
             return await super().read(unit, table, address, count, timeout=timeout,
-                                      retries=retries, patience=patience)
+                                      retries=retries, patience=patience, idle_gap=idle_gap)
         except DeviceException:
             self.exceptions += 1
             raise

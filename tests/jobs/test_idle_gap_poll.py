@@ -15,13 +15,18 @@ from rich.console import Console
 from test_poll_faults import PollProcess
 from virtual import VirtualClock, simulated
 
+from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.site import from_specs
+from rtupoll.gateway.clients import ClientStats
+from rtupoll.gateway.server import Gateway
+from rtupoll.gateway.turns import Turns
 from rtupoll.jobs.scheduler import BusPoller, Scheduler
 from rtupoll.jobs.timeouts import CEILING
 from rtupoll.outputs.metrics import SchedulerCollector
 from rtupoll.rtu.messages import ReadRequest
 from rtupoll.sim.engine import Engine
 from rtupoll.sim.scenario import build
+from rtupoll.sim.virtual import VirtualBus
 from rtupoll.ui.live import PollView
 from rtupoll.web.state import Clocks, health_state
 
@@ -139,3 +144,30 @@ def test_on_a_pty_the_gap_needing_device_keeps_being_read_beside_a_busy_one() ->
     assert done and code == 0, stderr
     huiwen, radar = scans(p.records, "huiwen-aq@3"), scans(p.records, "radar-level@7")
     assert huiwen * 8 >= radar, (huiwen, radar)  # measured: 12 against 43
+
+
+def test_a_gateway_request_to_the_device_keeps_the_gap_its_reads_named() -> None:
+    """The gap goes with the poller's reads (``BusLike.read(idle_gap=)``); the line keeps
+    it for the unit, so a Modbus TCP client's request passed through by the gateway
+    (``BusLike.transact``, which names none) right after the radar's reply waits for it
+    too, and the Huiwen hears it: no retry, no timeout."""
+    scheduler, clock = gap_site(NEEDS)
+    bp = scheduler.buses[0]
+    huiwen, radar = bp.devices
+    gw = Gateway(ServeConfig("127.0.0.1", 0), bp, Turns(), clock=clock)
+    bus = bp.transport
+    assert isinstance(bus, VirtualBus)
+    pdu = bytes((4,)) + (30009).to_bytes(2, "big") + (1).to_bytes(2, "big")
+
+    async def go() -> list[bytes | None]:
+        await bp.run_one(huiwen, lambda d, rs: None)  # its reads name the gap
+        replies = []
+        for _ in range(5):
+            await bp.run_one(radar, lambda d, rs: None)
+            replies.append(await gw.answer(3, pdu, ClientStats("c")))
+        return replies
+
+    replies = asyncio.run(go())
+    assert all(r is not None and r[0] == 4 for r in replies), replies  # answers, no 0x0B
+    assert bus.stats.attempts == bus.stats.transactions  # none went unheard
+    assert bus.line.learned_gap == {}

@@ -36,11 +36,12 @@ class Unplugged:
         return getattr(self.bus, name)
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         if self.gone:
             raise PortError("/dev/ttyUSB0: the port is gone")
         return await self.bus.read(unit, table, address, count, timeout=timeout,
-                                   retries=retries, patience=patience)
+                                   retries=retries, patience=patience, idle_gap=idle_gap)
 
 
 def test_slow_fields_are_read_in_the_first_cycle_after_the_port_is_back() -> None:

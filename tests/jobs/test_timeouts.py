@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from virtual import heard_nothing, polled, run_virtual
+from virtual import heard_nothing, polled, run_virtual, simulated
 
 from rtupoll.config.library import load_one
 from rtupoll.config.site import BusConfig, from_specs
@@ -500,3 +500,23 @@ def test_the_timing_learns_from_each_reads_evidence_and_a_late_reply_between() -
     assert timing.estimator.late_replies == 1  # the same late reply, not counted twice
     timing.learn(None)  # a bus that told nothing: nothing learned
     assert timing.timeout == pytest.approx(MARGIN * 0.3)
+
+
+def test_the_probes_reply_time_is_learned_as_every_answered_reads_is() -> None:
+    """The first cycle of a device with variants (fields ``since`` one) asks its variant
+    first: that answer's
+    reply time (here the slowest, 0.2 s) is learned as the reads' are, so the timing
+    learns from every answered transaction (``jobs.device.Variant.evidence``)."""
+    bus, clock = simulated(["net-irnet-pro@1"], ["slow=0.2@1"], baudrate=9600,
+                           turnaround=0.005)
+    config = from_specs("virtual", [("net-irnet-pro", 1)], baudrate=9600, check_serial=False,
+                        fields=["concentration", "calibration_gas_level"]).buses[0]
+    bp = BusPoller(config, bus, backoff=Backoff(), clock=clock, wall=clock,
+                   rand=lambda: 0.5)
+    dev = bp.devices[0]
+    run_virtual(bp.run_one(dev, lambda d, rs: None), clock)
+    assert dev.variant == 1  # the probe was answered (the newest map)
+    samples = list(dev.timing.estimator.samples)
+    assert len(samples) == bus.stats.outcomes["ok"] == dev.stats.requests
+    assert 0.2 <= samples[0] < 0.25  # the probe's, first
+    assert max(samples[1:]) < 0.05  # the reads after it

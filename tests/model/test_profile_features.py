@@ -203,7 +203,8 @@ class CountingTransport:
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         self.reads.append((address, count))
         return ReadResult((0,) * count, Evidence())  # nothing measured
 

@@ -1,6 +1,7 @@
-"""The idle gap (rtupoll.rtu.line, ``Line.set_idle_gap``), in virtual time: a request to a
-device that needs a longer silence than 3.5 characters waits for it, counted from the
-last byte on the line, whoever sent it; other devices keep the 3.5 characters."""
+"""The idle gap (rtupoll.rtu.line, ``Line.set_idle_gap``, named by a request:
+``Transaction(idle_gap=)``), in virtual time: a request to a device that needs a longer
+silence than 3.5 characters waits for it, counted from the last byte on the line,
+whoever sent it; other devices keep the 3.5 characters."""
 
 from __future__ import annotations
 
@@ -76,6 +77,27 @@ def test_a_transaction_sends_its_first_attempt_and_retries_after_the_gap() -> No
     retry = tx.next()
     assert isinstance(retry, Send)
     assert retry.at == pytest.approx(step.at + FR.wire_time(8) + 0.85)
+
+
+def test_a_request_names_its_units_gap_and_the_line_keeps_it_for_the_units_next() -> None:
+    """The gap goes with the request (``Transaction(idle_gap=)``); a later request to the
+    unit that names none (a gateway's pass-through) waits as long; one naming 0 takes it
+    back."""
+    line = Line(FR)
+
+    def first_send(gap: float | None, at: float) -> float:
+        line.send(req(7), at)
+        line.receive(reply(7), at + 0.03)
+        step = Transaction(line, req(3), timeout=0.5, idle_gap=gap).next()
+        assert isinstance(step, Send)
+        line.send(step.frame, step.at)
+        line.receive(reply(3), step.at + 0.03)
+        return step.at - (at + 0.03)  # the silence it went after
+
+    assert first_send(0.05, 0.0) == pytest.approx(0.05)
+    assert first_send(None, 1.0) == pytest.approx(0.05)  # kept for the unit
+    assert first_send(0.0, 2.0) == pytest.approx(FR.silence)  # taken back
+    assert first_send(None, 3.0) == pytest.approx(FR.silence)
 
 
 # -- learned ------------------------------------------------------------------------------

@@ -10,7 +10,9 @@ tests whose subject is not the port) both are one, as python-can's buses are one
 **Timing is in the values.** A read returns its values and its evidence as one value
 (``ReadResult``: the reply time, the unit's late replies so far, the attempts); a bus error
 carries its transaction's (``BusError.evidence``). How long a late reply stays expected
-is passed with the request (``patience``). What the line heard from a unit between its
+is passed with the request (``patience``), and so is the silence the unit needs before
+it (``idle_gap``: the line keeps it for the unit's later requests, whoever sends them,
+``rtu.line``). What the line heard from a unit between its
 requests (late replies to requests that timed out) is a live view, ``unit_counts``.
 """
 
@@ -66,10 +68,12 @@ class BusLike(Protocol):
     async def close(self) -> None: ...
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and the
         evidence; ``patience``: how long a late reply stays expected, when longer than
-        ``timeout``."""
+        ``timeout``; ``idle_gap``: the silence ``unit`` needs before a request (None: as
+        the line has it)."""
         ...
 
     async def write_registers(self, unit: int, address: int, values: Sequence[int], *,
@@ -89,10 +93,6 @@ class BusLike(Protocol):
     def unit_counts(self, unit: int) -> UnitCounts:
         """What the line counts of ``unit`` (late replies, attempts by how they ended, its
         idle gap): a live view, read when asked."""
-        ...
-
-    def set_idle_gap(self, unit: int, seconds: float) -> None:
-        """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""
         ...
 
 
@@ -127,13 +127,14 @@ class LineBus:
             await self._step(tx, step)
 
     async def _transact(self, request: bytes, timeout: float, retries: int, *,
-                        tolerate: bool = False, patience: float = 0.0) -> Transaction:
+                        tolerate: bool = False, patience: float = 0.0,
+                        idle_gap: float | None = None) -> Transaction:
         """``request``'s transaction, over (its ``result`` a ``Done``); a bus error
         carries its evidence."""
         try:
             tx = Transaction(self.line, request, timeout=timeout, retries=retries,
                              tolerate=tolerate, turnaround=self.broadcast_turnaround,
-                             patience=patience)
+                             patience=patience, idle_gap=idle_gap)
         except Refused as exc:
             raise UsageError(str(exc)) from None
         try:
@@ -144,16 +145,19 @@ class LineBus:
         return tx
 
     async def read(self, unit: int, table: Table, address: int, count: int, *,
-                   timeout: float, retries: int = 0, patience: float = 0.0) -> ReadResult:
+                   timeout: float, retries: int = 0, patience: float = 0.0,
+                   idle_gap: float | None = None) -> ReadResult:
         """The values (registers as 16-bit ints; coils and discrete inputs as 0/1) and
         the transaction's evidence, as one value. ``patience``: how long a late reply
         stays expected when longer than ``timeout`` (a learned timeout does not shorten
-        it: ``Line.expire``)."""
+        it: ``Line.expire``); ``idle_gap``: the silence ``unit`` needs before a request
+        (None: as the line has it; kept for the unit, ``Line.set_idle_gap``)."""
         try:
             request, frame = _read(unit, table, address, count)
         except Refused as exc:
             raise RefusedError(str(exc)) from None
-        tx = await self._transact(frame, timeout, retries, patience=patience)
+        tx = await self._transact(frame, timeout, retries, patience=patience,
+                                  idle_gap=idle_gap)
         assert isinstance(tx.result, Done)
         try:
             reply = _reply(request, tx.result.frame)
@@ -221,10 +225,6 @@ class LineBus:
         """``unit``'s late replies and attempts as the line counts them, and its idle gap:
         a live view."""
         return UnitCounts(self.line, unit)
-
-    def set_idle_gap(self, unit: int, seconds: float) -> None:
-        """The silence ``unit`` needs on the line before a request (``Line.set_idle_gap``)."""
-        self.line.set_idle_gap(unit, seconds)
 
 
 def raise_failed(failed: Failed) -> NoReturn:

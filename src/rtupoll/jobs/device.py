@@ -32,8 +32,8 @@ if TYPE_CHECKING:
     from rtupoll.jobs.holes import Register
     from rtupoll.rtu.transaction import Evidence
 
-__all__ = ["BlockRead", "BlockValues", "Read", "Timing", "needs_variant", "probe_variant",
-           "read_block", "read_fields", "read_planned", "timing"]
+__all__ = ["BlockRead", "BlockValues", "Read", "Timing", "Variant", "needs_variant",
+           "probe_variant", "read_block", "read_fields", "read_planned", "timing"]
 
 
 @dataclass(frozen=True)
@@ -61,11 +61,14 @@ class BlockValues:
 
 
 async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
-                     retries: int, patience: float = 0.0) -> BlockValues:
-    """One planned read, decoded: one transaction (``patience``: ``BusLike.read``'s). Bus
-    errors propagate, each with its evidence (``BusError.evidence``)."""
+                     retries: int, patience: float = 0.0,
+                     idle_gap: float | None = None) -> BlockValues:
+    """One planned read, decoded: one transaction (``patience``, ``idle_gap``:
+    ``BusLike.read``'s). Bus errors propagate, each with its evidence
+    (``BusError.evidence``)."""
     got = await bus.read(unit, block.table, block.address, block.count,
-                         timeout=timeout, retries=retries, patience=patience)
+                         timeout=timeout, retries=retries, patience=patience,
+                         idle_gap=idle_gap)
     return BlockValues(decode_block(block, got.values), got.evidence)
 
 
@@ -161,7 +164,8 @@ async def read_fields(bus: BusLike, profile: Profile, unit: int, fields: Sequenc
     t = timing(profile, timeout, retries)
     missing: dict[str, str] = {}
     if probe and needs_variant(profile, fields):
-        variant = await probe_variant(bus, profile, unit, timeout=t.timeout, retries=t.retries)
+        variant = (await probe_variant(bus, profile, unit, timeout=t.timeout,
+                                       retries=t.retries)).number
     if variant is not None and profile.variant is not None:
         for f in fields:
             if f.since > variant:
@@ -186,28 +190,41 @@ async def read_fields(bus: BusLike, profile: Profile, unit: int, fields: Sequenc
                 tuple(learned))
 
 
-async def probe_variant(bus: BusLike, profile: Profile, unit: int, *,
-                        timeout: float | None = None, retries: int | None = None
-                        ) -> int | None:
-    """The device's variant (e.g. IRNET data structure), or None if the profile has none.
+@dataclass(slots=True)
+class Variant:
+    """What probing the variant gave: the device's variant (None: the profile has none)
+    and the probe's evidence (``rtu.transaction.Evidence``, also of an exception reply
+    that is an answer; None: nothing was asked)."""
 
-    Reads ``variant.field`` by itself; an exception reply whose code is listed in
-    ``variant.on_exception`` is an answer too (IRNET: exception 02 = structure 0).
-    Any other error propagates.
+    number: int | None
+    evidence: Evidence | None = None
+
+
+async def probe_variant(bus: BusLike, profile: Profile, unit: int, *,
+                        timeout: float | None = None, retries: int | None = None,
+                        patience: float = 0.0, idle_gap: float | None = None) -> Variant:
+    """The device's variant (e.g. IRNET data structure) and the probe's evidence.
+
+    Reads ``variant.field`` by itself (``patience``, ``idle_gap``: ``BusLike.read``'s);
+    an exception reply whose code is listed in ``variant.on_exception`` is an answer too
+    (IRNET: exception 02 = structure 0). Any other error propagates, with its evidence.
     """
     if profile.variant is None:
-        return None
+        return Variant(None)
     field = profile.field(profile.variant.field)
     t = timing(profile, timeout, retries)
     try:
         (block,) = plan([field], profile)
-        (fv,) = (await read_block(bus, unit, block, timeout=t.timeout,
-                                  retries=t.retries)).values
+        got = await read_block(bus, unit, block, timeout=t.timeout, retries=t.retries,
+                               patience=patience, idle_gap=idle_gap)
     except DeviceException as exc:
         if exc.code in profile.variant.on_exception:
-            return profile.variant.on_exception[exc.code]
+            return Variant(profile.variant.on_exception[exc.code], exc.evidence)
         raise
+    (fv,) = got.values
     value = fv.code if fv.code is not None else fv.value
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
-        raise FrameError(f"unit {unit}: {field.name} = {fv.text!r} is not a variant number")
-    return int(value)
+        error = FrameError(f"unit {unit}: {field.name} = {fv.text!r} is not a variant number")
+        error.evidence = got.evidence
+        raise error
+    return Variant(int(value), got.evidence)

@@ -50,6 +50,7 @@ from rtupoll.jobs.device import (
     BlockRead,
     BlockValues,
     Read,
+    Variant,
     after_refusal,
     needs_variant,
     probe_variant,
@@ -171,7 +172,7 @@ class DevicePoller:
             retries = policy.retries()
             status, error, got = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries,
-                patience=self.timing.patience))
+                patience=self.timing.patience, idle_gap=cfg.gap))
             values = got.values if got is not None else None
             if status is Status.EXCEPTION and self.refused == 2:
                 found = await self._find_holes(transport, block, retries)
@@ -217,10 +218,10 @@ class DevicePoller:
         cfg = self.config
         status, error, variant = await self._transact(probe_variant(
             transport, cfg.profile, cfg.address, timeout=self.timeout(transport),
-            retries=retries))
-        if status is not Status.OK:  # a reply that is no answer: the reads say what is wrong
+            retries=retries, patience=self.timing.patience, idle_gap=cfg.gap))
+        if status is not Status.OK or variant is None:  # no answer: the reads say what is wrong
             return error if status is Status.TIMEOUT else ""
-        self._take_variant(variant)
+        self._take_variant(variant.number)
         return ""
 
     def _take_variant(self, variant: int | None) -> None:
@@ -292,11 +293,12 @@ class DevicePoller:
         """The next transaction's timeout: pinned, or learned (``jobs.timeouts``)."""
         cfg = self.config
         return self.timing.before(transport, cfg.address, pinned=cfg.timeout,
-                                  ceiling=cfg.timeout_ceiling, gap=cfg.gap)
+                                  ceiling=cfg.timeout_ceiling)
 
     async def _transact(self, read: Awaitable[T]) -> tuple[Status, str, T | None]:
         """One read (not yet awaited), timed and counted: (status, error, what it read).
-        The timing learns from its evidence: the ``BlockValues``'s, or its bus error's."""
+        The timing learns from its evidence: the ``BlockValues``'s or ``Variant``'s, or
+        its bus error's."""
         cfg, st = self.config, self.stats
         start = self._clock()
         status, error, values = Status.OK, "", None
@@ -304,7 +306,7 @@ class DevicePoller:
         self.refused = None
         try:
             values = await read
-            if isinstance(values, BlockValues):
+            if isinstance(values, (BlockValues, Variant)):
                 evidence = values.evidence
         except DeviceTimeout as exc:
             status, error = Status.TIMEOUT, str(exc) or f"no response from {cfg.spec}"

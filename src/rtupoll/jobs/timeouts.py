@@ -147,7 +147,6 @@ class DeviceTiming:
                                           ceiling=CEILING if ceiling is None else ceiling)
         self._late_seen: int | None = None  # the line's count of late replies, as last seen
         self._bounds: tuple[float, float] | None = None  # (floor, ceiling) last applied
-        self._gap = 0.0  # the idle gap last told to the bus
         self.counts: UnitCounts | None = None  # the line's live count of the unit's attempts
 
     @property
@@ -162,22 +161,17 @@ class DeviceTiming:
         return "learned" if self.estimator.learned else "profile"
 
     def before(self, bus: BusLike | None, unit: int, *, pinned: float | None = None,
-               ceiling: float | None = None, gap: float | None = None) -> float:
+               ceiling: float | None = None) -> float:
         """The timeout for the next transaction to ``unit`` on ``bus`` (``pinned``,
         ``ceiling``: the device's configuration now, which a reload may change). A late
         reply the line heard since the last read (while another device's request was
-        out: ``BusLike.unit_counts``, a live view, no copy) raises it first. ``gap``: the
-        idle gap the device needs (``BusLike.set_idle_gap``), told to the bus when it
-        changes."""
+        out: ``BusLike.unit_counts``, a live view, no copy) raises it first."""
         self.pinned = pinned
         est = self.estimator
         top = CEILING if ceiling is None else ceiling
         if bus is None:
             est.ceiling, self._bounds = top, None
             return self.timeout
-        if gap != self._gap and gap is not None:
-            bus.set_idle_gap(unit, gap)
-            self._gap = gap
         bounds = (FLOOR + self.silence + bus.adapter_latency, top)
         counts = self.counts
         if bounds != self._bounds or counts is None:  # the first time, a reload, the

@@ -14,10 +14,13 @@ must not hold the master for ever.
 
 **Idle gap.** Some devices hear a request only after a longer silence than 3.5
 characters (the "T delay" of their manuals: Growatt asks for 850 ms between commands).
-``set_idle_gap`` gives a unit its gap (``idle_gap`` on the line: every unit's), and a
-request to that unit may go only once the line has been silent that long: counted, as
-the silence is, from the last byte on the line, whoever sent it (``ready_at(unit=)``).
-A unit without one costs one dictionary look-up.
+A request names the gap its unit needs (``Transaction(idle_gap=)``, which tells it to
+``set_idle_gap``; ``idle_gap`` on the line: every unit's), and a request to that unit
+may go only once the line has been silent that long: counted, as the silence is, from
+the last byte on the line, whoever sent it (``ready_at(unit=)``). The line keeps the
+gap last named for the unit: it is owed before every request to the device, also one
+that names none (a gateway's pass-through, a write). A unit without one costs one
+dictionary look-up.
 
 **Learned idle gap.** A device that needs a gap nobody set looks slow: its first
 attempt, sent right after another device's reply, is not heard; the retry, after a
@@ -277,7 +280,8 @@ class Line:
 
     def set_idle_gap(self, unit: int, seconds: float) -> None:
         """The silence ``unit`` needs on the line before a request to it (0: none beyond
-        the line's ``idle_gap`` and the 3.5 characters)."""
+        the line's ``idle_gap`` and the 3.5 characters), as a request named it
+        (``Transaction(idle_gap=)``), for every request to the unit from then on."""
         if self._gap_set.get(unit, 0.0) == seconds:
             return
         self._gap_set[unit] = seconds

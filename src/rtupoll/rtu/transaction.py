@@ -36,6 +36,9 @@ gives the devices ``turnaround`` to act on it.
 (``Evidence``: that reply time, the unit's late replies so far, the attempts made), which
 a read returns with its values (``ReadResult``). How long a late reply to the request stays
 expected is the request's own (``patience``, ``Line.expire``), not the line's state.
+So is the silence its unit needs before it (``idle_gap``): that one the line keeps for
+the unit (``Line.set_idle_gap``), because it is owed before every request to the
+device, whoever sends it (the gateway's pass-through, a write, a bisection's reads).
 
 **Request checks** (``read_request``, ``write_registers_request``,
 ``write_coil_request``: a message of ``rtu.messages``, which encodes its own frame;
@@ -118,12 +121,16 @@ class Transaction:
 
     def __init__(self, line: Line, request: bytes, *, timeout: float, retries: int = 0,
                  tolerate: bool = False, turnaround: float = 0.1,
-                 patience: float = 0.0) -> None:
+                 patience: float = 0.0, idle_gap: float | None = None) -> None:
         """``patience``: how long a late reply is still expected when that is longer
-        than ``timeout`` (``Line.expire``: a learned timeout does not shorten it)."""
+        than ``timeout`` (``Line.expire``: a learned timeout does not shorten it).
+        ``idle_gap``: the silence the unit needs before a request (None: as the line
+        has it, ``Line.set_idle_gap``), kept by the line for the unit."""
         if not 0 < timeout <= 60 or retries < 0:
             raise Refused(f"timeout {timeout} s / retries {retries} make no sense")
         self.line, self.request, self.unit = line, request, request[0]
+        if idle_gap is not None:  # (the usual 0.0 of an unset gap: one look-up)
+            line.set_idle_gap(self.unit, idle_gap)
         self.timeout, self.retries, self.tolerate = timeout, retries, tolerate
         self.patience = patience
         self.turnaround = turnaround
@@ -155,7 +162,7 @@ class Transaction:
 
     def ready_at(self) -> float:
         """When the next attempt may go: the first honours the drain, a retry only the
-        silence (the unit's idle gap, ``Line.set_idle_gap``, for both)."""
+        silence (the unit's idle gap, the request's ``idle_gap``, for both)."""
         return self.line.ready_at(drain=self.attempts == 0, unit=self.unit)
 
     def next(self) -> Step:
