@@ -40,7 +40,7 @@ class HeldLine:
         return 0
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
-                       retries: int = 0) -> bytes:
+                       retries: int = 0, idle_gap: float | None = None) -> bytes:
         self.sent.append((unit, pdu))
         self.started.set()
         await self.release.wait()

@@ -58,7 +58,7 @@ class RecordingLine:
         return 0
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
-                       retries: int = 0) -> bytes:
+                       retries: int = 0, idle_gap: float | None = None) -> bytes:
         self.sent.append((unit, pdu))
         return b"" if unit == 0 else bytes((pdu[0], 2, 0, 0))
 

@@ -52,7 +52,7 @@ class ScriptedLine:
         return heard_nothing(unit)  # nothing measured
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
-                       retries: int = 0) -> bytes:
+                       retries: int = 0, idle_gap: float | None = None) -> bytes:
         self.sent.append((unit, pdu, timeout))
         out = self.outcomes.pop(0)
         if isinstance(out, Exception):

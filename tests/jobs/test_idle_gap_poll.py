@@ -171,3 +171,27 @@ def test_a_gateway_request_to_the_device_keeps_the_gap_its_reads_named() -> None
     assert all(r is not None and r[0] == 4 for r in replies), replies  # answers, no 0x0B
     assert bus.stats.attempts == bus.stats.transactions  # none went unheard
     assert bus.line.learned_gap == {}
+
+
+def test_a_gateway_request_before_the_first_poll_keeps_the_devices_gap() -> None:
+    """A Modbus TCP client that asks the Huiwen before the poller has read it once (the
+    line has heard no gap named for it yet) right after the radar's reply: the gateway
+    names the polled device's gap itself, so the request waits for it and is heard."""
+    scheduler, clock = gap_site(NEEDS)
+    bp = scheduler.buses[0]
+    radar = bp.devices[1]
+    gw = Gateway(ServeConfig("127.0.0.1", 0), bp, Turns(), clock=clock)
+    bus = bp.transport
+    assert isinstance(bus, VirtualBus)
+    pdu = bytes((4,)) + (30009).to_bytes(2, "big") + (1).to_bytes(2, "big")
+
+    async def go() -> list[bytes | None]:
+        replies = []
+        for _ in range(5):
+            await bp.run_one(radar, lambda d, rs: None)
+            replies.append(await gw.answer(3, pdu, ClientStats("c")))
+        return replies
+
+    replies = asyncio.run(go())
+    assert all(r is not None and r[0] == 4 for r in replies), replies  # answers, no 0x0B
+    assert bus.stats.attempts == bus.stats.transactions  # none went unheard

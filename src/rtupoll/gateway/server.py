@@ -522,8 +522,9 @@ class Gateway:
             stats.waits.append(start - queued)
         failed = False
         try:
-            reply = await self.poller.transport.transact(unit, ask.pdu, timeout=timeout,
-                                                         retries=0)
+            reply = await self.poller.transport.transact(  # a polled device's idle gap too
+                unit, ask.pdu, timeout=timeout, retries=0,
+                idle_gap=None if dev is None else dev.config.gap)
             self.silent.answered(unit)
             if reply[:1] == bytes((ask.function | 0x80,)):
                 stats.exceptions += 1

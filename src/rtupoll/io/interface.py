@@ -86,8 +86,9 @@ class BusLike(Protocol):
                          retries: int = 0) -> None: ...
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
-                       retries: int = 0) -> bytes:
-        """Any request PDU; the reply PDU (an exception PDU when the device sent one)."""
+                       retries: int = 0, idle_gap: float | None = None) -> bytes:
+        """Any request PDU; the reply PDU (an exception PDU when the device sent one).
+        ``idle_gap``: as ``read``'s."""
         ...
 
     def unit_counts(self, unit: int) -> UnitCounts:
@@ -197,13 +198,15 @@ class LineBus:
             _reply(request, tx.result.frame)
 
     async def transact(self, unit: int, pdu: bytes, *, timeout: float,
-                       retries: int = 0) -> bytes:
+                       retries: int = 0, idle_gap: float | None = None) -> bytes:
         """Any request PDU (function code and data) to ``unit``; the reply PDU, which is
         an exception PDU (function | 0x80, code) when the device answered with one.
-        For a gateway passing other masters' requests through; a broadcast returns b""."""
+        For a gateway passing other masters' requests through; a broadcast returns b"".
+        ``idle_gap``: the silence the device needs before it (None: what the line keeps
+        for the unit), as ``read``'s."""
         request = _checked(lambda: pdu_frame(unit, pdu))
         try:
-            tx = await self._transact(request, timeout, retries)
+            tx = await self._transact(request, timeout, retries, idle_gap=idle_gap)
         except DeviceException as exc:
             return bytes((pdu[0] | 0x80, exc.code))
         assert isinstance(tx.result, Done)
