@@ -45,7 +45,7 @@ from rtupoll.io.bus import Bus, PortSettings
 from rtupoll.jobs.scheduler import DevicePoller, Scheduler
 from rtupoll.jobs.stats import Reading
 from rtupoll.rtu import Framing, Table, transaction_wire_time
-from rtupoll.rtu.functions import read_request
+from rtupoll.rtu.messages import ReadRequest
 
 DEVICES = ("net-irnet-pro@1", "radar-level@2", "huiwen-aq@3")
 UNIT, ADDRESS, COUNT = 3, 0x7536, 4  # Huiwen: PM2.5, TVOC, HCHO, CO2
@@ -72,7 +72,7 @@ def client(port: int, seconds: float) -> None:
 def bare(port: str, baud: int, n: int) -> tuple[float, float]:
     """A bare master on the pty, ``n`` transactions in a row: (median, mean) seconds from
     one request's write to the next's (the mean as the client's answers/s count it)."""
-    request = read_request(UNIT, Table.INPUT, ADDRESS, COUNT)
+    request = ReadRequest(UNIT, Table.INPUT.read_function, ADDRESS, COUNT).frame()
     length, silence = 5 + 2 * COUNT, Framing(baud).silence
     fd = os.open(port, os.O_RDWR | os.O_NOCTTY)
     try:
