@@ -137,8 +137,15 @@ def _write_method(cls: type, method: str, table: dict[str, dict[str, bool]]) -> 
     """Give ``cls`` the ``method`` (with __eq__, __hash__ too) the dataclass machinery
     writes for its fields: made on a twin class with the same fields (the ``Field``
     objects themselves), whose methods refer to nothing of the twin (``self.__class__``,
-    the fields by name)."""
+    the fields by name). An ``__init__`` of plain fields is written here instead, the
+    same code as the dataclass's: a frozen twin would compile a ``__setattr__`` and a
+    ``__delattr__`` only to throw them away (0.75 ms a class against 0.1)."""
     fields = cls.__dict__["__dataclass_fields__"]
+    if method == "__init__":
+        init = _plain_init(cls, fields, frozen=table is _OPTIONS)
+        if init is not None:
+            cls.__init__ = init  # type: ignore[misc]
+            return
     namespace: dict[str, Any] = {
         "__annotations__": {name: f.type for name, f in fields.items()},
         "__module__": cls.__module__, "__qualname__": cls.__qualname__,
@@ -150,3 +157,50 @@ def _write_method(cls: type, method: str, table: dict[str, dict[str, bool]]) -> 
     for name in table:
         if table[name] is options and name in twin.__dict__:
             setattr(cls, name, twin.__dict__[name])
+
+
+class _Factory:
+    def __repr__(self) -> str:
+        return "<factory>"
+
+
+_FACTORY = _Factory()  # an argument not given whose default is made by a factory
+
+
+def _plain_init(cls: type, fields: dict[str, dataclasses.Field[Any]], *, frozen: bool,
+                ) -> Callable[..., None] | None:
+    """The ``__init__`` dataclasses writes for ``fields`` when each is a plain init
+    field (positional or keyword, a default or a factory or neither), or None (then the
+    dataclass machinery writes it)."""
+    params, body = [], []
+    namespace: dict[str, Any] = {"__rtupoll_set": object.__setattr__,
+                                 "__rtupoll_factory": _FACTORY}
+    for i, f in enumerate(fields.values()):
+        name = f.name
+        if not f.init or f.kw_only is True or not name.isidentifier() or name == "self" \
+                or name.startswith("__"):
+            return None
+        value = name
+        if f.default is not dataclasses.MISSING:
+            namespace[f"__rtupoll_d{i}"] = f.default
+            params.append(f"{name}=__rtupoll_d{i}")
+        elif f.default_factory is not dataclasses.MISSING:
+            namespace[f"__rtupoll_f{i}"] = f.default_factory
+            params.append(f"{name}=__rtupoll_factory")
+            value = f"__rtupoll_f{i}() if {name} is __rtupoll_factory else {name}"
+        else:
+            params.append(name)
+        body.append(f"__rtupoll_set(self, {name!r}, {value})" if frozen
+                    else f"self.{name} = {value}")
+    if hasattr(cls, "__post_init__"):
+        body.append("self.__post_init__()")
+    source = (f"def __init__(self, {', '.join(params)}):\n"
+              + "".join(f"    {line}\n" for line in body or ["pass"]))
+    try:
+        exec(source, namespace)  # (the field names only: the values go in namespace)
+    except SyntaxError:  # a field without a default after one with: the dataclass says so
+        return None
+    init: Callable[..., None] = namespace["__init__"]
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    init.__annotations__ = {**{f.name: f.type for f in fields.values()}, "return": None}
+    return init
