@@ -50,3 +50,23 @@ def test_the_table_for_people_does_load_rich(sim: Callable[..., SimulatedBus]) -
     bus = sim("huiwen-aq@1", tick=None)
     modules = imported("read", "--port", bus.port, "huiwen-aq@1", "co2")
     assert loaded(modules, "rich") and not loaded(modules, "rtupoll.sim")
+
+
+def test_the_blocking_bus_compiles_no_dataclass_method_at_import() -> None:
+    """The bus's messages, line and transaction classes are declared with ``@frozen`` and
+    ``@mutable`` (rtupoll/frozen.py): importing them writes none of their methods (as
+    dataclasses these compiled 78 methods, about 13 ms of a read's start)."""
+    script = """if True:
+        import dataclasses, sys
+        import rtupoll.io.syncbus
+        from rtupoll.io import own_port
+        from rtupoll.rtu import line, messages, transaction
+        classes = [c for m in (messages, line, transaction, own_port) for c in vars(m).values()
+                   if dataclasses.is_dataclass(c) and c.__module__ == m.__name__]
+        eager = [c.__name__ for c in classes
+                 if not c.__init__.__code__.co_filename.endswith("frozen.py")]
+        print(len(classes) >= 20, eager)
+    """
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         check=True, timeout=60).stdout
+    assert out == "True []\n"

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from rtupoll.frozen import frozen
+from rtupoll.frozen import frozen, mutable
 
 
 def _default_tags() -> list[str]:
@@ -164,3 +164,74 @@ def test_a_class_without_a_docstring_is_documented_by_its_fields() -> None:
     assert Checked.__doc__ == "Checked(low, high)"
     Checked(1, 2)
     assert Checked.__doc__ == "Checked(low, high)"  # still, once its methods are written
+
+
+@frozen(slots=True)
+class LazySlots:
+    name: str
+    size: int = 2
+    tags: list[str] = field(default_factory=_default_tags)
+
+
+@dataclass(frozen=True, slots=True)
+class EagerSlots:
+    name: str
+    size: int = 2
+    tags: list[str] = field(default_factory=_default_tags)
+
+
+@mutable(slots=True)
+class Plain:
+    name: str
+    size: int = 2
+    tags: list[str] = field(default_factory=_default_tags)
+
+
+@dataclass(slots=True)
+class EagerPlain:
+    name: str
+    size: int = 2
+    tags: list[str] = field(default_factory=_default_tags)
+
+
+@mutable
+class PlainDict:
+    name: str
+    size: int = 2
+
+
+@pytest.mark.parametrize(("lazy", "eager"), [(LazySlots, EagerSlots), (Plain, EagerPlain)])
+def test_slots_and_mutable_are_made_as_their_dataclass(lazy: Any, eager: Any) -> None:
+    a, b = lazy("x", 3), eager("x", 3)
+    assert repr(a) == repr(b).replace(eager.__name__, lazy.__name__)
+    assert a == lazy("x", 3) and a != lazy("x") and a != b
+    assert lazy.__slots__ == eager.__slots__ == ("name", "size", "tags")
+    assert not hasattr(a, "__dict__")
+    assert lazy.__match_args__ == eager.__match_args__
+    assert dataclasses.replace(a, size=5) == lazy("x", 5)
+    assert pickle.loads(pickle.dumps(a)) == a
+    assert lazy("x").tags is not lazy("x").tags
+    with pytest.raises(AttributeError):
+        a.other = 1  # slots: no other attribute, as the dataclass
+    with pytest.raises(TypeError, match="missing 1 required positional argument: 'name'"):
+        lazy()
+
+
+def test_a_frozen_class_with_slots_is_frozen_and_hashes() -> None:
+    item = LazySlots("x")
+    with pytest.raises(dataclasses.FrozenInstanceError, match="cannot assign to field 'size'"):
+        item.size = 4
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(item)  # a list field: unhashable, as the dataclass's own hash says
+    assert hash(LazySlots("x", 3, ())) == hash(EagerSlots("x", 3, ()))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("cls", [Plain, PlainDict, EagerPlain])
+def test_a_mutable_class_assigns_and_does_not_hash(cls: Any) -> None:
+    item = cls("x")
+    item.size = 4
+    assert item.size == 4 and item == cls("x", 4)
+    assert cls.__hash__ is None
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(item)
+    assert repr(PlainDict("y")) == "PlainDict(name='y', size=2)"

@@ -32,7 +32,6 @@ TESTED_BY = {
     "model.interpret": "config/test_library.py",
     "model.profile": "config/test_library.py",
     "outputs.fleet": "web/test_state.py",
-    "rtu.crc": "cli/test_send.py",
     "rtu.functions": "cli/test_send.py",
     "rtu.match": "cli/test_send.py",
     "sim.engine": "config/test_library.py",

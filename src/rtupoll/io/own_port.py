@@ -35,19 +35,19 @@ import itertools
 import os
 import sys
 import weakref
-from dataclasses import dataclass
 from typing import Any
 
 import serial
 
 from rtupoll.errors import UsageError
+from rtupoll.frozen import mutable
 from rtupoll.io.port_names import NETWORK, OWN, OWN_PREFIX, PREFIX, SCHEME, port_url
 from rtupoll.io.port_settings import Rs485
 from rtupoll.io.pty_parity import pty_parity
 from rtupoll.io.rs485 import RtsToggle, direction_control
 
 
-@dataclass
+@mutable
 class Slot:
     """One bus's port as pyserial builds it for pymodbus: what to do on open, and the
     ``Serial`` object itself once open (``port``), so the bus may write to it and look

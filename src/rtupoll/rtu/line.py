@@ -113,9 +113,9 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import field
 
-from rtupoll.frozen import frozen
+from rtupoll.frozen import frozen, mutable
 from rtupoll.rtu.crc import crc_ok
 from rtupoll.rtu.functions import MAX_FRAME, echoed_by_design, reply_length
 from rtupoll.rtu.match import Expect, answers, diagnose, expect_for
@@ -136,7 +136,7 @@ ECHO_FOUND = ("the adapter echoes every request back (a 2-wire adapter whose rec
               "so with --echo (echo: true on the bus in a site file)")
 
 
-@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
+@mutable(slots=True)  # made per attempt: plain, slots (CPU)
 class Outstanding:
     """A request whose answer has not been identified yet."""
 
@@ -164,7 +164,7 @@ class Garbled:
     final: bool = False  # no retry would fare better (an echo with echo off): give up
 
 
-@dataclass(slots=True)  # made per attempt: plain, slots (CPU)
+@mutable(slots=True)  # made per attempt: plain, slots (CPU)
 class Attempt:
     """The request in flight (its outstanding entry) and what has arrived for it."""
 
@@ -172,7 +172,7 @@ class Attempt:
     rx: bytearray = field(default_factory=bytearray)  # every byte received during it
 
 
-@dataclass
+@mutable
 class LineCounts:
     """What the line saw, per unit where it is a unit's: every attempt is counted once,
     by how it ended (answered, ``garbled`` or ``timeouts``; an echo seen with echo off

@@ -27,8 +27,8 @@ simulator answers it as its device would, the sniffer shows the function with no
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
 
+from rtupoll.frozen import frozen
 from rtupoll.rtu.crc import crc_ok, with_crc
 from rtupoll.rtu.exception_codes import ExceptionCode, exception_name
 from rtupoll.rtu.functions import (
@@ -73,7 +73,7 @@ class _Message:
 
 # -- requests ---------------------------------------------------------------------------
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class ReadRequest(_Message):
     """Read ``count`` coils (1), discrete inputs (2), holding (3) or input (4) registers."""
 
@@ -94,7 +94,7 @@ class ReadRequest(_Message):
                                     self.count))
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class WriteSingle(_Message):
     """Write one coil (5: ``value`` 1 or 0) or one holding register (6: the word)."""
 
@@ -120,7 +120,7 @@ class WriteSingle(_Message):
         return struct.pack(">BHH", self.function, self.address, word)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class WriteMultiple(_Message):
     """Write coils (15: ``values`` 1 or 0) or holding registers (16) from ``address`` on."""
 
@@ -143,7 +143,7 @@ class WriteMultiple(_Message):
         return struct.pack(">BHHB", self.function, self.address, self.count, len(data)) + data
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class OtherRequest(_Message):
     """Any other function of the table (diagnostics, ids, FIFO, ...): its data kept raw."""
 
@@ -162,7 +162,7 @@ TableRequest = ReadRequest | WriteSingle | WriteMultiple
 
 # -- replies ----------------------------------------------------------------------------
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class ReadReply(_Message):
     """The registers (3, 4) or the requested number of bits (1, 2) a read returned."""
 
@@ -179,7 +179,7 @@ class ReadReply(_Message):
         return struct.pack(f">BB{n}H", self.function, 2 * n, *values)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class WriteReply(_Message):
     """A write's confirmation: the echo of 5/6 (``value`` as in the request) or the
     address and quantity of 15/16 (``value`` is the quantity)."""
@@ -195,7 +195,7 @@ class WriteReply(_Message):
             struct.pack(">BHH", self.function, self.address, self.value)
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class ExceptionReply(_Message):
     """The device refused ``function`` (the request's, without 0x80) with ``code``."""
 
@@ -211,7 +211,7 @@ class ExceptionReply(_Message):
         return bytes((self.function | 0x80, self.code))
 
 
-@dataclass(frozen=True, slots=True)
+@frozen(slots=True)
 class OtherReply(_Message):
     """The normal reply to an ``OtherRequest``: its data kept raw."""
 

@@ -50,9 +50,9 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import field
 
-from rtupoll.frozen import frozen
+from rtupoll.frozen import frozen, mutable
 from rtupoll.rtu.crc import with_crc
 from rtupoll.rtu.functions import (
     FUNCTION_NAMES,
@@ -72,7 +72,7 @@ class Refused(ValueError):
     """A request that must not be sent (the bus raises ``RefusedError``)."""
 
 
-@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+@mutable(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Send:
     """Put ``frame`` on the wire at ``at`` (then call ``Transaction.sent``)."""
 
@@ -80,14 +80,14 @@ class Send:
     at: float
 
 
-@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+@mutable(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Await:
     """Hand received bytes to ``Transaction.received``; at ``until``, ``expired``."""
 
     until: float
 
 
-@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+@mutable(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Done:
     """The answer frame (b"" for a broadcast or an unconfirmed write)."""
 
@@ -260,7 +260,7 @@ class Transaction:
         return self.result
 
 
-@dataclass
+@mutable
 class BusStats:
     """What a bus did. ``busy`` over elapsed time is the bus's utilisation."""
 
@@ -284,7 +284,7 @@ class BusStats:
         self.outcomes[outcome or tx.outcome] += 1
 
 
-@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+@mutable(slots=True)  # made per transaction: plain, not frozen (CPU)
 class Evidence:
     """What one transaction tells of its unit's timing (``rtupoll.jobs.timeouts`` learns
     from it): its answer's reply time (None: no answer, or a broadcast), the late replies
@@ -297,7 +297,7 @@ class Evidence:
     attempts: int = 0
 
 
-@dataclass(slots=True)  # made per read: plain, not frozen (CPU)
+@mutable(slots=True)  # made per read: plain, not frozen (CPU)
 class ReadResult:
     """A read's outcome as one value: the values (registers as 16-bit ints, coils and
     discrete inputs as 0/1) and the transaction's ``Evidence``."""
