@@ -16,11 +16,11 @@ above it) are left out of the plan rather than read into an exception reply.
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import TYPE_CHECKING
 
 from rtupoll.errors import DeviceException, FrameError
-from rtupoll.frozen import frozen
+from rtupoll.frozen import frozen, mutable
 from rtupoll.io.interface import BusLike
 from rtupoll.model.interpret import FieldValue
 from rtupoll.model.planner import Block, decode_block, plan
@@ -36,7 +36,7 @@ __all__ = ["BlockRead", "BlockValues", "Read", "Timing", "Variant", "needs_varia
            "probe_variant", "read_block", "read_fields", "read_planned", "timing"]
 
 
-@dataclass(frozen=True)
+@frozen
 class Timing:
     timeout: float
     retries: int
@@ -51,7 +51,7 @@ def timing(profile: Profile | None, timeout: float | None = None, retries: int |
                   limits.retries if retries is None else retries)
 
 
-@dataclass(slots=True)  # made per transaction: plain, not frozen (CPU)
+@mutable(slots=True)  # made per transaction: plain, not frozen (CPU)
 class BlockValues:
     """One planned read, decoded, and its transaction's evidence (``rtu.transaction.
     Evidence``: what the poller's timing learns from, ``jobs.timeouts``)."""
@@ -190,7 +190,7 @@ async def read_fields(bus: BusLike, profile: Profile, unit: int, fields: Sequenc
                 tuple(learned))
 
 
-@dataclass(slots=True)
+@mutable(slots=True)
 class Variant:
     """What probing the variant gave: the device's variant (None: the profile has none)
     and the probe's evidence (``rtu.transaction.Evidence``, also of an exception reply
