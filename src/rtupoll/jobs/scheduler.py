@@ -127,6 +127,8 @@ class DevicePoller:
                                    ceiling=config.timeout_ceiling, pinned=config.timeout)
         self.nominal = nominal_cycle(self.blocks, config, self.framing)
         self._used, self._used_at = 0.0, clock()  # in nominal cycles, decaying
+        self._scaling_of: tuple[Field, ...] | None = None  # (``_scaling``)
+        self._scales = False
 
     def used(self, now: float) -> float:
         """Bus time this device took lately, in its own nominal cycles (see ``next_device``),
@@ -160,7 +162,7 @@ class DevicePoller:
         for k in range(n):
             idx = (self.resume + k) % n
             block = blocks[idx]
-            if not self._due(block, started):
+            if block.interval is not None and not self._due(block, started):
                 continue
             attempted = True
             if policy.stopped is not None:
@@ -191,12 +193,21 @@ class DevicePoller:
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
         self.resume = policy.resume()
-        scaled(out)
+        if self._scaling(cfg.fields):
+            scaled(out)
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
-        readings = [out[f.name] for f in cfg.fields if f.name in out]
+        get = out.get
+        readings = [r for f in cfg.fields if (r := get(f.name)) is not None]
         st.record(readings, policy.succeeded(attempted))
         return readings
+
+    def _scaling(self, fields: tuple[Field, ...]) -> bool:
+        """Whether any of ``fields`` (the device's) has ``scale_by``: worked out once per
+        tuple of fields, not per cycle."""
+        if fields is not self._scaling_of:
+            self._scaling_of, self._scales = fields, any(f.scale_by for f in fields)
+        return self._scales
 
     def _due(self, block: Block, now: float) -> bool:
         """A block of fields with their own ``interval`` is read when that has passed, or
@@ -321,10 +332,11 @@ class DevicePoller:
             evidence = exc.evidence
         now = self._clock()
         st.requests += 1
-        self.timing.learn(evidence)
-        st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
+        timing = self.timing
+        timing.learn(evidence)
+        st.timeout, st.timeout_source = timing.timeout, timing.source
         if st.line is None:
-            st.line = self.timing.counts
+            st.line = timing.counts
         # the bus's quiet period after a failure is the failing device's cost, not ours
         own = self.load.add(now, now - start, self,
                             failed=status is Status.TIMEOUT or status is Status.GARBLED)
