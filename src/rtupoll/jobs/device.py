@@ -15,7 +15,7 @@ above it) are left out of the plan rather than read into an exception reply.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -60,13 +60,18 @@ class BlockValues:
     evidence: Evidence
 
 
+Decode = Callable[[Block, Sequence[int]], list[FieldValue]]  # model.planner.decode_block's
+
+
 async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
-                     retries: int, patience: float = 0.0) -> BlockValues:
-    """One planned read, decoded: one transaction (``patience``: ``BusLike.read``'s). Bus
-    errors propagate, each with its evidence (``BusError.evidence``)."""
+                     retries: int, patience: float = 0.0,
+                     decode: Decode = decode_block) -> BlockValues:
+    """One planned read, decoded (by ``decode``: ``decode_block``, or one that remembers,
+    the poller's): one transaction (``patience``: ``BusLike.read``'s). Bus errors
+    propagate, each with its evidence (``BusError.evidence``)."""
     got = await bus.read(unit, block.table, block.address, block.count,
                          timeout=timeout, retries=retries, patience=patience)
-    return BlockValues(decode_block(block, got.values), got.evidence)
+    return BlockValues(decode(block, got.values), got.evidence)
 
 
 @frozen

@@ -61,7 +61,7 @@ from rtupoll.jobs.race import first_of
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
 from rtupoll.model.interpret import FieldValue
-from rtupoll.model.planner import Block, plan
+from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field
 from rtupoll.model.scaling import scale
 from rtupoll.numbers import count
@@ -129,6 +129,8 @@ class DevicePoller:
         self._used, self._used_at = 0.0, clock()  # in nominal cycles, decaying
         self._scaling_of: tuple[Field, ...] | None = None  # (``_scaling``)
         self._scales = False
+        # each block's last words and what they decoded to (``_decode``), by the block's id
+        self._decoded: dict[int, tuple[Block, Sequence[int], list[FieldValue]]] = {}
 
     def used(self, now: float) -> float:
         """Bus time this device took lately, in its own nominal cycles (see ``next_device``),
@@ -173,7 +175,7 @@ class DevicePoller:
             retries = policy.retries()
             status, error, got = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries,
-                patience=self.timing.patience))
+                patience=self.timing.patience, decode=self._decode))
             values = got.values if got is not None else None
             if status is Status.EXCEPTION and self.refused == 2:
                 found = await self._find_holes(transport, block, retries)
@@ -201,6 +203,17 @@ class DevicePoller:
         readings = [r for f in cfg.fields if (r := get(f.name)) is not None]
         st.record(readings, policy.succeeded(attempted))
         return readings
+
+    def _decode(self, block: Block, words: Sequence[int]) -> list[FieldValue]:
+        """``decode_block``, once per change of a block's words: decoding is a pure function
+        of the block and its words (values frozen), and most registers read the same from
+        one cycle to the next."""
+        last = self._decoded.get(id(block))
+        if last is not None and last[0] is block and last[1] == words:
+            return list(last[2])
+        values = decode_block(block, words)
+        self._decoded[id(block)] = (block, words, values)
+        return list(values)
 
     def _scaling(self, fields: tuple[Field, ...]) -> bool:
         """Whether any of ``fields`` (the device's) has ``scale_by``: worked out once per
@@ -251,6 +264,7 @@ class DevicePoller:
         cfg = self.config
         self.blocks = plan(cfg.fields, cfg.profile, variant=self.variant, by_interval=True,
                            holes=self.holes.registers)
+        self._decoded.clear()  # (the old blocks')
         self.nominal = nominal_cycle(self.blocks, cfg, self.framing)
         self.resume = 0
 
