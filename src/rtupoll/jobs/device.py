@@ -15,7 +15,7 @@ above it) are left out of the plan rather than read into an exception reply.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import field
 from typing import TYPE_CHECKING
 
@@ -60,16 +60,20 @@ class BlockValues:
     evidence: Evidence
 
 
+Decode = Callable[[Block, Sequence[int]], list[FieldValue]]  # model.planner.decode_block's
+
+
 async def read_block(bus: BusLike, unit: int, block: Block, *, timeout: float,
                      retries: int, patience: float = 0.0,
-                     idle_gap: float | None = None) -> BlockValues:
-    """One planned read, decoded: one transaction (``patience``, ``idle_gap``:
-    ``BusLike.read``'s). Bus errors propagate, each with its evidence
-    (``BusError.evidence``)."""
+                     idle_gap: float | None = None,
+                     decode: Decode = decode_block) -> BlockValues:
+    """One planned read, decoded (by ``decode``: ``decode_block``, or one that remembers,
+    the poller's): one transaction (``patience``, ``idle_gap``: ``BusLike.read``'s). Bus
+    errors propagate, each with its evidence (``BusError.evidence``)."""
     got = await bus.read(unit, block.table, block.address, block.count,
                          timeout=timeout, retries=retries, patience=patience,
                          idle_gap=idle_gap)
-    return BlockValues(decode_block(block, got.values), got.evidence)
+    return BlockValues(decode(block, got.values), got.evidence)
 
 
 @frozen

@@ -62,7 +62,7 @@ from rtupoll.jobs.race import first_of
 from rtupoll.jobs.stats import BusLoad, DeviceStats, Reading, State, Status
 from rtupoll.jobs.timeouts import DeviceTiming
 from rtupoll.model.interpret import FieldValue
-from rtupoll.model.planner import Block, plan
+from rtupoll.model.planner import Block, decode_block, plan
 from rtupoll.model.profile import Field
 from rtupoll.model.scaling import scale
 from rtupoll.numbers import count
@@ -128,6 +128,10 @@ class DevicePoller:
                                    ceiling=config.timeout_ceiling, pinned=config.timeout)
         self.nominal = nominal_cycle(self.blocks, config, self.framing)
         self._used, self._used_at = 0.0, clock()  # in nominal cycles, decaying
+        self._scaling_of: tuple[Field, ...] | None = None  # (``_scaling``)
+        self._scales = False
+        # each block's last words and what they decoded to (``_decode``), by the block's id
+        self._decoded: dict[int, tuple[Block, Sequence[int], list[FieldValue]]] = {}
 
     def used(self, now: float) -> float:
         """Bus time this device took lately, in its own nominal cycles (see ``next_device``),
@@ -161,7 +165,7 @@ class DevicePoller:
         for k in range(n):
             idx = (self.resume + k) % n
             block = blocks[idx]
-            if not self._due(block, started):
+            if block.interval is not None and not self._due(block, started):
                 continue
             attempted = True
             if policy.stopped is not None:
@@ -172,7 +176,7 @@ class DevicePoller:
             retries = policy.retries()
             status, error, got = await self._transact(read_block(
                 transport, cfg.address, block, timeout=self.timeout(transport), retries=retries,
-                patience=self.timing.patience, idle_gap=cfg.gap))
+                patience=self.timing.patience, idle_gap=cfg.gap, decode=self._decode))
             values = got.values if got is not None else None
             if status is Status.EXCEPTION and self.refused == 2:
                 found = await self._find_holes(transport, block, retries)
@@ -192,12 +196,32 @@ class DevicePoller:
             for f in block.fields:
                 out[f.name] = Reading(wall, cfg, f, None, status, error)
         self.resume = policy.resume()
-        scaled(out)
+        if self._scaling(cfg.fields):
+            scaled(out)
         for f in self.absent:
             out[f.name] = Reading(self._wall(), cfg, f, None, Status.ABSENT, self.absent_why)
-        readings = [out[f.name] for f in cfg.fields if f.name in out]
+        get = out.get
+        readings = [r for f in cfg.fields if (r := get(f.name)) is not None]
         st.record(readings, policy.succeeded(attempted))
         return readings
+
+    def _decode(self, block: Block, words: Sequence[int]) -> list[FieldValue]:
+        """``decode_block``, once per change of a block's words: decoding is a pure function
+        of the block and its words (values frozen), and most registers read the same from
+        one cycle to the next."""
+        last = self._decoded.get(id(block))
+        if last is not None and last[0] is block and last[1] == words:
+            return list(last[2])
+        values = decode_block(block, words)
+        self._decoded[id(block)] = (block, words, values)
+        return list(values)
+
+    def _scaling(self, fields: tuple[Field, ...]) -> bool:
+        """Whether any of ``fields`` (the device's) has ``scale_by``: worked out once per
+        tuple of fields, not per cycle."""
+        if fields is not self._scaling_of:
+            self._scaling_of, self._scales = fields, any(f.scale_by for f in fields)
+        return self._scales
 
     def _due(self, block: Block, now: float) -> bool:
         """A block of fields with their own ``interval`` is read when that has passed, or
@@ -241,6 +265,7 @@ class DevicePoller:
         cfg = self.config
         self.blocks = plan(cfg.fields, cfg.profile, variant=self.variant, by_interval=True,
                            holes=self.holes.registers)
+        self._decoded.clear()  # (the old blocks')
         self.nominal = nominal_cycle(self.blocks, cfg, self.framing)
         self.resume = 0
 
@@ -323,10 +348,11 @@ class DevicePoller:
             evidence = exc.evidence
         now = self._clock()
         st.requests += 1
-        self.timing.learn(evidence)
-        st.timeout, st.timeout_source = self.timing.timeout, self.timing.source
+        timing = self.timing
+        timing.learn(evidence)
+        st.timeout, st.timeout_source = timing.timeout, timing.source
         if st.line is None:
-            st.line = self.timing.counts
+            st.line = timing.counts
         # the bus's quiet period after a failure is the failing device's cost, not ours
         own = self.load.add(now, now - start, self,
                             failed=status is Status.TIMEOUT or status is Status.GARBLED)

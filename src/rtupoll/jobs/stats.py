@@ -90,10 +90,12 @@ class DeviceStats:
     def record(self, readings: Sequence[Reading], answered: bool) -> None:
         self.cycles += 1
         self.failures = 0 if answered else self.failures + 1
+        latest, last_good = self.latest, self.last_good
         for r in readings:
-            self.latest[r.field.name] = r
-            if r.ok:
-                self.last_good[r.field.name] = r
+            name = r.field.name
+            latest[name] = r
+            if r.value is not None:  # r.ok
+                last_good[name] = r
                 self.last_good_time = r.time
 
     @property
@@ -183,9 +185,10 @@ class BusLoad:
         if payer is not None:
             payer.charge(end, duration)
         self.transactions += 1
-        self._recent.append((end, duration))
-        while self._recent and self._recent[0][0] < end - LOAD_WINDOW:
-            self._recent.popleft()
+        recent, since = self._recent, end - LOAD_WINDOW
+        recent.append((end, duration))
+        while recent and recent[0][0] < since:
+            recent.popleft()
         return own
 
     def utilisation(self, now: float) -> float:
