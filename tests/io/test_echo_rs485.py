@@ -257,8 +257,10 @@ def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
 
 def test_scan_without_echo_finds_the_devices_behind_an_echoing_adapter(
         echoing_at_9600: SimulatedBus) -> None:
+    # the simulator answers from a thread of this process: a reply wait with room for a
+    # busy machine (an answer ends it; an unanswered read makes the device "unknown")
     result = CliRunner().invoke(cli, ["scan", "-p", echoing_at_9600.port, "--baudrate", "9600",
-                                      "--addresses", "2-3", "--turnaround", "0.15",
+                                      "--addresses", "2-3", "--turnaround", "1.0",
                                       "--format", "json"])
     assert result.exit_code == 0, result.output
     found = [json.loads(line) for line in result.stdout.splitlines()]
