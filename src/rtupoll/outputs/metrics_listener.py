@@ -125,11 +125,16 @@ class MetricsListener:
                 await asyncio.wait_for(writer.wait_closed(), LINGER)
 
     async def _refuse(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """A 503, the end of the stream, and what the client sends read until it closes
-        (closed with unread bytes, the socket would reset: the client might never read
-        the 503), at most ``LINGER`` seconds, at most ``max_connections`` so."""
+        """A 503, then the lingering close (``_linger``)."""
         self.refusals.refused("cap")
         writer.write(REFUSED)
+        await self._linger(reader, writer)
+
+    async def _linger(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """After an answer sent before the request was read whole (503, 431): the end of
+        the stream, and what the client sends read until it closes (closed with unread
+        bytes, the socket would reset: the client might never read the answer), at most
+        ``LINGER`` seconds, at most ``max_connections`` connections so."""
         if self.lingering >= self.max_connections:
             reset(writer.transport)
             return
@@ -161,6 +166,7 @@ class MetricsListener:
         except asyncio.LimitOverrunError:
             self.expired.refused(f"with more than {MAX_HEAD >> 10} kB of headers")
             writer.write(TOO_LARGE)
+            await self._linger(reader, writer)
             return
         except asyncio.IncompleteReadError:
             return
