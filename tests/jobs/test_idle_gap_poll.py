@@ -149,25 +149,23 @@ def test_on_a_pty_the_gap_needing_device_keeps_being_read_beside_a_busy_one() ->
 HUIWEN_CO2 = bytes((4,)) + (30009).to_bytes(2, "big") + (1).to_bytes(2, "big")  # a PDU
 
 
-def gap_gateway() -> tuple[BusPoller, Gateway, VirtualBus]:
-    """The gap site's bus poller, a Modbus TCP gateway on it, and its virtual bus."""
+@pytest.mark.parametrize("polled_first", [True, False], ids=["after-a-poll", "before-any"])
+def test_a_gateway_request_to_the_device_keeps_its_gap(polled_first: bool) -> None:
+    """A Modbus TCP client's request to the Huiwen right after the radar's reply waits
+    for the Huiwen's gap and is heard (no retry, no timeout): after the poller's reads
+    named the gap (the line keeps it for the unit), and before the poller has read the
+    Huiwen once (the gateway names the polled device's gap itself,
+    ``BusLike.transact(idle_gap=)``)."""
     scheduler, clock = gap_site(NEEDS)
     bp = scheduler.buses[0]
+    huiwen, radar = bp.devices
+    gw = Gateway(ServeConfig("127.0.0.1", 0), bp, Turns(), clock=clock)
     bus = bp.transport
     assert isinstance(bus, VirtualBus)
-    return bp, Gateway(ServeConfig("127.0.0.1", 0), bp, Turns(), clock=clock), bus
-
-
-def test_a_gateway_request_to_the_device_keeps_the_gap_its_reads_named() -> None:
-    """The gap goes with the poller's reads (``BusLike.read(idle_gap=)``); the line keeps
-    it for the unit, so a Modbus TCP client's request passed through by the gateway
-    (``BusLike.transact``, which names none) right after the radar's reply waits for it
-    too, and the Huiwen hears it: no retry, no timeout."""
-    bp, gw, bus = gap_gateway()
-    huiwen, radar = bp.devices
 
     async def go() -> list[bytes | None]:
-        await bp.run_one(huiwen, lambda d, rs: None)  # its reads name the gap
+        if polled_first:
+            await bp.run_one(huiwen, lambda d, rs: None)  # its reads name the gap
         replies = []
         for _ in range(5):
             await bp.run_one(radar, lambda d, rs: None)
@@ -178,22 +176,3 @@ def test_a_gateway_request_to_the_device_keeps_the_gap_its_reads_named() -> None
     assert all(r is not None and r[0] == 4 for r in replies), replies  # answers, no 0x0B
     assert bus.stats.attempts == bus.stats.transactions  # none went unheard
     assert bus.line.learned_gap == {}
-
-
-def test_a_gateway_request_before_the_first_poll_keeps_the_devices_gap() -> None:
-    """A Modbus TCP client that asks the Huiwen before the poller has read it once (the
-    line has heard no gap named for it yet) right after the radar's reply: the gateway
-    names the polled device's gap itself, so the request waits for it and is heard."""
-    bp, gw, bus = gap_gateway()
-    radar = bp.devices[1]
-
-    async def go() -> list[bytes | None]:
-        replies = []
-        for _ in range(5):
-            await bp.run_one(radar, lambda d, rs: None)
-            replies.append(await gw.answer(3, HUIWEN_CO2, ClientStats("c")))
-        return replies
-
-    replies = asyncio.run(go())
-    assert all(r is not None and r[0] == 4 for r in replies), replies  # answers, no 0x0B
-    assert bus.stats.attempts == bus.stats.transactions  # none went unheard
