@@ -54,6 +54,19 @@ def test_an_echo_that_comes_back_byte_by_byte_is_named_with_its_fix() -> None:
     assert with_echo["echo"]["status"] == "ok"
 
 
+def test_an_echo_that_comes_back_at_once_is_said_so_after_three_probes() -> None:
+    bus = simulated_bus(["radar-level@2"], tick=None)  # no wire timing: echoed at once
+    bus.echo = True
+    with bus:
+        ran = rtupoll("doctor", "--format", "json", "-p", bus.port, "-b", "9600",
+                      "--traffic", "--traffic-format", "json")
+    assert ran.returncode == 0, ran.stderr
+    echo = next(r for r in map(json.loads, ran.stdout.splitlines()) if r["check"] == "echo")
+    assert "(all at once)" in echo["finding"]
+    sent = [f for f in map(json.loads, ran.stderr.splitlines()) if f["direction"] == "tx"]
+    assert [f["unit"] for f in sent] == [247, 247, 247]  # a late read looks at once too
+
+
 def test_a_device_that_needs_an_idle_gap_gets_one_near_its_own(sim: Sim) -> None:
     bus = sim("huiwen-aq@3", tick=None, faults=["3:gap=0.05"])
     got = findings("-p", bus.port, "-b", "9600", "huiwen-aq@3")
