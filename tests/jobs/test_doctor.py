@@ -42,11 +42,12 @@ def test_a_quiet_adapter_and_a_healthy_device(sim: Sim) -> None:
 
 
 def test_an_echo_that_comes_back_byte_by_byte_is_named_with_its_fix() -> None:
-    bus = simulated_bus(["radar-level@2"], tick=None, baudrate=9600)
-    bus.echo = True  # the master's 2-wire adapter hears itself, byte-paced at 9600
+    # the master's 2-wire adapter hears itself, byte-paced at 2400 baud: 4.6 ms a byte
+    bus = simulated_bus(["radar-level@2"], tick=None, baudrate=2400)
+    bus.echo = True
     with bus:
-        got = findings("-p", bus.port, "-b", "9600", "radar-level@2")
-        with_echo = findings("-p", bus.port, "-b", "9600", "--echo")
+        got = findings("-p", bus.port, "-b", "2400", "radar-level@2")
+        with_echo = findings("-p", bus.port, "-b", "2400", "--echo")
     assert got["echo"]["status"] == "warning"
     assert "byte by byte" in str(got["echo"]["finding"]) and got["echo"]["fix"] == (
         "add --echo (echo: true on the bus in a site file)")
