@@ -24,8 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from rtupoll.errors import DeviceException, DeviceTimeout, FrameError
-from rtupoll.jobs.scheduler import BusPoller, DevicePoller
-from rtupoll.jobs.stats import Reading
+from rtupoll.jobs.scheduler import BusPoller, Sink
 from rtupoll.rtu import Framing, Table
 from rtupoll.rtu.line import Line, UnitCounts
 from rtupoll.rtu.transaction import Evidence, ReadResult
@@ -91,8 +90,7 @@ def run_virtual(main: Coroutine[Any, Any, T], clock: VirtualClock) -> T:
         return runner.run(main)
 
 
-async def polled(bp: BusPoller, seconds: float,
-                 sink: Callable[[DevicePoller, list[Reading]], None] | None = None) -> None:
+async def polled(bp: BusPoller, seconds: float, sink: Sink | None = None) -> None:
     """``bp.run`` itself, stopped after ``seconds`` of the loop's time (virtual time under
     ``run_virtual``); ``sink`` gets each cycle's readings."""
     stop = asyncio.Event()

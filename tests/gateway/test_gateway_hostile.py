@@ -67,7 +67,8 @@ def test_a_client_that_never_reads_takes_no_others_place_and_memory_stays_bounde
     bus = sim("huiwen-aq@3", tick=None)
     with rtupoll("--port", bus.port, "--baudrate", "115200", "--interval", "0.5",
                  "--timeout", f"{ANSWERED:g}", "--format", "json", "huiwen-aq@3"
-                 ) as (proc, port), socket.create_connection(("127.0.0.1", port), HANG) as s:
+                 ) as served, socket.create_connection(("127.0.0.1", served.port), HANG) as s:
+        proc, port = served.proc, served.port
         for tid in range(20):  # warm: the normal client's path has run before the baseline
             ask(s, tid, 3, READ_CO2)
         before = rss_kib(proc.pid)
@@ -97,12 +98,12 @@ def test_a_client_that_never_reads_takes_no_others_place_and_memory_stays_bounde
             replies.append(ask(s, len(replies), 3, READ_CO2))
         after = rss_kib(proc.pid)
         hog.close()
-    _, err = proc.communicate()
+    err = served.err
     assert {r[0] for r in replies} == {0x04}, sorted({r[:2].hex() for r in replies})
     # without back-pressure, rtupoll read all 40 MB and its 0x0A replies piled up unread
     assert sent < 20_000_000, sent
     assert after - before < 4 * 1024, (before, after, sent)  # kB (was +118 MB)
-    assert proc.returncode == 0, err
+    assert served.returncode == 0, err
 
 
 def test_a_write_from_a_client_that_left_before_its_turn_never_reaches_the_device(
@@ -112,7 +113,8 @@ def test_a_write_from_a_client_that_left_before_its_turn_never_reaches_the_devic
     write = struct.pack(">BHHB", 16, 0x0200, 2, 4) + bytes.fromhex("0000 4248")
     with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "1",
                  "--timeout", f"{ANSWERED:g}", "--serve-timeout", "5", "--format", "json",
-                 "net-irnet-pro@1") as (proc, port):
+                 "net-irnet-pro@1") as served:
+        proc, port = served.proc, served.port
         holder = socket.create_connection(("127.0.0.1", port), HANG)
         holder.sendall(mbap(1, 9, struct.pack(">BHH", 3, 0, 1)))  # nobody at 9: 5 s
         wait_for_line_in_wire(bus, 9)
@@ -124,12 +126,12 @@ def test_a_write_from_a_client_that_left_before_its_turn_never_reaches_the_devic
         assert holder.recv(64)[7:] == bytes((0x83, 0x0B))  # unit 9's turn is over
         assert ask(holder, 2, 1, struct.pack(">BHH", 3, 0x0200, 2))[:2] == b"\x03\x04"
         holder.close()  # (the line has carried requests after the dropped one's place)
-    _, err = proc.communicate()
+    err = served.err
     log += err
     assert "gone before its turn: 1 request dropped unsent (1 write)" in log, log
     assert list(bus.registers(1, "holding", 0x0200, 2)) == was
     assert not [f for f in bus.wire if f.direction == "in" and f.data[1:2] == b"\x10"]
-    assert proc.returncode == 0, err
+    assert served.returncode == 0, err
 
 
 def wait_for_line_in_wire(bus: SimulatedBus, unit: int) -> None:
@@ -149,7 +151,8 @@ def test_out_of_file_descriptors_it_says_so_once_and_serves_again_when_they_clos
     limit = 64
     with rtupoll("--port", bus.port, "--baudrate", "9600", "--interval", "1",
                  "--timeout", f"{ANSWERED:g}", "--format", "json", "--serve-max-clients",
-                 "5000", "--serve-max-per-address", "5000", "huiwen-aq@3") as (proc, port):
+                 "5000", "--serve-max-per-address", "5000", "huiwen-aq@3") as served:
+        proc, port = served.proc, served.port
         resource.prlimit(proc.pid, resource.RLIMIT_NOFILE, (limit, limit))
         used = len(os.listdir(f"/proc/{proc.pid}/fd"))
         idle = [socket.create_connection(("127.0.0.1", port), HANG)
@@ -160,11 +163,11 @@ def test_out_of_file_descriptors_it_says_so_once_and_serves_again_when_they_clos
         with socket.create_connection(("127.0.0.1", port), HANG) as s:
             s.settimeout(HANG)
             reply = ask(s, 1, 3, READ_CO2)
-    _, err = proc.communicate()
+    err = served.err
     log += err
     assert reply[:2] == b"\x04\x08"
     assert "Traceback" not in log and "Too many open files" not in log, log[-2000:]
     lines = [x for x in log.splitlines() if f"{port}: refused" in x]
     assert 1 <= len(lines) <= 2, lines  # the first, and what was left at the stop
     assert "out of file descriptors (EMFILE) (counted from now on" in lines[0]
-    assert proc.returncode == 0, err
+    assert served.returncode == 0, err

@@ -185,6 +185,50 @@ def test_a_dead_device_does_not_starve_the_live_ones() -> None:
     assert max(with_dead[a] for a in live) - min(with_dead[a] for a in live) <= 1
 
 
+def test_a_sink_that_holds_the_polling_holds_the_cycles_not_the_jobs() -> None:
+    """A records reader that lags (ui.pipe_writer): the sink's event holds the bus's
+    polling until it is set; a job submitted meanwhile (an MQTT command) still runs, and
+    ``stop`` ends a held bus."""
+    clock = VirtualClock(START)
+    bus = ScriptedBus(clock)
+    bp = BusPoller(BusConfig("b", "/dev/null", 9600, devices=(radar(interval=0),)), bus,
+                   backoff=Backoff(), clock=clock, wall=clock)
+
+    async def main() -> tuple[int, int, str, int, int]:
+        room = asyncio.Event()
+        cycles = [0]
+
+        def sink(dev: DevicePoller, readings: list[Reading]) -> asyncio.Event | None:
+            cycles[0] += 1
+            if cycles[0] < 3:
+                return None
+            room.clear()  # (as a writer does while its reader lags)
+            return room
+
+        stop = asyncio.Event()
+        task = asyncio.create_task(bp.run(sink, stop))
+        await asyncio.sleep(60)
+        held, calls = cycles[0], len(bus.calls)
+
+        async def job(transport: object) -> str:
+            return "ran"
+
+        ran = await bp.submit(job)  # type: ignore[arg-type]
+        await asyncio.sleep(60)
+        after_job = cycles[0]
+        room.set()
+        await asyncio.sleep(1)
+        resumed = cycles[0]
+        stop.set()
+        await asyncio.wait_for(task, 10)  # a held bus ends too
+        return held, calls, ran, after_job, resumed
+
+    held, calls, ran, after_job, resumed = run_virtual(main(), clock)
+    assert held == 3 and calls == 15  # three cycles of five blocks, then nothing
+    assert ran == "ran" and after_job == 3
+    assert resumed == 4  # the reader caught up: the next cycle, held again
+
+
 def test_a_slow_device_that_still_answers_gets_a_fair_share_of_time_not_of_turns() -> None:
     clock = VirtualClock(START)
     devs = tuple(radar(a, interval=0) for a in (1, 2, 3))

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 from rtupoll import aio
 from rtupoll.errors import UsageError
 from rtupoll.ui.outfile import OutputFile
+from rtupoll.ui.pipe_writer import DRAIN, PipeWriter, threaded
 from rtupoll.ui.record_writer import RecordWriter
 
 if TYPE_CHECKING:
@@ -82,7 +83,7 @@ def run(job: PollRun, *, stop: Callable[[], asyncio.Event],
         from rich.console import Console
 
         console = Console(stderr=job.fmt != "table" and job.output is None)
-    with _records(job.fmt, job.output, site) as writer:
+    with _records(job.fmt, job.output, site, say) as writer:
         services = poll_services(
             site, writer, job.services, gateway=job.gateway, once=job.once,
             table=show_table, metrics=job.metrics or site.metrics or None,
@@ -119,17 +120,25 @@ def record_format(fmt: str, site: Site, *, header: bool = True) -> RecordFormat:
 
 
 @contextlib.contextmanager
-def _records(fmt: str, output: Path | None, site: Site) -> Iterator[RecordWriter | None]:
-    """The records' writer (None: the table only), to stdout or ``output``."""
+def _records(fmt: str, output: Path | None, site: Site, say: Callable[[str], None]
+             ) -> Iterator[RecordWriter | None]:
+    """The records' writer (None: the table only), to stdout or ``output``; ``say``: what
+    a reader of stdout did not take in the end."""
     if fmt == "table":
         yield None
         return
     if output is None:
+        pipe = PipeWriter(sys.stdout) if threaded(sys.stdout) else None
         try:
-            yield RecordWriter(sys.stdout, record_format(fmt, site))
+            yield RecordWriter(pipe or sys.stdout, record_format(fmt, site))
         except BrokenPipeError:  # `rtupoll poll --format json | head`: the reader is done
             with contextlib.suppress(OSError):
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        finally:
+            left = pipe.close() if pipe is not None else 0
+            if left:
+                say(f"stdout: {left} bytes of records not written: nothing read them for "
+                    f"{DRAIN:g} s")
         return
     try:  # whole records or nothing (rtupoll.ui.outfile)
         fh = OutputFile(output)
@@ -204,7 +213,9 @@ async def _once(scheduler: Scheduler, writer: RecordWriter | None,
     if writer is not None:  # one device at a time, with its state (influx's ``state``)
         for d in scheduler.pollers():
             if got.get(d.config.name):
-                writer.write(got[d.config.name], d.stats.state.value)
+                held = writer.write(got[d.config.name], d.stats.state.value)
+                if held is not None:  # a reader that lags (ui.pipe_writer)
+                    await held.wait()
     return readings
 
 
@@ -213,13 +224,13 @@ async def _forever(scheduler: Scheduler, writer: RecordWriter | None, view: Poll
                    stop: Callable[[], asyncio.Event]) -> None:
     stopped = stop()
 
-    def sink(dev: DevicePoller, readings: list[Reading]) -> None:
+    def sink(dev: DevicePoller, readings: list[Reading]) -> asyncio.Event | None:
         for s in services:
             s.on_readings(dev, readings)
         if writer is None:
-            return
+            return None
         try:
-            writer.write(readings, dev.stats.state.value)
+            return writer.write(readings, dev.stats.state.value)
         except BrokenPipeError:
             stopped.set()
             raise

@@ -75,7 +75,9 @@ Clock = Callable[[], float]
 # seconds a bus pauses after its port went away, doubling while it stays away
 PORT_RETRY_FIRST, PORT_RETRY_CAP = 1.0, 10.0
 USAGE_MEMORY = 30.0  # seconds over which bus use counts when sharing the bus
-Sink = Callable[["DevicePoller", list[Reading]], None]
+# a device cycle's readings; an event it returns holds the bus's polling until it is set
+# (a records reader that lags: ui.pipe_writer), jobs and the gateway using the line meanwhile
+Sink = Callable[["DevicePoller", list[Reading]], asyncio.Event | None]
 
 
 @dataclass(frozen=True)
@@ -434,7 +436,8 @@ class BusPoller:
             return min(due, key=lambda d: (d.used(now), d.last_run))
         return min(self.devices, key=lambda d: (d.next_due, d.last_run))
 
-    async def run_one(self, dev: DevicePoller, sink: Sink) -> None:
+    async def run_one(self, dev: DevicePoller, sink: Sink) -> asyncio.Event | None:
+        """One cycle of ``dev``, its readings given to ``sink``; what ``sink`` returned."""
         started = self._clock()
         self._seq += 1
         dev.last_run = self._seq
@@ -455,9 +458,10 @@ class BusPoller:
         else:
             self.port_error, self._port_failures = "", 0
             dev.schedule(started, self.backoff, self._rand)
-        sink(dev, readings)
+        return sink(dev, readings)
 
     async def run(self, sink: Sink, stop: asyncio.Event) -> None:
+        held: asyncio.Event | None = None  # what the sink holds the polling on
         while not stop.is_set():
             if not self.devices:  # a bus only served to gateway clients
                 await stop.wait()
@@ -466,6 +470,9 @@ class BusPoller:
             if self._jobs:
                 async with self.turn():
                     await self._run_job(*self._jobs.pop(0))
+                continue
+            if held is not None and not held.is_set():
+                await first_of(held.wait(), stop.wait(), self._wake.wait())
                 continue
             dev = self.next_device()
             wait = dev.next_due - self._clock()
@@ -476,13 +483,15 @@ class BusPoller:
                 self._urgent.remove(dev)
             asked = dev.stats.requests
             async with self.turn():
-                await self.run_one(dev, sink)
+                held = await self.run_one(dev, sink)
             if dev.stats.requests == asked:  # it waited for no reply: let the others run
                 await asyncio.sleep(0)
 
     async def scan_once(self, sink: Sink) -> None:
         for dev in self.devices:
-            await self.run_one(dev, sink)
+            held = await self.run_one(dev, sink)
+            if held is not None:
+                await held.wait()
 
     def poll_now(self, dev: DevicePoller) -> None:
         """Read ``dev`` next, ahead of the schedule (a backed-off device too), once."""
