@@ -2,8 +2,9 @@
 
 A multi-device run of the real CLI on the simulator, with a block that fails (an
 exception reply), a dead device, fields on a slow interval (the SDM120's and the
-EM24's energy, ``interval: 60``), undocumented enum codes (the IRNET's ``error`` enum, a Banner mode
-behind a select) and writable numbers, publishing to a real mosquitto. Every
+EM24's energy, ``interval: 60``), undocumented enum codes (the IRNET's ``error`` enum, a
+Banner mode behind a select), a sentinel (the EM24's voltage L2 at OVERFLOW) and
+writable numbers, publishing to a real mosquitto. Every
 ``value_template`` and ``json_attributes_template`` of every discovered entity is
 rendered with Jinja2 the way Home Assistant renders it (``value`` the payload,
 ``value_json`` the parsed JSON, in a sandboxed environment), against every state
@@ -84,6 +85,7 @@ def run(tmp_path_factory: pytest.TempPathFactory
                 faults=["3:hole=0x759A", "2:dead"],  # the Huiwen's PM2.5 failure code; the radar
                 sets=["net-irnet-pro@1.error=48",  # undocumented codes
                       "banner-ez-array@5.measurement_1_mode=200"]) as bus:
+            bus.set(9, "voltage_l2", "OVERFLOW")  # its profile's sentinel: no value
             site = tmp_path / "site.yaml"
             site.write_text(SITE.format(port=bus.port, url=broker.url))
             sub = broker.subscribe("plant/#", "homeassistant/#")
@@ -196,6 +198,24 @@ def test_every_discovered_key_is_in_every_state_message(
     assert air["_rtupoll"]["error"].startswith("exception: ")
     gas = json.loads(states["gas"][-1])
     assert gas["error"] == "unknown (48)"  # the field's own value, never rtupoll's status
+
+
+def test_a_sentinel_is_unknown_in_home_assistant_and_named_in_the_status_attributes(
+        run: tuple[dict[str, Any], dict[str, list[str]]]) -> None:
+    """The EM24's voltage L2 at its sentinel: the sensor renders None (HA's unknown, not
+    a number), as every other null; the *Polling status* is partial, and its attributes
+    (``_rtupoll``) name the sentinel, which the fleet page shows."""
+    configs, states = run
+    env = environment()
+    cmps = configs["grid"]["cmps"]
+    for payload in states["grid"]:
+        assert json.loads(payload)["voltage_l2"] is None
+        assert render(env, cmps["voltage_l2"]["value_template"], payload) == "None"
+        assert float(render(env, cmps["voltage_l1"]["value_template"], payload)) > 200
+        assert render(env, cmps["_status"]["value_template"], payload) == "partial"
+        attrs = json.loads(render(env, cmps["_status"]["json_attributes_template"], payload))
+        assert attrs["sentinels"] == {"voltage_l2": "OVERFLOW"}
+        assert attrs["error"] == "no value: voltage_l2 is OVERFLOW"
 
 
 def test_names_ids_and_origin(run: tuple[dict[str, Any], dict[str, list[str]]]) -> None:

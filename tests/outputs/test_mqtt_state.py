@@ -140,6 +140,49 @@ def test_on_change_waits_for_a_change_or_the_maximum_silence() -> None:
     assert states(pub.readings(dev, True, 1.0, [ok(dev, "voltage", (0x4367, 0))]))
 
 
+def test_a_sentinel_is_null_and_named_under_rtupoll_while_the_field_holds_it() -> None:
+    """An R4DCB08 channel with no sensor (0x8000, its profile's NO_SENSOR): the value is
+    null, as before, and ``_rtupoll.sentinels`` names it, in this scan and in those that
+    do not read it, until a read gives it a value; a message with none has no such key."""
+    dev = from_specs("/dev/null", [("r4dcb08", 1)], check_serial=False).buses[0].devices[0]
+    s = parse_url("mqtt://b/plant")
+    pub = StatePublisher(s.__class__(**{**s.__dict__, "defaults": DeviceOptions(
+        publish="on_change", max_silence=300)}), {dev.name: "t"}, Clock())
+
+    def state(*readings: Reading) -> dict[str, Any] | None:
+        got = [json.loads(o.payload) for o in pub.readings(dev, True, 1.7e9, readings)
+               if o.topic == "plant/t"]
+        return got[0] if got else None
+
+    one = state(ok(dev, "temperature_1", (0x8000,)), ok(dev, "temperature_3", (0x8000,)),
+                ok(dev, "temperature_2", (215,)))
+    assert one is not None
+    assert one["temperature_1"] is None and one["temperature_2"] == 21.5
+    assert one["_rtupoll"] == {
+        "status": "partial", "error": "no value: temperature_1 is NO_SENSOR",
+        "sentinels": {"temperature_1": "NO_SENSOR", "temperature_3": "NO_SENSOR"}}
+    assert state(ok(dev, "temperature_2", (215,))) is None  # on_change: nothing new
+    # a read that fails is no sentinel; a value ends it
+    two = state(bad(dev, "temperature_1", Status.TIMEOUT, "no reply"),
+                ok(dev, "temperature_2", (215,)))
+    assert two is not None and two["_rtupoll"]["sentinels"] == {"temperature_3": "NO_SENSOR"}
+    three = state(ok(dev, "temperature_1", (200,)), ok(dev, "temperature_3", (219,)))
+    assert three is not None and three["_rtupoll"] == {"status": "ok", "error": None}
+    assert (three["temperature_1"], three["temperature_3"]) == (20.0, 21.9)
+    # then the sentinels are all that change (the values null, the error the first
+    # one's): on_change publishes each
+    four = state(bad(dev, "temperature_1", Status.TIMEOUT, "no reply"),
+                 ok(dev, "temperature_3", (0x8000,)))
+    assert four is not None and four["_rtupoll"] == {
+        "status": "partial", "error": "timeout: no reply",
+        "sentinels": {"temperature_3": "NO_SENSOR"}}
+    five = state(bad(dev, "temperature_1", Status.TIMEOUT, "no reply"),
+                 bad(dev, "temperature_3", Status.EXCEPTION, "device 1 answered 02"),
+                 ok(dev, "temperature_2", (215,)))
+    assert five is not None and five["_rtupoll"] == {"status": "partial",
+                                                     "error": "timeout: no reply"}
+
+
 # -- identity -----------------------------------------------------------------
 
 def test_the_gateway_id_defaults_to_the_host_name() -> None:
@@ -185,6 +228,12 @@ def test_bridge_info_describes_devices_and_fields() -> None:
     gas = info["devices"]["net-irnet-pro_1"]["fields"]
     assert (gas["error"]["kind"], gas["warning"]["kind"]) == ("enum", "flags")
     assert gas["error"]["precision"] is None
+    assert "sentinels" not in air["fields"]["tvoc"]
+    site = from_specs("/dev/null", [("r4dcb08", 1)], baudrate=9600)
+    info = fleet.bridge_info("gw", "rtupoll/gw", site.devices(), {}, "1.2.3")
+    assert info["devices"]["r4dcb08@1"]["fields"]["temperature_1"] == {
+        "label": "Temperature 1", "unit": "°C", "kind": "number", "precision": 1,
+        "sentinels": {"NO_SENSOR": "error"}}
 
 
 def test_names_no_field_can_take(tmp_path: Path) -> None:

@@ -3,7 +3,8 @@ from what a gateway publishes) show one field alike: its label, unit, kind and
 precision come from one home (``model.interpret.field_kind``/``shown_precision``,
 ``Field.title``), and so do its value and text, and its severity and its badges'
 (``model.interpret.reading_severity``, the fleet page's from the names' severities
-``bridge/info`` carries); and both name the gateway by the one host-name rule MQTT
+``bridge/info`` carries), a sentinel's name and severity too (the state message names
+it, ``bridge/info`` gives its severity); and both name the gateway by the one host-name rule MQTT
 publishes under (``config.mqtt_settings.default_gateway_id``)."""
 
 from __future__ import annotations
@@ -19,13 +20,14 @@ import pytest
 
 from rtupoll.config.http_settings import HttpSettings
 from rtupoll.config.library import load_library
-from rtupoll.config.mqtt_settings import MqttSettings, default_gateway_id
+from rtupoll.config.mqtt_settings import MqttSettings, default_gateway_id, parse_url
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.stats import Reading
+from rtupoll.model.codec import encode_raw
 from rtupoll.model.interpret import interpret
 from rtupoll.model.profile import Field, Profile
 from rtupoll.outputs.fleet import bridge_info
-from rtupoll.outputs.mqtt_commands import value_of
+from rtupoll.outputs.mqtt_state import StatePublisher
 from rtupoll.web.fleet import Fleet
 from rtupoll.web.service import WebService
 from rtupoll.web.state import field_state
@@ -34,11 +36,16 @@ SHOWN = ("label", "unit", "kind", "precision", "value", "text", "status", "sever
          "badges")
 
 
-def pages(profile: Profile, fields: tuple[Field, ...], raw: Callable[[Field], int]
+def last(raw: int) -> Callable[[Field], tuple[int, ...]]:
+    """A field's registers: ``raw`` in its last, 0 in the others."""
+    return lambda f: (0,) * (f.words - 1) + (raw,)
+
+
+def pages(profile: Profile, fields: tuple[Field, ...], words: Callable[[Field], tuple[int, ...]]
           ) -> Iterator[tuple[Field, dict[str, Any], dict[str, Any]]]:
-    """Each of ``fields`` of a device of ``profile`` holding ``raw(field)`` in its last
-    register: the dashboard's field and the fleet page's, made from the gateway's
-    ``bridge/info`` and state message as a broker carries them."""
+    """Each of ``fields`` of a device of ``profile`` holding the registers ``words(field)``:
+    the dashboard's field and the fleet page's, made from the gateway's ``bridge/info``
+    and state message (``outputs.mqtt_state``'s) as a broker carries them."""
     site = from_specs("/dev/null", [(profile.id, 1)])
     bus = site.buses[0]
     dev = dataclasses.replace(bus.devices[0], fields=fields)
@@ -46,12 +53,14 @@ def pages(profile: Profile, fields: tuple[Field, ...], raw: Callable[[Field], in
     info = bridge_info("gw", "rtupoll/gw", [(bus, dev)], {dev.name: "dev"}, "1")
     assert fleet.handle("rtupoll/gw/bridge/info", json.dumps(info).encode())
     dashboard: dict[str, dict[str, Any]] = {}
-    state: dict[str, Any] = {}
+    readings = []
     for f in dev.fields:
-        fv = interpret(f, (0,) * (f.words - 1) + (raw(f),))
-        dashboard[f.name] = field_state(f, Reading(1.8e9, dev, f, fv), None)
-        state[f.name] = value_of(fv)  # as the state message carries it
-    assert fleet.handle("rtupoll/gw/dev", json.dumps(state).encode())
+        r = Reading(1.8e9, dev, f, interpret(f, words(f)))
+        dashboard[f.name] = field_state(f, r, None)
+        readings.append(r)
+    (state,) = [o for o in StatePublisher(parse_url("mqtt://b/rtupoll/gw"), {dev.name: "dev"})
+                .readings(dev, True, 1.8e9, readings) if o.topic == "rtupoll/gw/dev"]
+    assert fleet.handle(state.topic, state.payload.encode())
     (gw,) = fleet.snapshot()["gateways"]
     ((shown,),) = [b["devices"] for b in gw["buses"]]
     page = {f["name"]: f for f in shown["fields"]}
@@ -68,7 +77,7 @@ def test_the_dashboard_and_the_fleet_page_show_every_bundled_field_alike() -> No
     kinds: set[str] = set()
     severity: Counter[str] = Counter()
     for profile in load_library().profiles.values():
-        for f, ours, theirs in pages(profile, profile.fields, lambda f: 7):
+        for f, ours, theirs in pages(profile, profile.fields, last(7)):
             assert ours == theirs, (profile.id, f.name)
             compared += 1
             kinds.add(ours["kind"])
@@ -94,11 +103,32 @@ def test_every_enum_value_and_flag_has_the_dashboards_severity_on_the_fleet_page
             raws |= {c for c in (*f.enum, *f.flags) if 0 <= c < 1 << 16}
             raws.add(sum(m for m in f.flags if 0 <= m < 1 << 16))  # every flag at once
         for raw in sorted(raws):
-            for f, ours, theirs in pages(profile, fields, lambda f, raw=raw: raw):
+            for f, ours, theirs in pages(profile, fields, last(raw)):
                 assert ours == theirs, (profile.id, f.name, raw)
                 seen[ours["severity"]] += 1
                 seen.update(b["severity"] for b in ours["badges"])
     assert seen["ok"] and seen["info"] and seen["warning"] and seen["error"], seen
+
+
+def test_every_sentinel_has_the_dashboards_name_and_severity_on_the_fleet_page() -> None:
+    """Every sentinel of every bundled profile ("not available", "overflow", "no
+    sensor"): the fleet page shows its name, a badge of its severity, as the dashboard
+    does, where it had only "no reading"."""
+    seen: Counter[str] = Counter()
+    for profile in load_library().profiles.values():
+        fields = tuple(f for f in profile.fields if f.sentinels)
+        for i in range(max((len(f.sentinels) for f in fields), default=0)):
+            def sentinel(f: Field, i: int = i) -> tuple[int, ...]:  # its i-th, or last
+                stored = list(f.sentinels)[min(i, len(f.sentinels) - 1)]
+                return encode_raw(stored, f.layout)
+
+            for f, ours, theirs in pages(profile, fields, sentinel):
+                assert ours == theirs, (profile.id, f.name)
+                name = ours["text"]
+                assert name in {c.name for c in f.sentinels.values()}, (profile.id, f.name)
+                assert ours["badges"] == [{"name": name, "severity": ours["severity"]}]
+                seen[ours["severity"]] += 1
+    assert seen["info"] > 10 and seen["warning"] > 10 and seen["error"] >= 8, seen
 
 
 AWKWARD = ["pi_lab-01", "Pi-Lab-01", "pi.lab 01", "PUMP-HOUSE.example.com", "-edge-",

@@ -507,3 +507,32 @@ def test_the_fleet_page_colours_readings_as_the_gateways_dashboard(
         assert ours["pm25_failure"]["badges"][0][:2] == ["NO_FAULT", "badge sev-ok"]
         assert len(ours) >= 9  # the Huiwen's nine enums
         assert theirs == ours  # every enum's row, badges and colours
+
+
+def test_the_fleet_page_names_a_sentinel_as_the_gateways_dashboard(
+        browser: Any, broker: Broker, sim: Callable[..., SimulatedBus],
+        tmp_path: Path) -> None:
+    """A real gateway polling an R4DCB08 whose first channel has no sensor (its
+    profile's sentinel 0x8000, NO_SENSOR, an error): the dashboard shows the name, a
+    badge of its severity, and so does the fleet page, from what the gateway publishes
+    (``_rtupoll.sentinels``), where it said "no reading"."""
+    bus = sim("r4dcb08@1", tcp=True, tick=None)
+    bus.set(1, "temperature_1", "NO_SENSOR")
+    bus.set(1, "temperature_2", 21.5)
+    with gateway_and_fleet(broker.url, bus.port, "r4dcb08@1", tmp_path) as (east, web):
+        pages, rows = {}, {}
+        for name, p in (("dashboard", east), ("fleet", web)):
+            browser.get(p.url)
+            pages[name] = until(lambda: (s := browser.execute_script(SEVERITIES)).get(
+                "temperature_1") and s, f"the {name}'s NO_SENSOR", limit=90)
+            (rows[name],) = until(lambda: [d for d in shown(browser).values()
+                                           if d["fields"].get("temperature_2") == "21.5°C"],
+                                  f"the {name}'s second channel")
+            browser.save_screenshot(str(tmp_path / f"sentinel-{name}.png"))
+        ours, theirs = pages["dashboard"], pages["fleet"]
+        assert ours["temperature_1"]["row"] == ["sev-error"]
+        assert ours["temperature_1"]["badges"][0][:2] == ["NO_SENSOR", "badge sev-error"]
+        assert theirs == ours  # the row, its badge and their colours
+        assert rows["fleet"]["fields"]["temperature_1"] == \
+            rows["dashboard"]["fields"]["temperature_1"] == "NO_SENSOR"
+        assert rows["fleet"]["fields"]["temperature_2"] == "21.5°C"

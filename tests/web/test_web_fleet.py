@@ -271,3 +271,45 @@ def test_the_fleet_colours_readings_by_the_severities_bridge_info_carries(
     assert shown({"co2_level": "unknown (9)", "alarms": [], "many": [], "old": []})[
         "co2_level"] == ("warning", [("unknown (9)", "warning")])
     assert "severities past the limits" in caplog.text
+
+
+def test_a_sentinel_is_shown_by_the_name_the_state_message_gives_it() -> None:
+    """A null value that ``_rtupoll.sentinels`` names is that name, a badge of the
+    severity ``bridge/info`` gives it (neutral for a name it does not list); a null
+    without one (an older gateway's, a failed read) is no reading, and what is not a
+    field's sentinel's name is left out, never an error."""
+    from rtupoll.web.fleet import MAX_TEXT, Fleet
+    fleet = Fleet("rtupoll")
+    sensor = {"label": "Temperature 1", "unit": "°C", "kind": "number", "precision": 1,
+              "sentinels": {"NO_SENSOR": "error", "OVERFLOW": "magenta"}}
+    plain = {"label": "Temperature 2", "unit": "°C", "kind": "number", "precision": 1}
+    feed(fleet, "rtupoll/a/bridge/info", {"gateway": "a", "devices": {"t": {"fields": {
+        "t1": sensor, "t2": plain, "t3": plain}}}})
+
+    def shown(state: dict[str, Any]) -> dict[str, tuple[str, str, str, list[Any]]]:
+        assert feed(fleet, "rtupoll/a/t", state)
+        dev = fleet.snapshot()["gateways"][0]["buses"][0]["devices"][0]
+        return {f["name"]: (f["status"], f["text"], f["severity"],
+                            [(b["name"], b["severity"]) for b in f["badges"]])
+                for f in dev["fields"]}
+
+    got = shown({"t1": None, "t2": None, "t3": 21.5, "_rtupoll": {
+        "status": "partial", "error": "no value: t1 is NO_SENSOR",
+        "sentinels": {"t1": "NO_SENSOR", "t2": "NOT_AVAILABLE", "nope": "X"}}})
+    assert got == {"t1": ("ok", "NO_SENSOR", "error", [("NO_SENSOR", "error")]),
+                   "t2": ("ok", "NOT_AVAILABLE", "info", [("NOT_AVAILABLE", "info")]),
+                   "t3": ("ok", "21.5", "ok", [])}
+    assert shown({"t1": None, "t2": 20.0, "t3": 21.5, "_rtupoll": {
+        "status": "partial", "sentinels": {"t1": "OVERFLOW"}}})["t1"] == (
+        "ok", "OVERFLOW", "info", [("OVERFLOW", "info")])  # "magenta": no severity
+    # an older gateway's message, and sentinels that are not names: no reading
+    for own in ({"status": "partial"}, {"sentinels": ["t1"]}, {"sentinels": {"t1": 7}},
+                {"sentinels": {"t1": None}}, "partial"):
+        assert shown({"t1": None, "t2": 20.0, "t3": 21.5, "_rtupoll": own})["t1"][:2] == (
+            "failed", "no reading"), own
+    # a value is never hidden behind a sentinel's name; a long name is cut short
+    assert shown({"t1": 19.5, "t2": 20.0, "t3": 21.5, "_rtupoll": {
+        "sentinels": {"t1": "NO_SENSOR"}}})["t1"][:2] == ("ok", "19.5")
+    long = shown({"t1": None, "t2": 20.0, "t3": 21.5, "_rtupoll": {
+        "sentinels": {"t1": "N" * 10_000}}})["t1"]
+    assert len(long[1]) == MAX_TEXT and long[2] == "info"

@@ -6,8 +6,9 @@ lower-cased, every character other than ``[a-z0-9_-]`` as ``_``), which names it
 default base topic (``rtupoll/<gateway_id>``) and its Home Assistant ids
 (``rtupoll_<gateway_id>_<device>``). ``BASE/bridge/info`` (retained) says who it is
 and what its devices and fields are, with each field's label, unit, kind and
-precision, and an enum's or flag set's names with their severities: what a fleet viewer
-(``rtupoll web --mqtt``) needs to show it as the gateway's own dashboard does.
+precision, an enum's or flag set's names with their severities, and a field's
+sentinels' names with theirs: what a fleet viewer (``rtupoll web --mqtt``) needs to show
+it as the gateway's own dashboard does.
 
 Pure: no MQTT library, no I/O but the host name.
 """
@@ -33,6 +34,8 @@ if TYPE_CHECKING:
 # (field names are lower_snake_case identifiers that do not start with "_")
 STATUS_KEY = "_rtupoll"
 LAST_SEEN = "last_seen"
+# under STATUS_KEY, while a field's value is a sentinel: field -> the sentinel's name
+SENTINELS = "sentinels"
 RESERVED = (STATUS_KEY, LAST_SEEN)  # keys of a state message that are not fields
 
 
@@ -46,13 +49,17 @@ def field_info(field: Field) -> dict[str, Any]:
     unit, and the kind and precision every screen goes by (``model.interpret``); for an
     enum or flags field, ``severities``: each name it can hold with its severity, and
     ``unlisted``: the severity of a name not there (``unknown (9)``, ``bit 3``), from
-    which a reading's severity is ``model.interpret.reading_severity``'s."""
+    which a reading's severity is ``model.interpret.reading_severity``'s; for a field
+    with sentinels, ``sentinels``: each one's name with its severity (a state message
+    names the one a field holds, ``SENTINELS``)."""
     kind = field_kind(field)
     out: dict[str, Any] = {"label": field.title, "unit": field.unit, "kind": kind,
                            "precision": shown_precision(field)}
     if kind in ("enum", "flags"):
         out["severities"] = {n: s.value for n, s in severities(field).items()}
         out["unlisted"] = unlisted_severity(field).value
+    if field.sentinels:
+        out["sentinels"] = {c.name: c.severity.value for c in field.sentinels.values()}
     return out
 
 

@@ -13,7 +13,9 @@ no profile field can take:
 scan's or, for a slow field not read in this one, its last, nor for the device's "no
 value": a sentinel, a NaN), ``partial`` (some failed or have no value) or ``failed``
 (none read this scan); ``error`` is the first failure's line (null when ``ok``). A field
-this generation of the device lacks is null and no failure.
+this generation of the device lacks is null and no failure. A field whose latest value
+is one of its profile's sentinels is null, and ``sentinels`` (only while there is one)
+names it, as the dashboard shows it: ``"sentinels": {"temperature_1": "NO_SENSOR"}``.
 ``BASE/DEVICE/availability`` is published when it changes; ``BASE/DEVICE/FIELD``
 plain values when ``field_topics`` is on.
 """
@@ -28,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 from rtupoll.jobs.stats import Status
 from rtupoll.model.record import iso_time
-from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
+from rtupoll.outputs.fleet import LAST_SEEN, SENTINELS, STATUS_KEY
 from rtupoll.outputs.mqtt_commands import value_of
 from rtupoll.ui.records import to_json
 
@@ -67,6 +69,7 @@ class StatePublisher:
         self.avail: dict[str, str] = {}  # topic level -> online/offline
         self._values: dict[str, dict[str, Any]] = {}  # topic level -> field -> latest value
         self._failed: dict[str, dict[str, str]] = {}  # topic level -> field -> why it is null
+        self._sentinels: dict[str, dict[str, str]] = {}  # topic level -> field -> its sentinel
         self._compared: dict[str, Any] = {}  # on_change: what was last published
         self._sent_at: dict[str, float] = {}
         self.forced: set[str] = set()  # a get asked for the next state, changed or not
@@ -90,14 +93,20 @@ class StatePublisher:
         # fields whose latest read failed, with why: null until a read gives them a value
         was = self._failed.get(t, {})
         failed = {f.name: was[f.name] for f in cfg.fields if f.name in was}
+        # fields whose latest value is a sentinel, with its name: until a read gives another
+        had = self._sentinels.get(t, {})
+        sentinels = {f.name: had[f.name] for f in cfg.fields if f.name in had}
         read: dict[str, Any] = {}
         failures: list[str] = []
         good = 0
         for r in readings:
             name = r.field.name
+            sentinels.pop(name, None)
             if r.value is not None:
                 read[name] = values[name] = value_of(r.value)
                 good += 1
+                if r.value.sentinel is not None:
+                    sentinels[name] = r.value.sentinel.name
                 if values[name] is None:  # read, but the device gives no value (a
                     # sentinel such as SENSOR_ERROR, a NaN float): null, so not "ok"
                     failed[name] = f"no value: {name} is {r.value.text}"
@@ -110,7 +119,7 @@ class StatePublisher:
             else:
                 failed[name] = f"{r.status.value}: {r.error}"
                 failures.append(failed[name])
-        self._values[t], self._failed[t] = values, failed
+        self._values[t], self._failed[t], self._sentinels[t] = values, failed, sentinels
         # a field null for any other reason (no value this scan, or not read this scan
         # and its last read failed) is null too: never "ok" then
         failures += [e for e in failed.values() if e not in failures]
@@ -120,15 +129,19 @@ class StatePublisher:
         status = "ok" if not failures else "partial" if good else "failed"
         opts = s.options(cfg.name)
         now = self._clock()
-        compared = (values, status, error)
+        compared = (values, status, error, sentinels)
         if opts.publish == "on_change" and t not in self.forced \
                 and self._compared.get(t) == compared \
                 and now - self._sent_at.get(t, -1e18) < opts.max_silence:
             return out
         self.forced.discard(t)
         self._compared[t], self._sent_at[t] = compared, now
+        own: dict[str, Any] = {"status": status, "error": error}
+        if sentinels:  # in the fields' order, whichever scan read them
+            own[SENTINELS] = {f.name: sentinels[f.name] for f in cfg.fields
+                              if f.name in sentinels}
         state = {**values, LAST_SEEN: iso_time(last_good) if last_good is not None else None,
-                 STATUS_KEY: {"status": status, "error": error}}
+                 STATUS_KEY: own}
         payload = to_json(state)
         self.state[t] = payload
         out.append(Out(f"{base}/{t}", payload, s.retain))
@@ -155,8 +168,8 @@ class StatePublisher:
         out = [Out(f"{base}/{t}/availability", "", True)]
         if self.settings.retain:
             out.append(Out(f"{base}/{t}", "", True))
-        for d in (self.avail, self.state, self._values, self._failed, self._compared,
-                  self._sent_at):
+        for d in (self.avail, self.state, self._values, self._failed, self._sentinels,
+                  self._compared, self._sent_at):
             d.pop(t, None)
         return out
 

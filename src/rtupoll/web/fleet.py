@@ -3,13 +3,14 @@
 The viewer has no bus of its own. It subscribes to ``PREFIX/#`` and finds gateways by
 their retained ``BASE/bridge/info`` (docs/mqtt.md: the gateway's id, version, base
 topic, and each device's profile, address, bus and fields with label, unit, kind and
-precision, and an enum's or flag set's names with their severities). Under each known
-BASE it reads::
+precision, an enum's or flag set's names and a field's sentinels' with their
+severities). Under each known BASE it reads::
 
     BASE/bridge/state           online | offline     the gateway itself (its last will)
     BASE/DEVICE/availability    online | offline     the device
     BASE/DEVICE                 {"FIELD": value, ..., "last_seen": "...",
-                                 "_rtupoll": {"status": ..., "error": ...}}
+                                 "_rtupoll": {"status": ..., "error": ...,
+                                              "sentinels": {"FIELD": NAME}}}
 
 Messages that arrive before their gateway's ``bridge/info`` wait (bounded in count
 and bytes) until it comes. The page and its events have the shape of ``poll --http``'s
@@ -19,7 +20,9 @@ two buildings' devices at the same address never mix, nor a device ``x/y`` of ba
 ``site`` (level ``x_y``) and a device ``y`` of base ``site/x``. Numeric fields get the
 same trend rings, from the state messages as they arrive; an enum's or flag set's
 reading has the severity the dashboard gives it (``model.interpret.reading_severity``,
-from the names in the state message and their severities in ``bridge/info``).
+from the names in the state message and their severities in ``bridge/info``), and a
+field whose value is a sentinel (null, with its name under ``sentinels``) is shown by
+that name, a badge of its severity, as the dashboard shows it.
 
 Every message is handled on its own (``handle``): one that cannot be (not JSON, a
 number too large, the wrong types, too big) is dropped, counted in one log line a
@@ -37,13 +40,13 @@ import logging
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import Any
 
 from rtupoll.model.interpret import DISPLAY_UNITS, KINDS, reading_severity, shown_number
 from rtupoll.model.profile import Severity, is_difference
-from rtupoll.outputs.fleet import LAST_SEEN, STATUS_KEY
+from rtupoll.outputs.fleet import LAST_SEEN, SENTINELS, STATUS_KEY
 from rtupoll.outputs.mqtt_state import topic_name
 from rtupoll.refusals import Refusals
 from rtupoll.ui.records import to_json
@@ -83,6 +86,7 @@ class Device:
     level: str = ""  # its topic level: BASE/LEVEL is its state, and its key
     availability: str = ""  # "" until the retained availability came
     values: dict[str, Any] = field(default_factory=dict)  # the latest state message
+    sentinels: dict[str, str] = field(default_factory=dict)  # its fields' sentinels' names
     time: float | None = None  # when it came (wall clock)
     at: float | None = None  # when it was read: its last_seen, else when it came
 
@@ -237,7 +241,7 @@ class Fleet:
             shown = short(d.get("name") or name)
             prev = old.devices.get(level) if old else None
             gw.devices[level] = Device(shown, meta, level) if prev is None else \
-                Device(shown, meta, level, prev.availability, prev.values, prev.time, prev.at)
+                replace(prev, name=shown, info=meta, level=level)
         if cut:
             self.dropped.refused(f"devices, fields or severities past the limits ({MAX_DEVICES} "
                                  f"devices, {MAX_FIELDS} fields a gateway, {MAX_FLEET_FIELDS} "
@@ -255,13 +259,14 @@ class Fleet:
         if not isinstance(values, dict):
             raise Dropped("state not a JSON object")
         fields = _fields(dev)
+        sentinels = _sentinels(values.get(STATUS_KEY), fields)
         # only what is shown is kept: the device's fields, its status and time
         values = {k: _value(v) for k, v in values.items()
                   if k in fields or k in (STATUS_KEY, LAST_SEEN, "error")}
         now = self.clock()
         seen = _epoch(values.get(LAST_SEEN))
         at = seen if seen is not None and now - SPAN < seen <= now + 1 else now
-        dev.values, dev.time, dev.at = values, now, at
+        dev.values, dev.sentinels, dev.time, dev.at = values, sentinels, now, at
         key = f"{gw.base}/{dev.level}"
         for name, meta in fields.items():
             if meta.get("kind", "number") == "number" and (v := number(values.get(name))) \
@@ -320,11 +325,20 @@ def _value(v: object) -> object:
     return None
 
 
+def _sentinels(status: object, fields: dict[str, Any]) -> dict[str, str]:
+    """A state message's ``_rtupoll.sentinels``: each of the device's fields whose value
+    is a sentinel, with its name (bounded: the device's fields, a short name)."""
+    got = status.get(SENTINELS) if isinstance(status, dict) else None
+    if not isinstance(got, dict):
+        return {}
+    return {k: short(v) for k, v in got.items() if k in fields and isinstance(v, str)}
+
+
 def _field_infos(got: object, room: int, names: list[int]) -> dict[str, dict[str, Any]]:
     """A device's fields from its bridge/info, at most ``room``, each with its label,
-    unit, kind, precision and (an enum, a flag set) names' severities checked and
-    bounded (``names``: how many names the gateway may still have; a field whose names
-    do not fit has none, and ``cut``)."""
+    unit, kind, precision and names' severities (an enum's, a flag set's, its
+    sentinels') checked and bounded (``names``: how many names the gateway may still
+    have; a field whose names do not fit has none, and ``cut``)."""
     out: dict[str, dict[str, Any]] = {}
     if not isinstance(got, dict):
         return out
@@ -337,8 +351,14 @@ def _field_infos(got: object, room: int, names: list[int]) -> dict[str, dict[str
         precision = min(max(p, 0), MAX_PRECISION) if isinstance(p, int) and \
             not isinstance(p, bool) else None
         kind = v.get("kind") if v.get("kind") in KINDS else "number"
-        out[short(k)] = {"label": short(v.get("label") or ""), "unit": short(v.get("unit") or ""),
-                         "kind": kind, "precision": precision, **_severities(v, names)}
+        info = {"label": short(v.get("label") or ""), "unit": short(v.get("unit") or ""),
+                "kind": kind, "precision": precision, **_severities(v, names)}
+        sentinels = _named(v.get("sentinels"), names)
+        if sentinels is None:
+            info["cut"] = info.get("cut", 0) + 1
+        elif sentinels:
+            info["sentinels"] = sentinels
+        out[short(k)] = info
     return out
 
 
@@ -352,12 +372,21 @@ def _severities(v: dict[str, Any], room: list[int]) -> dict[str, Any]:
     got, unlisted = v.get("severities"), _SEVERITY.get(str(v.get("unlisted")))
     if not isinstance(got, dict) or unlisted is None:
         return {}
+    named = _named(got, room)
+    return {"cut": 1} if named is None else {"severities": named, "unlisted": unlisted}
+
+
+def _named(got: object, room: list[int]) -> dict[str, Severity] | None:
+    """Names with their severities from bridge/info (``severities``, ``sentinels``),
+    checked: none when not an object; None past the limits (``MAX_NAMES`` a field,
+    ``room[0]`` the gateway's, which it takes them from)."""
+    if not isinstance(got, dict):
+        return {}
     if len(got) > min(MAX_NAMES, room[0]):
-        return {"cut": 1}
+        return None
     room[0] -= len(got)
-    named = {name: s for name, sev in got.items()
-             if (s := _SEVERITY.get(str(sev))) is not None and len(name) <= MAX_TEXT}
-    return {"severities": named, "unlisted": unlisted}
+    return {name: s for name, sev in got.items()
+            if (s := _SEVERITY.get(str(sev))) is not None and len(name) <= MAX_TEXT}
 
 
 def _fields(dev: Device) -> dict[str, dict[str, Any]]:
@@ -392,7 +421,7 @@ def device_json(gw: Gateway, dev: Device) -> dict[str, Any]:
     error = str(status.get("error") or values.get("error") or "")
     state = {"online": "online", "offline": "offline"}.get(dev.availability,
                                                            "online" if dev.time else "starting")
-    fields = [field_json(name, meta, values, dev.at, error)
+    fields = [field_json(name, meta, values, dev.at, error, dev.sentinels.get(name))
               for name, meta in _fields(dev).items()]
     if state == "offline" or gw.online is False:  # retained values are no readings now
         for f in fields:
@@ -422,7 +451,10 @@ def shown_value(name: str, meta: dict[str, Any], value: Any) -> Any:
 
 
 def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: float | None,
-               error: str) -> dict[str, Any]:
+               error: str, sentinel: str | None = None) -> dict[str, Any]:
+    """A field as the page shows it (``web.state``'s shape) from its ``bridge/info``
+    (``meta``) and the state message (``values``; ``sentinel``: the name of the sentinel
+    its null value is, from the message's ``_rtupoll.sentinels``)."""
     kind = str(meta.get("kind") or "number")
     precision = meta.get("precision")
     label = str(meta.get("label") or name.replace("_", " "))
@@ -441,6 +473,12 @@ def field_json(name: str, meta: dict[str, Any], values: dict[str, Any], at: floa
         out["status"], out["text"], out["severity"] = "absent", "not published", "info"
         return out
     value = values[name]
+    if value is None and sentinel is not None:  # the device says there is no reading
+        got: dict[str, Severity] = meta.get("sentinels") or {}
+        sev = got[sentinel].value if sentinel in got else "info"  # unknown to it: neutral
+        out.update(status="ok", text=sentinel, severity=sev,
+                   badges=[{"name": sentinel, "severity": sev}])
+        return out
     if value is None:
         out["status"], out["text"], out["error"] = "failed", "no reading", error
         return out
