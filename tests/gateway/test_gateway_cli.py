@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import pytest
 from conftest import ANSWERED
 from forked_cli import rtupoll_popen
+from pipe_fill import in_pipe
 
 from rtupoll.rtu import crc_ok, with_crc
 from rtupoll.sim.runner import SimulatedBus
@@ -154,10 +155,3 @@ def test_a_stdout_nobody_reads_stops_neither_the_gateway_nor_sigterm(sim: Sim) -
     assert out.endswith(b"\n") and all(json.loads(line) for line in out.splitlines())
     assert "bytes of records not written: nothing read them for 2 s" in err
 
-
-def in_pipe(fd: int) -> int:
-    """Bytes in the pipe ``fd`` reads, not yet read."""
-    import fcntl
-    import termios
-
-    return int.from_bytes(fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"), "little")

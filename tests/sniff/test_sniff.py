@@ -25,6 +25,7 @@ import pytest
 from cli_runner import Ran, rtupoll
 from conftest import PATIENT
 from forked_cli import rtupoll_popen
+from pipe_fill import in_pipe
 
 from rtupoll.model.interpret import interpret
 from rtupoll.model.planner import plan
@@ -323,3 +324,34 @@ def test_the_simulators_tap_hears_every_byte_in_order(sim: Sim, raw_port: Callab
     reply = master.transact(b"\x55\xaa" + request, 7)
     heard = tap.read(2 + len(request) + len(reply))
     assert heard == b"\x55\xaa" + request + reply
+
+
+def test_a_stdout_nobody_reads_does_not_stop_ctrl_c(sim: Sim, tmp_path: Path) -> None:
+    """``rtupoll sniff ... | consumer`` whose consumer stalls: the lines wait in their
+    writer's thread (ui.pipe_writer), so Ctrl-C still ends the sniffer once the pipe is
+    full, saying what was not written; the pipe holds whole records."""
+    tap = str(tmp_path / "tap")
+    bus = sim("huiwen-aq@3", tick=None, tap=tap)
+    master = rtupoll_popen([RTUPOLL, "poll", "-p", bus.port, "-b", "9600", "--interval", "0",
+                            "--format", "json", "huiwen-aq@3"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = rtupoll_popen([RTUPOLL, "sniff", "-p", tap, "-b", "9600", "--format", "json",
+                          "huiwen-aq@3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    try:
+        deadline = time.monotonic() + 60  # (a hang guard)
+        while in_pipe(proc.stdout.fileno()) < 65536 - 4096:  # nobody reads: it fills
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        time.sleep(0.5)  # more heard meanwhile: queued, not in the pipe
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0
+    finally:
+        for p in (proc, master):
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+    out, err = proc.stdout.read(), proc.stderr.read().decode()
+    assert out.endswith(b"\n") and {json.loads(line)["device"] for line in out.splitlines()
+                                    } == {"huiwen-aq@3"}
+    assert "bytes not written: nothing read them for 2 s" in err, err

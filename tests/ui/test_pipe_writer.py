@@ -6,9 +6,7 @@ pipe and the count of bytes not written; one that left raises on the next write.
 from __future__ import annotations
 
 import asyncio
-import fcntl
 import os
-import termios
 import threading
 import time
 from collections.abc import Iterator
@@ -16,6 +14,7 @@ from contextlib import contextmanager
 from typing import TextIO
 
 import pytest
+from pipe_fill import in_pipe
 
 from rtupoll.ui import pipe_writer
 from rtupoll.ui.pipe_writer import LIMIT, PIPE_BUF, RESUME, PipeWriter, _pieces, threaded
@@ -41,12 +40,6 @@ def read_all(fd: int) -> bytes:
     while chunk := os.read(fd, 1 << 16):
         out += chunk
     return out
-
-
-def queued_in(fd: int) -> int:
-    """Bytes in the pipe, not yet read."""
-    got = fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0")
-    return int.from_bytes(got, "little")
 
 
 def test_batches_come_out_whole_and_in_order_after_what_was_printed_before() -> None:
@@ -104,13 +97,13 @@ def test_a_reader_that_never_reads_again_leaves_whole_lines_and_a_count(
         for line in lines:
             writer.write(line)
         deadline = time.monotonic() + HANG
-        while queued_in(r) < 65536 - PIPE_BUF and time.monotonic() < deadline:
+        while in_pipe(r) < 65536 - PIPE_BUF and time.monotonic() < deadline:
             time.sleep(0.01)  # the pipe fills
         left = writer.close()  # the thread is blocked in a write: given up on
-        in_pipe = os.read(r, 1 << 20)
-    assert left > 0 and len(in_pipe) + left == sum(map(len, lines))
-    assert in_pipe.endswith(b"\n")  # whole lines only: a pipe takes a piece whole or not
-    assert in_pipe.decode() == "".join(lines[: in_pipe.count(b"\n")])
+        kept = os.read(r, 1 << 20)
+    assert left > 0 and len(kept) + left == sum(map(len, lines))
+    assert kept.endswith(b"\n")  # whole lines only: a pipe takes a piece whole or not
+    assert kept.decode() == "".join(lines[: kept.count(b"\n")])
 
 
 def test_a_reader_that_left_is_a_broken_pipe_on_the_next_write() -> None:

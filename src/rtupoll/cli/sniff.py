@@ -11,7 +11,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import click
 
@@ -26,6 +26,7 @@ from rtupoll.sniff.capfile import Capture, CaptureWriter, describe_framing, read
 from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
 from rtupoll.sniff.session import Session, Sink
+from rtupoll.ui.pipe_writer import DRAIN, MOST, PipeWriter, threaded
 from rtupoll.ui.records import to_json
 
 REFRESH = 0.25  # seconds between redraws of the live table
@@ -101,10 +102,18 @@ def sniff(devices: tuple[DeviceSpec, ...], port: str | None, config: Path | None
     view = BusView(known, library)
     title = f"{read_path or port} {describe_framing(framing)}"
 
-    out = sys.stdout
+    # listening, to a pipe: written by a thread, so a reader that stalls stops neither
+    # the listening nor Ctrl-C; past MOST bytes waiting, transactions are counted, not kept
+    pipe = PipeWriter(sys.stdout) if (recorded is None and fmt != "table"
+                                       and threaded(sys.stdout)) else None
+    out: TextIO | PipeWriter = pipe or sys.stdout
+    lost = [0]
 
     def sink(tx: Transaction, records: list[dict[str, Any]]) -> None:
         # whole lines, flushed once per chunk read (not per record): cheap at full speed
+        if pipe is not None and pipe.held >= MOST:
+            lost[0] += 1
+            return
         if fmt == "json":
             for rec in records:
                 out.write(to_json(rec) + "\n")
@@ -127,8 +136,17 @@ def sniff(devices: tuple[DeviceSpec, ...], port: str | None, config: Path | None
             Console().print(render(view, view.last, title))
         return
     assert port is not None
-    _listen(port, framing, view, sink, fmt=fmt, title=title, timeout=timeout,
-            capture=capture, duration=duration)
+    try:
+        _listen(port, framing, view, sink, fmt=fmt, title=title, timeout=timeout,
+                capture=capture, duration=duration)
+    finally:
+        left = pipe.close() if pipe is not None else 0
+        if lost[0]:
+            click.echo(f"rtupoll: stdout: {lost[0]} transactions not written: "
+                       f"{MOST >> 20} MiB waited for a reader", err=True)
+        if left:
+            click.echo(f"rtupoll: stdout: {left} bytes not written: nothing read them "
+                       f"for {DRAIN:g} s", err=True)
 
 
 def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str, title: str,

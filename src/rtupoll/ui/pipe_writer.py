@@ -1,5 +1,6 @@
-"""``poll``'s records on a stdout that is a pipe (or a socket, or a file), written by a
-thread of its own: a reader that stops reading never stops the event loop.
+"""``poll``'s records and ``sniff``'s lines on a stdout that is a pipe (or a socket, or a
+file), written by a thread of their own: a reader that stops reading never stops the
+event loop, nor the listening.
 
 Were the records written from the loop, a full pipe (``rtupoll poll ... | consumer``
 whose consumer stalls) would block it in ``write``: the gateway's clients unanswered,
@@ -9,7 +10,8 @@ descriptor of its own, so ``sys.stdout``'s buffer is never held by a blocked thr
 in pieces of whole lines a pipe takes whole or not at all.
 Once ``LIMIT`` bytes wait, ``write`` returns an event that holds the bus's polling until
 the reader has caught up (``jobs.scheduler.Sink``): polling slows to the reader's pace,
-nothing is dropped, and everything else (the gateway, MQTT's commands) goes on. At the
+nothing is dropped, and everything else (the gateway, MQTT's commands) goes on
+(``sniff``, which cannot hold the line back, keeps at most ``MOST`` bytes). At the
 end ``close`` waits for the queue to be written while the reader takes something, and
 gives up after ``DRAIN`` seconds in which it took nothing, with the count of bytes not
 written.
@@ -32,6 +34,7 @@ from typing import TextIO
 LIMIT = 1 << 20  # bytes queued before the buses wait for the reader
 RESUME = LIMIT // 4  # bytes queued below which they go on
 DRAIN = 2.0  # seconds ``close`` waits while the reader takes nothing
+MOST = 64 << 20  # bytes queued at most by a writer that cannot hold its source back (sniff)
 PIPE_BUF = getattr(select, "PIPE_BUF", 512)  # bytes a pipe takes in one write, or none
 
 
