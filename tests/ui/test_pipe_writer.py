@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TextIO
 
 import pytest
@@ -131,13 +132,20 @@ def test_pieces_are_whole_lines_a_pipe_takes_whole() -> None:
     assert _pieces(b"short\n") == [b"short\n"]
 
 
-def test_a_terminal_and_a_stream_without_a_descriptor_are_written_directly() -> None:
+def test_only_a_pipe_or_a_socket_is_written_by_the_thread(tmp_path: Path) -> None:
     import io
+    import socket
 
-    assert not threaded(io.StringIO())
     with pipe() as (_, stream):
         assert threaded(stream)
+    a, b = socket.socketpair()
+    with a, b, open(a.fileno(), "w", encoding="utf-8", closefd=False) as sock:
+        assert threaded(sock)
+    assert not threaded(io.StringIO())  # no descriptor
     leader, follower = os.openpty()
     with open(follower, "w", encoding="utf-8") as tty:
-        assert not threaded(tty)
+        assert not threaded(tty)  # a terminal
     os.close(leader)
+    with open(tmp_path / "records.jsonl", "w", encoding="utf-8") as file, \
+            open(os.devnull, "w", encoding="utf-8") as null:
+        assert not threaded(file) and not threaded(null)  # nothing at the other end

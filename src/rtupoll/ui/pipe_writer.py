@@ -1,5 +1,5 @@
-"""``poll``'s records and ``sniff``'s lines on a stdout that is a pipe (or a socket, or a
-file), written by a thread of their own: a reader that stops reading never stops the
+"""``poll``'s records and ``sniff``'s lines on a stdout that is a pipe (or a socket),
+written by a thread of their own: a reader that stops reading never stops the
 event loop, nor the listening.
 
 Were the records written from the loop, a full pipe (``rtupoll poll ... | consumer``
@@ -16,8 +16,8 @@ end ``close`` waits for the queue to be written while the reader takes something
 gives up after ``DRAIN`` seconds in which it took nothing, with the count of bytes not
 written.
 
-POSIX only: on Windows (newline translation, console code pages) and on a terminal
-the records are written directly, as before.
+POSIX pipes and sockets only: on Windows (newline translation, console code pages), to
+a file, a terminal or /dev/null the records are written directly.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import collections
 import contextlib
 import os
 import select
+import stat
 import threading
 import time
 from typing import TextIO
@@ -39,14 +40,15 @@ PIPE_BUF = getattr(select, "PIPE_BUF", 512)  # bytes a pipe takes in one write, 
 
 
 def threaded(stream: TextIO) -> bool:
-    """Records to ``stream`` go through a ``PipeWriter``: POSIX, a descriptor, no tty."""
+    """Records to ``stream`` go through a ``PipeWriter``: on POSIX, a pipe or a socket
+    (a reader at the other end; a file, a terminal or /dev/null takes what it is given)."""
     if os.name != "posix":
         return False
     try:
-        stream.fileno()
+        mode = os.fstat(stream.fileno()).st_mode
     except (AttributeError, OSError, ValueError):  # (io.UnsupportedOperation is one)
         return False
-    return not stream.isatty()
+    return stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
 
 
 class PipeWriter:
