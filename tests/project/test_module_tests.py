@@ -25,7 +25,6 @@ TESTED_BY = {
     "io.interface": "config/test_library.py",
     "io.latency": "io/test_port_errors.py",
     "io.taps": "sniff/test_traffic.py",
-    "jobs.commission": "config/test_commission_plan.py",
     "jobs.hole_services": "jobs/test_holes.py",
     "jobs.services": "app/test_service_reload.py",
     "model.carried": "cli/test_decode.py",
