@@ -126,6 +126,8 @@ class ScriptedBus:
     async def close(self) -> None: ...
 
     adapter_latency = 0.0  # BusLike: no USB adapter
+    echo_found = False  # BusLike: no line to hear an echo
+    stats = None  # BusLike: counts nothing
 
     def unit_counts(self, unit: int) -> UnitCounts:
         return heard_nothing(unit)  # no late replies, nothing counted

@@ -6,23 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from site_files import site_file
 
 from rtupoll.config.mqtt_settings import parse_url
 from rtupoll.config.site import load_site
 from rtupoll.errors import ConfigError, UsageError
-
-
-def site_file(tmp_path: Path, mqtt: str) -> Path:
-    path = tmp_path / "site.yaml"
-    path.write_text(
-        "buses:\n"
-        "  - name: plant\n"
-        "    port: tcp://127.0.0.1:5020\n"
-        "    baudrate: 9600\n"
-        "    devices:\n"
-        "      - {name: air, profile: huiwen-aq, address: 3}\n"
-        "      - {name: tank, profile: radar-level, address: 4}\n" + mqtt)
-    return path
 
 
 def test_url_gives_broker_credentials_and_base() -> None:

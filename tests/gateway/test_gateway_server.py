@@ -47,6 +47,8 @@ class ScriptedLine:
         raise AssertionError("the gateway writes through transact")
 
     adapter_latency = 0.0  # BusLike: no USB adapter
+    echo_found = False  # BusLike: no line to hear an echo
+    stats = None  # BusLike: counts nothing
 
     def unit_counts(self, unit: int) -> UnitCounts:
         return heard_nothing(unit)  # nothing measured

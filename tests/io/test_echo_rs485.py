@@ -12,11 +12,9 @@ from typing import Any
 
 import pytest
 from cli_runner import rtupoll as in_process
-from click.testing import CliRunner
 from conftest import ANSWERED, PATIENT
 from forked_cli import rtupoll_popen
 
-from rtupoll.cli import cli
 from rtupoll.config.site import from_specs, load_site
 from rtupoll.errors import ConfigError, DeviceTimeout, FrameError
 from rtupoll.io.bus import Bus, PortSettings
@@ -36,27 +34,27 @@ def echoing() -> Iterator[SimulatedBus]:
 
 
 def test_read_with_echo_reads_the_devices_values(echoing: SimulatedBus) -> None:
-    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, *PATIENT, "--echo",
-                                      "radar-level@2", "--format", "json"])
-    assert result.exit_code == 0, result.output
+    result = in_process("read", "-p", echoing.port, *PATIENT, "--echo",
+                        "radar-level@2", "--format", "json")
+    assert result.returncode == 0, result.stderr
     records = [json.loads(line) for line in result.stdout.splitlines()]
     got = {r["field"]: r["raw"] for r in records}
     assert got["level_cm"] == list(echoing.registers(2, Table.HOLDING, 2, 1))
 
 
 def test_read_without_echo_says_in_one_line_to_add_it(echoing: SimulatedBus) -> None:
-    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, *PATIENT, "radar-level@2",
-                                      "--retries", "0"])
-    assert result.exit_code == 7  # garbled, never a value
+    result = in_process("read", "-p", echoing.port, *PATIENT, "radar-level@2",
+                        "--retries", "0")
+    assert result.returncode == 7  # garbled, never a value
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "adapter echoes" in lines[0] and "--echo" in lines[0]
 
 
 def test_echo_on_a_line_without_an_echo_is_said_too(sim: Any) -> None:
     plain = sim("radar-level@2", tick=None)
-    result = CliRunner().invoke(cli, ["read", "-p", plain.port, *PATIENT, "--echo",
-                                      "radar-level@2", "--retries", "0"])
-    assert result.exit_code == 7 and "drop --echo" in result.stderr
+    result = in_process("read", "-p", plain.port, *PATIENT, "--echo",
+                        "radar-level@2", "--retries", "0")
+    assert result.returncode == 7 and "drop --echo" in result.stderr
 
 
 def test_a_write_to_a_dead_device_is_never_confirmed_by_its_echo(
@@ -105,9 +103,9 @@ def requests_seen(bus: SimulatedBus) -> int:
 
 def test_a_byte_paced_echo_is_named_on_the_first_request(echoing_at_9600: SimulatedBus
                                                           ) -> None:
-    result = CliRunner().invoke(cli, ["read", "-p", echoing_at_9600.port, "--baudrate",
-                                      "9600", "radar-level@2"])  # the profile's retries
-    assert result.exit_code == 7, result.output  # garbled, never a value
+    result = in_process("read", "-p", echoing_at_9600.port, "--baudrate",
+                        "9600", "radar-level@2")  # the profile's retries
+    assert result.returncode == 7, result.stderr  # garbled, never a value
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "adapter echoes" in lines[0] and "add --echo" in lines[0]
     assert "tries" not in lines[0] and requests_seen(echoing_at_9600) == 1  # no retry
@@ -116,17 +114,17 @@ def test_a_byte_paced_echo_is_named_on_the_first_request(echoing_at_9600: Simula
 def test_poll_carries_on_with_a_byte_paced_echo_and_says_so_once(
         echoing_at_9600: SimulatedBus) -> None:
     devices = ["huiwen-aq@3", "radar-level@2"]
-    result = CliRunner().invoke(cli, ["poll", "-p", echoing_at_9600.port, "--baudrate",
-                                      "9600", *PATIENT, *devices, "--once", "--format",
-                                      "json"])
-    assert result.exit_code == 0, result.output
+    result = in_process("poll", "-p", echoing_at_9600.port, "--baudrate",
+                        "9600", *PATIENT, *devices, "--once", "--format",
+                        "json")
+    assert result.returncode == 0, result.stderr
     records = [json.loads(line) for line in result.stdout.splitlines()]
     assert records and all(r["status"] == "ok" for r in records)
     assert result.stderr.count("adapter echoes") == 1 and "--echo" in result.stderr
     blind = requests_seen(echoing_at_9600)
-    result = CliRunner().invoke(cli, ["poll", "-p", echoing_at_9600.port, "--baudrate",
-                                      "9600", *PATIENT, *devices, "--once", "--echo"])
-    assert result.exit_code == 0 and "adapter echoes" not in result.stderr
+    result = in_process("poll", "-p", echoing_at_9600.port, "--baudrate",
+                        "9600", *PATIENT, *devices, "--once", "--echo")
+    assert result.returncode == 0 and "adapter echoes" not in result.stderr
     assert blind == requests_seen(echoing_at_9600) - blind  # no request more than with --echo
 
 
@@ -153,9 +151,9 @@ def test_polled_with_a_byte_paced_echo_nothing_is_late_and_no_timeout_climbs(
 
 
 def test_poll_simulate_with_echo_reads_every_field() -> None:
-    result = CliRunner().invoke(cli, ["poll", "--simulate", "huiwen-aq@3", "radar-level@2",
-                                      *PATIENT, "--echo", "--once", "--format", "json"])
-    assert result.exit_code == 0, result.output
+    result = in_process("poll", "--simulate", "huiwen-aq@3", "radar-level@2",
+                        *PATIENT, "--echo", "--once", "--format", "json")
+    assert result.returncode == 0, result.stderr
     records = [json.loads(line) for line in result.stdout.splitlines()]
     assert records and all(r["status"] == "ok" for r in records)
 
@@ -199,20 +197,20 @@ def test_site_file_rs485_delay_out_of_range_is_file_line_field(tmp_path: Path) -
 
 def test_rs485_on_a_pty_is_a_port_error_in_one_line(echoing: SimulatedBus) -> None:
     """A pseudo-terminal has no RS-485 mode and no RTS line: exit 3, one line."""
-    result = CliRunner().invoke(cli, ["read", "-p", echoing.port, "--rs485", "radar-level@2",
-                                      "--rs485-delays", "0,0.5"])
-    assert result.exit_code == 3
+    result = in_process("read", "-p", echoing.port, "--rs485", "radar-level@2",
+                        "--rs485-delays", "0,0.5")
+    assert result.returncode == 3
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "supports neither" in lines[0]
 
 
 def test_rs485_option_values() -> None:
-    bad = CliRunner().invoke(cli, ["read", "-p", "/dev/null", "--rs485", "--rs485-delays",
-                                   "abc", "radar-level@2"])
-    assert bad.exit_code == 2 and "BEFORE_MS" in bad.stderr
-    gateway = CliRunner().invoke(cli, ["read", "-p", "tcp://127.0.0.1:1", "--rs485",
-                                       "radar-level@2"])
-    assert gateway.exit_code == 2 and "not a serial port" in gateway.stderr
+    bad = in_process("read", "-p", "/dev/null", "--rs485", "--rs485-delays",
+                     "abc", "radar-level@2")
+    assert bad.returncode == 2 and "BEFORE_MS" in bad.stderr
+    gateway = in_process("read", "-p", "tcp://127.0.0.1:1", "--rs485",
+                         "radar-level@2")
+    assert gateway.returncode == 2 and "not a serial port" in gateway.stderr
 
 
 def test_sniff_on_a_line_whose_master_adapter_echoes(tmp_path: Path) -> None:
@@ -259,10 +257,10 @@ def test_scan_without_echo_finds_the_devices_behind_an_echoing_adapter(
         echoing_at_9600: SimulatedBus) -> None:
     # the simulator answers from a thread of this process: a reply wait with room for a
     # busy machine (an answer ends it; an unanswered read makes the device "unknown")
-    result = CliRunner().invoke(cli, ["scan", "-p", echoing_at_9600.port, "--baudrate", "9600",
-                                      "--addresses", "2-3", "--turnaround", "1.0",
-                                      "--format", "json"])
-    assert result.exit_code == 0, result.output
+    result = in_process("scan", "-p", echoing_at_9600.port, "--baudrate", "9600",
+                        "--addresses", "2-3", "--turnaround", "1.0",
+                        "--format", "json")
+    assert result.returncode == 0, result.stderr
     found = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(f["address"], f["profile"]) for f in found] == [(2, "radar-level"),
                                                             (3, "huiwen-aq")]

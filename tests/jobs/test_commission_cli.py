@@ -12,10 +12,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from click.testing import CliRunner, Result
+from cli_runner import Ran, rtupoll
 from forked_cli import rtupoll_popen
 
-from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -28,8 +27,8 @@ FAST = ("--timeout", "0.1", "--retries", "2")
 PLAN = Path(__file__).parents[1] / "fixtures" / "commission" / "three.csv"
 
 
-def run(*args: str) -> Result:
-    return CliRunner().invoke(cli, list(args))
+def run(*args: str) -> Ran:
+    return rtupoll(*args)
 
 
 def three(sim: Sim) -> SimulatedBus:
@@ -41,7 +40,7 @@ def three(sim: Sim) -> SimulatedBus:
 def test_a_plan_that_fails_half_way_is_rerun_to_completion(sim: Sim) -> None:
     bus = three(sim)
     first = run("set-address", "-p", bus.port, *FAST, "-b", "9600", "--yes", "--plan", str(PLAN))
-    assert first.exit_code == 8, first.output
+    assert first.returncode == 8, first.stderr
     lines = first.stdout.splitlines()
     assert lines[0].startswith("ok   radar-level@1 -> 11: changed")
     assert lines[1].startswith("FAIL huiwen-aq@2 -> 12: ")
@@ -54,14 +53,14 @@ def test_a_plan_that_fails_half_way_is_rerun_to_completion(sim: Sim) -> None:
     bus.set(2, "co2_failure", "NO_FAULT")  # the technician fixed the sensor
     second = run("set-address", "-p", bus.port, *FAST, "-b", "9600", "--yes", "--plan",
                  str(PLAN))
-    assert second.exit_code == 0, second.output
+    assert second.returncode == 0, second.stderr
     assert [line[:5] for line in second.stdout.splitlines()[:3]] == ["skip ", "ok   ", "ok   "]
     assert second.stdout.splitlines()[3] == "2 changed, 1 already done (3 rows)"
     assert bus.addresses() == {"radar-level@1": 11, "huiwen-aq@2": 12, "banner-ez-array@3": 13}
 
     third = run("set-address", "-p", bus.port, *FAST, "-b", "9600", "--yes", "--format", "json",
                 "--plan", str(PLAN))
-    assert third.exit_code == 0
+    assert third.returncode == 0
     assert [json.loads(line)["status"] for line in third.stdout.splitlines()] == \
         ["already done"] * 3
 
@@ -73,13 +72,13 @@ def test_json_report_says_what_was_and_was_not_changed(sim: Sim) -> None:
     rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(r["row"], r["status"], r["exit_code"]) for r in rows] == [
         (1, "changed", 0), (2, "failed", 8), (3, "not run", None)]
-    assert result.exit_code == 8
+    assert result.returncode == 8
 
 
 def test_profiles_with_different_baud_rates_need_one_for_the_bus(sim: Sim) -> None:
     bus = three(sim)
     result = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(PLAN))
-    assert result.exit_code == 2 and "give --baudrate" in result.stderr
+    assert result.returncode == 2 and "give --baudrate" in result.stderr
     assert "banner-ez-array 19200" in result.stderr
 
 
@@ -179,7 +178,7 @@ FACTORY = PLAN.with_name("factory.csv")  # three sensors, all at address 1 from 
 def test_a_plan_of_factory_fresh_sensors_is_run_again_for_each_one(sim: Sim) -> None:
     bus = sim("radar-level@1", tick=None)  # the first sensor is connected
     first = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
-    assert first.exit_code == 4, first.output
+    assert first.returncode == 4, first.stderr
     lines = first.stdout.splitlines()
     assert lines[0].startswith("ok   radar-level@1 -> 10: changed")
     assert lines[1].startswith("FAIL radar-level@1 -> 11: no sensor answers at 1: connect "
@@ -188,13 +187,13 @@ def test_a_plan_of_factory_fresh_sensors_is_run_again_for_each_one(sim: Sim) -> 
 
     connect_new_sensor(bus, "radar-level@1")  # the first stays on the bus, at 10
     second = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
-    assert second.exit_code == 4, second.output
+    assert second.returncode == 4, second.stderr
     assert [line[:4] for line in second.stdout.splitlines()[:3]] == ["skip", "ok  ", "FAIL"]
     assert "already done: answers at 10" in second.stdout.splitlines()[0]
 
     connect_new_sensor(bus, "radar-level@1")
     third = run("set-address", "-p", bus.port, *FAST, "--yes", "--plan", str(FACTORY))
-    assert third.exit_code == 0, third.output
+    assert third.returncode == 0, third.stderr
     assert third.stdout.splitlines()[3] == "1 changed, 2 already done (3 rows)"
     assert sorted(d.address for d in bus.device_list()) == [10, 11, 12]
 
@@ -224,6 +223,6 @@ def test_on_a_terminal_the_plan_asks_for_each_factory_fresh_sensor(sim: Sim) -> 
 
 def test_a_dry_run_of_factory_fresh_sensors_says_to_connect_them_one_at_a_time() -> None:
     result = run("set-address", "-p", "/dev/null", "--dry-run", "--plan", str(FACTORY))
-    assert result.exit_code == 0, result.output
+    assert result.returncode == 0, result.stderr
     assert ("Rows 1, 2, 3 each expect a device at 1: connect them one at a time."
             in result.stdout)

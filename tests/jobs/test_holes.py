@@ -13,9 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
 from rtupoll.errors import ConfigError, DeviceException, FaultSpecError
@@ -191,21 +190,21 @@ def test_poll_remember_holes_end_to_end(tmp_path: Path,
     site.write_text(f"buses:\n  - port: {line.port}\n    baudrate: 9600\n    devices:\n"
                     "      - {name: air, profile: huiwen-aq, address: 3}\n")
     args = ["poll", "-c", str(site), "--remember-holes", "--once", "--format", "json"]
-    first = CliRunner().invoke(cli, args)
-    assert first.exit_code == 0, first.output
+    first = rtupoll(*args)
+    assert first.returncode == 0, first.stderr
     assert {json.loads(x)["status"] for x in first.stdout.splitlines()} == {"ok"}
     kept = json.loads((tmp_path / "site.holes.json").read_text())["devices"]["air"]
     assert kept == {"profile": "huiwen-aq", "variant": None, "holes": [["input", HOLE]]}
     refused = line.engine.requests
-    second = CliRunner().invoke(cli, args)
-    assert second.exit_code == 0, second.output
+    second = rtupoll(*args)
+    assert second.returncode == 0, second.stderr
     assert "learned earlier" in second.stderr
     assert {json.loads(x)["status"] for x in second.stdout.splitlines()} == {"ok"}
     # the second run planned around the hole from the start: no bisection, no 02
     assert refused == 3 + 2 + 3  # blocks, the fields alone, the gap halved: 2, 1, 1
     assert line.engine.requests - refused == 4  # its four blocks now, nothing more
-    assert CliRunner().invoke(cli, ["poll", "-p", line.port, "huiwen-aq@3",
-                                    "--remember-holes", "--once"]).exit_code == 2
+    assert rtupoll("poll", "-p", line.port, "huiwen-aq@3",
+                   "--remember-holes", "--once").returncode == 2
 
 
 def test_a_block_whose_own_field_is_refused_is_split_once_then_the_field_read_alone(

@@ -122,7 +122,8 @@ def test_a_learned_gap_is_shown_in_the_footer_the_api_and_the_metrics() -> None:
 def test_a_gap_set_costs_no_attempt_and_no_learning() -> None:
     bp, ok = poll_15s(NEEDS)
     line = bp.transport.line  # type: ignore[attr-defined]
-    stats = bp.transport.stats  # type: ignore[attr-defined]
+    stats = bp.transport.stats
+    assert stats is not None
     assert stats.attempts == stats.transactions  # no request went unheard
     assert line.learned_gap == {} and line.counts.gap_raised[3] == 0
     assert ok["huiwen-aq@3"] >= 100, ok

@@ -10,9 +10,8 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.sim.runner import SimulatedBus
 
 Sim = Callable[..., SimulatedBus]
@@ -26,9 +25,9 @@ def requests(bus: SimulatedBus) -> list[str]:
 def test_read_prints_every_field_that_answered_and_the_refused_one_then_exits_5(
         sim: Sim) -> None:
     bus = sim("eastron-sdm120@10", faults=["10:hole=0x0158"], tick=None)
-    result = CliRunner().invoke(cli, ["read", "-p", bus.port, "-b", "2400", "--format", "json",
-                                      "eastron-sdm120@10"])
-    assert result.exit_code == 5, result.output
+    result = rtupoll("read", "-p", bus.port, "-b", "2400", "--format", "json",
+                     "eastron-sdm120@10")
+    assert result.returncode == 5, result.stderr
     recs = {r["field"]: r for r in map(json.loads, result.stdout.splitlines())}
     assert recs[REFUSED]["value"] is None
     assert recs[REFUSED]["text"] == "refused: exception 02 ILLEGAL DATA ADDRESS"
@@ -47,14 +46,14 @@ def test_poll_reports_the_rest_ok_and_remembers_the_refused_field(
     site.write_text(f"buses:\n  - port: {bus.port}\n    baudrate: 2400\n    devices:\n"
                     "      - {name: meter, profile: eastron-sdm120, address: 10}\n")
     args = ["poll", "-c", str(site), "--remember-holes", "--once", "--format", "json"]
-    first = CliRunner().invoke(cli, args)
+    first = rtupoll(*args)
     status = {r["field"]: r["status"] for r in map(json.loads, first.stdout.splitlines())}
     assert status.pop(REFUSED) == "exception"
     assert set(status.values()) == {"ok"} and "total_active_energy" in status
     kept = json.loads((tmp_path / "site.holes.json").read_text())["devices"]["meter"]
     assert kept["holes"] == [["input", 0x0158], ["input", 0x0159]]
     before = len(requests(bus))
-    second = CliRunner().invoke(cli, args)
+    second = rtupoll(*args)
     assert "learned earlier" in second.stderr
     again = {r["field"]: r["status"] for r in map(json.loads, second.stdout.splitlines())}
     assert again == {**status, REFUSED: "exception"}

@@ -20,10 +20,8 @@ from typing import Any
 
 import pytest
 from cli_runner import rtupoll
-from click.testing import CliRunner
 from forked_cli import rtupoll_popen, rtupoll_run
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_library
 from rtupoll.config.site import load_site
 from rtupoll.io.bus import Bus, PortSettings
@@ -45,9 +43,9 @@ PATIENT = ("--turnaround", "0.15")
 
 
 def scan_json(*args: str) -> tuple[int, list[dict[str, Any]], str]:
-    result = CliRunner().invoke(cli, ["scan", "--format", "json", *args])
+    result = rtupoll("scan", "--format", "json", *args)
     lines = [json.loads(line) for line in result.stdout.splitlines() if line.startswith("{")]
-    return result.exit_code, lines, result.stderr
+    return result.returncode, lines, result.stderr
 
 
 def test_five_seed_devices_on_one_bus_are_found_and_identified(sim: Sim) -> None:
@@ -121,10 +119,10 @@ def test_the_written_site_file_loads_and_polls(sim: Sim, tmp_path: Path) -> None
     # 2.0 s instead of 2.75)
     bus = sim("net-irnet-pro@2", "banner-ez-array@3", "radar-level@5", baudrate=19200)
     site = tmp_path / "site.yaml"
-    result = CliRunner().invoke(cli, ["scan", "--port", bus.port, "--addresses", "1-6",
-                                      "--baudrate", "19200", "--write-config", str(site),
-                                      *PATIENT])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("scan", "--port", bus.port, "--addresses", "1-6",
+                     "--baudrate", "19200", "--write-config", str(site),
+                     *PATIENT)
+    assert result.returncode == 0, result.stderr
     loaded = load_site(site)
     assert [(d.profile.id, d.address) for _, d in loaded.devices()] == [
         ("net-irnet-pro", 2), ("banner-ez-array", 3), ("radar-level", 5)]

@@ -430,9 +430,8 @@ def test_scan_on_the_wire_asks_a_late_address_again(sim: Callable[..., Simulated
 
 
 def test_timeout_ceiling_from_the_site_file_and_the_command_line(tmp_path: Path) -> None:
-    from click.testing import CliRunner
+    from cli_runner import rtupoll
 
-    from rtupoll.cli import cli
     from rtupoll.config.site import load_site
     from rtupoll.errors import ConfigError
 
@@ -447,8 +446,8 @@ def test_timeout_ceiling_from_the_site_file_and_the_command_line(tmp_path: Path)
         load_site(site)
     spec = from_specs("/dev/null", [("huiwen-aq", 3)], timeout_ceiling=0.8)
     assert spec.buses[0].devices[0].timeout_ceiling == 0.8
-    refused = CliRunner().invoke(cli, ["poll", "-c", str(site), "--timeout-ceiling", "1"])
-    assert refused.exit_code == 2 and "--timeout-ceiling" in refused.stderr
+    refused = rtupoll("poll", "-c", str(site), "--timeout-ceiling", "1")
+    assert refused.returncode == 2 and "--timeout-ceiling" in refused.stderr
 
 
 def test_the_ceiling_bounds_what_is_learned() -> None:

@@ -11,9 +11,8 @@ from __future__ import annotations
 import asyncio
 import json
 
-from click.testing import CliRunner
+from cli_runner import rtupoll
 
-from rtupoll.cli import cli
 from rtupoll.config.library import load_one
 from rtupoll.config.site import from_specs
 from rtupoll.jobs.hole_services import verify_device
@@ -80,11 +79,11 @@ def test_a_mismatch_stops_bridging_there_and_the_new_plan_verifies() -> None:
 
 
 def test_poll_verify_blocks_end_to_end() -> None:
-    result = CliRunner().invoke(cli, ["poll", "--simulate", "--fault", f"3:shift={SHIFT}",
-                                      "huiwen-aq@3", "--verify-blocks", "--once",
-                                      "--format", "json", "--fields",
-                                      "pm25,co2,temperature,humidity"])
-    assert result.exit_code == 0, result.output
+    result = rtupoll("poll", "--simulate", "--fault", f"3:shift={SHIFT}",
+                     "huiwen-aq@3", "--verify-blocks", "--once",
+                     "--format", "json", "--fields",
+                     "pm25,co2,temperature,humidity")
+    assert result.returncode == 0, result.stderr
     err = result.stderr
     assert "silent shift" in err and "temperature (0x753C)" in err
     assert "1 disagreed" in err

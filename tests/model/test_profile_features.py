@@ -209,6 +209,8 @@ class CountingTransport:
         return ReadResult((0,) * count, Evidence())  # nothing measured
 
     adapter_latency = 0.0  # BusLike: no USB adapter
+    echo_found = False  # BusLike: no line to hear an echo
+    stats = None  # BusLike: counts nothing
 
     def unit_counts(self, unit: int) -> UnitCounts:
         return heard_nothing(unit)  # no late replies

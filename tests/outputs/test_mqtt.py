@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from site_files import site_file
 from virtual import START, ScriptedBus, VirtualClock
 
 from rtupoll.config.site import from_specs, load_site
@@ -20,20 +21,6 @@ from rtupoll.jobs.scheduler import Backoff, BusPoller
 from rtupoll.outputs import homeassistant as ha
 from rtupoll.outputs.mqtt import plain, topic_name
 from rtupoll.rtu import Table
-
-
-def site_file(tmp_path: Path, mqtt: str) -> Path:
-    path = tmp_path / "site.yaml"
-    path.write_text(
-        "buses:\n"
-        "  - name: plant\n"
-        "    port: tcp://127.0.0.1:5020\n"
-        "    baudrate: 9600\n"
-        "    devices:\n"
-        "      - {name: air, profile: huiwen-aq, address: 3}\n"
-        "      - {name: tank, profile: radar-level, address: 4}\n" + mqtt)
-    return path
-
 
 # -- Home Assistant discovery -------------------------------------------------
 

@@ -25,7 +25,6 @@ TESTED_BY = {
     "io.interface": "config/test_library.py",
     "io.latency": "io/test_port_errors.py",
     "io.taps": "sniff/test_traffic.py",
-    "jobs.commission": "config/test_commission_plan.py",
     "jobs.hole_services": "jobs/test_holes.py",
     "jobs.services": "app/test_service_reload.py",
     "model.carried": "cli/test_decode.py",
@@ -60,6 +59,8 @@ THROUGH = {
     "cli.target": "--port/--config to a bus: every CLI test that polls goes through it",
     "cli.web": "click wiring of `web`: web/test_web_http.py runs the command",
     "config.ha_yaml": "Home Assistant's YAML tags: config/test_ha_import.py loads files with them",
+    "config.idle_gap": "the idle_gap key: config/test_site.py loads profiles and site files "
+                       "that set it",
     "config.listen": "the listen-address rule: the --http/--serve/--metrics tests parse with it",
     "config.telegraf_import": "config/test_import_corpus.py imports Telegraf files through it",
     "gateway.footer": "the gateway's status line: gateway/test_gateway_sim.py runs the gateway",

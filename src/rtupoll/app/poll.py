@@ -266,7 +266,7 @@ def _echo_found(scheduler: Scheduler, say: Callable[[str], None]) -> None:
     from rtupoll.rtu.line import ECHO_FOUND
 
     for bp in scheduler.buses:
-        if getattr(bp.transport, "echo_found", False):
+        if bp.transport.echo_found:
             say(f"{bp.config.name}: {ECHO_FOUND}")
 
 

@@ -17,6 +17,7 @@ import yaml
 
 from rtupoll.config import scale_by, transform_key
 from rtupoll.config.compiled import Source
+from rtupoll.config.idle_gap import idle_gap
 from rtupoll.config.paths import find_parent
 from rtupoll.config.yamlsrc import Node, from_bytes, read_bytes
 from rtupoll.errors import EncodeError
@@ -38,7 +39,6 @@ from rtupoll.model.profile import (
     Severity,
     Variant,
     Verification,
-    idle_gap_error,
     is_modicon_reference,
     squashed,
 )
@@ -276,16 +276,6 @@ def _limits(node: Node) -> Limits:
         lost_after_powerup=_opt(m, "lost_after_powerup", lambda n: n.integer(0, 100), 0),
         idle_gap=_opt(m, "idle_gap", idle_gap, 0.0),
     )
-
-
-
-def idle_gap(node: Node) -> float:
-    """An ``idle_gap:`` in seconds (a profile's ``limits``; a site file's device or bus)."""
-    gap = node.number()
-    why = idle_gap_error(gap)
-    if why:
-        raise node.fail(why)
-    return float(gap)
 
 
 def _addresses(node: Node) -> Addresses:

@@ -23,6 +23,7 @@ from rtupoll.config.gateway_settings import ServeConfig
 from rtupoll.config.gateway_settings import from_node as serve_from_node
 from rtupoll.config.http_settings import HttpSettings
 from rtupoll.config.http_settings import from_node as http_from_node
+from rtupoll.config.idle_gap import idle_gap
 from rtupoll.config.library import load_one, note_use
 from rtupoll.config.listen import host_port
 from rtupoll.config.mqtt_settings import MqttSettings
@@ -31,7 +32,7 @@ from rtupoll.errors import ConfigError, RefusedError, RtupollError, UsageError
 from rtupoll.frozen import frozen
 from rtupoll.io.port_names import gateway
 from rtupoll.model.planner import plan
-from rtupoll.model.profile import Addressing, Field, Poll, Profile, idle_gap_error
+from rtupoll.model.profile import Addressing, Field, Poll, Profile
 from rtupoll.rtu import Framing
 
 if TYPE_CHECKING:  # the YAML parser: only when a site file is read
@@ -223,15 +224,6 @@ def _bus(node: Node, extra: Sequence[Path]) -> BusConfig:
     check_bus(bus, [fail_at(n) for n in dnodes],
               {k: f"at line {m[k].line}" for k in serial if k in m})
     return bus
-
-
-def idle_gap(node: Node) -> float:
-    """``idle_gap:`` on a device or a bus, as in a profile's ``limits`` (seconds)."""
-    gap = node.number()
-    why = idle_gap_error(gap)
-    if why:
-        raise node.fail(why)
-    return float(gap)
 
 
 def _rs485(node: Node) -> tuple[float, float] | None:

@@ -63,6 +63,17 @@ class BusLike(Protocol):
     framing: Framing
     adapter_latency: float  # a USB adapter's latency timer, added to every reply's time
 
+    @property
+    def echo_found(self) -> bool:
+        """An echo came back without ``echo`` set (``Line.adopt_echo``: now consumed)."""
+        ...
+
+    @property
+    def stats(self) -> BusStats | None:
+        """What the bus did (``BusStats``: its busy time, its attempts); None: a bus that
+        counts nothing."""
+        ...
+
     async def open(self) -> None: ...
 
     async def close(self) -> None: ...

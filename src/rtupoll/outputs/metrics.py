@@ -271,8 +271,8 @@ class SchedulerCollector:
             b = bp.config.name
             util.add_metric([b], bp.load.utilisation(now))
             btx.add_metric([b], bp.load.transactions)
-            stats = getattr(bp.transport, "stats", None)
-            if stats is not None and isinstance(getattr(stats, "busy", None), float):
+            stats = bp.transport.stats
+            if stats is not None:
                 busy.add_metric([b], stats.busy)
             port_up.add_metric([b], 0.0 if bp.port_error else 1.0)
             losses.add_metric([b], self.bus_counters.get(b, BusCounters()).port_losses)

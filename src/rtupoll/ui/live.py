@@ -303,7 +303,7 @@ class PollView:
                 line.append(f" · {bus.load.rate(now):.0f} transactions/s")
             if bus.port_error:
                 line.append(f" · {bus.port_error}", style="bold red")
-            if getattr(bus.transport, "echo_found", False):  # (Line.adopt_echo)
+            if bus.transport.echo_found:  # (Line.adopt_echo)
                 line.append(" · the adapter echoes: add --echo", style="bold yellow")
             parts.append(line)
             heads = ("  device", "state", "ok", "retried", "timeout", "late", "garbled",

@@ -127,7 +127,7 @@ class StateLog(Service):
         bus = self._bus_of.get(name, "")
         now = self._wall()
         if bus not in self._echoed and self._scheduler is not None and any(
-                getattr(bp.transport, "echo_found", False) for bp in self._scheduler.buses
+                bp.transport.echo_found for bp in self._scheduler.buses
                 if bp.config.name == bus):  # once per bus (rtu.line: Line.adopt_echo)
             self._echoed.add(bus)
             log.warning("%s: %s", bus, ECHO_FOUND, extra={"event": "echo", "bus": bus})
