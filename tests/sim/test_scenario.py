@@ -74,6 +74,18 @@ def test_set_values_are_parsed_for_the_field() -> None:
     assert c.devices[1].pins == {"outputs": [], "measurement_1_mode": "TBB"}
 
 
+def test_a_sentinel_is_set_by_its_name_and_read_as_it() -> None:
+    from rtupoll.sim.device import SimDevice
+
+    c = build(["r4dcb08@1"], sets=["r4dcb08@1.temperature_1=no_sensor"], tick=None)
+    assert c.devices[0].pins == {"temperature_1": "NO_SENSOR"}
+    got = SimDevice(c.devices[0]).value("temperature_1")
+    assert got.sentinel is not None and got.sentinel.name == "NO_SENSOR"
+    with pytest.raises(UsageError, match=r"'hot' is not a number nor one of its sentinels "
+                                         r"\(NO_SENSOR\)"):
+        build(["r4dcb08@1"], sets=["r4dcb08@1.temperature_1=hot"])
+
+
 @pytest.mark.parametrize(("args", "message"), [
     ({"sets": ["huiwen-aq@9.co2=1"]}, "no device huiwen-aq@9 on the simulated bus"),
     ({"sets": ["huiwen-aq@3.cox=1"]}, "has no field 'cox'"),

@@ -144,7 +144,8 @@ def parse_device(text: str) -> tuple[str, int]:
 
 
 def parse_value(field: Field, text: str) -> Value:
-    """Command-line text -> a value ``field_words`` accepts (numbers, names, flag lists)."""
+    """Command-line text -> a value ``field_words`` accepts (numbers, names, flag lists,
+    a sentinel's name)."""
     t = text.strip()
     if field.layout.type.value == "string":
         return text
@@ -157,7 +158,11 @@ def parse_value(field: Field, text: str) -> Value:
             pass
     if field.enum:
         return t
-    raise UsageError(f"{field.name}: {text!r} is not a number")
+    sentinels = {c.name.lower(): c.name for c in field.sentinels.values()}
+    if t.lower() in sentinels:  # what the device says instead of a value: NO_SENSOR
+        return sentinels[t.lower()]
+    names = f" nor one of its sentinels ({', '.join(sentinels.values())})" if sentinels else ""
+    raise UsageError(f"{field.name}: {text!r} is not a number{names}")
 
 
 def _checked(cfg: SimDeviceConfig, name: str, value: Value) -> Value:
