@@ -4,8 +4,26 @@ from __future__ import annotations
 
 import fcntl
 import termios
+import time
+from collections.abc import Callable
 
 
 def in_pipe(fd: int) -> int:
     """Bytes in the pipe ``fd`` reads, not yet read."""
     return int.from_bytes(fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"), "little")
+
+
+def wait_full(fd: int, more: Callable[[], object], *, hang: float = 60.0) -> int:
+    """Wait until the pipe ``fd`` reads has stopped filling across two calls of ``more``
+    (a wait for more traffic, whose output the writer is given): its writer is blocked
+    in a write. A full pipe holds 32-64 KiB, by how the writes fell into its pages, so
+    no byte count says it. Its bytes then."""
+    deadline = time.monotonic() + hang
+    seen, still = -1, 0
+    while still < 2:
+        assert time.monotonic() < deadline, f"the pipe still fills: {in_pipe(fd)} bytes"
+        more()
+        now = in_pipe(fd)
+        still = still + 1 if now == seen and now > 0 else 0
+        seen = now
+    return seen

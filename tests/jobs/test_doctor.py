@@ -4,8 +4,10 @@ device, a missing port), through the real command."""
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import json
+import types
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from rtupoll.io.latency import latency_timer
 from rtupoll.io.port_settings import PortSettings
 from rtupoll.io.syncbus import SyncBus, run
 from rtupoll.jobs.doctor import Doctor, Finding
+from rtupoll.jobs.doctor import _Heard as Heard
 from rtupoll.sim.runner import SimulatedBus, simulated_bus
 
 Sim = Callable[..., SimulatedBus]
@@ -69,11 +72,12 @@ def test_an_echo_that_comes_back_at_once_is_said_so_after_three_probes() -> None
 
 
 def test_a_device_that_needs_an_idle_gap_gets_one_near_its_own(sim: Sim) -> None:
-    bus = sim("huiwen-aq@3", tick=None, faults=["3:gap=0.05"])
+    # (0.2 s: a busy host's delays, tens of ms, do not make a 0.1 s trial look like 0.2)
+    bus = sim("huiwen-aq@3", tick=None, faults=["3:gap=0.2"])
     got = findings("-p", bus.port, "-b", "9600", "huiwen-aq@3")
     assert got["idle-gap"]["status"] == "warning"
-    assert got["idle-gap"]["value"] == 0.05  # the first tried that is not shorter than 50 ms
-    assert got["idle-gap"]["fix"] == "give it idle_gap: 0.05 (--idle-gap 0.05)"
+    assert got["idle-gap"]["value"] == 0.2  # the first tried that is not shorter than 200 ms
+    assert got["idle-gap"]["fix"] == "give it idle_gap: 0.2 (--idle-gap 0.2)"
     assert got["reply"]["status"] == "ok"  # its reads after it kept the gap
 
 
@@ -112,3 +116,31 @@ def test_a_usb_adapters_latency_timer_with_its_fix(sim: Sim, tmp_path: Path) -> 
     assert (latency.status, latency.value) == ("warning", 0.016)
     assert latency.text == "the USB adapter's latency timer is 16 ms, added to every reply"
     assert "latency_timer" in latency.fix
+
+
+def test_a_gap_trial_whose_silence_came_out_too_long_is_tried_again() -> None:
+    """A trial of a 20 ms gap whose request went 60 ms after the last byte (a busy host)
+    says nothing of 20 ms: tried again, it counts once its silence is under the next gap
+    tried (50 ms); three too long, and the gap is not taken."""
+
+    def trials(silences: list[float]) -> tuple[bool, int]:
+        heard = Heard()
+        asked = [0]
+        now = [100.0]
+
+        async def read(after: float) -> tuple[bool, list[tuple[float, bytes]]]:
+            asked[0] += 1
+            # the longer silence first (after + 0.1) as asked, then the trial's, scripted
+            now[0] += after if after > 0.1 else silences.pop(0)
+            heard.chunks.append((now[0], True, b"request"))
+            now[0] += 0.01
+            heard.chunks.append((now[0], False, b"reply"))
+            return True, []
+
+        holder = types.SimpleNamespace(heard=heard)
+        got = asyncio.run(Doctor._answers_after(holder, read, 0.02, 0.05))  # type: ignore[arg-type]
+        return got, asked[0]
+
+    assert trials([0.06, 0.021]) == (True, 4)  # the first trial retried
+    assert trials([0.06, 0.07, 0.08]) == (False, 6)  # never a fair trial: not taken
+    assert trials([0.021]) == (True, 2)

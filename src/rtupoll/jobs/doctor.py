@@ -12,10 +12,11 @@ bytes that come back are watched through the line's tap, with the line's clock.
 from __future__ import annotations
 
 import itertools
+import math
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
 from rtupoll.errors import BusError, DeviceTimeout
@@ -31,6 +32,8 @@ ECHO_TRIES = 3  # echo probes, at most, before an echo is said to come back all 
 QUIET = 1.0  # seconds of silence before the first read of a device (any idle gap it needs)
 READS = 5  # reads of the device for its reply time
 GAPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)  # idle gaps tried, seconds
+GAP_TRIES = 3  # trials of a gap whose silence came out too long, at most
+Chunks = list[tuple[float, bytes]]  # (time, bytes) heard on the line, in order
 
 
 @dataclass(frozen=True)
@@ -55,11 +58,17 @@ class _Heard:
     def __call__(self, sent: bool, data: bytes) -> None:
         self.chunks.append((clock.now(), sent, data))
 
-    def since(self, mark: int) -> list[tuple[float, bytes]]:
+    def since(self, mark: int) -> Chunks:
         return [(t, d) for t, _, d in self.chunks[mark:]]
 
+    def silence_before(self, mark: int) -> float:
+        """Seconds from the chunk before ``mark`` to the one at it (the request sent)."""
+        if mark == 0 or mark >= len(self.chunks):
+            return math.inf
+        return self.chunks[mark][0] - self.chunks[mark - 1][0]
 
-def _reply(chunks: list[tuple[float, bytes]], request: bytes) -> list[tuple[float, bytes]]:
+
+def _reply(chunks: Chunks, request: bytes) -> Chunks:
     """The chunks of the reply: after the request sent, and after its echo if the adapter
     sent it back (a chunk holding both is split, at its time)."""
     rest = chunks[1:]
@@ -153,7 +162,7 @@ class Doctor:
         """A device's reply time, the pauses inside its replies and its idle gap."""
         bus, char = self.bus, self.bus.framing.char_time
 
-        async def read(after: float = 0.0) -> tuple[bool, list[tuple[float, bytes]]]:
+        async def read(after: float = 0.0) -> tuple[bool, Chunks]:
             time.sleep(after)  # (a SyncBus: nothing else runs meanwhile)
             return await self._read(unit, table, address, count, timeout)
 
@@ -168,9 +177,8 @@ class Doctor:
             out.append(Finding("idle-gap", "ok", "answers a request sent 3.5 characters "
                                "after the line went quiet: needs no idle gap", value=0.0))
         else:
-            for g in GAPS:
-                # a read after a longer silence (it answers), then one after ``g``
-                if (await read(g + 0.1))[0] and (await read(g))[0]:
+            for g, longer in itertools.pairwise((*GAPS, math.inf)):
+                if await self._answers_after(read, g, longer):
                     gap = g
                     break
             if gap:
@@ -218,8 +226,25 @@ class Doctor:
                                "characters", value=longest))
         return out
 
+    async def _answers_after(self, read: Callable[[float], Awaitable[tuple[bool, Chunks]]],
+                             gap: float, longer: float) -> bool:
+        """A read after a longer silence (it answers), then one after ``gap``: answered.
+        A trial whose silence came out as long as the next gap tried (a busy host's
+        sleep, a scheduler's delay) proves nothing of ``gap``: tried again, up to
+        ``GAP_TRIES`` times."""
+        for _ in range(GAP_TRIES):
+            if not (await read(gap + 0.1))[0]:
+                return False
+            mark = len(self.heard.chunks)
+            answered, _ = await read(gap)
+            if not answered:
+                return False
+            if self.heard.silence_before(mark) < longer:
+                return True
+        return False
+
     async def _read(self, unit: int, table: Table, address: int, count: int,
-                    timeout: float) -> tuple[bool, list[tuple[float, bytes]]]:
+                    timeout: float) -> tuple[bool, Chunks]:
         """One read, no retry: answered (an exception or garbled reply counts), and the
         chunks on the line meanwhile: the request (as it was sent), then what came."""
         mark = len(self.heard.chunks)
