@@ -6,6 +6,10 @@ import fcntl
 import termios
 import time
 from collections.abc import Callable
+from subprocess import Popen
+from typing import Any
+
+from rtupoll.sim.runner import SimulatedBus
 
 
 def in_pipe(fd: int) -> int:
@@ -27,3 +31,16 @@ def wait_full(fd: int, more: Callable[[], object], *, hang: float = 60.0) -> int
         still = still + 1 if now == seen and now > 0 else 0
         seen = now
     return seen
+
+
+def stall(proc: Popen[Any], bus: SimulatedBus) -> None:
+    """Until ``proc``'s stdout pipe, which nobody reads, is full and more of its output
+    (of traffic on ``bus``) waits beyond it in its writer's queue."""
+    assert proc.stdout is not None
+
+    def more() -> None:  # traffic meanwhile: output queued beyond the pipe
+        assert proc.poll() is None, "it ended"
+        bus.wait_wire(20, after=bus.wire[-1].time if bus.wire else 0.0, timeout=30)
+
+    wait_full(proc.stdout.fileno(), more)
+    more()

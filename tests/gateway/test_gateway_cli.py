@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import pytest
 from conftest import ANSWERED
 from forked_cli import rtupoll_popen
-from pipe_fill import wait_full
+from pipe_fill import stall
 
 from rtupoll.rtu import crc_ok, with_crc
 from rtupoll.sim.runner import SimulatedBus
@@ -136,12 +136,7 @@ def test_a_stdout_nobody_reads_stops_neither_the_gateway_nor_sigterm(sim: Sim) -
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stdout is not None and proc.stderr is not None
     try:
-        def more() -> None:  # polled on meanwhile: its output queued beyond the pipe
-            assert proc.poll() is None, "it ended"
-            bus.wait_wire(20, after=bus.wire[-1].time if bus.wire else 0.0, timeout=30)
-
-        wait_full(proc.stdout.fileno(), more)  # nobody reads: it fills, then the queue
-        more()
+        stall(proc, bus)  # nobody reads: the pipe fills, then the queue
         with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
             s.sendall(bytes.fromhex("00 07 00 00 00 06 03 04 75 39 00 01"))  # co2
             reply = b""

@@ -25,7 +25,7 @@ import pytest
 from cli_runner import Ran, rtupoll
 from conftest import PATIENT
 from forked_cli import rtupoll_popen
-from pipe_fill import wait_full
+from pipe_fill import stall
 
 from rtupoll.model.interpret import interpret
 from rtupoll.model.planner import plan
@@ -339,12 +339,7 @@ def test_a_stdout_nobody_reads_does_not_stop_ctrl_c(sim: Sim, tmp_path: Path) ->
                           "huiwen-aq@3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stdout is not None and proc.stderr is not None
     try:
-        def more() -> None:  # polled on meanwhile: its output queued beyond the pipe
-            assert proc.poll() is None, "it ended"
-            bus.wait_wire(20, after=bus.wire[-1].time if bus.wire else 0.0, timeout=30)
-
-        wait_full(proc.stdout.fileno(), more)  # nobody reads: it fills, then the queue
-        more()
+        stall(proc, bus)  # nobody reads: the pipe fills, then the queue
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
     finally:
