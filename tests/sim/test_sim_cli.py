@@ -16,6 +16,7 @@ import pytest
 from cli_runner import rtupoll
 from conftest import ANSWERED, RawPort
 from forked_cli import rtupoll_popen
+from pipe_fill import wait_full
 
 from rtupoll.rtu.messages import ReadReply, ReadRequest
 
@@ -120,6 +121,30 @@ def test_verbose_prints_the_frames_and_faults(simulate: Callable[..., Simulator]
     out = s.until("(crc)")
     assert "-> 01 04 00 06 00 02 91 CA  (unit 1 read input registers 0x0006 x2)" in out
     s.stop()
+
+
+def test_verbose_to_a_pipe_nobody_reads_holds_no_reply_back(
+        simulate: Callable[..., Simulator], raw_port: Raw) -> None:
+    """The frames queue beyond the full pipe (ui.pipe_writer): the devices go on
+    answering, Ctrl-C ends it, and what was never read is counted on stderr."""
+    s = simulate("net-irnet-pro@1", "-v", "--tick", "0")
+    port = raw_port(s.port, 4800)
+    read = ReadRequest(1, 4, 6, 2).frame()
+    assert s.proc.stdout is not None
+
+    def more() -> None:  # traffic: frames for the full pipe
+        for _ in range(40):
+            assert len(port.transact(read, 9)) == 9
+    wait_full(s.proc.stdout.fileno(), more)  # nothing reads: the pipe is full
+    for _ in range(200):  # (the simulator's thread once blocked in its write here)
+        assert len(port.transact(read, 9)) == 9
+    s.proc.send_signal(signal.SIGINT)
+    assert s.proc.wait(timeout=60) == 0  # (still unread: its stdout)
+    assert s.proc.stderr is not None
+    err = s.proc.stderr.read()
+    assert re.search(rb"^rtupoll: stdout: \d+ bytes not written: nothing read them for 2 s$",
+                     err, re.MULTILINE), err
+    assert b"Traceback" not in err
 
 
 def test_tcp(simulate: Callable[..., Simulator], raw_port: Raw) -> None:

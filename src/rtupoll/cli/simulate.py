@@ -20,6 +20,7 @@ from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
 from rtupoll.rtu import Table
+from rtupoll.ui.pipe_writer import DRAIN, MOST, PipeWriter, threaded
 
 if TYPE_CHECKING:
     from rtupoll.sim.runner import SimulatedBus, SimulatedLines
@@ -112,9 +113,10 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
             profile_dirs=profile_dirs, link=link, tap=tap, echo=echo)
     for line in lines:  # (replay too)
         line.echo = echo
+    shown = _Shown()
     if verbose:
         for i, line in enumerate(lines):
-            line.on_wire = _shower(t0, f"line {i + 1} " if len(lines) > 1 else "")
+            line.on_wire = shown.shower(t0, f"line {i + 1} " if len(lines) > 1 else "")
     with noted_signals() as caught:
         lines.start()
         try:
@@ -125,6 +127,8 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
             else:
                 _banner(lines)
             sys.stdout.flush()  # a pipe is block-buffered; whoever reads us needs the port
+            if verbose and threaded(sys.stdout):
+                shown.pipe = PipeWriter(sys.stdout)
             while not caught:
                 time.sleep(0.1)  # (the handler only notes a signal: seen within 0.1 s)
         finally:
@@ -135,13 +139,44 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
         requests += line.engine.requests
         replies += line.engine.replies
     newline = "\n" if caught[:1] == [signal.SIGINT] else ""  # after the terminal's ^C
-    click.echo(f"{newline}stopped after {requests} requests ({replies} replies).")
+    shown.line(f"{newline}stopped after {requests} requests ({replies} replies).")
+    shown.close()
 
 
-def _shower(t0: float, prefix: str) -> Callable[[WireFrame], None]:
-    def show(frame: WireFrame) -> None:
-        click.echo(f"{frame.time - t0:10.4f}  {prefix}{frame}")
-    return show
+class _Shown:
+    """What ``simulate`` prints once it serves: --verbose's frames (from the simulator's
+    thread) and its last line. To a pipe they go through a ``PipeWriter``, so a reader
+    that stalls never holds the simulated devices' replies; past ``MOST`` bytes waiting,
+    or with the reader gone, frames are counted, not kept."""
+
+    def __init__(self) -> None:
+        self.pipe: PipeWriter | None = None
+        self.lost = 0
+
+    def shower(self, t0: float, prefix: str) -> Callable[[WireFrame], None]:
+        def show(frame: WireFrame) -> None:
+            self.line(f"{frame.time - t0:10.4f}  {prefix}{frame}")
+        return show
+
+    def line(self, text: str) -> None:
+        if self.pipe is None:
+            click.echo(text)
+        elif self.pipe.held >= MOST:
+            self.lost += 1
+        else:
+            try:
+                self.pipe.write(text + "\n")
+            except OSError:  # the reader has gone: the devices go on answering
+                self.lost += 1
+
+    def close(self) -> None:
+        left = self.pipe.close() if self.pipe is not None else 0
+        if self.lost:
+            click.echo(f"rtupoll: stdout: {self.lost} frames not written: their reader "
+                       f"went away or left {MOST >> 20} MiB unread", err=True)
+        if left:
+            click.echo(f"rtupoll: stdout: {left} bytes not written: nothing read them for "
+                       f"{DRAIN:g} s", err=True)
 
 
 def _banner(lines: SimulatedLines) -> None:

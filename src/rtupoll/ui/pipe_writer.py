@@ -1,6 +1,6 @@
-"""``poll``'s records and ``sniff``'s lines on a stdout that is a pipe (or a socket),
-written by a thread of their own: a reader that stops reading never stops the
-event loop, nor the listening.
+"""``poll``'s records, ``sniff``'s lines and ``simulate -v``'s frames on a stdout that
+is a pipe (or a socket), written by a thread of their own: a reader that stops reading
+never stops the event loop, the listening, nor the simulated devices.
 
 Were the records written from the loop, a full pipe (``rtupoll poll ... | consumer``
 whose consumer stalls) would block it in ``write``: the gateway's clients unanswered,
@@ -11,7 +11,8 @@ in pieces of whole lines a pipe takes whole or not at all.
 Once ``LIMIT`` bytes wait, ``write`` returns an event that holds the bus's polling until
 the reader has caught up (``jobs.scheduler.Sink``): polling slows to the reader's pace,
 nothing is dropped, and everything else (the gateway, MQTT's commands) goes on
-(``sniff``, which cannot hold the line back, keeps at most ``MOST`` bytes). At the
+(``sniff`` and ``simulate``, which cannot hold the line back, keep at most ``MOST``
+bytes). At the
 end ``close`` waits for the queue to be written while the reader takes something, and
 gives up after ``DRAIN`` seconds in which it took nothing, with the count of bytes not
 written.
