@@ -12,10 +12,9 @@ Once ``LIMIT`` bytes wait, ``write`` returns an event that holds the bus's polli
 the reader has caught up (``jobs.scheduler.Sink``): polling slows to the reader's pace,
 nothing is dropped, and everything else (the gateway, MQTT's commands) goes on
 (``sniff`` and ``simulate``, which cannot hold the line back, keep at most ``MOST``
-bytes). At the
-end ``close`` waits for the queue to be written while the reader takes something, and
-gives up after ``DRAIN`` seconds in which it took nothing, with the count of bytes not
-written.
+bytes). At the end ``close`` waits for the queue to be written while the reader takes
+something, and gives up after ``DRAIN`` seconds in which it took nothing, with the count
+of bytes not written.
 
 POSIX pipes and sockets only: on Windows (newline translation, console code pages), to
 a file, a terminal or /dev/null the records are written directly.
