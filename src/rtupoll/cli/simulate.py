@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -128,7 +129,7 @@ def simulate(devices: tuple[str, ...], baud: int | None, turnaround: float | Non
                 _banner(lines)
             sys.stdout.flush()  # a pipe is block-buffered; whoever reads us needs the port
             if verbose and threaded(sys.stdout):
-                shown.pipe = PipeWriter(sys.stdout)
+                shown.to_pipe()
             while not caught:
                 time.sleep(0.1)  # (the handler only notes a signal: seen within 0.1 s)
         finally:
@@ -152,6 +153,12 @@ class _Shown:
     def __init__(self) -> None:
         self.pipe: PipeWriter | None = None
         self.lost = 0
+        self._lock = threading.Lock()  # a frame is printed before the writer, or by it
+
+    def to_pipe(self) -> None:
+        """From now on through a ``PipeWriter`` (which first flushes what was printed)."""
+        with self._lock:
+            self.pipe = PipeWriter(sys.stdout)
 
     def shower(self, t0: float, prefix: str) -> Callable[[WireFrame], None]:
         def show(frame: WireFrame) -> None:
@@ -159,15 +166,16 @@ class _Shown:
         return show
 
     def line(self, text: str) -> None:
-        if self.pipe is None:
-            click.echo(text)
-        elif self.pipe.held >= MOST:
-            self.lost += 1
-        else:
-            try:
-                self.pipe.write(text + "\n")
-            except OSError:  # the reader has gone: the devices go on answering
+        with self._lock:
+            if self.pipe is None:
+                click.echo(text)
+            elif self.pipe.held >= MOST:
                 self.lost += 1
+            else:
+                try:
+                    self.pipe.write(text + "\n")
+                except OSError:  # the reader has gone: the devices go on answering
+                    self.lost += 1
 
     def close(self) -> None:
         left = self.pipe.close() if self.pipe is not None else 0
