@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 from rtupoll import aio
 from rtupoll.errors import UsageError
 from rtupoll.ui.outfile import OutputFile
-from rtupoll.ui.pipe_writer import DRAIN, PipeWriter, threaded
+from rtupoll.ui.pipe_writer import PipeWriter, threaded, unread
 from rtupoll.ui.record_writer import RecordWriter
 
 if TYPE_CHECKING:
@@ -137,8 +137,7 @@ def _records(fmt: str, output: Path | None, site: Site, say: Callable[[str], Non
         finally:
             left = pipe.close() if pipe is not None else 0
             if left:
-                say(f"stdout: {left} bytes of records not written: nothing read them for "
-                    f"{DRAIN:g} s")
+                say(unread(left, "bytes of records"))
         return
     try:  # whole records or nothing (rtupoll.ui.outfile)
         fh = OutputFile(output)

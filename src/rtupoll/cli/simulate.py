@@ -21,7 +21,7 @@ from rtupoll.cli.options import profiles_option
 from rtupoll.cli.params import Seconds
 from rtupoll.errors import UsageError
 from rtupoll.rtu import Table
-from rtupoll.ui.pipe_writer import DRAIN, MOST, PipeWriter, threaded
+from rtupoll.ui.pipe_writer import MOST, PipeWriter, threaded, unread
 
 if TYPE_CHECKING:
     from rtupoll.sim.runner import SimulatedBus, SimulatedLines
@@ -183,8 +183,7 @@ class _Shown:
             click.echo(f"rtupoll: stdout: {self.lost} frames not written: their reader "
                        f"went away or left {MOST >> 20} MiB unread", err=True)
         if left:
-            click.echo(f"rtupoll: stdout: {left} bytes not written: nothing read them for "
-                       f"{DRAIN:g} s", err=True)
+            click.echo(f"rtupoll: {unread(left)}", err=True)
 
 
 def _banner(lines: SimulatedLines) -> None:

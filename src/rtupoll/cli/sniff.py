@@ -26,7 +26,7 @@ from rtupoll.sniff.capfile import Capture, CaptureWriter, describe_framing, read
 from rtupoll.sniff.lines import frame_line
 from rtupoll.sniff.model import BusView, Known
 from rtupoll.sniff.session import Session, Sink
-from rtupoll.ui.pipe_writer import DRAIN, MOST, PipeWriter, threaded
+from rtupoll.ui.pipe_writer import MOST, PipeWriter, threaded, unread
 from rtupoll.ui.records import to_json
 
 REFRESH = 0.25  # seconds between redraws of the live table
@@ -145,8 +145,7 @@ def sniff(devices: tuple[DeviceSpec, ...], port: str | None, config: Path | None
             click.echo(f"rtupoll: stdout: {lost[0]} transactions not written: "
                        f"{MOST >> 20} MiB waited for a reader", err=True)
         if left:
-            click.echo(f"rtupoll: stdout: {left} bytes not written: nothing read them "
-                       f"for {DRAIN:g} s", err=True)
+            click.echo(f"rtupoll: {unread(left)}", err=True)
 
 
 def _listen(port: str, framing: Framing, view: BusView, sink: Sink, *, fmt: str, title: str,

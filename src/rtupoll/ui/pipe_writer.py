@@ -39,6 +39,12 @@ MOST = 64 << 20  # bytes queued at most by a writer that cannot hold its source 
 PIPE_BUF = getattr(select, "PIPE_BUF", 512)  # bytes a pipe takes in one write, or none
 
 
+def unread(left: int, what: str = "bytes") -> str:
+    """The line for the ``left`` bytes ``close`` could not write (``what``: as they are
+    named)."""
+    return f"stdout: {left} {what} not written: nothing read them for {DRAIN:g} s"
+
+
 def threaded(stream: TextIO) -> bool:
     """Records to ``stream`` go through a ``PipeWriter``: on POSIX, a pipe or a socket
     (a reader at the other end; a file, a terminal or /dev/null takes what it is given)."""
